@@ -1,0 +1,1 @@
+"""The warpgauss command-line interface (typer)."""

@@ -1,0 +1,42 @@
+"""Shared fixtures: Warp devices (CPU always, CUDA when present) and small random primitive sets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+
+def _devices() -> list[str]:
+    from warpgauss._warp import warp
+
+    wp = warp()
+    return ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
+
+
+@pytest.fixture(params=_devices())
+def device(request) -> str:
+    return request.param
+
+
+def random_quaternions(rng: np.random.Generator, n: int) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def random_params(
+    rng: np.random.Generator,
+    n: int,
+    shape_xyz: tuple[int, int, int],
+    log_scale: tuple[float, float] = (-0.5, 1.0),
+    aniso: float = 1.0,
+) -> np.ndarray:
+    """Rotated anisotropic primitives of mixed size with centres spread over (and a little past) the grid."""
+    p = np.zeros((n, 12), np.float32)
+    lo = -0.5 - 1.0
+    p[:, 0:3] = rng.uniform(lo, np.asarray(shape_xyz) - 0.5 + 1.0, size=(n, 3))
+    base = rng.uniform(*log_scale, size=(n, 1))
+    p[:, 3:6] = base + rng.uniform(-np.log(aniso) / 2, np.log(aniso) / 2, size=(n, 3))
+    p[:, 6:10] = random_quaternions(rng, n)
+    p[:, 10] = rng.uniform(0.0, 1.0, n)
+    p[:, 11] = rng.uniform(0.05, 1.0, n)
+    return p

@@ -1,0 +1,59 @@
+"""Atomic file writes: nothing partial is ever left at the destination."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+from .errors import WarpgaussError
+
+
+def check_writable(path: str | os.PathLike, *, force: bool = False) -> Path:
+    """Validate an output path before any heavy work starts.
+
+    Args:
+        path: Destination file.
+        force: Allow replacing an existing file.
+
+    Returns:
+        The destination as a :class:`~pathlib.Path`.
+    """
+    p = Path(path)
+    if p.exists() and not force:
+        raise WarpgaussError(f"{p} already exists; pass --force to overwrite it or choose another output path")
+    if p.exists() and p.is_dir():
+        raise WarpgaussError(f"{p} is a directory; give a file name for the output")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise WarpgaussError(f"output directory {parent} does not exist; create it first")
+    return p
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike):
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds.
+
+    The temporary file keeps the destination's suffix so that writers which choose a format from
+    the extension (VTK, h5py) behave as they would on the final name.
+    """
+    dest = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.stem}.", suffix=f".tmp{dest.suffix}", dir=dest.parent or ".")
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, dest)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (temp file + fsync + rename)."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())

@@ -1,0 +1,244 @@
+"""Truncation-aware evaluation of a Gaussian primitive set: points, grids, and the dense reference.
+
+:class:`GaussianField` uploads a parameter array once, prepares every primitive (precision matrix,
+5-sigma bounding box), bins primitives by truncation radius into cell grids, and answers queries
+at arbitrary points (:meth:`GaussianField.evaluate`) or on a whole output grid
+(:meth:`GaussianField.decode`). :meth:`GaussianField.evaluate_dense` runs the all-pairs reference
+with the identical cut; it is for tests and the pre-run self-test only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._warp import resolve_device, warp
+from .errors import WarpgaussError
+
+MIN_CELL = 1.0  # smallest cell edge in voxels: finer cells cost more cell visits than they save
+MAX_LEVEL_CELLS = 1 << 24  # cells per level (64 MiB of int32 ranges at most); coarser beyond
+DECODE_SLAB_VOXELS = 1 << 24  # output voxels per decode launch (64 MiB of float32)
+EVAL_CHUNK_POINTS = 1 << 22  # points per evaluation launch
+
+
+@dataclass(frozen=True)
+class BinPlan:
+    """Cell levels for binning primitives by truncation radius.
+
+    Attributes:
+        sizes: Cell edge of each level in voxels, ascending; the last level is one global cell.
+        dims: Cells per axis (x, y, z) of each level.
+        offsets: First cell id of each level in the concatenated cell arrays.
+        total_cells: Number of cells over all levels.
+    """
+
+    sizes: tuple[float, ...]
+    dims: tuple[tuple[int, int, int], ...]
+    offsets: tuple[int, ...]
+    total_cells: int
+
+
+def plan_bins(radius: np.ndarray, shape_xyz: tuple[int, int, int]) -> BinPlan:
+    """Choose cell levels for primitives of the given truncation radii on a grid of ``shape_xyz``.
+
+    One level per occupied power-of-two radius class, its cells as large as the largest radius of
+    the class (so a point needs only the 3^3 neighbouring cells), coarsened where a level would
+    exceed :data:`MAX_LEVEL_CELLS`. A final global level catches any primitive larger than planned,
+    so evaluation stays exact even with a stale plan.
+
+    Args:
+        radius: Per-primitive truncation radius in voxels (max half-extent of the 5-sigma box).
+        shape_xyz: Grid size in voxels; cells tile [-0.5, n - 0.5] on each axis.
+    """
+    r = np.asarray(radius, dtype=np.float64)
+    r = r[np.isfinite(r)]
+    shape = np.asarray(shape_xyz, dtype=np.float64)
+    sizes: list[float] = []
+    dims: list[tuple[int, int, int]] = []
+    if r.size:
+        base = max(float(r.min()), MIN_CELL)
+        classes = np.unique(np.ceil(np.log2(np.maximum(r, base) / base) - 1e-9).astype(np.int64))
+        for c in classes:
+            size = base * 2.0 ** int(c)
+            if sizes:
+                size = max(size, sizes[-1])
+            d = np.maximum(np.ceil(shape / size), 1).astype(np.int64)
+            while int(np.prod(d)) > MAX_LEVEL_CELLS:
+                size *= 2.0
+                d = np.maximum(np.ceil(shape / size), 1).astype(np.int64)
+            if sizes and size == sizes[-1]:
+                continue
+            sizes.append(float(size))
+            dims.append((int(d[0]), int(d[1]), int(d[2])))
+    sizes.append(float(np.finfo(np.float32).max))
+    dims.append((1, 1, 1))
+    counts = [a * b * c for a, b, c in dims]
+    offsets = tuple(int(x) for x in np.concatenate([[0], np.cumsum(counts)[:-1]]))
+    return BinPlan(tuple(sizes), tuple(dims), offsets, int(sum(counts)))
+
+
+class GaussianField:
+    """A primitive set resident on one Warp device, ready for truncation-aware evaluation.
+
+    Args:
+        params: (N, 12) float32 primitive parameters (see :mod:`warpgauss.kernels.field`).
+        shape_xyz: The model grid (x, y, z) in voxels; positions are in its voxel units.
+        device: Warp device; None picks CUDA when present, else CPU.
+    """
+
+    def __init__(self, params: np.ndarray, shape_xyz: tuple[int, int, int], device: str | None = None):
+        wp = warp()
+        from .kernels import field as kf
+
+        self._wp, self._k = wp, kf
+        self.device = resolve_device(device)
+        params = np.ascontiguousarray(params, dtype=np.float32)
+        if params.ndim != 2 or params.shape[1] != 12 or params.shape[0] < 1:
+            raise WarpgaussError(f"primitive parameters must have shape (N, 12) with N >= 1, got {params.shape}")
+        self.n = int(params.shape[0])
+        self.shape_xyz = tuple(int(s) for s in shape_xyz)
+        n, dev = self.n, self.device
+        self.params = wp.array(params, dtype=kf.vec12, device=dev)
+        self.mu = wp.empty(n, dtype=wp.vec3, device=dev)
+        self.prec = wp.empty(n, dtype=wp.mat33, device=dev)
+        self.ext = wp.empty(n, dtype=wp.vec3, device=dev)
+        self.radius = wp.empty(n, dtype=float, device=dev)
+        self.wa = wp.empty(n, dtype=float, device=dev)
+        self.w = wp.empty(n, dtype=float, device=dev)
+        wp.launch(
+            kf.prepare_primitives,
+            dim=n,
+            inputs=[self.params],
+            outputs=[self.mu, self.prec, self.ext, self.radius, self.wa, self.w],
+            device=dev,
+        )
+        self.plan = plan_bins(self.radius.numpy(), self.shape_xyz)
+        self._build()
+
+    def _build(self) -> None:
+        wp, kf, dev, n, plan = self._wp, self._k, self.device, self.n, self.plan
+        self.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=dev)
+        self.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=dev)
+        self.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=dev)
+        keys = wp.empty(2 * n, dtype=int, device=dev)
+        order = wp.empty(2 * n, dtype=int, device=dev)
+        wp.launch(
+            kf.bin_keys,
+            dim=n,
+            inputs=[self.mu, self.radius, self.level_size, self.level_dims, self.level_offset],
+            outputs=[keys, order],
+            device=dev,
+        )
+        wp.utils.radix_sort_pairs(keys, order, n)
+        self.cell_start = wp.zeros(plan.total_cells, dtype=int, device=dev)
+        self.cell_end = wp.zeros(plan.total_cells, dtype=int, device=dev)
+        wp.launch(kf.cell_ranges, dim=n, inputs=[keys, n], outputs=[self.cell_start, self.cell_end], device=dev)
+        self.mu_s = wp.empty_like(self.mu)
+        self.prec_s = wp.empty_like(self.prec)
+        self.ext_s = wp.empty_like(self.ext)
+        self.wa_s = wp.empty_like(self.wa)
+        self.w_s = wp.empty_like(self.w)
+        wp.launch(
+            kf.gather_sorted,
+            dim=n,
+            inputs=[order, self.mu, self.prec, self.ext, self.wa, self.w],
+            outputs=[self.mu_s, self.prec_s, self.ext_s, self.wa_s, self.w_s],
+            device=dev,
+        )
+
+    def _binned_inputs(self) -> list:
+        return [
+            self.level_size,
+            self.level_dims,
+            self.level_offset,
+            self.cell_start,
+            self.cell_end,
+            self.mu_s,
+            self.prec_s,
+            self.ext_s,
+            self.wa_s,
+            self.w_s,
+        ]
+
+    def _eval(self, points: np.ndarray, dense: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        wp, kf, dev = self._wp, self._k, self.device
+        pts = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
+        m = pts.shape[0]
+        value = np.empty(m, np.float32)
+        density = np.empty(m, np.float32)
+        pairs = np.empty(m, np.int32)
+        for a in range(0, m, EVAL_CHUNK_POINTS):
+            b = min(m, a + EVAL_CHUNK_POINTS)
+            p = wp.array(pts[a:b], dtype=wp.vec3, device=dev)
+            v = wp.empty(b - a, dtype=float, device=dev)
+            d = wp.empty(b - a, dtype=float, device=dev)
+            c = wp.empty(b - a, dtype=int, device=dev)
+            if dense:
+                inputs = [p, self.mu, self.prec, self.ext, self.wa, self.w]
+                wp.launch(kf.eval_points_dense, dim=b - a, inputs=inputs, outputs=[v, d, c], device=dev)
+            else:
+                inputs = [p, *self._binned_inputs()]
+                wp.launch(kf.eval_points_binned, dim=b - a, inputs=inputs, outputs=[v, d, c], device=dev)
+            value[a:b], density[a:b], pairs[a:b] = v.numpy(), d.numpy(), c.numpy()
+        return value, density, pairs
+
+    def evaluate(self, points: np.ndarray) -> np.ndarray:
+        """V~ at ``points`` ((M, 3) voxel positions, x,y,z), normalised units, float32."""
+        return self._eval(points, dense=False)[0]
+
+    def evaluate_full(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(V~, density rho, contributing pairs) at ``points`` through the binned evaluator."""
+        return self._eval(points, dense=False)
+
+    def evaluate_dense(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(V~, rho, pairs) by the all-pairs reference; O(N M), for tests and the self-test only."""
+        return self._eval(points, dense=True)
+
+    def decode(
+        self,
+        shape_xyz: tuple[int, int, int] | None = None,
+        *,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> np.ndarray:
+        """Evaluate V~ at every voxel centre of an output grid spanning the model's extent.
+
+        Args:
+            shape_xyz: Output grid (x, y, z); None for the model grid itself.
+            progress: Called with (slices done, slices total) after each slab.
+
+        Returns:
+            (nz, ny, nx) float32 array in normalised units.
+        """
+        wp, kf, dev = self._wp, self._k, self.device
+        out_shape = tuple(int(s) for s in (shape_xyz or self.shape_xyz))
+        if len(out_shape) != 3 or min(out_shape) < 1:
+            raise WarpgaussError(f"decode shape must be three positive sizes (x, y, z), got {shape_xyz}")
+        nx, ny, nz = out_shape
+        scale = wp.vec3(*(self.shape_xyz[a] / out_shape[a] for a in range(3)))
+        result = np.empty((nz, ny, nx), np.float32)
+        slab = max(1, min(nz, DECODE_SLAB_VOXELS // (nx * ny)))
+        buf = wp.empty((slab, ny, nx), dtype=float, device=dev)
+        for z0 in range(0, nz, slab):
+            h = min(slab, nz - z0)
+            view = buf if h == slab else wp.empty((h, ny, nx), dtype=float, device=dev)
+            wp.launch(
+                kf.eval_grid_binned,
+                dim=(h, ny, nx),
+                inputs=[z0, scale, *self._binned_inputs()],
+                outputs=[view],
+                device=dev,
+            )
+            result[z0 : z0 + h] = view.numpy()
+            if progress is not None:
+                progress(z0 + h, nz)
+        return result
+
+
+def grid_points(shape_xyz: tuple[int, int, int]) -> np.ndarray:
+    """All voxel centres of a grid as (nz*ny*nx, 3) float32 positions in C order (x fastest)."""
+    nx, ny, nz = shape_xyz
+    z, y, x = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1).astype(np.float32)
+
