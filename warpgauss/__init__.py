@@ -6,5 +6,19 @@ The package imports Warp lazily: reading, validating and refusing a request cost
 __version__ = "0.1.0"
 
 from .errors import WarpgaussError  # noqa: E402
+from .model import Model  # noqa: E402
+from .pipeline import encode  # noqa: E402
 
-__all__ = ["WarpgaussError", "__version__"]
+
+def psnr(model: Model, volume, *, full: bool = False, device: str | None = None, fill_value: float | None = None) -> float:
+    """PSNR (dB) of ``model`` against ``volume`` (a path or a 3D array), on the normalised field.
+
+    The volume is normalised by its own finite min/max, as at encoding time. 500,000 sampled voxel
+    centres with a fixed seed, or the full grid with ``full=True`` (SPEC section 7).
+    """
+    from .evaluate import evaluate_against
+
+    return evaluate_against(model, volume, full=full, device=device, fill_value=fill_value)["psnr_db"]
+
+
+__all__ = ["Model", "WarpgaussError", "__version__", "encode", "psnr"]

@@ -196,20 +196,14 @@ class GaussianField:
         """(V~, rho, pairs) by the all-pairs reference; O(N M), for tests and the self-test only."""
         return self._eval(points, dense=True)
 
-    def decode(
-        self,
-        shape_xyz: tuple[int, int, int] | None = None,
-        *,
-        progress: Callable[[int, int], None] | None = None,
-    ) -> np.ndarray:
-        """Evaluate V~ at every voxel centre of an output grid spanning the model's extent.
+    def iter_slabs(self, shape_xyz: tuple[int, int, int] | None = None):
+        """Evaluate V~ at every voxel centre of an output grid spanning the model's extent, by z-slabs.
 
-        Args:
-            shape_xyz: Output grid (x, y, z); None for the model grid itself.
-            progress: Called with (slices done, slices total) after each slab.
+        Output voxel (i, j, k) covers the same extent as the model grid, so its centre sits at
+        ((i + 0.5) * scale - 0.5) model voxels with scale = model size / output size per axis.
 
-        Returns:
-            (nz, ny, nx) float32 array in normalised units.
+        Yields:
+            (z0, slab): first output slice and a (h, ny, nx) float32 array in normalised units.
         """
         wp, kf, dev = self._wp, self._k, self.device
         out_shape = tuple(int(s) for s in (shape_xyz or self.shape_xyz))
@@ -217,7 +211,6 @@ class GaussianField:
             raise WarpgaussError(f"decode shape must be three positive sizes (x, y, z), got {shape_xyz}")
         nx, ny, nz = out_shape
         scale = wp.vec3(*(self.shape_xyz[a] / out_shape[a] for a in range(3)))
-        result = np.empty((nz, ny, nx), np.float32)
         slab = max(1, min(nz, DECODE_SLAB_VOXELS // (nx * ny)))
         buf = wp.empty((slab, ny, nx), dtype=float, device=dev)
         for z0 in range(0, nz, slab):
@@ -230,11 +223,27 @@ class GaussianField:
                 outputs=[view],
                 device=dev,
             )
-            result[z0 : z0 + h] = view.numpy()
-            if progress is not None:
-                progress(z0 + h, nz)
-        return result
+            yield z0, view.numpy()
 
+    def decode(
+        self,
+        shape_xyz: tuple[int, int, int] | None = None,
+        *,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> np.ndarray:
+        """The whole output grid of :meth:`iter_slabs` as one (nz, ny, nx) float32 array (normalised).
+
+        Args:
+            shape_xyz: Output grid (x, y, z); None for the model grid itself.
+            progress: Called with (slices done, slices total) after each slab.
+        """
+        nx, ny, nz = tuple(int(s) for s in (shape_xyz or self.shape_xyz))
+        result = np.empty((nz, ny, nx), np.float32)
+        for z0, slab in self.iter_slabs(shape_xyz):
+            result[z0 : z0 + slab.shape[0]] = slab
+            if progress is not None:
+                progress(z0 + slab.shape[0], nz)
+        return result
 
 def grid_points(shape_xyz: tuple[int, int, int]) -> np.ndarray:
     """All voxel centres of a grid as (nz*ny*nx, 3) float32 positions in C order (x fastest)."""

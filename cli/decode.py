@@ -1,0 +1,41 @@
+"""`warpgauss decode`: model -> grid file (.vti for ParaView, .npy, .raw, .h5)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .common import err_console, handle_errors, out_console, parse_shape
+
+
+@handle_errors
+def decode(
+    model: Annotated[Path, typer.Argument(help="Model file (.wgs)")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Grid file: .vti, .npy, .raw or .h5")],
+    shape: Annotated[str | None, typer.Option(help="Output grid XxYxZ (default: the encoded grid)")] = None,
+    normalised: Annotated[bool, typer.Option("--normalised", help="Write [0, 1] values, not source units")] = False,
+    device: Annotated[str | None, typer.Option(help="Warp device: cpu, cuda, cuda:N")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite an existing output file")] = False,
+) -> None:
+    """Decode a model to a dense grid spanning the encoded extent, at any resolution."""
+    from warpgauss._fs import check_writable
+    from warpgauss.io import write_volume
+    from warpgauss.model import Model
+
+    check_writable(output, force=force)
+    m = Model.load(model)
+    grid = parse_shape(shape)
+    with err_console.status(f"decoding {m.n} Gaussians", spinner="dots"):
+        data = m.decode(grid, device=device, normalised=normalised)
+    write_volume(
+        output,
+        data,
+        spacing=m.decoded_spacing(grid),
+        origin=m.decoded_origin(grid),
+        name=m.header.get("name", "value") or "value",
+        force=force,
+    )
+    nz, ny, nx = data.shape
+    out_console.print(f"wrote {output} ({nx}x{ny}x{nz} float32)")

@@ -1,0 +1,126 @@
+"""`warpgauss encode`: volume -> fixed-budget Gaussian model (.wgs) plus a JSON run report."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .common import err_console, fail, handle_errors, human_bytes, out_console, parse_shape, print_json
+
+
+@handle_errors
+def encode(
+    input: Annotated[Path | None, typer.Argument(help="Volume file (.raw .npy .h5 .vti .nii.gz .nrrd .mha .nc .mrc ...)")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Model file; default NAME.wgs")] = None,
+    example: Annotated[str | None, typer.Option(help="Encode a built-in example volume instead of a file")] = None,
+    size: Annotated[int, typer.Option(help="Edge length of the --example volume")] = 64,
+    budget: Annotated[int | None, typer.Option("--budget", "-n", help="Number of Gaussians N (exact)")] = None,
+    ratio: Annotated[float | None, typer.Option(help="Target compression ratio (N from SPEC section 4); default 20")] = None,
+    seed: Annotated[int, typer.Option(help="Seed: same seed and device give the same model")] = 0,
+    device: Annotated[str | None, typer.Option(help="Warp device: cpu, cuda, cuda:N (default: CUDA if present)")] = None,
+    compact: Annotated[bool, typer.Option("--compact", help="Write the compact 12-byte/primitive format")] = False,
+    iterations: Annotated[int, typer.Option(help="Refinement iterations (0: analytic model)")] = 0,
+    stride: Annotated[int, typer.Option(help="Take every K-th voxel on each axis")] = 1,
+    shape: Annotated[str | None, typer.Option(help="Raw files: XxYxZ when the name does not say")] = None,
+    dtype: Annotated[str | None, typer.Option(help="Raw files: uint8, int16, float32, ...")] = None,
+    endian: Annotated[str | None, typer.Option(help="Raw files: little (default) or big")] = None,
+    dataset: Annotated[str | None, typer.Option(help="HDF5: dataset path (default: first 3D dataset)")] = None,
+    variable: Annotated[str | None, typer.Option(help="netCDF: variable name (default: first 3D variable)")] = None,
+    fill_value: Annotated[float | None, typer.Option(help="Source value marking missing data (masked out)")] = None,
+    report: Annotated[Path | None, typer.Option(help="Run report JSON; default OUTPUT.report.json")] = None,
+    full_eval: Annotated[bool, typer.Option("--full-eval", help="PSNR on the full grid, not 500,000 samples")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the run report as JSON on stdout")] = False,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite existing output files")] = False,
+) -> None:
+    """Encode a volume into N anisotropic Gaussians, evaluate it and write the model and a report."""
+    import warpgauss
+    from warpgauss._fs import atomic_write_bytes, check_writable
+    from warpgauss.pipeline import ReadOptions
+
+    if (input is None) == (example is None):
+        fail("give a volume file or --example NAME (one of them)")
+    if input is not None and not input.exists():
+        fail(f"no such file: {input}")
+    stem = example if example is not None else _stem(input)
+    out = output or Path(f"{stem}.wgs")
+    rep_path = report or out.with_name(out.name + ".report.json")
+    check_writable(rep_path, force=force)
+
+    status = None if as_json else err_console.status("starting", spinner="dots")
+    if status is not None:
+        status.start()
+    try:
+        model = warpgauss.encode(
+            input,
+            budget=budget,
+            ratio=ratio,
+            seed=seed,
+            device=device,
+            iterations=iterations,
+            compact=compact,
+            example=example,
+            example_size=size,
+            read=ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
+            full_eval=full_eval,
+            output=out,
+            force=force,
+            on_stage=None if status is None else lambda name, title: status.update(f"[bold]{name}[/] {title}"),
+            on_stats=None if status is None else lambda s: status.console.print(_stats_line(s)),
+        )
+    finally:
+        if status is not None:
+            status.stop()
+    rep = model.report
+    rep["report"] = str(rep_path)
+    atomic_write_bytes(rep_path, (json.dumps(rep, indent=2, sort_keys=True, default=str) + "\n").encode())
+    if as_json:
+        print_json(rep)
+    else:
+        _print_summary(rep)
+
+
+def _stem(path: Path) -> str:
+    name = path.name
+    for suffix in (".gz", ".bz2"):
+        if name.endswith(suffix):
+            name = name[: -len(suffix)]
+    return name.rsplit(".", 1)[0] if "." in name else name
+
+
+def _stats_line(s: dict) -> str:
+    return (
+        f"structure: occupancy {100 * s['occupancy']:.1f} %, gradient top-10 % {100 * s['grad_top10']:.1f} %, "
+        f"S(1)/S(16) {s['s1_s16']:.3f}" + (" (sampled)" if s["sampled"] else "")
+    )
+
+
+def _print_summary(rep: dict) -> None:
+    from rich.table import Table
+
+    b = rep["budget"]
+    ev = rep["evaluation"].get("final")
+    out_console.print(
+        f"[bold]{rep['input']['name']}[/] {'x'.join(map(str, rep['input']['shape_xyz']))} -> "
+        f"{b['n']} Gaussians, {human_bytes(b['bytes'])} ({b['bytes']} B), compression {b['compression_ratio']:.2f}x "
+        f"on {rep['device_name']}"
+    )
+    if ev:
+        occ = ev["psnr_occupied_db"]
+        out_console.print(
+            f"PSNR {ev['psnr_db']:.2f} dB (occupied {occ:.2f} dB), max abs error {ev['max_abs_error']:.4f}, "
+            f"{ev['mode']}"
+        )
+    t = Table(show_edge=False, header_style="bold")
+    for col in ("stage", "what", "seconds", "host peak", "device peak"):
+        t.add_column(col, justify="right" if col in ("seconds", "host peak", "device peak") else "left")
+    for s in rep["stages"]:
+        t.add_row(
+            s["stage"], s["title"], f"{s['seconds']:.3f}", human_bytes(s["host_peak_bytes"]), human_bytes(s["device_peak_bytes"])
+        )
+    out_console.print(t)
+    for sk in rep["skipped"]:
+        out_console.print(f"skipped {sk['what']}: {sk['why']}")
+    out_console.print(f"model: {rep['output']}   report: {rep['report']}")

@@ -1,0 +1,49 @@
+"""`warpgauss info`: what a model file holds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .common import handle_errors, human_bytes, out_console, print_json
+
+
+@handle_errors
+def info(
+    model: Annotated[Path, typer.Argument(help="Model file (.wgs)")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print a JSON object")] = False,
+) -> None:
+    """Print N, bytes, compression ratio and the header of a model file (validated on load)."""
+    from warpgauss.model import Model
+
+    m = Model.load(model)
+    size = model.stat().st_size
+    h = m.header
+    payload = h.get("payload", {})
+    summary = {
+        "file": str(model),
+        "n": m.n,
+        "bytes": size,
+        "header_bytes": size - m.n * int(payload.get("bytes_per_primitive", 48)),
+        "format": payload.get("encoding"),
+        "compression_ratio": m.source_bytes / size,
+        "source_bytes": m.source_bytes,
+        "header": h,
+    }
+    if as_json:
+        print_json(summary)
+        return
+    g, v, src = h["grid"], h["values"], h["source"]
+    lines = [
+        f"[bold]{model}[/]: {m.n} Gaussians, {payload.get('encoding')} payload, {size} bytes ({human_bytes(size)})",
+        f"compression ratio {summary['compression_ratio']:.2f}x against {src['bytes']} source bytes "
+        f"({src['dtype']}, {src['itemsize']} B/voxel)",
+        f"grid {'x'.join(map(str, g['shape_xyz']))} (x,y,z), spacing {g['spacing']}, origin {g['origin']}",
+        f"values [{v['min']:g}, {v['max']:g}], name {h.get('name')!r}, seed {h.get('seed')}",
+        f"encoding {h.get('encoding')}",
+        f"transfer function {h.get('transfer_function', {}).get('colormap')}",
+    ]
+    for line in lines:
+        out_console.print(line, soft_wrap=True)

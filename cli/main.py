@@ -1,0 +1,34 @@
+"""The `warpgauss` command: one sub-command per module of this package."""
+
+from __future__ import annotations
+
+import typer
+
+from .decode import decode
+from .encode import encode
+from .evaluate import evaluate
+from .example import example
+from .info import info
+
+app = typer.Typer(
+    name="warpgauss",
+    help="Compress scalar volumes into a fixed budget of anisotropic 3D Gaussians (NVIDIA Warp).",
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_show_locals=False,
+    rich_markup_mode=None,
+)
+app.command("encode")(encode)
+app.command("decode")(decode)
+app.command("info")(info)
+app.command("eval")(evaluate)
+app.command("example")(example)
+
+
+def run() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":
+    run()

@@ -1,0 +1,358 @@
+"""Analysis and analytic allocation kernels (paper stages S1a-S1e, SPEC sections 3 and 5).
+
+The volume lives on the device as normalised float32 values ``vol[z, y, x]`` with an optional
+validity mask (0 = NaN/Inf/fill voxel, treated as empty space). Gradients are central differences,
+one-sided next to the grid border or a masked voxel, zero with no valid neighbour on an axis.
+
+Seeds are drawn without replacement by exponential race keys ``-log(u) / weight`` (Efraimidis and
+Spirakis): the k smallest keys are a weighted sample of k distinct voxels. Keys are histogrammed
+by log2 so that only the voxels in the lowest bins are compacted and sorted.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+OCCUPIED = wp.constant(0.02)  # normalised value above which a voxel is occupied (SPEC section 2)
+KEY_BINS = wp.constant(2048)  # histogram bins of log2(key)
+KEY_BINS_PER_OCTAVE = wp.constant(16.0)
+KEY_LOG2_MIN = wp.constant(-64.0)
+TINY_WEIGHT = wp.constant(1.0e-30)  # weight of a gradient that is non-zero but underflows
+ST_RADIUS = wp.constant(3)  # 7^3 structure-tensor window
+
+
+@wp.func
+def valid_at(mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int) -> bool:
+    """Not masked (the caller has checked that (k, j, i) is inside the grid)."""
+    if has_mask == 0:
+        return True
+    return mask[k, j, i] != wp.uint8(0)
+
+
+@wp.func
+def in_grid(vol: wp.array3d(dtype=float), k: int, j: int, i: int) -> bool:
+    return k >= 0 and j >= 0 and i >= 0 and k < vol.shape[0] and j < vol.shape[1] and i < vol.shape[2]
+
+
+@wp.func
+def usable(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int) -> bool:
+    """Voxel inside the grid and not masked."""
+    if not in_grid(vol, k, j, i):
+        return False
+    return valid_at(mask, has_mask, k, j, i)
+
+
+@wp.func
+def axis_gradient(
+    vol: wp.array3d(dtype=float),
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    k: int,
+    j: int,
+    i: int,
+    dk: int,
+    dj: int,
+    di: int,
+) -> wp.vec2:
+    """(derivative along one axis, 1 if the differenced values differ else 0)."""
+    fwd = usable(vol, mask, has_mask, k + dk, j + dj, i + di)
+    bwd = usable(vol, mask, has_mask, k - dk, j - dj, i - di)
+    if fwd and bwd:
+        a = vol[k + dk, j + dj, i + di]
+        b = vol[k - dk, j - dj, i - di]
+        return wp.vec2(0.5 * (a - b), wp.where(a != b, 1.0, 0.0))
+    if fwd:
+        a = vol[k + dk, j + dj, i + di]
+        b = vol[k, j, i]
+        return wp.vec2(a - b, wp.where(a != b, 1.0, 0.0))
+    if bwd:
+        a = vol[k, j, i]
+        b = vol[k - dk, j - dj, i - di]
+        return wp.vec2(a - b, wp.where(a != b, 1.0, 0.0))
+    return wp.vec2(0.0, 0.0)
+
+
+@wp.func
+def gradient_at(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int) -> wp.vec4:
+    """(gx, gy, gz, 1 if any axis difference is non-zero) at voxel (k, j, i)."""
+    gx = axis_gradient(vol, mask, has_mask, k, j, i, 0, 0, 1)
+    gy = axis_gradient(vol, mask, has_mask, k, j, i, 0, 1, 0)
+    gz = axis_gradient(vol, mask, has_mask, k, j, i, 1, 0, 0)
+    nz = wp.max(gx[1], wp.max(gy[1], gz[1]))
+    return wp.vec4(gx[0], gy[0], gz[0], nz)
+
+
+@wp.func
+def seed_weight(
+    vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int, mode: int
+) -> float:
+    """Draw weight of a voxel: 0 if not eligible; 1 for coverage (mode 1); |grad V| for detail (mode 0)."""
+    if not valid_at(mask, has_mask, k, j, i):
+        return 0.0
+    if vol[k, j, i] <= OCCUPIED:
+        return 0.0
+    if mode == 1:
+        return 1.0
+    g = gradient_at(vol, mask, has_mask, k, j, i)
+    if g[3] == 0.0:
+        return 0.0
+    return wp.max(wp.length(wp.vec3(g[0], g[1], g[2])), TINY_WEIGHT)
+
+
+@wp.func
+def race_key(stream: int, idx: int, weight: float) -> float:
+    state = wp.rand_init(stream, idx)
+    u = 1.0 - wp.randf(state)  # (0, 1]
+    return -wp.log(u) / weight
+
+
+@wp.func
+def key_bin(key: float) -> int:
+    if key <= 0.0:
+        return 0
+    b = int(wp.floor((wp.log2(key) - KEY_LOG2_MIN) * KEY_BINS_PER_OCTAVE))
+    return wp.clamp(b, 0, KEY_BINS - 1)
+
+
+@wp.kernel
+def seed_key_histogram(
+    vol: wp.array3d(dtype=float),  # [nz, ny, nx] normalised values
+    mask: wp.array3d(dtype=wp.uint8),  # [nz, ny, nx] or [1, 1, 1] when has_mask == 0
+    has_mask: int,
+    mode: int,  # 0 detail (|grad V|-weighted), 1 coverage (uniform)
+    stream: int,  # RNG stream of this draw
+    hist: wp.array(dtype=int),  # [KEY_BINS] out, zeroed before
+    eligible: wp.array(dtype=int),  # [1] out: number of eligible voxels, zeroed before
+):
+    """Histogram of log2 race keys over the eligible voxels (one thread per voxel)."""
+    k, j, i = wp.tid()
+    weight = seed_weight(vol, mask, has_mask, k, j, i, mode)
+    if weight <= 0.0:
+        return
+    idx = (k * vol.shape[1] + j) * vol.shape[2] + i
+    wp.atomic_add(hist, key_bin(race_key(stream, idx, weight)), 1)
+    wp.atomic_add(eligible, 0, 1)
+
+
+@wp.kernel
+def seed_key_compact(
+    vol: wp.array3d(dtype=float),
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    mode: int,
+    stream: int,
+    max_bin: int,  # keep keys whose bin is <= max_bin
+    counter: wp.array(dtype=int),  # [1] zeroed before
+    keys: wp.array(dtype=float),  # [>= 2 * candidates] out
+    idx_out: wp.array(dtype=int),  # [>= 2 * candidates] out: linear voxel index
+):
+    """Write the race keys of the lowest bins (the candidates of the draw) with their voxel index."""
+    k, j, i = wp.tid()
+    weight = seed_weight(vol, mask, has_mask, k, j, i, mode)
+    if weight <= 0.0:
+        return
+    idx = (k * vol.shape[1] + j) * vol.shape[2] + i
+    key = race_key(stream, idx, weight)
+    if key_bin(key) <= max_bin:
+        slot = wp.atomic_add(counter, 0, 1)
+        keys[slot] = key
+        idx_out[slot] = idx
+
+
+@wp.func
+def trilinear(vol: wp.array3d(dtype=float), p: wp.vec3) -> float:
+    """Trilinear interpolation at p = (x, y, z) voxel units, clamped to the grid."""
+    x = wp.clamp(p[0], 0.0, float(vol.shape[2] - 1))
+    y = wp.clamp(p[1], 0.0, float(vol.shape[1] - 1))
+    z = wp.clamp(p[2], 0.0, float(vol.shape[0] - 1))
+    i0 = wp.min(int(wp.floor(x)), vol.shape[2] - 1)
+    j0 = wp.min(int(wp.floor(y)), vol.shape[1] - 1)
+    k0 = wp.min(int(wp.floor(z)), vol.shape[0] - 1)
+    i1 = wp.min(i0 + 1, vol.shape[2] - 1)
+    j1 = wp.min(j0 + 1, vol.shape[1] - 1)
+    k1 = wp.min(k0 + 1, vol.shape[0] - 1)
+    tx = x - float(i0)
+    ty = y - float(j0)
+    tz = z - float(k0)
+    c00 = wp.lerp(vol[k0, j0, i0], vol[k0, j0, i1], tx)
+    c01 = wp.lerp(vol[k0, j1, i0], vol[k0, j1, i1], tx)
+    c10 = wp.lerp(vol[k1, j0, i0], vol[k1, j0, i1], tx)
+    c11 = wp.lerp(vol[k1, j1, i0], vol[k1, j1, i1], tx)
+    return wp.lerp(wp.lerp(c00, c01, ty), wp.lerp(c10, c11, ty), tz)
+
+
+@wp.func
+def sort3(d: wp.vec3) -> wp.vec3i:
+    """Indices of d in ascending order."""
+    a = int(0)
+    b = int(1)
+    c = int(2)
+    if d[a] > d[b]:
+        t = a
+        a = b
+        b = t
+    if d[b] > d[c]:
+        t = b
+        b = c
+        c = t
+    if d[a] > d[b]:
+        t = a
+        a = b
+        b = t
+    return wp.vec3i(a, b, c)
+
+
+@wp.kernel
+def seed_frames(
+    vol: wp.array3d(dtype=float),
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    voxel: wp.array(dtype=int),  # [S] linear voxel index of each seed
+    stream: int,  # RNG stream for the half-voxel jitter
+    mu: wp.array(dtype=wp.vec3),  # [S] out: jittered centre
+    quat: wp.array(dtype=wp.quat),  # [S] out: local axes (tangent, middle, normal) as a rotation
+    shape_info: wp.array(dtype=wp.vec3),  # [S] out: (|grad V| at the seed, planarity, value at mu)
+):
+    """S1c + S1e at each seed: 7^3 structure tensor, tangent frame, gradient, value (one thread per seed).
+
+    The principal (first) axis is the eigenvector of the smallest eigenvalue of the structure tensor
+    (the local tangent); the third axis is the dominant gradient direction (the normal). Planarity
+    (l_max - l_mid) / l_max is 1 on a plane (both tangents free) and 0 on a tube.
+    """
+    s = wp.tid()
+    idx = voxel[s]
+    nx = vol.shape[2]
+    ny = vol.shape[1]
+    i = idx % nx
+    j = (idx / nx) % ny
+    k = idx / (nx * ny)
+    T = wp.mat33(0.0)
+    for dz in range(-ST_RADIUS, ST_RADIUS + 1):
+        for dy in range(-ST_RADIUS, ST_RADIUS + 1):
+            for dx in range(-ST_RADIUS, ST_RADIUS + 1):
+                if usable(vol, mask, has_mask, k + dz, j + dy, i + dx):
+                    g4 = gradient_at(vol, mask, has_mask, k + dz, j + dy, i + dx)
+                    g = wp.vec3(g4[0], g4[1], g4[2])
+                    T += wp.outer(g, g)
+    Q, d = wp.eig3(T)
+    order = sort3(d)
+    e_t = wp.normalize(wp.vec3(Q[0, order[0]], Q[1, order[0]], Q[2, order[0]]))
+    e_m = wp.normalize(wp.vec3(Q[0, order[1]], Q[1, order[1]], Q[2, order[1]]))
+    e_n = wp.cross(e_t, e_m)  # right-handed frame
+    R = wp.matrix_from_cols(e_t, e_m, e_n)
+    lmax = d[order[2]]
+    planarity = float(0.0)
+    if lmax > 0.0:
+        planarity = wp.clamp((lmax - d[order[1]]) / lmax, 0.0, 1.0)
+    state = wp.rand_init(stream, s)
+    jit = wp.vec3(wp.randf(state) - 0.5, wp.randf(state) - 0.5, wp.randf(state) - 0.5)
+    p = wp.vec3(float(i), float(j), float(k)) + jit
+    g0 = gradient_at(vol, mask, has_mask, k, j, i)
+    mu[s] = p
+    quat[s] = wp.quat_from_matrix(R)
+    shape_info[s] = wp.vec3(wp.length(wp.vec3(g0[0], g0[1], g0[2])), planarity, trilinear(vol, p))
+
+
+@wp.kernel
+def nearest_neighbour_distance(
+    probe: wp.array(dtype=wp.vec3),  # [S] subsample of the group (the first S points of pts)
+    pts: wp.array(dtype=wp.vec3),  # [n] the whole group
+    out: wp.array(dtype=float),  # [S] out: distance to the nearest other point of the group
+):
+    """Brute-force nearest-neighbour distance of a probe subsample (one thread per probe)."""
+    s = wp.tid()
+    p = probe[s]
+    best = float(1.0e30)
+    for j in range(pts.shape[0]):
+        if j != s:
+            best = wp.min(best, wp.length_sq(pts[j] - p))
+    out[s] = wp.sqrt(best)
+
+
+@wp.kernel
+def assemble_primitives(
+    mu: wp.array(dtype=wp.vec3),  # [S]
+    quat: wp.array(dtype=wp.quat),  # [S]
+    shape_info: wp.array(dtype=wp.vec3),  # [S] (|grad|, planarity, value)
+    sigma: float,  # group base scale in voxels
+    grad_ref: float,  # |grad V| at which elongation saturates
+    max_aniso: float,  # longest / shortest axis bound (3)
+    scale_min: float,
+    scale_cap: float,
+    weight: float,  # initial weight
+    first: int,  # row offset of this group in params
+    params: wp.array2d(dtype=float),  # [N, 12] out
+):
+    """S1d + S1e: scales from the group spacing, elongated along the tangent with |grad V|."""
+    s = wp.tid()
+    info = shape_info[s]
+    e = 1.0
+    if grad_ref > 0.0:
+        e = 1.0 + (max_aniso - 1.0) * wp.min(info[0] / grad_ref, 1.0)
+    st = wp.clamp(sigma * e, scale_min, scale_cap)
+    sm = wp.clamp(sigma * (1.0 + (e - 1.0) * info[1]), scale_min, scale_cap)
+    sn = wp.clamp(sigma, scale_min, scale_cap)
+    # the bound holds after clamping too: clamping only brings scales closer together
+    st = wp.min(st, max_aniso * sn)
+    sm = wp.min(sm, max_aniso * sn)
+    r = first + s
+    p = mu[s]
+    q = quat[s]
+    params[r, 0] = p[0]
+    params[r, 1] = p[1]
+    params[r, 2] = p[2]
+    params[r, 3] = wp.log(st)
+    params[r, 4] = wp.log(sm)
+    params[r, 5] = wp.log(sn)
+    params[r, 6] = q[0]
+    params[r, 7] = q[1]
+    params[r, 8] = q[2]
+    params[r, 9] = q[3]
+    params[r, 10] = info[2]
+    params[r, 11] = weight
+
+
+@wp.kernel
+def structure_samples(
+    vol: wp.array3d(dtype=float),
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    voxel: wp.array(dtype=wp.int64),  # [S] linear voxel indices to analyse
+    lag: int,  # the long lag of the structure function (16)
+    out: wp.array2d(dtype=float),  # [S, 6] out: occupied, |grad|, S(1) sum, S(1) pairs, S(lag) sum, S(lag) pairs
+):
+    """Per-voxel terms of the structure statistics (SPEC section 5), for occupied voxels."""
+    s = wp.tid()
+    idx = voxel[s]
+    nx = wp.int64(vol.shape[2])
+    ny = wp.int64(vol.shape[1])
+    i = int(idx % nx)
+    j = int((idx / nx) % ny)
+    k = int(idx / (nx * ny))
+    for c in range(6):
+        out[s, c] = 0.0
+    if not valid_at(mask, has_mask, k, j, i):
+        return
+    v = vol[k, j, i]
+    if v <= OCCUPIED:
+        return
+    g = gradient_at(vol, mask, has_mask, k, j, i)
+    out[s, 0] = 1.0
+    out[s, 1] = wp.length(wp.vec3(g[0], g[1], g[2]))
+    for axis in range(3):
+        for which in range(2):
+            l = 1
+            if which == 1:
+                l = lag
+            kk = k
+            jj = j
+            ii = i
+            if axis == 0:
+                ii = i + l
+            elif axis == 1:
+                jj = j + l
+            else:
+                kk = k + l
+            if usable(vol, mask, has_mask, kk, jj, ii):
+                out[s, 2 + 2 * which] += wp.abs(vol[kk, jj, ii] - v)
+                out[s, 3 + 2 * which] += 1.0

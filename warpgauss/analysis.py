@@ -1,0 +1,332 @@
+"""Stage P (normalise, mask) and the checks that run before any heavy work.
+
+Everything up to the budget check is plain numpy over z-slabs and needs no Warp: an infeasible
+request is refused before Warp is even imported. The structure statistics of SPEC section 5 run
+as Warp kernels (:func:`structure_stats`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import WarpgaussError
+
+OCCUPIED = 0.02  # normalised value above which a voxel is occupied (SPEC section 2)
+DETAIL_PERCENT = 55  # detail share of the budget (SPEC section 3); coverage gets the rest
+MAX_VOXELS = 2**31 - 1  # linear voxel indices are int32 in the kernels
+SLAB = 32  # z-slices per numpy pass
+STATS_EXACT_VOXELS = 1 << 22  # up to this many voxels the statistics use every voxel
+STATS_SAMPLES = 1 << 21  # voxels drawn (with replacement) for the statistics of larger volumes
+STRUCTURE_LAG = 16
+
+
+@dataclass
+class Field:
+    """A normalised volume: float32 values in [0, 1], (nz, ny, nx), invalid voxels set to 0.
+
+    Attributes:
+        values: Normalised values; masked voxels hold 0.
+        mask: Boolean validity (True = usable) or None when every voxel is valid.
+        vmin, vmax: The finite min/max used for normalisation (original units).
+        occupied: Valid voxels with normalised value > 0.02.
+        eligible: Occupied voxels with a non-zero gradient (detail-seed candidates).
+    """
+
+    values: np.ndarray
+    mask: np.ndarray | None
+    vmin: float
+    vmax: float
+    spacing: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    name: str = "volume"
+    source_dtype: str = "float32"
+    source_itemsize: int = 4
+    occupied: int = 0
+    eligible: int = 0
+    n_valid: int = 0
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def shape_xyz(self) -> tuple[int, int, int]:
+        nz, ny, nx = self.values.shape
+        return (nx, ny, nz)
+
+    @property
+    def n_voxels(self) -> int:
+        return int(self.values.size)
+
+    @property
+    def source_bytes(self) -> int:
+        """S_src of SPEC section 4: voxels at the evaluated resolution x the source dtype's size."""
+        return self.n_voxels * self.source_itemsize
+
+    @property
+    def occupancy(self) -> float:
+        return self.occupied / max(self.n_valid, 1)
+
+    def to_original(self, normalised: np.ndarray) -> np.ndarray:
+        """Map normalised values back to the source's units."""
+        return (normalised.astype(np.float64) * (self.vmax - self.vmin) + self.vmin).astype(np.float32)
+
+
+def normalise(
+    data: np.ndarray,
+    *,
+    fill_value: float | None = None,
+    spacing=(1.0, 1.0, 1.0),
+    origin=(0.0, 0.0, 0.0),
+    name: str = "volume",
+    source_dtype: str | None = None,
+    value_range: tuple[float, float] | None = None,
+) -> Field:
+    """Stage P: mask NaN/Inf/fill voxels, normalise by the finite min/max, count occupancy.
+
+    Args:
+        data: 3D array (nz, ny, nx) of any real dtype (may be a memmap).
+        fill_value: Source value that marks missing data; such voxels are masked.
+        value_range: Normalise by this (min, max) instead of the volume's own (evaluating a
+            model against a volume uses the model's range); values are then not clipped.
+    """
+    if data.ndim != 3:
+        raise WarpgaussError(f"the volume is {data.ndim}D (shape {data.shape}); warpgauss encodes 3D volumes")
+    if data.size > MAX_VOXELS:
+        raise WarpgaussError(f"the volume has {data.size} voxels, more than {MAX_VOXELS}; use --stride 2")
+    if not (np.issubdtype(data.dtype, np.integer) or np.issubdtype(data.dtype, np.floating)):
+        raise WarpgaussError(f"the volume's dtype {data.dtype} is not a real number type")
+    nz = data.shape[0]
+    lo, hi, n_invalid = np.inf, -np.inf, 0
+    for z0 in range(0, nz, SLAB):
+        s = np.asarray(data[z0 : z0 + SLAB], dtype=np.float64)
+        ok = _valid(s, fill_value)
+        n_invalid += int(ok.size - np.count_nonzero(ok))
+        if ok.any():
+            lo, hi = min(lo, float(s[ok].min())), max(hi, float(s[ok].max()))
+    if not np.isfinite(lo):
+        raise WarpgaussError("the volume has no finite value (all NaN/Inf or fill); nothing to encode")
+    clip = value_range is None
+    if value_range is not None:
+        lo, hi = float(value_range[0]), float(value_range[1])
+    if hi <= lo:
+        raise WarpgaussError(f"the volume is constant ({lo:g} everywhere it is valid); there is no structure to encode")
+    values = np.empty(data.shape, np.float32)
+    mask = np.ones(data.shape, bool) if n_invalid else None
+    scale = 1.0 / (hi - lo)
+    for z0 in range(0, nz, SLAB):
+        s = np.asarray(data[z0 : z0 + SLAB], dtype=np.float64)
+        ok = _valid(s, fill_value)
+        v = (s - lo) * scale
+        if clip:
+            np.clip(v, 0.0, 1.0, out=v)
+        v[~ok] = 0.0
+        values[z0 : z0 + SLAB] = v
+        if mask is not None:
+            mask[z0 : z0 + SLAB] = ok
+    f = Field(
+        values=values,
+        mask=mask,
+        vmin=lo,
+        vmax=hi,
+        spacing=tuple(float(x) for x in spacing),
+        origin=tuple(float(x) for x in origin),
+        name=name,
+        source_dtype=str(source_dtype or data.dtype),
+        source_itemsize=int(np.dtype(source_dtype or data.dtype).itemsize),
+    )
+    f.n_valid = f.n_voxels - n_invalid
+    if n_invalid:
+        f.notes.append(f"{n_invalid} voxels are NaN/Inf/fill: masked out of seeding, sampling and every metric")
+    f.occupied, f.eligible = count_seed_candidates(values, mask)
+    return f
+
+
+def _valid(s: np.ndarray, fill_value: float | None) -> np.ndarray:
+    ok = np.isfinite(s)
+    if fill_value is not None:
+        ok &= s != fill_value
+    return ok
+
+
+def count_seed_candidates(values: np.ndarray, mask: np.ndarray | None) -> tuple[int, int]:
+    """(occupied voxels, occupied voxels with a non-zero gradient).
+
+    The gradient test mirrors ``kernels.analysis.gradient_at`` exactly: on each axis a central
+    difference, one-sided next to the border or a masked voxel; non-zero iff the two values differ.
+    """
+    nz = values.shape[0]
+    occupied = eligible = 0
+    for z0 in range(0, nz, SLAB):
+        z1 = min(nz, z0 + SLAB)
+        a, b = max(0, z0 - 1), min(nz, z1 + 1)  # one halo slice each side
+        v = values[a:b]
+        ok = np.ones(v.shape, bool) if mask is None else mask[a:b]
+        occ = ok & (v > OCCUPIED)
+        differs = _differs(v, ok, 2) | _differs(v, ok, 1) | _differs(v, ok, 0)
+        core = slice(z0 - a, z0 - a + (z1 - z0))
+        occupied += int(np.count_nonzero(occ[core]))
+        eligible += int(np.count_nonzero((occ & differs)[core]))
+    return occupied, eligible
+
+
+def _differs(v: np.ndarray, ok: np.ndarray, axis: int) -> np.ndarray:
+    n = v.shape[axis]
+    out = np.zeros(v.shape, bool)
+    if n < 2:
+        return out
+
+    def sl(a, b):
+        return tuple(slice(a, b) if ax == axis else slice(None) for ax in range(3))
+
+    fwd_ok = np.zeros(v.shape, bool)
+    bwd_ok = np.zeros(v.shape, bool)
+    fwd_ok[sl(0, n - 1)] = ok[sl(1, n)]
+    bwd_ok[sl(1, n)] = ok[sl(0, n - 1)]
+    fwd = v.copy()
+    bwd = v.copy()
+    fwd[sl(0, n - 1)] = v[sl(1, n)]
+    bwd[sl(1, n)] = v[sl(0, n - 1)]
+    both = fwd_ok & bwd_ok
+    out[both] = fwd[both] != bwd[both]
+    only_f = fwd_ok & ~bwd_ok
+    out[only_f] = fwd[only_f] != v[only_f]
+    only_b = bwd_ok & ~fwd_ok
+    out[only_b] = v[only_b] != bwd[only_b]
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# budget (SPEC section 4)
+
+
+def split_budget(n: int) -> tuple[int, int]:
+    """(detail seeds, coverage seeds) for a budget of n: floor(0.55 n) detail, the rest coverage."""
+    nd = (DETAIL_PERCENT * n) // 100
+    return nd, n - nd
+
+
+def seed_limit(eligible: int, occupied: int) -> int:
+    """Largest budget whose draws fit: floor(0.55 N) <= eligible and N - floor(0.55 N) <= occupied.
+
+    This is N_max = min(eligible / 0.55, occupied / 0.45) of SPEC section 4, made exact for the
+    integer split of :func:`split_budget`.
+    """
+    by_detail = (100 * eligible + 99) // DETAIL_PERCENT
+    by_coverage = (100 * occupied) // (100 - DETAIL_PERCENT)
+    n = min(by_detail, by_coverage)
+    while n > 0:  # guard the closed forms against off-by-one at the edges
+        nd, nc = split_budget(n)
+        if nd <= eligible and nc <= occupied:
+            break
+        n -= 1
+    return n
+
+
+def budget_from_ratio(source_bytes: int, ratio: float, header_bytes: int, bytes_per_primitive: int = 48) -> int:
+    """N = floor((S_src / R - H) / bytes per primitive) (SPEC section 4)."""
+    if not ratio > 0:
+        raise WarpgaussError(f"--ratio must be positive, got {ratio}")
+    n = int(np.floor((source_bytes / ratio - header_bytes) / bytes_per_primitive))
+    if n < 1:
+        best = source_bytes / (header_bytes + bytes_per_primitive)
+        raise WarpgaussError(
+            f"--ratio {ratio:g} leaves no room for a single primitive ({source_bytes} source bytes, "
+            f"{header_bytes} header bytes); the largest possible ratio is {best:.4g}"
+        )
+    return n
+
+
+def ratio_for_budget(source_bytes: int, n: int, header_bytes: int, bytes_per_primitive: int = 48) -> float:
+    """Compression ratio S_src / (bytes per primitive * N + H)."""
+    return source_bytes / (bytes_per_primitive * n + header_bytes)
+
+
+def check_budget(f: Field, n: int, header_bytes: int, bytes_per_primitive: int = 48) -> None:
+    """Refuse a budget of zero or beyond the seed limit, naming N_max and the nearest feasible ratio."""
+    if n < 1:
+        raise WarpgaussError(f"the budget must be at least 1 primitive, got {n}")
+    n_max = seed_limit(f.eligible, f.occupied)
+    if n_max < 1:
+        raise WarpgaussError(
+            f"the volume has {f.occupied} occupied voxels (normalised value > {OCCUPIED}) and {f.eligible} with a "
+            "non-zero gradient: too few to place any primitive"
+        )
+    if n > n_max:
+        r = ratio_for_budget(f.source_bytes, n_max, header_bytes, bytes_per_primitive)
+        raise WarpgaussError(
+            f"budget {n} exceeds the seed limit N_max = {n_max} of this volume ({f.eligible} occupied voxels "
+            f"with non-zero gradient, {f.occupied} occupied); use --budget {n_max} or less, i.e. --ratio {r:.4g} "
+            "or more"
+        )
+
+
+# ----------------------------------------------------------------------------------------------
+# device volume and structure statistics (SPEC section 5)
+
+
+class DeviceVolume:
+    """The normalised field and its validity mask resident on a Warp device."""
+
+    def __init__(self, f: Field, device: str):
+        from ._warp import warp
+
+        wp = warp()
+        self.field = f
+        self.device = device
+        self.values = wp.array(f.values, dtype=float, device=device)
+        if f.mask is not None:
+            self.mask = wp.array(f.mask.astype(np.uint8), dtype=wp.uint8, device=device)
+            self.has_mask = 1
+        else:
+            self.mask = wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)
+            self.has_mask = 0
+
+    @property
+    def nbytes(self) -> int:
+        return self.values.capacity + self.mask.capacity
+
+
+def structure_stats(dv: DeviceVolume, seed: int = 0) -> dict:
+    """Occupancy, gradient top-10 % share and S(1)/S(16) (SPEC section 5).
+
+    Uses every voxel up to :data:`STATS_EXACT_VOXELS`, else :data:`STATS_SAMPLES` voxels drawn
+    uniformly (with replacement) with a fixed seed.
+    """
+    from ._warp import warp
+    from .kernels import analysis as ka
+
+    wp = warp()
+    f = dv.field
+    exact = f.n_voxels <= STATS_EXACT_VOXELS
+    if exact:
+        idx = np.arange(f.n_voxels, dtype=np.int64)
+    else:
+        idx = np.random.default_rng(seed).integers(0, f.n_voxels, STATS_SAMPLES, dtype=np.int64)
+    voxel = wp.array(idx, dtype=wp.int64, device=dv.device)
+    out = wp.empty((idx.size, 6), dtype=float, device=dv.device)
+    wp.launch(
+        ka.structure_samples,
+        dim=idx.size,
+        inputs=[dv.values, dv.mask, dv.has_mask, voxel, STRUCTURE_LAG],
+        outputs=[out],
+        device=dv.device,
+    )
+    t = out.numpy().astype(np.float64)
+    occ = t[:, 0] > 0
+    g = np.sort(t[occ, 1])[::-1]
+    top = max(1, int(np.ceil(0.1 * g.size))) if g.size else 0
+    grad_top10 = float(g[:top].sum() / g.sum()) if g.size and g.sum() > 0 else 0.0
+    s1 = t[:, 2].sum() / max(t[:, 3].sum(), 1.0)
+    s16 = t[:, 4].sum() / max(t[:, 5].sum(), 1.0)
+    return {
+        "occupancy": f.occupancy,
+        "occupied_voxels": f.occupied,
+        "eligible_detail_voxels": f.eligible,
+        "valid_voxels": f.n_valid,
+        "grad_top10": grad_top10,
+        "s1": float(s1),
+        "s16": float(s16),
+        "s1_s16": float(s1 / s16) if s16 > 0 else float("nan"),
+        "sampled": not exact,
+        "samples": int(idx.size),
+    }

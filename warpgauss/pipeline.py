@@ -1,0 +1,328 @@
+"""The staged encoder driver: P, S1a-S1e, S1x, (S2), S3, EV, each timed and memory-profiled.
+
+    model = warpgauss.encode("scan.nii.gz", ratio=100)          # or an array, or example="vortex"
+    model.save("scan.wgs"); model.report["evaluation"]["final"]["psnr_db"]
+
+Everything up to the budget check runs without Warp, so an impossible request is refused at once.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import platform
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .allocate import AllocationConfig, allocate
+from .analysis import Field, budget_from_ratio, check_budget, normalise, seed_limit
+from .errors import WarpgaussError
+from .model import Model, make_header
+from .profiling import StageRecorder
+
+DEFAULT_RATIO = 20.0  # used when neither a budget nor a ratio is given
+
+
+@dataclass
+class ReadOptions:
+    """How to read a file source (see :func:`warpgauss.io.read_volume`)."""
+
+    shape: tuple[int, int, int] | None = None
+    dtype: str | None = None
+    endian: str | None = None
+    dataset: str | None = None
+    variable: str | None = None
+    stride: int = 1
+    fill_value: float | None = None
+
+
+@dataclass
+class EncodeOptions:
+    """Everything that defines an encoding besides the source (stored in the model header)."""
+
+    budget: int | None = None
+    ratio: float | None = None
+    seed: int = 0
+    iterations: int = 0
+    compact: bool = False
+    allocation: AllocationConfig = field(default_factory=AllocationConfig)
+    stride: int = 1
+
+
+def load_field(
+    source,
+    read: ReadOptions | None = None,
+    *,
+    example: str | None = None,
+    example_size: int | tuple[int, int, int] = 64,
+) -> tuple[Field, dict]:
+    """Stage P: read (or generate) the volume, apply the stride, mask and normalise it.
+
+    Args:
+        source: A path, a 3D numpy array (nz, ny, nx), or None with ``example``.
+        read: Reader options for a path (and stride / fill value for any source).
+        example: Name of a built-in example volume (see :mod:`warpgauss.synthetic`).
+
+    Returns:
+        (normalised field, description of the input for the report)
+    """
+    read = read or ReadOptions()
+    if read.stride < 1:
+        raise WarpgaussError(f"--stride must be a positive integer, got {read.stride}")
+    s = read.stride
+    fill = read.fill_value
+    if example is not None:
+        from .synthetic import generate
+
+        data = generate(example, example_size, seed=0)[::s, ::s, ::s]
+        name, spacing, origin, dtype, path = example, (float(s),) * 3, (0.0, 0.0, 0.0), "float32", None
+    elif isinstance(source, np.ndarray):
+        if source.ndim != 3:
+            raise WarpgaussError(f"the array is {source.ndim}D (shape {source.shape}); warpgauss encodes 3D volumes")
+        data = source[::s, ::s, ::s]
+        name, spacing, origin, dtype, path = "array", (float(s),) * 3, (0.0, 0.0, 0.0), str(source.dtype), None
+    elif isinstance(source, (str, os.PathLike)):
+        from .io import read_volume
+
+        vol = read_volume(
+            source,
+            shape=read.shape,
+            dtype=read.dtype,
+            endian=read.endian,
+            dataset=read.dataset,
+            variable=read.variable,
+            stride=s,
+        )
+        data, name, spacing, origin = vol.data, vol.name, vol.spacing, vol.origin
+        dtype, path = vol.source_dtype or str(vol.data.dtype), str(source)
+        if fill is None and getattr(vol, "fill_value", None) is not None:
+            fill = vol.fill_value
+    else:
+        raise WarpgaussError("give a file path, a 3D numpy array, or example=NAME as the source")
+    f = normalise(data, fill_value=fill, spacing=spacing, origin=origin, name=name, source_dtype=dtype)
+    info = {
+        "name": name,
+        "path": path,
+        "example": example,
+        "shape_xyz": list(f.shape_xyz),
+        "source_dtype": f.source_dtype,
+        "source_bytes": f.source_bytes,
+        "stride": s,
+        "fill_value": fill,
+        "value_min": f.vmin,
+        "value_max": f.vmax,
+        "masked_voxels": f.n_voxels - f.n_valid,
+        "notes": list(f.notes),
+    }
+    return f, info
+
+
+def resolve_budget(f: Field, opts: EncodeOptions, header_bytes: int) -> int:
+    """N from --budget or --ratio (SPEC section 4), validated against the seed limit."""
+    if opts.budget is not None and opts.ratio is not None:
+        raise WarpgaussError("give either --budget or --ratio, not both")
+    bpp = 12 if opts.compact else 48
+    if opts.budget is not None:
+        n = int(opts.budget)
+    else:
+        n = budget_from_ratio(f.source_bytes, opts.ratio or DEFAULT_RATIO, header_bytes, bpp)
+    check_budget(f, n, header_bytes, bpp)
+    return n
+
+
+def _header_for(f: Field, opts: EncodeOptions) -> dict:
+    encoding = {
+        "method": "fixed-budget anisotropic Gaussians (analytic allocation)",
+        "iterations": opts.iterations,
+        "stride": opts.stride,
+        "allocation": opts.allocation.to_dict(f.shape_xyz),
+        "rho0": 0.05,
+        "truncation_sigma": 5.0,
+    }
+    return make_header(
+        shape_xyz=f.shape_xyz,
+        spacing=f.spacing,
+        origin=f.origin,
+        vmin=f.vmin,
+        vmax=f.vmax,
+        source_dtype=f.source_dtype,
+        source_itemsize=f.source_itemsize,
+        name=f.name,
+        encoding=encoding,
+        seed=opts.seed,
+    )
+
+
+def encode_field(
+    f: Field,
+    opts: EncodeOptions,
+    *,
+    device: str | None = None,
+    timer: StageRecorder | None = None,
+    input_info: dict | None = None,
+    evaluate: bool = True,
+    full_eval: bool = False,
+    on_stats=None,
+) -> Model:
+    """Stages S1a-S1e, S1x, S2 and EV on a normalised field; returns the model with its report.
+
+    Args:
+        f: Output of stage P.
+        opts: Encoding options (budget or ratio, seed, allocation knobs).
+        device: Warp device (None: CUDA when present, else CPU).
+        timer: Stage recorder (stage P may already be in it).
+        input_info: Input description for the report.
+        evaluate: Run stage EV.
+        full_eval: Evaluate on the full grid instead of 500,000 sampled voxels.
+        on_stats: Optional callback(stats dict), called as soon as the structure statistics exist.
+    """
+    from .wgs import header_size
+
+    header = _header_for(f, opts)
+    n = resolve_budget(f, opts, header_size(header, 1 << 40, compact=opts.compact))
+
+    from ._warp import device_name, resolve_device, warp
+
+    wp = warp()
+    dev = resolve_device(device)
+    timer = timer or StageRecorder()
+    timer.device = dev
+    skipped: list[dict] = []
+
+    from .analysis import DeviceVolume, structure_stats
+
+    with timer.stage("S1a", "occupancy, gradients, structure statistics"):
+        dv = DeviceVolume(f, dev)
+        stats = structure_stats(dv)
+    if on_stats is not None:
+        on_stats(stats)
+
+    params, facts = allocate(dv, n, opts.seed, opts.allocation, timer)
+
+    with timer.stage("S1x", "analytic model"):
+        model = Model(params, header)
+        gf = model.field(dev)
+    if opts.iterations > 0:
+        skipped.append({"what": "S2 refinement", "why": "refinement is not implemented yet; the model is analytic"})
+    else:
+        skipped.append({"what": "S2 refinement", "why": "iterations = 0: the analytic model is the result"})
+
+    evaluation: dict = {}
+    if evaluate:
+        from .evaluate import evaluate_field
+
+        with timer.stage("EV", "evaluation"):
+            evaluation["analytic"] = evaluate_field(gf, f, full=full_eval)
+            evaluation["final"] = evaluation["analytic"]
+    else:
+        skipped.append({"what": "EV evaluation", "why": "disabled by the caller"})
+
+    bpp = 12 if opts.compact else 48
+    model.report = {
+        "warpgauss_version": __version__,
+        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "device": dev,
+        "device_name": device_name(dev),
+        "warp_version": wp.config.version,
+        "host": platform.node(),
+        "input": input_info or {"name": f.name, "shape_xyz": list(f.shape_xyz)},
+        "budget": {
+            "n": n,
+            "requested_budget": opts.budget,
+            "requested_ratio": opts.ratio if opts.budget is None else None,
+            "n_max": seed_limit(f.eligible, f.occupied),
+            "format": "compact96" if opts.compact else "float32",
+            "bytes": model.file_size(opts.compact),
+            "bytes_per_primitive": bpp,
+            "compression_ratio": model.compression_ratio(opts.compact),
+            "full_precision_bytes": model.file_size(False),
+            "compact_bytes": model.file_size(True),
+        },
+        "seed": opts.seed,
+        "structure": stats,
+        "allocation": facts,
+        "evaluation": evaluation,
+        "psnr_db": evaluation.get("final", {}).get("psnr_db"),
+        "skipped": skipped,
+    }
+    return model
+
+
+def finish_report(model: Model, timer: StageRecorder) -> dict:
+    """Put the stage table and totals into the model's report."""
+    rep = model.report
+    rep["stages"] = timer.to_list()
+    rep["total_seconds"] = round(sum(s.seconds for s in timer.stages), 6)
+    host = [s.host_peak_bytes for s in timer.stages]
+    dev = [s.device_peak_bytes for s in timer.stages if s.device_peak_bytes is not None]
+    rep["peak_host_bytes"] = max(host) if host else None
+    rep["peak_device_bytes"] = max(dev) if dev else None
+    return rep
+
+
+def encode(
+    source=None,
+    *,
+    budget: int | None = None,
+    ratio: float | None = None,
+    seed: int = 0,
+    device: str | None = None,
+    iterations: int = 0,
+    compact: bool = False,
+    example: str | None = None,
+    example_size: int | tuple[int, int, int] = 64,
+    read: ReadOptions | None = None,
+    allocation: AllocationConfig | None = None,
+    evaluate: bool = True,
+    full_eval: bool = False,
+    output: str | os.PathLike | None = None,
+    force: bool = False,
+    on_stage=None,
+    on_stats=None,
+) -> Model:
+    """Encode a volume into a fixed budget of Gaussians.
+
+    Args:
+        source: File path or 3D numpy array (nz, ny, nx); None with ``example``.
+        budget: Number of primitives N (exact); or give ``ratio``.
+        ratio: Target compression ratio; N = floor((S_src / R - H) / 48) (12 with ``compact``).
+        seed: Encoding seed; same seed and device give the same model.
+        device: Warp device; None picks CUDA when present, else CPU.
+        iterations: Refinement iterations (0: analytic model only).
+        compact: Size the budget (and the report) for the compact 12-byte format.
+        example: Built-in example volume name instead of ``source``.
+        example_size: Size of the example volume.
+        read: Reader options (shape, dtype, endian, dataset, variable, stride, fill value).
+        allocation: Allocation knobs.
+        evaluate: Run stage EV (PSNR).
+        full_eval: EV on the full grid instead of 500,000 sampled voxels.
+        output: If given, write the model there (stage S3; atomic).
+        force: Overwrite ``output`` if it exists.
+        on_stage: Optional callback(name, title) as each stage starts (progress display).
+        on_stats: Optional callback(stats) once the structure statistics exist (before allocation).
+
+    Returns:
+        The :class:`Model`, with ``model.report`` holding the run report.
+    """
+    from ._fs import check_writable
+
+    if output is not None:
+        check_writable(output, force=force)
+    opts = EncodeOptions(
+        budget, ratio, seed, iterations, compact, allocation or AllocationConfig(), stride=(read or ReadOptions()).stride
+    )
+    timer = StageRecorder(on_stage=on_stage)
+    with timer.stage("P", "load and normalise"):
+        f, info = load_field(source, read, example=example, example_size=example_size)
+    model = encode_field(
+        f, opts, device=device, timer=timer, input_info=info, evaluate=evaluate, full_eval=full_eval, on_stats=on_stats
+    )
+    if output is not None:
+        with timer.stage("S3", "export"):
+            model.save(output, compact=compact, force=force)
+        model.report["output"] = str(Path(output))
+    finish_report(model, timer)
+    return model

@@ -1,0 +1,113 @@
+"""Per-stage wall time and peak memory (host RSS and device pool) for the run report."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import resource
+import threading
+import time
+from dataclasses import dataclass, field
+
+POLL_SECONDS = 0.01
+
+
+def _rss_bytes() -> int:
+    """Current resident set size of this process."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except OSError:  # not Linux: fall back to the lifetime peak
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+class _PeakSampler:
+    """Samples RSS in a background thread while a stage runs."""
+
+    def __init__(self):
+        self.peak = _rss_bytes()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        while not self._stop.wait(POLL_SECONDS):
+            self.peak = max(self.peak, _rss_bytes())
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self.peak = max(self.peak, _rss_bytes())
+
+
+@dataclass
+class StageRecord:
+    name: str
+    title: str
+    seconds: float = 0.0
+    host_peak_bytes: int = 0
+    device_peak_bytes: int | None = None
+
+
+@dataclass
+class StageRecorder:
+    """Times named stages; ``device`` (a CUDA Warp device name) enables device-pool peaks.
+
+    Device peaks are the high-water mark of Warp's CUDA memory pool over the whole run up to the
+    end of the stage (the pool offers no reset), so they are non-decreasing across stages.
+    """
+
+    device: str | None = None
+    stages: list[StageRecord] = field(default_factory=list)
+    on_stage: object = None  # optional callback(name, title) when a stage starts
+
+    @contextlib.contextmanager
+    def stage(self, name: str, title: str):
+        if self.on_stage is not None:
+            self.on_stage(name, title)
+        rec = StageRecord(name, title)
+        t0 = time.perf_counter()
+        with _PeakSampler() as sampler:
+            try:
+                yield rec
+            finally:
+                self._sync()
+        rec.seconds = time.perf_counter() - t0
+        rec.host_peak_bytes = sampler.peak
+        rec.device_peak_bytes = self._device_peak()
+        self.stages.append(rec)
+
+    def _sync(self):
+        if self.device and self.device.startswith("cuda"):
+            from ._warp import warp
+
+            warp().synchronize_device(self.device)
+
+    def _device_peak(self) -> int | None:
+        if not (self.device and self.device.startswith("cuda")):
+            return None
+        from ._warp import warp
+
+        wp = warp()
+        try:
+            return int(wp.get_mempool_used_mem_high(self.device))
+        except (RuntimeError, ValueError):
+            return None
+
+    def seconds(self, name: str) -> float:
+        return sum(s.seconds for s in self.stages if s.name == name)
+
+    def to_list(self) -> list[dict]:
+        return [
+            {
+                "stage": s.name,
+                "title": s.title,
+                "seconds": round(s.seconds, 6),
+                "host_peak_bytes": s.host_peak_bytes,
+                "device_peak_bytes": s.device_peak_bytes,
+            }
+            for s in self.stages
+        ]
