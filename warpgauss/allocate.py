@@ -24,7 +24,11 @@ POISSON_NN = 0.554  # mean nearest-neighbour distance of a uniform point process
 
 @dataclass
 class AllocationConfig:
-    """Knobs of the analytic allocation (defaults measured on the example fields, see README).
+    """Knobs of the analytic allocation.
+
+    Defaults were chosen by analytic-model PSNR on the four example fields at 48^3 with 2,000
+    primitives (sigma factors 0.35-1.3, weights 0.1-1): narrower detail seeds win everywhere;
+    coverage 0.7 and w 0.3 trade 1.8 dB on bubbles for 2 dB on interface against 0.6.
 
     Attributes:
         detail_sigma: Detail-seed sigma as a multiple of the detail group's median NN spacing.
@@ -37,8 +41,8 @@ class AllocationConfig:
         init_weight: Uniform initial weight w of every primitive.
     """
 
-    detail_sigma: float = 0.8
-    coverage_sigma: float = 1.0
+    detail_sigma: float = 0.5
+    coverage_sigma: float = 0.7
     max_aniso: float = 3.0
     grad_quantile: float = 0.9
     scale_min: float = 0.3
