@@ -45,7 +45,7 @@ def test_same_seed_same_device_gives_the_same_model(interface32, device):
 
 
 def test_compact_file_is_12_bytes_per_primitive_and_close_in_psnr(tmp_path, interface32):
-    m = warpgauss.encode(interface32, budget=600, device="cpu")
+    m = warpgauss.encode(interface32, budget=600, device=None)
     full = tmp_path / "full.wgs"
     compact = tmp_path / "compact.wgs"
     m.save(full)
@@ -53,8 +53,8 @@ def test_compact_file_is_12_bytes_per_primitive_and_close_in_psnr(tmp_path, inte
     assert size == 12 * 600 + 4096 == m.file_size(compact=True)
     mc = warpgauss.Model.load(compact)
     assert mc.header["payload"]["encoding"] == "compact96"
-    p_full = warpgauss.psnr(warpgauss.Model.load(full), interface32, device="cpu")
-    p_compact = warpgauss.psnr(mc, interface32, device="cpu")
+    p_full = warpgauss.psnr(warpgauss.Model.load(full), interface32, device=None)
+    p_compact = warpgauss.psnr(mc, interface32, device=None)
     assert p_full - 0.5 < p_compact < p_full + 0.5
 
 
@@ -62,7 +62,7 @@ def test_ratio_and_stride_and_fill_value(tmp_path):
     vol = generate("bubbles", 48, seed=1).astype(np.float64)
     vol[:, :, :8] = -1.0e30  # a fill region ("land")
     m = warpgauss.encode(
-        vol, ratio=10, device="cpu", read=warpgauss.pipeline.ReadOptions(stride=2, fill_value=-1.0e30)
+        vol, ratio=10, device=None, read=warpgauss.pipeline.ReadOptions(stride=2, fill_value=-1.0e30)
     )
     src = 24**3 * 8  # float64 source at the evaluated (strided) resolution
     assert m.report["budget"]["n"] == int(np.floor((src / 10 - 4096) / 48))
@@ -73,5 +73,5 @@ def test_ratio_and_stride_and_fill_value(tmp_path):
 
 
 def test_refinement_is_not_silently_claimed(interface32):
-    m = warpgauss.encode(interface32, budget=100, iterations=10, device="cpu", evaluate=False)
+    m = warpgauss.encode(interface32, budget=100, iterations=10, device=None, evaluate=False)
     assert any(s["what"] == "S2 refinement" for s in m.report["skipped"])

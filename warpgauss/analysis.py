@@ -7,6 +7,7 @@ as Warp kernels (:func:`structure_stats`).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -96,13 +97,26 @@ def normalise(
     if not (np.issubdtype(data.dtype, np.integer) or np.issubdtype(data.dtype, np.floating)):
         raise WarpgaussError(f"the volume's dtype {data.dtype} is not a real number type")
     nz = data.shape[0]
-    lo, hi, n_invalid = np.inf, -np.inf, 0
-    for z0 in range(0, nz, SLAB):
-        s = np.asarray(data[z0 : z0 + SLAB], dtype=np.float64)
+    exact = np.dtype(data.dtype).itemsize > 4 or np.dtype(data.dtype) in (np.int32, np.uint32)
+    work = np.float64 if exact else np.float32  # float32 arithmetic is exact enough for <= 4-byte sources
+    maybe_invalid = np.issubdtype(data.dtype, np.floating) or fill_value is not None
+
+    def scan(z0: int):
+        s = np.asarray(data[z0 : z0 + SLAB])
+        if not maybe_invalid:
+            return s.min(), s.max(), 0
         ok = _valid(s, fill_value)
-        n_invalid += int(ok.size - np.count_nonzero(ok))
-        if ok.any():
-            lo, hi = min(lo, float(s[ok].min())), max(hi, float(s[ok].max()))
+        n_ok = int(np.count_nonzero(ok))
+        if n_ok == ok.size:
+            return s.min(), s.max(), 0
+        if n_ok == 0:
+            return np.inf, -np.inf, ok.size
+        return s[ok].min(), s[ok].max(), ok.size - n_ok
+
+    parts = _map_slabs(scan, nz)
+    lo = min(float(p[0]) for p in parts)
+    hi = max(float(p[1]) for p in parts)
+    n_invalid = sum(p[2] for p in parts)
     if not np.isfinite(lo):
         raise WarpgaussError("the volume has no finite value (all NaN/Inf or fill); nothing to encode")
     clip = value_range is None
@@ -113,16 +127,21 @@ def normalise(
     values = np.empty(data.shape, np.float32)
     mask = np.ones(data.shape, bool) if n_invalid else None
     scale = 1.0 / (hi - lo)
-    for z0 in range(0, nz, SLAB):
-        s = np.asarray(data[z0 : z0 + SLAB], dtype=np.float64)
-        ok = _valid(s, fill_value)
-        v = (s - lo) * scale
+
+    def fill(z0: int):
+        s = np.asarray(data[z0 : z0 + SLAB])
+        v = s.astype(work, copy=True)
+        v -= work(lo)
+        v *= work(scale)
         if clip:
             np.clip(v, 0.0, 1.0, out=v)
-        v[~ok] = 0.0
-        values[z0 : z0 + SLAB] = v
         if mask is not None:
+            ok = _valid(s, fill_value)
+            v[~ok] = 0.0
             mask[z0 : z0 + SLAB] = ok
+        values[z0 : z0 + SLAB] = v
+
+    _map_slabs(fill, nz)
     f = Field(
         values=values,
         mask=mask,
@@ -141,8 +160,19 @@ def normalise(
     return f
 
 
+def _map_slabs(fn, nz: int) -> list:
+    """Run fn(z0) for every z-slab, on a thread pool (numpy releases the GIL in its loops)."""
+    starts = list(range(0, nz, SLAB))
+    if len(starts) == 1:
+        return [fn(starts[0])]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=min(len(starts), os.cpu_count() or 1)) as pool:
+        return list(pool.map(fn, starts))
+
+
 def _valid(s: np.ndarray, fill_value: float | None) -> np.ndarray:
-    ok = np.isfinite(s)
+    ok = np.isfinite(s) if np.issubdtype(s.dtype, np.floating) else np.ones(s.shape, bool)
     if fill_value is not None:
         ok &= s != fill_value
     return ok
@@ -155,18 +185,40 @@ def count_seed_candidates(values: np.ndarray, mask: np.ndarray | None) -> tuple[
     difference, one-sided next to the border or a masked voxel; non-zero iff the two values differ.
     """
     nz = values.shape[0]
-    occupied = eligible = 0
-    for z0 in range(0, nz, SLAB):
+
+    def count(z0: int) -> tuple[int, int]:
         z1 = min(nz, z0 + SLAB)
         a, b = max(0, z0 - 1), min(nz, z1 + 1)  # one halo slice each side
         v = values[a:b]
-        ok = np.ones(v.shape, bool) if mask is None else mask[a:b]
-        occ = ok & (v > OCCUPIED)
-        differs = _differs(v, ok, 2) | _differs(v, ok, 1) | _differs(v, ok, 0)
         core = slice(z0 - a, z0 - a + (z1 - z0))
-        occupied += int(np.count_nonzero(occ[core]))
-        eligible += int(np.count_nonzero((occ & differs)[core]))
-    return occupied, eligible
+        if mask is None:
+            occ = v[core] > OCCUPIED
+            differs = _differs_unmasked(v, 2)[core] | _differs_unmasked(v, 1)[core]
+            differs |= _differs_unmasked(v, 0)[core]
+        else:
+            ok = mask[a:b]
+            occ = (ok & (v > OCCUPIED))[core]
+            differs = (_differs(v, ok, 2) | _differs(v, ok, 1) | _differs(v, ok, 0))[core]
+        return int(np.count_nonzero(occ)), int(np.count_nonzero(occ & differs))
+
+    parts = _map_slabs(count, nz)
+    return sum(p[0] for p in parts), sum(p[1] for p in parts)
+
+
+def _differs_unmasked(v: np.ndarray, axis: int) -> np.ndarray:
+    """_differs without a mask: comparisons of shifted views, no copies of the values."""
+    n = v.shape[axis]
+    out = np.zeros(v.shape, bool)
+    if n < 2:
+        return out
+
+    def sl(a, b):
+        return tuple(slice(a, b) if ax == axis else slice(None) for ax in range(3))
+
+    np.not_equal(v[sl(2, n)], v[sl(0, n - 2)], out=out[sl(1, n - 1)])
+    np.not_equal(v[sl(1, 2)], v[sl(0, 1)], out=out[sl(0, 1)])
+    np.not_equal(v[sl(n - 1, n)], v[sl(n - 2, n - 1)], out=out[sl(n - 1, n)])
+    return out
 
 
 def _differs(v: np.ndarray, ok: np.ndarray, axis: int) -> np.ndarray:
