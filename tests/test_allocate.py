@@ -231,3 +231,18 @@ def test_structure_statistics_match_numpy(device):
     assert st["s1"] == pytest.approx(ref["s1"], rel=1e-5)
     assert st["s16"] == pytest.approx(ref["s16"], rel=1e-5)
     assert st["s1_s16"] == pytest.approx(ref["s1"] / ref["s16"], rel=1e-5)
+
+
+def test_every_feasible_budget_yields_exactly_n(device):
+    v = np.zeros((6, 7, 8), np.float32)
+    v[1:5, 2:6, 2:7] = np.linspace(0.1, 1.0, 4 * 4 * 5).reshape(4, 4, 5)
+    v[2, 3, 3:5] = 0.5  # a flat pair: occupied with zero gradient on x
+    f = normalise(v)
+    n_max = seed_limit(f.eligible, f.occupied)
+    assert 50 < n_max < 200
+    dv = DeviceVolume(f, device)
+    for n in range(1, n_max + 1):
+        params, facts = allocate(dv, n, seed=n, config=AllocationConfig(), timer=StageRecorder())
+        assert params.shape == (n, 12) and np.all(np.isfinite(params))
+    with pytest.raises(WarpgaussError, match="N_max"):
+        check_budget(f, n_max + 1, 4096)
