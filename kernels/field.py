@@ -174,28 +174,32 @@ def gather_sorted(
     w_s[i] = w[j]
 
 
+@wp.struct
+class BinnedPrimitives:
+    """Prepared primitives in cell order with their cell-level index (see ``GaussianField``)."""
+
+    level_size: wp.array(dtype=float)  # [L] cell edge per level, ascending; the last level is global
+    level_dims: wp.array(dtype=wp.vec3i)  # [L] cells per axis
+    level_offset: wp.array(dtype=int)  # [L] first cell id of each level
+    cell_start: wp.array(dtype=int)  # [C] first sorted primitive of each cell
+    cell_end: wp.array(dtype=int)  # [C] one past the last
+    mu: wp.array(dtype=wp.vec3)  # [N] centres, cell order
+    prec: wp.array(dtype=wp.mat33)  # [N] Sigma^-1
+    ext: wp.array(dtype=wp.vec3)  # [N] 5-sigma half-extents
+    wa: wp.array(dtype=float)  # [N] w * a
+    w: wp.array(dtype=float)  # [N] w
+
+
 @wp.func
-def binned_sums(
-    p: wp.vec3,
-    level_size: wp.array(dtype=float),
-    level_dims: wp.array(dtype=wp.vec3i),
-    level_offset: wp.array(dtype=int),
-    cell_start: wp.array(dtype=int),
-    cell_end: wp.array(dtype=int),
-    mu_s: wp.array(dtype=wp.vec3),
-    prec_s: wp.array(dtype=wp.mat33),
-    ext_s: wp.array(dtype=wp.vec3),
-    wa_s: wp.array(dtype=float),
-    w_s: wp.array(dtype=float),
-) -> wp.vec3:
+def binned_sums(p: wp.vec3, b: BinnedPrimitives) -> wp.vec3:
     """(numerator, density, contributing pairs) at p over the binned primitives."""
     num = float(0.0)
     den = float(0.0)
     pairs = float(0.0)
-    for l in range(level_size.shape[0]):
-        dims = level_dims[l]
-        c = level_cell(p, level_size[l], dims)
-        off = level_offset[l]
+    for l in range(b.level_size.shape[0]):
+        dims = b.level_dims[l]
+        c = level_cell(p, b.level_size[l], dims)
+        off = b.level_offset[l]
         for dz in range(-1, 2):
             z = c[2] + dz
             if z >= 0 and z < dims[2]:
@@ -206,11 +210,11 @@ def binned_sums(
                             x = c[0] + dx
                             if x >= 0 and x < dims[0]:
                                 cid = off + (z * dims[1] + y) * dims[0] + x
-                                for j in range(cell_start[cid], cell_end[cid]):
-                                    g = truncated_kernel(p, mu_s[j], prec_s[j], ext_s[j])
+                                for j in range(b.cell_start[cid], b.cell_end[cid]):
+                                    g = truncated_kernel(p, b.mu[j], b.prec[j], b.ext[j])
                                     if g > 0.0:
-                                        num += wa_s[j] * g
-                                        den += w_s[j] * g
+                                        num += b.wa[j] * g
+                                        den += b.w[j] * g
                                         pairs += 1.0
     return wp.vec3(num, den, pairs)
 
@@ -218,25 +222,14 @@ def binned_sums(
 @wp.kernel
 def eval_points_binned(
     points: wp.array(dtype=wp.vec3),  # [M] query positions (voxel units, x,y,z)
-    level_size: wp.array(dtype=float),
-    level_dims: wp.array(dtype=wp.vec3i),
-    level_offset: wp.array(dtype=int),
-    cell_start: wp.array(dtype=int),
-    cell_end: wp.array(dtype=int),
-    mu_s: wp.array(dtype=wp.vec3),
-    prec_s: wp.array(dtype=wp.mat33),
-    ext_s: wp.array(dtype=wp.vec3),
-    wa_s: wp.array(dtype=float),
-    w_s: wp.array(dtype=float),
+    prims: BinnedPrimitives,
     value: wp.array(dtype=float),  # [M] out: V~(p)
     density: wp.array(dtype=float),  # [M] out: rho(p) = sum w G
     pairs: wp.array(dtype=int),  # [M] out: contributing pairs
 ):
     """V~ at arbitrary points through the binned primitives (one thread per point)."""
     i = wp.tid()
-    s = binned_sums(
-        points[i], level_size, level_dims, level_offset, cell_start, cell_end, mu_s, prec_s, ext_s, wa_s, w_s
-    )
+    s = binned_sums(points[i], prims)
     value[i] = s[0] / wp.max(s[1], RHO0)
     density[i] = s[1]
     pairs[i] = int(s[2])
@@ -246,16 +239,7 @@ def eval_points_binned(
 def eval_grid_binned(
     z0: int,  # first output slice of this slab
     scale: wp.vec3,  # model voxels per output voxel along x, y, z
-    level_size: wp.array(dtype=float),
-    level_dims: wp.array(dtype=wp.vec3i),
-    level_offset: wp.array(dtype=int),
-    cell_start: wp.array(dtype=int),
-    cell_end: wp.array(dtype=int),
-    mu_s: wp.array(dtype=wp.vec3),
-    prec_s: wp.array(dtype=wp.mat33),
-    ext_s: wp.array(dtype=wp.vec3),
-    wa_s: wp.array(dtype=float),
-    w_s: wp.array(dtype=float),
+    prims: BinnedPrimitives,
     out: wp.array3d(dtype=float),  # [nz_slab, ny, nx] out: V~ at output voxel centres
 ):
     """Decode a slab of an output grid; output voxel (i,j,k) covers the same extent as the model
@@ -266,7 +250,7 @@ def eval_grid_binned(
         (float(j) + 0.5) * scale[1] - 0.5,
         (float(k + z0) + 0.5) * scale[2] - 0.5,
     )
-    s = binned_sums(p, level_size, level_dims, level_offset, cell_start, cell_end, mu_s, prec_s, ext_s, wa_s, w_s)
+    s = binned_sums(p, prims)
     out[k, j, i] = s[0] / wp.max(s[1], RHO0)
 
 

@@ -7,6 +7,7 @@ as Warp kernels (:func:`structure_stats`).
 
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass, field
 
@@ -205,6 +206,11 @@ def count_seed_candidates(values: np.ndarray, mask: np.ndarray | None) -> tuple[
     return sum(p[0] for p in parts), sum(p[1] for p in parts)
 
 
+def _axis_slice(axis: int, a: int, b: int) -> tuple:
+    """Index selecting [a, b) along one axis of a 3D array."""
+    return tuple(slice(a, b) if ax == axis else slice(None) for ax in range(3))
+
+
 def _differs_unmasked(v: np.ndarray, axis: int) -> np.ndarray:
     """_differs without a mask: comparisons of shifted views, no copies of the values."""
     n = v.shape[axis]
@@ -212,8 +218,7 @@ def _differs_unmasked(v: np.ndarray, axis: int) -> np.ndarray:
     if n < 2:
         return out
 
-    def sl(a, b):
-        return tuple(slice(a, b) if ax == axis else slice(None) for ax in range(3))
+    sl = functools.partial(_axis_slice, axis)
 
     np.not_equal(v[sl(2, n)], v[sl(0, n - 2)], out=out[sl(1, n - 1)])
     np.not_equal(v[sl(1, 2)], v[sl(0, 1)], out=out[sl(0, 1)])
@@ -227,8 +232,7 @@ def _differs(v: np.ndarray, ok: np.ndarray, axis: int) -> np.ndarray:
     if n < 2:
         return out
 
-    def sl(a, b):
-        return tuple(slice(a, b) if ax == axis else slice(None) for ax in range(3))
+    sl = functools.partial(_axis_slice, axis)
 
     fwd_ok = np.zeros(v.shape, bool)
     bwd_ok = np.zeros(v.shape, bool)

@@ -107,17 +107,7 @@ def evaluate_against(model, volume, *, full: bool = False, device: str | None = 
     if isinstance(volume, np.ndarray):
         data = volume[:: read.stride, :: read.stride, :: read.stride]
     else:
-        from .io import read_volume
-
-        vol = read_volume(
-            volume,
-            shape=read.shape,
-            dtype=read.dtype,
-            endian=read.endian,
-            dataset=read.dataset,
-            variable=read.variable,
-            stride=read.stride,
-        )
+        vol = read.read(volume)
         data = vol.data
         if fill is None:
             fill = getattr(vol, "fill_value", None)

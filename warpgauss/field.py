@@ -119,48 +119,36 @@ class GaussianField:
 
     def _build(self) -> None:
         wp, kf, dev, n, plan = self._wp, self._k, self.device, self.n, self.plan
-        self.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=dev)
-        self.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=dev)
-        self.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=dev)
+        prims = kf.BinnedPrimitives()
+        prims.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=dev)
+        prims.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=dev)
+        prims.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=dev)
         keys = wp.empty(2 * n, dtype=int, device=dev)
         order = wp.empty(2 * n, dtype=int, device=dev)
         wp.launch(
             kf.bin_keys,
             dim=n,
-            inputs=[self.mu, self.radius, self.level_size, self.level_dims, self.level_offset],
+            inputs=[self.mu, self.radius, prims.level_size, prims.level_dims, prims.level_offset],
             outputs=[keys, order],
             device=dev,
         )
         wp.utils.radix_sort_pairs(keys, order, n)
-        self.cell_start = wp.zeros(plan.total_cells, dtype=int, device=dev)
-        self.cell_end = wp.zeros(plan.total_cells, dtype=int, device=dev)
-        wp.launch(kf.cell_ranges, dim=n, inputs=[keys, n], outputs=[self.cell_start, self.cell_end], device=dev)
-        self.mu_s = wp.empty_like(self.mu)
-        self.prec_s = wp.empty_like(self.prec)
-        self.ext_s = wp.empty_like(self.ext)
-        self.wa_s = wp.empty_like(self.wa)
-        self.w_s = wp.empty_like(self.w)
+        prims.cell_start = wp.zeros(plan.total_cells, dtype=int, device=dev)
+        prims.cell_end = wp.zeros(plan.total_cells, dtype=int, device=dev)
+        wp.launch(kf.cell_ranges, dim=n, inputs=[keys, n], outputs=[prims.cell_start, prims.cell_end], device=dev)
+        prims.mu = wp.empty_like(self.mu)
+        prims.prec = wp.empty_like(self.prec)
+        prims.ext = wp.empty_like(self.ext)
+        prims.wa = wp.empty_like(self.wa)
+        prims.w = wp.empty_like(self.w)
         wp.launch(
             kf.gather_sorted,
             dim=n,
             inputs=[order, self.mu, self.prec, self.ext, self.wa, self.w],
-            outputs=[self.mu_s, self.prec_s, self.ext_s, self.wa_s, self.w_s],
+            outputs=[prims.mu, prims.prec, prims.ext, prims.wa, prims.w],
             device=dev,
         )
-
-    def _binned_inputs(self) -> list:
-        return [
-            self.level_size,
-            self.level_dims,
-            self.level_offset,
-            self.cell_start,
-            self.cell_end,
-            self.mu_s,
-            self.prec_s,
-            self.ext_s,
-            self.wa_s,
-            self.w_s,
-        ]
+        self.prims = prims
 
     def _eval(self, points: np.ndarray, dense: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         wp, kf, dev = self._wp, self._k, self.device
@@ -179,7 +167,7 @@ class GaussianField:
                 inputs = [p, self.mu, self.prec, self.ext, self.wa, self.w]
                 wp.launch(kf.eval_points_dense, dim=b - a, inputs=inputs, outputs=[v, d, c], device=dev)
             else:
-                inputs = [p, *self._binned_inputs()]
+                inputs = [p, self.prims]
                 wp.launch(kf.eval_points_binned, dim=b - a, inputs=inputs, outputs=[v, d, c], device=dev)
             value[a:b], density[a:b], pairs[a:b] = v.numpy(), d.numpy(), c.numpy()
         return value, density, pairs
@@ -219,7 +207,7 @@ class GaussianField:
             wp.launch(
                 kf.eval_grid_binned,
                 dim=(h, ny, nx),
-                inputs=[z0, scale, *self._binned_inputs()],
+                inputs=[z0, scale, self.prims],
                 outputs=[view],
                 device=dev,
             )

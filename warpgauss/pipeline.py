@@ -38,6 +38,20 @@ class ReadOptions:
     stride: int = 1
     fill_value: float | None = None
 
+    def read(self, path):
+        """Read a volume file with these options (:func:`warpgauss.io.read_volume`)."""
+        from .io import read_volume
+
+        return read_volume(
+            path,
+            shape=self.shape,
+            dtype=self.dtype,
+            endian=self.endian,
+            dataset=self.dataset,
+            variable=self.variable,
+            stride=self.stride,
+        )
+
 
 @dataclass
 class EncodeOptions:
@@ -85,17 +99,7 @@ def load_field(
         data = source[::s, ::s, ::s]
         name, spacing, origin, dtype, path = "array", (float(s),) * 3, (0.0, 0.0, 0.0), str(source.dtype), None
     elif isinstance(source, (str, os.PathLike)):
-        from .io import read_volume
-
-        vol = read_volume(
-            source,
-            shape=read.shape,
-            dtype=read.dtype,
-            endian=read.endian,
-            dataset=read.dataset,
-            variable=read.variable,
-            stride=s,
-        )
+        vol = read.read(source)
         data, name, spacing, origin = vol.data, vol.name, vol.spacing, vol.origin
         dtype, path = vol.source_dtype or str(vol.data.dtype), str(source)
         if fill is None and getattr(vol, "fill_value", None) is not None:
