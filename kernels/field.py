@@ -3,7 +3,7 @@
     V~(p) = sum_i w_i a_i G_i(p) / max(sum_i w_i G_i(p), RHO0),   G_i(p) = exp(-m/2) if m < 25 else 0,
     m = d^T Sigma_i^-1 d,  d = p - mu_i,  Sigma_i = R(q_i) diag(exp(2 s_i)) R(q_i)^T.
 
-Evaluation is truncation-aware: primitives are prepared once (precision matrix, per-axis
+Evaluation is truncation-aware: primitives are prepared once (rotation, inverse squared scales, per-axis
 half-extents of the 5-sigma ellipsoid), binned by truncation radius into levels of cubic cells
 whose size is at least the radius of every member, sorted by cell, and each query point visits
 the 3^3 neighbouring cells of every level with a per-axis bounding test before the exact
@@ -53,34 +53,49 @@ def primitive_frame(p: vec12):
 
 
 @wp.func
-def truncated_kernel(p: wp.vec3, mu: wp.vec3, prec: wp.mat33, ext: wp.vec3) -> float:
-    """G(p) with the 5-sigma cut; 0 outside the bounding box or the ellipsoid."""
+def mahalanobis(d: wp.vec3, rot: wp.mat33, inv_s2: wp.vec3) -> float:
+    """m = d^T Sigma^-1 d with Sigma = R diag(s^2) R^T, computed in the primitive's frame."""
+    y = wp.transpose(rot) @ d
+    return y[0] * y[0] * inv_s2[0] + y[1] * y[1] * inv_s2[1] + y[2] * y[2] * inv_s2[2]
+
+
+@wp.func
+def truncated_kernel(p: wp.vec3, mu: wp.vec3, rot: wp.mat33, inv_s2: wp.vec3, ext: wp.vec3) -> float:
+    """G(p) with the 5-sigma cut; 0 outside the bounding box or the ellipsoid.
+
+    Forward and backward passes both call this, so they agree exactly on which pairs contribute.
+    """
     d = p - mu
     if wp.abs(d[0]) > ext[0] or wp.abs(d[1]) > ext[1] or wp.abs(d[2]) > ext[2]:
         return 0.0
-    m = wp.dot(d, prec @ d)
+    m = mahalanobis(d, rot, inv_s2)
     if m >= TRUNC_M2:
         return 0.0
     return wp.exp(-0.5 * m)
 
 
+@wp.func
+def sigmoid(x: float) -> float:
+    return 1.0 / (1.0 + wp.exp(-x))
+
+
 @wp.kernel
 def prepare_primitives(
     params: wp.array(dtype=vec12),  # [N]
+    raw: int,  # 1: params are training parameters (weight logit in slot 11), 0: model parameters
     mu: wp.array(dtype=wp.vec3),  # [N] out: centres
-    prec: wp.array(dtype=wp.mat33),  # [N] out: Sigma^-1
+    rot: wp.array(dtype=wp.mat33),  # [N] out: R (columns = local axes)
+    inv_s2: wp.array(dtype=wp.vec3),  # [N] out: 1 / sigma^2 per local axis
     ext: wp.array(dtype=wp.vec3),  # [N] out: per-axis half-extent of the 5-sigma ellipsoid
     radius: wp.array(dtype=float),  # [N] out: max(ext), the binning radius
-    wa: wp.array(dtype=float),  # [N] out: w * a
-    w: wp.array(dtype=float),  # [N] out: w
+    a: wp.array(dtype=float),  # [N] out: value
+    w: wp.array(dtype=float),  # [N] out: weight
 ):
-    """Turn raw parameters into what evaluation reads (one thread per primitive)."""
+    """Turn parameters into what evaluation reads (one thread per primitive)."""
     i = wp.tid()
     p = params[i]
     R, s = primitive_frame(p)
-    inv2 = wp.vec3(1.0 / (s[0] * s[0]), 1.0 / (s[1] * s[1]), 1.0 / (s[2] * s[2]))
     s2 = wp.vec3(s[0] * s[0], s[1] * s[1], s[2] * s[2])
-    P = R @ wp.diag(inv2) @ wp.transpose(R)
     S = R @ wp.diag(s2) @ wp.transpose(R)
     e = wp.vec3(
         TRUNC_SIGMA * wp.sqrt(wp.max(S[0, 0], 0.0)),
@@ -88,11 +103,15 @@ def prepare_primitives(
         TRUNC_SIGMA * wp.sqrt(wp.max(S[2, 2], 0.0)),
     )
     mu[i] = wp.vec3(p[0], p[1], p[2])
-    prec[i] = P
+    rot[i] = R
+    inv_s2[i] = wp.vec3(1.0 / s2[0], 1.0 / s2[1], 1.0 / s2[2])
     ext[i] = e
     radius[i] = wp.max(e[0], wp.max(e[1], e[2]))
-    wa[i] = p[11] * p[10]
-    w[i] = p[11]
+    a[i] = p[10]
+    if raw != 0:
+        w[i] = sigmoid(p[11])
+    else:
+        w[i] = p[11]
 
 
 @wp.func
@@ -154,23 +173,26 @@ def cell_ranges(
 def gather_sorted(
     order: wp.array(dtype=int),  # [>=N] primitive index at each sorted slot
     mu: wp.array(dtype=wp.vec3),
-    prec: wp.array(dtype=wp.mat33),
+    rot: wp.array(dtype=wp.mat33),
+    inv_s2: wp.array(dtype=wp.vec3),
     ext: wp.array(dtype=wp.vec3),
-    wa: wp.array(dtype=float),
+    a: wp.array(dtype=float),
     w: wp.array(dtype=float),
     mu_s: wp.array(dtype=wp.vec3),  # [N] out, cell order
-    prec_s: wp.array(dtype=wp.mat33),
+    rot_s: wp.array(dtype=wp.mat33),
+    inv_s2_s: wp.array(dtype=wp.vec3),
     ext_s: wp.array(dtype=wp.vec3),
-    wa_s: wp.array(dtype=float),
+    a_s: wp.array(dtype=float),
     w_s: wp.array(dtype=float),
 ):
     """Copy prepared primitives into cell order so that a cell's members are contiguous."""
     i = wp.tid()
     j = order[i]
     mu_s[i] = mu[j]
-    prec_s[i] = prec[j]
+    rot_s[i] = rot[j]
+    inv_s2_s[i] = inv_s2[j]
     ext_s[i] = ext[j]
-    wa_s[i] = wa[j]
+    a_s[i] = a[j]
     w_s[i] = w[j]
 
 
@@ -183,11 +205,13 @@ class BinnedPrimitives:
     level_offset: wp.array(dtype=int)  # [L] first cell id of each level
     cell_start: wp.array(dtype=int)  # [C] first sorted primitive of each cell
     cell_end: wp.array(dtype=int)  # [C] one past the last
+    order: wp.array(dtype=int)  # [N] primitive index of each sorted slot
     mu: wp.array(dtype=wp.vec3)  # [N] centres, cell order
-    prec: wp.array(dtype=wp.mat33)  # [N] Sigma^-1
+    rot: wp.array(dtype=wp.mat33)  # [N] R
+    inv_s2: wp.array(dtype=wp.vec3)  # [N] 1 / sigma^2
     ext: wp.array(dtype=wp.vec3)  # [N] 5-sigma half-extents
-    wa: wp.array(dtype=float)  # [N] w * a
-    w: wp.array(dtype=float)  # [N] w
+    a: wp.array(dtype=float)  # [N] value
+    w: wp.array(dtype=float)  # [N] weight
 
 
 @wp.func
@@ -211,9 +235,9 @@ def binned_sums(p: wp.vec3, b: BinnedPrimitives) -> wp.vec3:
                             if x >= 0 and x < dims[0]:
                                 cid = off + (z * dims[1] + y) * dims[0] + x
                                 for j in range(b.cell_start[cid], b.cell_end[cid]):
-                                    g = truncated_kernel(p, b.mu[j], b.prec[j], b.ext[j])
+                                    g = truncated_kernel(p, b.mu[j], b.rot[j], b.inv_s2[j], b.ext[j])
                                     if g > 0.0:
-                                        num += b.wa[j] * g
+                                        num += b.w[j] * b.a[j] * g
                                         den += b.w[j] * g
                                         pairs += 1.0
     return wp.vec3(num, den, pairs)
@@ -258,9 +282,10 @@ def eval_grid_binned(
 def eval_points_dense(
     points: wp.array(dtype=wp.vec3),  # [M]
     mu: wp.array(dtype=wp.vec3),  # [N] prepared, any order
-    prec: wp.array(dtype=wp.mat33),
+    rot: wp.array(dtype=wp.mat33),
+    inv_s2: wp.array(dtype=wp.vec3),
     ext: wp.array(dtype=wp.vec3),
-    wa: wp.array(dtype=float),
+    a: wp.array(dtype=float),
     w: wp.array(dtype=float),
     value: wp.array(dtype=float),  # [M] out
     density: wp.array(dtype=float),  # [M] out
@@ -273,9 +298,9 @@ def eval_points_dense(
     den = float(0.0)
     n = int(0)
     for j in range(mu.shape[0]):
-        g = truncated_kernel(p, mu[j], prec[j], ext[j])
+        g = truncated_kernel(p, mu[j], rot[j], inv_s2[j], ext[j])
         if g > 0.0:
-            num += wa[j] * g
+            num += w[j] * a[j] * g
             den += w[j] * g
             n += 1
     value[i] = num / wp.max(den, RHO0)

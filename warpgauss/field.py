@@ -83,72 +83,94 @@ class GaussianField:
     """A primitive set resident on one Warp device, ready for truncation-aware evaluation.
 
     Args:
-        params: (N, 12) float32 primitive parameters (see :mod:`warpgauss.kernels.field`).
+        params: (N, 12) float32 parameters, or a Warp ``vec12`` array already on ``device``
+            (kept by reference: call :meth:`update` after changing it).
         shape_xyz: The model grid (x, y, z) in voxels; positions are in its voxel units.
         device: Warp device; None picks CUDA when present, else CPU.
+        raw: ``params`` are training parameters (weight logit in slot 11, quaternion unnormalised).
     """
 
-    def __init__(self, params: np.ndarray, shape_xyz: tuple[int, int, int], device: str | None = None):
+    def __init__(self, params, shape_xyz: tuple[int, int, int], device: str | None = None, *, raw: bool = False):
         wp = warp()
         from .kernels import field as kf
 
         self._wp, self._k = wp, kf
         self.device = resolve_device(device)
-        params = np.ascontiguousarray(params, dtype=np.float32)
-        if params.ndim != 2 or params.shape[1] != 12 or params.shape[0] < 1:
-            raise WarpgaussError(f"primitive parameters must have shape (N, 12) with N >= 1, got {params.shape}")
-        self.n = int(params.shape[0])
+        self.raw = raw
+        if isinstance(params, wp.array):
+            self.params = params
+        else:
+            params = np.ascontiguousarray(params, dtype=np.float32)
+            if params.ndim != 2 or params.shape[1] != 12 or params.shape[0] < 1:
+                raise WarpgaussError(f"primitive parameters must have shape (N, 12) with N >= 1, got {params.shape}")
+            self.params = wp.array(params, dtype=kf.vec12, device=self.device)
+        self.n = int(self.params.shape[0])
         self.shape_xyz = tuple(int(s) for s in shape_xyz)
         n, dev = self.n, self.device
-        self.params = wp.array(params, dtype=kf.vec12, device=dev)
         self.mu = wp.empty(n, dtype=wp.vec3, device=dev)
-        self.prec = wp.empty(n, dtype=wp.mat33, device=dev)
+        self.rot = wp.empty(n, dtype=wp.mat33, device=dev)
+        self.inv_s2 = wp.empty(n, dtype=wp.vec3, device=dev)
         self.ext = wp.empty(n, dtype=wp.vec3, device=dev)
         self.radius = wp.empty(n, dtype=float, device=dev)
-        self.wa = wp.empty(n, dtype=float, device=dev)
+        self.a = wp.empty(n, dtype=float, device=dev)
         self.w = wp.empty(n, dtype=float, device=dev)
+        self._keys = wp.empty(2 * n, dtype=int, device=dev)
+        self.prims = kf.BinnedPrimitives()
+        p = self.prims
+        p.order = wp.empty(2 * n, dtype=int, device=dev)
+        p.mu = wp.empty_like(self.mu)
+        p.rot = wp.empty_like(self.rot)
+        p.inv_s2 = wp.empty_like(self.inv_s2)
+        p.ext = wp.empty_like(self.ext)
+        p.a = wp.empty_like(self.a)
+        p.w = wp.empty_like(self.w)
+        self.plan: BinPlan | None = None
+        self.update(replan=True)
+
+    def update(self, replan: bool = False) -> None:
+        """Re-prepare and re-bin after the parameters changed.
+
+        Args:
+            replan: Also re-plan the cell levels from the current radii (reads radii back to the
+                host). Without it the old plan is reused, which stays exact thanks to the global
+                level, only slower if primitives grew or shrank a lot.
+        """
+        wp, kf, dev, n = self._wp, self._k, self.device, self.n
         wp.launch(
             kf.prepare_primitives,
             dim=n,
-            inputs=[self.params],
-            outputs=[self.mu, self.prec, self.ext, self.radius, self.wa, self.w],
+            inputs=[self.params, int(self.raw)],
+            outputs=[self.mu, self.rot, self.inv_s2, self.ext, self.radius, self.a, self.w],
             device=dev,
         )
-        self.plan = plan_bins(self.radius.numpy(), self.shape_xyz)
-        self._build()
-
-    def _build(self) -> None:
-        wp, kf, dev, n, plan = self._wp, self._k, self.device, self.n, self.plan
-        prims = kf.BinnedPrimitives()
-        prims.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=dev)
-        prims.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=dev)
-        prims.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=dev)
-        keys = wp.empty(2 * n, dtype=int, device=dev)
-        order = wp.empty(2 * n, dtype=int, device=dev)
+        prims = self.prims
+        if replan or self.plan is None:
+            plan = plan_bins(self.radius.numpy(), self.shape_xyz)
+            if plan != self.plan:
+                self.plan = plan
+                prims.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=dev)
+                prims.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=dev)
+                prims.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=dev)
+                prims.cell_start = wp.zeros(plan.total_cells, dtype=int, device=dev)
+                prims.cell_end = wp.zeros(plan.total_cells, dtype=int, device=dev)
         wp.launch(
             kf.bin_keys,
             dim=n,
             inputs=[self.mu, self.radius, prims.level_size, prims.level_dims, prims.level_offset],
-            outputs=[keys, order],
+            outputs=[self._keys, prims.order],
             device=dev,
         )
-        wp.utils.radix_sort_pairs(keys, order, n)
-        prims.cell_start = wp.zeros(plan.total_cells, dtype=int, device=dev)
-        prims.cell_end = wp.zeros(plan.total_cells, dtype=int, device=dev)
-        wp.launch(kf.cell_ranges, dim=n, inputs=[keys, n], outputs=[prims.cell_start, prims.cell_end], device=dev)
-        prims.mu = wp.empty_like(self.mu)
-        prims.prec = wp.empty_like(self.prec)
-        prims.ext = wp.empty_like(self.ext)
-        prims.wa = wp.empty_like(self.wa)
-        prims.w = wp.empty_like(self.w)
+        wp.utils.radix_sort_pairs(self._keys, prims.order, n)
+        prims.cell_start.zero_()
+        prims.cell_end.zero_()
+        wp.launch(kf.cell_ranges, dim=n, inputs=[self._keys, n], outputs=[prims.cell_start, prims.cell_end], device=dev)
         wp.launch(
             kf.gather_sorted,
             dim=n,
-            inputs=[order, self.mu, self.prec, self.ext, self.wa, self.w],
-            outputs=[prims.mu, prims.prec, prims.ext, prims.wa, prims.w],
+            inputs=[prims.order, self.mu, self.rot, self.inv_s2, self.ext, self.a, self.w],
+            outputs=[prims.mu, prims.rot, prims.inv_s2, prims.ext, prims.a, prims.w],
             device=dev,
         )
-        self.prims = prims
 
     def _eval(self, points: np.ndarray, dense: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         wp, kf, dev = self._wp, self._k, self.device
@@ -164,7 +186,7 @@ class GaussianField:
             d = wp.empty(b - a, dtype=float, device=dev)
             c = wp.empty(b - a, dtype=int, device=dev)
             if dense:
-                inputs = [p, self.mu, self.prec, self.ext, self.wa, self.w]
+                inputs = [p, self.mu, self.rot, self.inv_s2, self.ext, self.a, self.w]
                 wp.launch(kf.eval_points_dense, dim=b - a, inputs=inputs, outputs=[v, d, c], device=dev)
             else:
                 inputs = [p, self.prims]

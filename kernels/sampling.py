@@ -1,0 +1,124 @@
+"""Stratified training samples (SPEC section 3): 35 % from V > 0.4, 40 % from occupied mid-range
+voxels, 25 % uniform over the grid, each jittered off-grid by up to half a voxel, with targets
+from trilinear interpolation and a partner point about a voxel away for the smoothness term.
+"""
+
+import warp as wp
+
+from .analysis import OCCUPIED, trilinear, usable
+
+wp.set_module_options({"enable_backward": False})
+
+HIGH_VALUE = wp.constant(0.4)  # the "high" stratum: normalised value above this
+
+
+@wp.func
+def stratum_of(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int) -> int:
+    """0 high (V > 0.4), 1 occupied mid-range, -1 neither (empty or masked)."""
+    if not usable(vol, mask, has_mask, k, j, i):
+        return -1
+    v = vol[k, j, i]
+    if v > HIGH_VALUE:
+        return 0
+    if v > OCCUPIED:
+        return 1
+    return -1
+
+
+@wp.kernel
+def strata_lists(
+    vol: wp.array3d(dtype=float),
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    fill: int,  # 0: count only, 1: also write the lists
+    counts: wp.array(dtype=int),  # [2] in/out: voxels in each stratum (zeroed before)
+    high: wp.array(dtype=int),  # [>=count] out: linear voxel indices, arbitrary order
+    mid: wp.array(dtype=int),
+):
+    """Count (fill = 0) or list (fill = 1) the voxels of the two value strata."""
+    k, j, i = wp.tid()
+    st = stratum_of(vol, mask, has_mask, k, j, i)
+    if st < 0:
+        return
+    slot = wp.atomic_add(counts, st, 1)
+    if fill != 0:
+        idx = (k * vol.shape[1] + j) * vol.shape[2] + i
+        if st == 0:
+            high[slot] = idx
+        else:
+            mid[slot] = idx
+
+
+@wp.func
+def corners_usable(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, p: wp.vec3) -> float:
+    """1 if every voxel the trilinear interpolation at p reads is unmasked, else 0."""
+    if has_mask == 0:
+        return 1.0
+    x = wp.clamp(p[0], 0.0, float(vol.shape[2] - 1))
+    y = wp.clamp(p[1], 0.0, float(vol.shape[1] - 1))
+    z = wp.clamp(p[2], 0.0, float(vol.shape[0] - 1))
+    i0 = int(wp.floor(x))
+    j0 = int(wp.floor(y))
+    k0 = int(wp.floor(z))
+    for dk in range(2):
+        for dj in range(2):
+            for di in range(2):
+                kk = wp.min(k0 + dk, vol.shape[0] - 1)
+                jj = wp.min(j0 + dj, vol.shape[1] - 1)
+                ii = wp.min(i0 + di, vol.shape[2] - 1)
+                if mask[kk, jj, ii] == wp.uint8(0):
+                    return 0.0
+    return 1.0
+
+
+@wp.kernel
+def draw_samples(
+    vol: wp.array3d(dtype=float),
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    high: wp.array(dtype=int),  # [n_high] voxel list of the high stratum
+    mid: wp.array(dtype=int),  # [n_mid]
+    n_high: int,
+    n_mid: int,
+    m_high: int,  # samples drawn from the high stratum (the first m_high)
+    m_mid: int,  # then this many from the mid stratum; the rest uniform over the grid
+    stream: int,  # RNG stream of this iteration
+    partner_min: float,  # partner distance range in voxels
+    partner_max: float,
+    points: wp.array(dtype=wp.vec3),  # [2M] out: samples, then their partners
+    target: wp.array(dtype=float),  # [M] out: trilinear V at the sample
+    weight: wp.array(dtype=float),  # [M] out: 0 where the interpolation touches a masked voxel
+    occupied: wp.array(dtype=float),  # [M] out: 1 if target > 0.02
+):
+    """One training sample and its partner (one thread per sample)."""
+    s = wp.tid()
+    m = target.shape[0]
+    state = wp.rand_init(stream, s)
+    nx = vol.shape[2]
+    ny = vol.shape[1]
+    idx = int(0)
+    if s < m_high:
+        idx = high[wp.randi(state, 0, n_high)]
+    elif s < m_high + m_mid:
+        idx = mid[wp.randi(state, 0, n_mid)]
+    else:
+        idx = wp.randi(state, 0, nx * ny * vol.shape[0])
+    i = idx % nx
+    j = (idx / nx) % ny
+    k = idx / (nx * ny)
+    p = wp.vec3(float(i) + wp.randf(state) - 0.5, float(j) + wp.randf(state) - 0.5, float(k) + wp.randf(state) - 0.5)
+    d = wp.vec3(wp.randn(state), wp.randn(state), wp.randn(state))
+    dl = wp.length(d)
+    if dl < 1.0e-6:
+        d = wp.vec3(1.0, 0.0, 0.0)
+        dl = 1.0
+    r = partner_min + (partner_max - partner_min) * wp.randf(state)
+    t = trilinear(vol, p)
+    points[s] = p
+    points[m + s] = p + d * (r / dl)
+    target[s] = t
+    ok = corners_usable(vol, mask, has_mask, p)
+    if not usable(vol, mask, has_mask, k, j, i):
+        ok = 0.0
+    weight[s] = ok
+    occupied[s] = wp.where(t > OCCUPIED, 1.0, 0.0)
