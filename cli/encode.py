@@ -22,7 +22,19 @@ def encode(
     seed: Annotated[int, typer.Option(help="Seed: same seed and device give the same model")] = 0,
     device: Annotated[str | None, typer.Option(help="Warp device: cpu, cuda, cuda:N (default: CUDA if present)")] = None,
     compact: Annotated[bool, typer.Option("--compact", help="Write the compact 12-byte/primitive format")] = False,
-    iterations: Annotated[int, typer.Option(help="Refinement iterations (0: analytic model)")] = 0,
+    iterations: Annotated[int | None, typer.Option(help="Refinement iterations (default 1500; 0: analytic model only)")] = None,
+    samples: Annotated[int | None, typer.Option(help="Samples per iteration (default 3072)")] = None,
+    preset: Annotated[str | None, typer.Option(help="paper (1500 x 3072), fast (300 x 3072) or quality (1500 x 65536)")] = None,
+    no_self_test: Annotated[bool, typer.Option("--no-self-test", help="Skip the binned-vs-dense self-test")] = False,
+    lr: Annotated[float, typer.Option(help="Adam learning rate")] = 8e-3,
+    w_value_empty: Annotated[float, typer.Option(help="Loss weight: value term at empty samples (paper: 0)")] = 1.0,
+    w_density: Annotated[float, typer.Option(help="Loss weight: density towards 1 where occupied")] = 0.01,
+    w_smooth: Annotated[float, typer.Option(help="Loss weight: smoothness at the start (anneals)")] = 0.1,
+    w_smooth_final: Annotated[float, typer.Option(help="Loss weight: smoothness at the end")] = 0.001,
+    w_anchor: Annotated[float, typer.Option(help="Loss weight: anchor of a to V(mu)")] = 0.001,
+    w_aniso: Annotated[float, typer.Option(help="Loss weight: anisotropy bound 3:1")] = 1.0,
+    w_cap: Annotated[float, typer.Option(help="Loss weight: scale range")] = 1.0,
+    save_analytic: Annotated[Path | None, typer.Option(help="Also write the analytic (pre-refinement) model")] = None,
     stride: Annotated[int, typer.Option(help="Take every K-th voxel on each axis")] = 1,
     shape: Annotated[str | None, typer.Option(help="Raw files: XxYxZ when the name does not say")] = None,
     dtype: Annotated[str | None, typer.Option(help="Raw files: uint8, int16, float32, ...")] = None,
@@ -38,6 +50,7 @@ def encode(
     """Encode a volume into N anisotropic Gaussians, evaluate it and write the model and a report."""
     import warpgauss
     from warpgauss._fs import atomic_write_bytes, check_writable
+    from warpgauss.optimize import LossWeights, RefineConfig
     from warpgauss.pipeline import ReadOptions
 
     if (input is None) == (example is None):
@@ -49,9 +62,16 @@ def encode(
     rep_path = report or out.with_name(out.name + ".report.json")
     check_writable(rep_path, force=force)
 
+    weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
     status = None if as_json else err_console.status("starting", spinner="dots")
     if status is not None:
         status.start()
+
+    def progress(it: int, total: int, rec: dict) -> None:
+        status.update(
+            f"[bold]S2[/] refinement {it}/{total}  loss {rec['total']:.3e}  sample PSNR {rec['sample_psnr_db']:.2f} dB"
+        )
+
     try:
         model = warpgauss.encode(
             input,
@@ -60,6 +80,10 @@ def encode(
             seed=seed,
             device=device,
             iterations=iterations,
+            samples=samples,
+            preset=preset,
+            refine=RefineConfig(lr=lr, weights=weights),
+            self_test=not no_self_test,
             compact=compact,
             example=example,
             example_size=size,
@@ -69,6 +93,8 @@ def encode(
             force=force,
             on_stage=None if status is None else lambda name, title: status.update(f"[bold]{name}[/] {title}"),
             on_stats=None if status is None else lambda s: status.console.print(_stats_line(s)),
+            on_progress=None if status is None else progress,
+            analytic_output=save_analytic,
         )
     finally:
         if status is not None:
@@ -107,6 +133,13 @@ def _print_summary(rep: dict) -> None:
         f"{b['n']} Gaussians, {human_bytes(b['bytes'])} ({b['bytes']} B), compression {b['compression_ratio']:.2f}x "
         f"on {rep['device_name']}"
     )
+    an = rep["evaluation"].get("analytic")
+    if an and ev and an is not ev and rep["refinement"].get("iterations"):
+        r = rep["refinement"]
+        out_console.print(
+            f"refinement: {r['iterations']} iterations x {r['samples']} samples in {r['seconds']:.2f} s "
+            f"({r['ms_per_iteration']:.2f} ms/iteration); PSNR {an['psnr_db']:.2f} -> {ev['psnr_db']:.2f} dB"
+        )
     if ev:
         occ = ev["psnr_occupied_db"]
         out_console.print(

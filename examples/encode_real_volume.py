@@ -23,15 +23,21 @@ DEFAULT = "mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz"
 
 
 class Example:
-    def __init__(self, path: Path, ratio: float, stride: int, device: str | None):
+    def __init__(self, path: Path, ratio: float, stride: int, device: str | None, iterations: int = 300):
         self.path, self.ratio, self.stride, self.device = path, ratio, stride, device
+        self.iterations = iterations
 
     def step(self, out_dir: Path) -> dict:
         from warpgauss.io import write_volume
         from warpgauss.pipeline import ReadOptions
 
         model = warpgauss.encode(
-            self.path, ratio=self.ratio, device=self.device, read=ReadOptions(stride=self.stride), output=out_dir / "scan.wgs"
+            self.path,
+            ratio=self.ratio,
+            device=self.device,
+            iterations=self.iterations,
+            read=ReadOptions(stride=self.stride),
+            output=out_dir / "scan.wgs",
         )
         rep = model.report
         decoded = model.decode(device=self.device)
@@ -45,6 +51,7 @@ def main(argv=None) -> dict | None:
     parser.add_argument("--file", default=DEFAULT, help=f"a file in {DATA}")
     parser.add_argument("--ratio", type=float, default=200.0)
     parser.add_argument("--stride", type=int, default=1)
+    parser.add_argument("--iterations", type=int, default=300, help="Refinement iterations (0: analytic)")
     parser.add_argument("--headless", action="store_true")
     args = parser.parse_args(argv)
     path = DATA / args.file
@@ -52,7 +59,7 @@ def main(argv=None) -> dict | None:
         print(f"skipped: {path} is not here (the real volumes live in ../shared/data)")
         return None
     with tempfile.TemporaryDirectory() as tmp:
-        rep = Example(path, args.ratio, args.stride, args.device).step(Path(tmp))
+        rep = Example(path, args.ratio, args.stride, args.device, args.iterations).step(Path(tmp))
     s, b, ev = rep["structure"], rep["budget"], rep["evaluation"]["final"]
     print(
         f"{args.file}: {'x'.join(map(str, rep['input']['shape_xyz']))} {rep['input']['source_dtype']}, "

@@ -46,14 +46,22 @@ def vortex_raw(tmp_path_factory):
 def test_example_encode_info_decode_eval_journey(vortex_raw, tmp_path):
     assert vortex_raw.stat().st_size == 24**3 * 4
     model = tmp_path / "vortex.wgs"
-    r = cli("encode", vortex_raw, "--budget", "300", "-o", model, "--device", "cpu")
+    analytic = tmp_path / "analytic.wgs"
+    r = cli(
+        "encode", vortex_raw, "--budget", "300", "-o", model, "--device", "cpu", "--iterations", "40",
+        "--samples", "512", "--save-analytic", analytic,
+    )
     assert r.exit_code == 0, r.output
-    assert model.stat().st_size == 48 * 300 + 4096  # 48 N + H, H one 4 KiB block
+    assert model.stat().st_size == analytic.stat().st_size == 48 * 300 + 4096  # 48 N + H, H one 4 KiB block
     rep = json.loads((tmp_path / "vortex.wgs.report.json").read_text())
     assert rep["budget"]["n"] == 300
-    assert [s["stage"] for s in rep["stages"]] == ["P", "S1a", "S1b", "S1c", "S1d", "S1e", "S1x", "EV", "S3"]
+    assert [s["stage"] for s in rep["stages"]] == ["P", "S1a", "S1b", "S1c", "S1d", "S1e", "S1x", "S2", "EV", "S3"]
     assert all(s["seconds"] >= 0 and s["host_peak_bytes"] > 0 for s in rep["stages"])
     assert rep["psnr_db"] > 15 and rep["warp_version"] and rep["device"] == "cpu"
+    ev = rep["evaluation"]
+    assert ev["final"]["psnr_db"] > ev["analytic"]["psnr_db"] + 1.0  # even 40 iterations help
+    assert rep["refinement"]["iterations"] == 40 and rep["refinement"]["self_test"]["passed"]
+    assert len(rep["refinement"]["loss_history"]) >= 1
 
     r = cli("info", model, "--json")
     assert r.exit_code == 0, r.output
@@ -82,7 +90,7 @@ def test_example_encode_info_decode_eval_journey(vortex_raw, tmp_path):
 
 def test_ratio_gives_the_spec_budget(vortex_raw, tmp_path):
     model = tmp_path / "r.wgs"
-    r = cli("encode", vortex_raw, "--ratio", "5", "-o", model, "--device", "cpu", "--json")
+    r = cli("encode", vortex_raw, "--ratio", "5", "-o", model, "--device", "cpu", "--json", "--iterations", "0")
     assert r.exit_code == 0, r.output
     rep = json.loads(r.stdout)
     expected = int(np.floor((24**3 * 4 / 5 - 4096) / 48))
@@ -153,7 +161,10 @@ def test_infeasible_budget_is_refused_before_warp_starts(tmp_path):
 
 
 def test_encode_builtin_example_writes_model_and_report(tmp_path):
-    r = cli("encode", "--example", "bubbles", "--size", "32", "--budget", "200", "--device", "cpu", cwd=tmp_path)
+    r = cli(
+        "encode", "--example", "bubbles", "--size", "32", "--budget", "200", "--device", "cpu", "--iterations", "0",
+        cwd=tmp_path,
+    )
     assert r.exit_code == 0, r.output
     assert (tmp_path / "bubbles.wgs").stat().st_size == 48 * 200 + 4096
     rep = json.loads((tmp_path / "bubbles.wgs.report.json").read_text())

@@ -12,8 +12,8 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 CASES = {
-    "encode_example.py": ["--size", "24", "--budget", "300", "--field", "bubbles"],
-    "encode_real_volume.py": ["--file", "nAChR_M2_water.plt", "--ratio", "8", "--stride", "2"],
+    "encode_example.py": ["--size", "24", "--budget", "300", "--field", "bubbles", "--iterations", "20"],
+    "encode_real_volume.py": ["--file", "nAChR_M2_water.plt", "--ratio", "8", "--stride", "2", "--iterations", "20"],
 }
 
 

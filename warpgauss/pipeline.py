@@ -8,8 +8,10 @@ Everything up to the budget check runs without Warp, so an impossible request is
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import os
+import time
 import platform
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +23,7 @@ from .allocate import AllocationConfig, allocate
 from .analysis import Field, budget_from_ratio, check_budget, normalise, seed_limit
 from .errors import WarpgaussError
 from .model import Model, make_header
+from .optimize import PRESETS, RefineConfig
 from .profiling import StageRecorder
 
 DEFAULT_RATIO = 20.0  # used when neither a budget nor a ratio is given
@@ -60,10 +63,11 @@ class EncodeOptions:
     budget: int | None = None
     ratio: float | None = None
     seed: int = 0
-    iterations: int = 0
     compact: bool = False
     allocation: AllocationConfig = field(default_factory=AllocationConfig)
     stride: int = 1
+    refine: RefineConfig = field(default_factory=RefineConfig)
+    self_test: bool = True
 
 
 def load_field(
@@ -137,12 +141,34 @@ def resolve_budget(f: Field, opts: EncodeOptions, header_bytes: int) -> int:
     return n
 
 
+def resolve_refine(
+    refine: RefineConfig | None, preset: str | None, iterations: int | None, samples: int | None
+) -> RefineConfig:
+    """Refinement settings from a preset, overridden by explicit iterations / samples."""
+    cfg = refine or RefineConfig()
+    if preset is not None:
+        if preset not in PRESETS:
+            raise WarpgaussError(f"unknown preset {preset!r}; use one of {', '.join(PRESETS)}")
+        cfg = dataclasses.replace(cfg, **PRESETS[preset])
+    if iterations is not None:
+        if iterations < 0:
+            raise WarpgaussError(f"--iterations must be >= 0, got {iterations}")
+        cfg = dataclasses.replace(cfg, iterations=int(iterations))
+    if samples is not None:
+        if samples < 1:
+            raise WarpgaussError(f"--samples must be >= 1, got {samples}")
+        cfg = dataclasses.replace(cfg, samples=int(samples))
+    return cfg
+
+
 def _header_for(f: Field, opts: EncodeOptions) -> dict:
     encoding = {
-        "method": "fixed-budget anisotropic Gaussians (analytic allocation)",
-        "iterations": opts.iterations,
+        "method": "fixed-budget anisotropic Gaussians: analytic allocation + refinement",
+        "iterations": opts.refine.iterations,
+        "samples": opts.refine.samples,
         "stride": opts.stride,
         "allocation": opts.allocation.to_dict(f.shape_xyz),
+        "refinement": opts.refine.to_dict() if opts.refine.iterations > 0 else None,
         "rho0": 0.05,
         "truncation_sigma": 5.0,
     }
@@ -170,6 +196,10 @@ def encode_field(
     evaluate: bool = True,
     full_eval: bool = False,
     on_stats=None,
+    on_progress=None,
+    log_every: int = 25,
+    analytic_output=None,
+    force: bool = False,
 ) -> Model:
     """Stages S1a-S1e, S1x, S2 and EV on a normalised field; returns the model with its report.
 
@@ -182,6 +212,10 @@ def encode_field(
         evaluate: Run stage EV.
         full_eval: Evaluate on the full grid instead of 500,000 sampled voxels.
         on_stats: Optional callback(stats dict), called as soon as the structure statistics exist.
+        on_progress: Optional callback(iteration, total, losses) during refinement.
+        log_every: Iterations between loss records (and progress calls).
+        analytic_output: If given, also write the analytic (pre-refinement) model there (S1x).
+        force: Overwrite ``analytic_output`` if it exists.
     """
     from .wgs import header_size
 
@@ -207,10 +241,39 @@ def encode_field(
     params, facts = allocate(dv, n, opts.seed, opts.allocation, timer)
 
     with timer.stage("S1x", "analytic model"):
-        model = Model(params, header)
-        gf = model.field(dev)
-    if opts.iterations > 0:
-        skipped.append({"what": "S2 refinement", "why": "refinement is not implemented yet; the model is analytic"})
+        analytic = Model(params, header)
+        if analytic_output is not None:
+            analytic.save(analytic_output, compact=opts.compact, force=force)
+    model = analytic
+    refinement: dict = {"iterations": 0}
+    if opts.refine.iterations > 0:
+        from .optimize import Refiner, self_test
+
+        cfg = opts.refine
+        cap = opts.allocation.resolved_cap(f.shape_xyz)
+        with timer.stage("S2", "refinement"):
+            refiner = Refiner(dv, params, cfg, opts.seed, opts.allocation.scale_min, cap)
+            if opts.self_test:
+                t0 = time.perf_counter()
+                refinement["self_test"] = self_test(refiner)
+                refinement["self_test"]["seconds"] = time.perf_counter() - t0
+            else:
+                skipped.append({"what": "self-test", "why": "--no-self-test"})
+            t0 = time.perf_counter()
+            history = refiner.run(progress=on_progress, log_every=log_every)
+            seconds = time.perf_counter() - t0
+            model = Model(refiner.model_params(), header)
+        refinement.update(
+            {
+                "iterations": cfg.iterations,
+                "samples": cfg.samples,
+                "seconds": seconds,
+                "ms_per_iteration": 1000 * seconds / cfg.iterations,
+                "skipped_nonfinite_updates": refiner.skipped_steps(),
+                "strata_samples": dict(zip(("high", "mid", "uniform"), refiner.strata)),
+                "loss_history": history,
+            }
+        )
     else:
         skipped.append({"what": "S2 refinement", "why": "iterations = 0: the analytic model is the result"})
 
@@ -219,8 +282,12 @@ def encode_field(
         from .evaluate import evaluate_field
 
         with timer.stage("EV", "evaluation"):
-            evaluation["analytic"] = evaluate_field(gf, f, full=full_eval)
-            evaluation["final"] = evaluation["analytic"]
+            evaluation["analytic"] = evaluate_field(analytic.field(dev), f, full=full_eval)
+            if model is analytic:
+                evaluation["final"] = evaluation["analytic"]
+            else:
+                evaluation["final"] = evaluate_field(model.field(dev), f, full=full_eval)
+        evaluation["gain_db"] = evaluation["final"]["psnr_db"] - evaluation["analytic"]["psnr_db"]
     else:
         skipped.append({"what": "EV evaluation", "why": "disabled by the caller"})
 
@@ -248,6 +315,7 @@ def encode_field(
         "seed": opts.seed,
         "structure": stats,
         "allocation": facts,
+        "refinement": refinement,
         "evaluation": evaluation,
         "psnr_db": evaluation.get("final", {}).get("psnr_db"),
         "skipped": skipped,
@@ -274,7 +342,11 @@ def encode(
     ratio: float | None = None,
     seed: int = 0,
     device: str | None = None,
-    iterations: int = 0,
+    iterations: int | None = None,
+    samples: int | None = None,
+    preset: str | None = None,
+    refine: RefineConfig | None = None,
+    self_test: bool = True,
     compact: bool = False,
     example: str | None = None,
     example_size: int | tuple[int, int, int] = 64,
@@ -284,8 +356,10 @@ def encode(
     full_eval: bool = False,
     output: str | os.PathLike | None = None,
     force: bool = False,
+    analytic_output: str | os.PathLike | None = None,
     on_stage=None,
     on_stats=None,
+    on_progress=None,
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
 
@@ -295,7 +369,12 @@ def encode(
         ratio: Target compression ratio; N = floor((S_src / R - H) / 48) (12 with ``compact``).
         seed: Encoding seed; same seed and device give the same model.
         device: Warp device; None picks CUDA when present, else CPU.
-        iterations: Refinement iterations (0: analytic model only).
+        iterations: Refinement iterations (default 1,500, the paper's; 0: analytic model only).
+        samples: Samples per iteration (default 3,072, the paper's).
+        preset: "paper" (1,500 x 3,072), "fast" (300 x 3,072, the paper's time-budget mode) or
+            "quality" (1,500 x 65,536); explicit ``iterations``/``samples`` override it.
+        refine: Learning rates, loss weights and schedule (:class:`warpgauss.optimize.RefineConfig`).
+        self_test: Run the binned-vs-dense self-test before refining.
         compact: Size the budget (and the report) for the compact 12-byte format.
         example: Built-in example volume name instead of ``source``.
         example_size: Size of the example volume.
@@ -307,6 +386,8 @@ def encode(
         force: Overwrite ``output`` if it exists.
         on_stage: Optional callback(name, title) as each stage starts (progress display).
         on_stats: Optional callback(stats) once the structure statistics exist (before allocation).
+        on_progress: Optional callback(iteration, total, losses) during refinement.
+        analytic_output: Also write the analytic (pre-refinement) model there.
 
     Returns:
         The :class:`Model`, with ``model.report`` holding the run report.
@@ -315,14 +396,34 @@ def encode(
 
     if output is not None:
         check_writable(output, force=force)
+    if analytic_output is not None:
+        check_writable(analytic_output, force=force)
+    refine = resolve_refine(refine, preset, iterations, samples)
     opts = EncodeOptions(
-        budget, ratio, seed, iterations, compact, allocation or AllocationConfig(), stride=(read or ReadOptions()).stride
+        budget,
+        ratio,
+        seed,
+        compact,
+        allocation or AllocationConfig(),
+        stride=(read or ReadOptions()).stride,
+        refine=refine,
+        self_test=self_test,
     )
     timer = StageRecorder(on_stage=on_stage)
     with timer.stage("P", "load and normalise"):
         f, info = load_field(source, read, example=example, example_size=example_size)
     model = encode_field(
-        f, opts, device=device, timer=timer, input_info=info, evaluate=evaluate, full_eval=full_eval, on_stats=on_stats
+        f,
+        opts,
+        device=device,
+        timer=timer,
+        input_info=info,
+        evaluate=evaluate,
+        full_eval=full_eval,
+        on_stats=on_stats,
+        on_progress=on_progress,
+        analytic_output=analytic_output,
+        force=force,
     )
     if output is not None:
         with timer.stage("S3", "export"):
