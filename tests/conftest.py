@@ -19,6 +19,14 @@ def device(request) -> str:
     return request.param
 
 
+@pytest.fixture
+def cpu() -> str:
+    """The Warp CPU device (bit-identical reruns are promised there); skips on a CUDA-only build."""
+    if "cpu" not in _devices():
+        pytest.skip("this Warp build has no CPU device")
+    return "cpu"
+
+
 def random_quaternions(rng: np.random.Generator, n: int) -> np.ndarray:
     q = rng.normal(size=(n, 4))
     return q / np.linalg.norm(q, axis=1, keepdims=True)

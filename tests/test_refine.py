@@ -205,13 +205,13 @@ def test_loss_decreases_and_psnr_improves_on_a_toy_problem(device):
     assert np.all((out[:, 11] > 0) & (out[:, 11] < 1))
 
 
-def test_same_seed_gives_a_bit_identical_refined_model_on_cpu():
-    a, _, _ = _toy("cpu", iterations=30)
-    b, _, _ = _toy("cpu", iterations=30)
+def test_same_seed_gives_a_bit_identical_refined_model_on_cpu(cpu):
+    a, _, _ = _toy(cpu, iterations=30)
+    b, _, _ = _toy(cpu, iterations=30)
     a.run(log_every=30)
     b.run(log_every=30)
     assert a.model_params().tobytes() == b.model_params().tobytes()
-    c, _, _ = _toy("cpu", seed=1, iterations=30)
+    c, _, _ = _toy(cpu, seed=1, iterations=30)
     c.run(log_every=30)
     assert not np.array_equal(a.model_params(), c.model_params())
 
