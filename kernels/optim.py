@@ -24,6 +24,7 @@ def adam_step(
     m1: wp.array(dtype=vec12),  # [N] first moments
     m2: wp.array(dtype=vec12),  # [N] second moments
     lr: vec12,  # learning rate of each parameter slot (one per group: mu, scale, rotation, a, w)
+    lr_scale: float,  # schedule factor of this step (decay)
     beta1: float,
     beta2: float,
     eps: float,
@@ -48,7 +49,7 @@ def adam_step(
     for k in range(12):
         a[k] = beta1 * a[k] + (1.0 - beta1) * g[k]
         b[k] = beta2 * b[k] + (1.0 - beta2) * g[k] * g[k]
-        p[k] = p[k] - lr[k] * (a[k] / bc1) / (wp.sqrt(b[k] / bc2) + eps)
+        p[k] = p[k] - lr_scale * lr[k] * (a[k] / bc1) / (wp.sqrt(b[k] / bc2) + eps)
     # constraints: unit quaternion (identity if it collapsed), bounded log-scales and logit
     qn = wp.sqrt(p[6] * p[6] + p[7] * p[7] + p[8] * p[8] + p[9] * p[9])
     if qn > 1.0e-12:

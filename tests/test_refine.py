@@ -148,7 +148,7 @@ def test_adam_step_equals_numpy_reference(device):
         wp.launch(
             ko.adam_step,
             dim=n,
-            inputs=[params, wp.array(g, dtype=kf.vec12, device=device), m1, m2, kf.vec12(*lr), b1, b2, eps, 1 - b1**t, 1 - b2**t, lo, hi],
+            inputs=[params, wp.array(g, dtype=kf.vec12, device=device), m1, m2, kf.vec12(*lr), 1.0, b1, b2, eps, 1 - b1**t, 1 - b2**t, lo, hi],
             outputs=[skipped],
             device=device,
         )
