@@ -60,6 +60,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--budget", type=int, default=4000)
     ap.add_argument("--presets", default="paper,fast")
     ap.add_argument("--sweep", default="", help="samples per iteration to try at 1,500 iterations")
+    ap.add_argument("--grid", default="", help="ITERATIONSxSAMPLES runs, e.g. 750x6144,375x12288")
     ap.add_argument("--sweep-fields", default="vortex,interface")
     ap.add_argument("--repeat", action="store_true", help="same seed twice on the first field: spread")
     ap.add_argument("--device", default=None)
@@ -83,6 +84,12 @@ def main(argv=None) -> dict:
         for name in args.sweep_fields.split(","):
             m = warpgauss.encode(vols[name], budget=args.budget, device=dev, iterations=1500, samples=samples)
             rows.append(_row(name, args.size, args.budget, f"samples={samples}", m))
+            _print(rows[-1])
+    for spec in [g for g in args.grid.split(",") if g]:
+        its, samples = (int(x) for x in spec.split("x"))
+        for name in args.sweep_fields.split(","):
+            m = warpgauss.encode(vols[name], budget=args.budget, device=dev, iterations=its, samples=samples)
+            rows.append(_row(name, args.size, args.budget, spec, m))
             _print(rows[-1])
     spread = None
     if args.repeat:
