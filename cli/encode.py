@@ -24,7 +24,7 @@ def encode(
     compact: Annotated[bool, typer.Option("--compact", help="Write the compact 12-byte/primitive format")] = False,
     iterations: Annotated[int | None, typer.Option(help="Refinement iterations (default 1500; 0: analytic model only)")] = None,
     samples: Annotated[int | None, typer.Option(help="Samples per iteration (default 3072)")] = None,
-    preset: Annotated[str | None, typer.Option(help="paper (1500 x 3072), fast (300 x 3072) or quality (1500 x 65536)")] = None,
+    preset: Annotated[str | None, typer.Option(help="paper (1500 x 3072), fast (300 x 3072) or quality (1500 x 12288)")] = None,
     no_self_test: Annotated[bool, typer.Option("--no-self-test", help="Skip the binned-vs-dense self-test")] = False,
     lr: Annotated[float, typer.Option(help="Adam base learning rate (per-group multipliers apply)")] = 8e-3,
     w_value_empty: Annotated[float, typer.Option(help="Loss weight: value term at empty samples (paper: 0)")] = 1.0,

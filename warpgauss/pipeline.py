@@ -372,7 +372,7 @@ def encode(
         iterations: Refinement iterations (default 1,500, the paper's; 0: analytic model only).
         samples: Samples per iteration (default 3,072, the paper's).
         preset: "paper" (1,500 x 3,072), "fast" (300 x 3,072, the paper's time-budget mode) or
-            "quality" (1,500 x 65,536); explicit ``iterations``/``samples`` override it.
+            "quality" (1,500 x 12,288); explicit ``iterations``/``samples`` override it.
         refine: Learning rates, loss weights and schedule (:class:`warpgauss.optimize.RefineConfig`).
         self_test: Run the binned-vs-dense self-test before refining.
         compact: Size the budget (and the report) for the compact 12-byte format.
