@@ -220,3 +220,23 @@ def test_self_test_passes_and_compares_both_paths(device):
     r, _, _ = _toy(device, iterations=1)
     res = self_test(r)
     assert res["passed"] and res["pairs_equal"] and res["gradient_max_rel_diff"] < 1e-4
+
+
+def _vortex64_gain(iterations: int) -> tuple[float, float]:
+    import warpgauss
+    from warpgauss.synthetic import generate
+
+    m = warpgauss.encode(generate("vortex", 64), budget=4000, iterations=iterations, device="cpu", seed=0)
+    ev = m.report["evaluation"]
+    return ev["analytic"]["psnr_db"], ev["final"]["psnr_db"]
+
+
+def test_refinement_gains_5_db_on_vortex_64_with_4000(cpu):
+    before, after = _vortex64_gain(100)  # about 25 s on one core
+    assert after >= before + 5.0, (before, after)
+
+
+@pytest.mark.slow
+def test_refinement_gains_on_vortex_64_with_4000_paper_configuration(cpu):
+    before, after = _vortex64_gain(1500)  # about 6 minutes on one core
+    assert after >= before + 5.0, (before, after)
