@@ -27,7 +27,7 @@ Derivation of the pair terms (d = p - mu, y = R^T d, m = sum_k y_k^2 / s_k^2, G 
 import warp as wp
 
 from .analysis import trilinear
-from .field import RHO0, BinnedPrimitives, level_cell, sigmoid, truncated_kernel, vec12
+from .field import RHO0, BinnedPrimitives, level_cell, neighbour_range, sigmoid, truncated_kernel, vec12
 
 wp.set_module_options({"enable_backward": False})
 
@@ -123,21 +123,11 @@ def accumulate_pairs(
     vd = wp.where(density[i] > RHO0, value[i], 0.0)
     n = int(0)
     for l in range(prims.level_size.shape[0]):
-        dims = prims.level_dims[l]
-        c = level_cell(p, prims.level_size[l], dims)
-        off = prims.level_offset[l]
-        for dz in range(-1, 2):
-            z = c[2] + dz
-            if z >= 0 and z < dims[2]:
-                for dy in range(-1, 2):
-                    y = c[1] + dy
-                    if y >= 0 and y < dims[1]:
-                        for dx in range(-1, 2):
-                            x = c[0] + dx
-                            if x >= 0 and x < dims[0]:
-                                cid = off + (z * dims[1] + y) * dims[0] + x
-                                for j in range(prims.cell_start[cid], prims.cell_end[cid]):
-                                    n += pair_grad(p, j, prims, gv, gr, D, vd, d_mu, d_ls, d_rot, d_a, d_w)
+        c = level_cell(p, prims.level_size[l], prims.level_dims[l])
+        for nb in range(27):
+            r = neighbour_range(prims, l, c, nb)
+            for j in range(r[0], r[1]):
+                n += pair_grad(p, j, prims, gv, gr, D, vd, d_mu, d_ls, d_rot, d_a, d_w)
     pairs[i] = n
 
 

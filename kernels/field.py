@@ -215,31 +215,34 @@ class BinnedPrimitives:
 
 
 @wp.func
+def neighbour_range(prims: BinnedPrimitives, l: int, c: wp.vec3i, nb: int) -> wp.vec2i:
+    """[start, end) of sorted primitives in neighbour nb (0..26) of cell c on level l; empty outside."""
+    dims = prims.level_dims[l]
+    x = c[0] + nb % 3 - 1
+    y = c[1] + (nb / 3) % 3 - 1
+    z = c[2] + nb / 9 - 1
+    if x < 0 or y < 0 or z < 0 or x >= dims[0] or y >= dims[1] or z >= dims[2]:
+        return wp.vec2i(0, 0)
+    cid = prims.level_offset[l] + (z * dims[1] + y) * dims[0] + x
+    return wp.vec2i(prims.cell_start[cid], prims.cell_end[cid])
+
+
+@wp.func
 def binned_sums(p: wp.vec3, b: BinnedPrimitives) -> wp.vec3:
     """(numerator, density, contributing pairs) at p over the binned primitives."""
     num = float(0.0)
     den = float(0.0)
     pairs = float(0.0)
     for l in range(b.level_size.shape[0]):
-        dims = b.level_dims[l]
-        c = level_cell(p, b.level_size[l], dims)
-        off = b.level_offset[l]
-        for dz in range(-1, 2):
-            z = c[2] + dz
-            if z >= 0 and z < dims[2]:
-                for dy in range(-1, 2):
-                    y = c[1] + dy
-                    if y >= 0 and y < dims[1]:
-                        for dx in range(-1, 2):
-                            x = c[0] + dx
-                            if x >= 0 and x < dims[0]:
-                                cid = off + (z * dims[1] + y) * dims[0] + x
-                                for j in range(b.cell_start[cid], b.cell_end[cid]):
-                                    g = truncated_kernel(p, b.mu[j], b.rot[j], b.inv_s2[j], b.ext[j])
-                                    if g > 0.0:
-                                        num += b.w[j] * b.a[j] * g
-                                        den += b.w[j] * g
-                                        pairs += 1.0
+        c = level_cell(p, b.level_size[l], b.level_dims[l])
+        for nb in range(27):
+            r = neighbour_range(b, l, c, nb)
+            for j in range(r[0], r[1]):
+                g = truncated_kernel(p, b.mu[j], b.rot[j], b.inv_s2[j], b.ext[j])
+                if g > 0.0:
+                    num += b.w[j] * b.a[j] * g
+                    den += b.w[j] * g
+                    pairs += 1.0
     return wp.vec3(num, den, pairs)
 
 

@@ -2,11 +2,22 @@
 
 import warp as wp
 
-from .field import vec12
+from .field import safe_unit_quat, vec12
 
 wp.set_module_options({"enable_backward": False})
 
 LOGIT_BOUND = wp.constant(12.0)  # |weight logit| <= 12: w in [6e-6, 1 - 6e-6]
+
+
+@wp.func
+def unit_quaternion(p: vec12) -> vec12:
+    """p with its quaternion (slots 6-9) normalised, or the identity if it collapsed to zero."""
+    q = safe_unit_quat(p[6], p[7], p[8], p[9])
+    p[6] = q[0]
+    p[7] = q[1]
+    p[8] = q[2]
+    p[9] = q[3]
+    return p
 
 
 @wp.func
@@ -51,15 +62,7 @@ def adam_step(
         b[k] = beta2 * b[k] + (1.0 - beta2) * g[k] * g[k]
         p[k] = p[k] - lr_scale * lr[k] * (a[k] / bc1) / (wp.sqrt(b[k] / bc2) + eps)
     # constraints: unit quaternion (identity if it collapsed), bounded log-scales and logit
-    qn = wp.sqrt(p[6] * p[6] + p[7] * p[7] + p[8] * p[8] + p[9] * p[9])
-    if qn > 1.0e-12:
-        for k in range(6, 10):
-            p[k] = p[k] / qn
-    else:
-        p[6] = 0.0
-        p[7] = 0.0
-        p[8] = 0.0
-        p[9] = 1.0
+    p = unit_quaternion(p)
     for k in range(3, 6):
         p[k] = wp.clamp(p[k], log_lo, log_hi)
     p[11] = wp.clamp(p[11], -LOGIT_BOUND, LOGIT_BOUND)
@@ -82,15 +85,6 @@ def to_raw(params: wp.array(dtype=vec12), out: wp.array(dtype=vec12)):
 def to_model(params: wp.array(dtype=vec12), out: wp.array(dtype=vec12)):
     """Training parameters -> model parameters (unit quaternion, weight = sigmoid(logit))."""
     i = wp.tid()
-    p = params[i]
-    qn = wp.sqrt(p[6] * p[6] + p[7] * p[7] + p[8] * p[8] + p[9] * p[9])
-    if qn > 1.0e-12:
-        for k in range(6, 10):
-            p[k] = p[k] / qn
-    else:
-        p[6] = 0.0
-        p[7] = 0.0
-        p[8] = 0.0
-        p[9] = 1.0
+    p = unit_quaternion(params[i])
     p[11] = 1.0 / (1.0 + wp.exp(-p[11]))
     out[i] = p

@@ -277,16 +277,21 @@ class Refiner:
             device=dev,
         )
 
+    @property
+    def pair_grads(self) -> tuple:
+        """The per-primitive (cell order) gradient buffers the pair pass accumulates into."""
+        return (self.d_mu, self.d_ls, self.d_rot, self.d_a, self.d_w)
+
     def accumulate(self, kernel, count: int | None = None) -> None:
         """Scatter the per-point gradients of the first ``count`` points (all by default)."""
         wp, dev = self._wp, self.device
-        for arr in (self.d_mu, self.d_ls, self.d_rot, self.d_a, self.d_w):
+        for arr in self.pair_grads:
             arr.zero_()
         wp.launch(
             kernel,
             dim=2 * self.m if count is None else count,
             inputs=[self.points, self.value, self.density, self.g_value, self.g_density, self.field.prims],
-            outputs=[self.d_mu, self.d_ls, self.d_rot, self.d_a, self.d_w, self.back_pairs],
+            outputs=[*self.pair_grads, self.back_pairs],
             device=dev,
         )
 
@@ -385,7 +390,7 @@ def self_test(refiner: Refiner, points: int = 64) -> dict:
     refiner.sample(0)
     f.update(replan=True)
     refiner.forward_backward(0)
-    grads = (refiner.d_mu, refiner.d_ls, refiner.d_rot, refiner.d_a, refiner.d_w)
+    grads = refiner.pair_grads
     refiner.accumulate(kb.accumulate_pairs, count=k)
     binned = [a.numpy().copy() for a in grads]
     pairs_b = refiner.back_pairs.numpy()[:k].copy()
