@@ -132,6 +132,38 @@ def accumulate_pairs(
 
 
 @wp.kernel
+def accumulate_pairs_split(
+    points: wp.array(dtype=wp.vec3),  # [P]
+    value: wp.array(dtype=float),
+    density: wp.array(dtype=float),
+    g_value: wp.array(dtype=float),
+    g_density: wp.array(dtype=float),
+    prims: BinnedPrimitives,
+    d_mu: wp.array(dtype=wp.vec3),
+    d_ls: wp.array(dtype=wp.vec3),
+    d_rot: wp.array(dtype=wp.mat33),
+    d_a: wp.array(dtype=float),
+    d_w: wp.array(dtype=float),
+    pairs: wp.array(dtype=int),  # [P] out (zeroed before)
+):
+    """:func:`accumulate_pairs` with one thread per (point, level, neighbour cell), for GPUs."""
+    i, t = wp.tid()
+    gv = g_value[i]
+    gr = g_density[i]
+    l = t / 27
+    p = points[i]
+    D = wp.max(density[i], RHO0)
+    vd = wp.where(density[i] > RHO0, value[i], 0.0)
+    c = level_cell(p, prims.level_size[l], prims.level_dims[l])
+    r = neighbour_range(prims, l, c, t % 27)
+    n = int(0)
+    for j in range(r[0], r[1]):
+        n += pair_grad(p, j, prims, gv, gr, D, vd, d_mu, d_ls, d_rot, d_a, d_w)
+    if n > 0:
+        wp.atomic_add(pairs, i, n)
+
+
+@wp.kernel
 def accumulate_pairs_dense(
     points: wp.array(dtype=wp.vec3),
     value: wp.array(dtype=float),

@@ -309,3 +309,44 @@ def eval_points_dense(
     value[i] = num / wp.max(den, RHO0)
     density[i] = den
     pairs[i] = n
+
+
+@wp.kernel
+def eval_points_split(
+    points: wp.array(dtype=wp.vec3),  # [P]
+    prims: BinnedPrimitives,
+    num: wp.array(dtype=float),  # [P] out (zeroed before): sum w a G
+    density: wp.array(dtype=float),  # [P] out (zeroed before): sum w G
+    pairs: wp.array(dtype=int),  # [P] out (zeroed before)
+):
+    """Partial sums of one (point, level, neighbour cell) each: 27 L threads per point.
+
+    For GPUs, where one thread per point leaves the chip idle when there are few points (a
+    training iteration has thousands); the sums then meet through atomics, so their float order
+    varies run to run. :func:`finish_values` turns (num, density) into V~.
+    """
+    i, t = wp.tid()
+    l = t / 27
+    p = points[i]
+    c = level_cell(p, prims.level_size[l], prims.level_dims[l])
+    r = neighbour_range(prims, l, c, t % 27)
+    sn = float(0.0)
+    sd = float(0.0)
+    n = int(0)
+    for j in range(r[0], r[1]):
+        g = truncated_kernel(p, prims.mu[j], prims.rot[j], prims.inv_s2[j], prims.ext[j])
+        if g > 0.0:
+            sn += prims.w[j] * prims.a[j] * g
+            sd += prims.w[j] * g
+            n += 1
+    if n > 0:
+        wp.atomic_add(num, i, sn)
+        wp.atomic_add(density, i, sd)
+        wp.atomic_add(pairs, i, n)
+
+
+@wp.kernel
+def finish_values(num: wp.array(dtype=float), density: wp.array(dtype=float), value: wp.array(dtype=float)):
+    """V~ = num / max(rho, RHO0)."""
+    i = wp.tid()
+    value[i] = num[i] / wp.max(density[i], RHO0)

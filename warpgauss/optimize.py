@@ -60,6 +60,9 @@ class RefineConfig:
         lr_decay: Learning rate at the last iteration relative to the first (geometric decay).
         replan_every: Iterations between re-planning the bin levels from the current radii.
         partner_distance: Range of the partner offset in voxels.
+        split_cells: One thread per (point, neighbour cell) instead of per point, summing through
+            atomics; None picks it on CUDA devices (one thread per sample leaves a GPU idle) and
+            not on the CPU (where it only adds work, and the serial sums stay bit-reproducible).
     """
 
     iterations: int = 1500
@@ -76,6 +79,7 @@ class RefineConfig:
     eps: float = 1e-15
     replan_every: int = 100
     partner_distance: tuple[float, float] = (0.5, 1.5)
+    split_cells: bool | None = None
     weights: LossWeights = field(default_factory=LossWeights)
 
     def to_dict(self) -> dict:
@@ -166,6 +170,8 @@ class Refiner:
         self.g_value = wp.zeros(2 * m, dtype=float, device=dev)
         self.g_density = wp.zeros(2 * m, dtype=float, device=dev)
         self.point_loss = wp.zeros(m, dtype=wp.vec3, device=dev)
+        self.num = wp.zeros(2 * m, dtype=float, device=dev)
+        self.split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
         self._build_strata()
         w = config
         self.lr = kf.vec12(
@@ -239,13 +245,25 @@ class Refiner:
 
         wp, dev, w = self._wp, self.device, self.cfg.weights
         f = self.field
-        wp.launch(
-            kf.eval_points_binned,
-            dim=2 * self.m,
-            inputs=[self.points, f.prims],
-            outputs=[self.value, self.density, self.pairs],
-            device=dev,
-        )
+        if self.split:
+            for arr in (self.num, self.density, self.pairs):
+                arr.zero_()
+            wp.launch(
+                kf.eval_points_split,
+                dim=(2 * self.m, 27 * len(f.plan.sizes)),
+                inputs=[self.points, f.prims],
+                outputs=[self.num, self.density, self.pairs],
+                device=dev,
+            )
+            wp.launch(kf.finish_values, dim=2 * self.m, inputs=[self.num, self.density], outputs=[self.value], device=dev)
+        else:
+            wp.launch(
+                kf.eval_points_binned,
+                dim=2 * self.m,
+                inputs=[self.points, f.prims],
+                outputs=[self.value, self.density, self.pairs],
+                device=dev,
+            )
         wp.launch(
             kb.point_grads,
             dim=self.m,
@@ -253,7 +271,7 @@ class Refiner:
             outputs=[self.g_value, self.g_density, self.point_loss],
             device=dev,
         )
-        self.accumulate(kb.accumulate_pairs)
+        self.accumulate()
         wp.launch(
             kb.finish_grads,
             dim=self.n,
@@ -282,14 +300,30 @@ class Refiner:
         """The per-primitive (cell order) gradient buffers the pair pass accumulates into."""
         return (self.d_mu, self.d_ls, self.d_rot, self.d_a, self.d_w)
 
-    def accumulate(self, kernel, count: int | None = None) -> None:
-        """Scatter the per-point gradients of the first ``count`` points (all by default)."""
+    def accumulate(self, kernel=None, count: int | None = None) -> None:
+        """Scatter the per-point gradients of the first ``count`` points (all by default).
+
+        Args:
+            kernel: A point-major pair kernel (the dense reference in the self-test); None for
+                the refiner's own (split per cell on GPUs, point-major on the CPU).
+            count: Points to scatter from, the first ``count`` of the buffers.
+        """
+        from .kernels import backward as kb
+
         wp, dev = self._wp, self.device
         for arr in self.pair_grads:
             arr.zero_()
+        count = 2 * self.m if count is None else count
+        dim = count
+        if kernel is None and self.split:
+            kernel = kb.accumulate_pairs_split
+            dim = (count, 27 * len(self.field.plan.sizes))
+            self.back_pairs.zero_()
+        elif kernel is None:
+            kernel = kb.accumulate_pairs
         wp.launch(
             kernel,
-            dim=2 * self.m if count is None else count,
+            dim=dim,
             inputs=[self.points, self.value, self.density, self.g_value, self.g_density, self.field.prims],
             outputs=[*self.pair_grads, self.back_pairs],
             device=dev,
@@ -391,7 +425,7 @@ def self_test(refiner: Refiner, points: int = 64) -> dict:
     f.update(replan=True)
     refiner.forward_backward(0)
     grads = refiner.pair_grads
-    refiner.accumulate(kb.accumulate_pairs, count=k)
+    refiner.accumulate(count=k)
     binned = [a.numpy().copy() for a in grads]
     pairs_b = refiner.back_pairs.numpy()[:k].copy()
     refiner.accumulate(kb.accumulate_pairs_dense, count=k)
