@@ -64,14 +64,24 @@ def point_grads(
 
 
 @wp.func
+def point_state(
+    i: int,
+    value: wp.array(dtype=float),
+    density: wp.array(dtype=float),
+    g_value: wp.array(dtype=float),
+    g_density: wp.array(dtype=float),
+) -> wp.vec4:
+    """(dL/dV~, dL/drho, D = max(rho, RHO0), Vd) of point i: what every pair of it needs."""
+    rho = density[i]
+    return wp.vec4(g_value[i], g_density[i], wp.max(rho, RHO0), wp.where(rho > RHO0, value[i], 0.0))
+
+
+@wp.func
 def pair_grad(
     p: wp.vec3,
     j: int,
     prims: BinnedPrimitives,
-    gv: float,
-    gr: float,
-    D: float,
-    vd: float,
+    st: wp.vec4,  # point_state(): (dL/dV~, dL/drho, D, Vd)
     d_mu: wp.array(dtype=wp.vec3),
     d_ls: wp.array(dtype=wp.vec3),
     d_rot: wp.array(dtype=wp.mat33),
@@ -79,6 +89,10 @@ def pair_grad(
     d_w: wp.array(dtype=float),
 ) -> int:
     """Accumulate one pair's gradient into sorted slot j; returns 1 if the pair contributes."""
+    gv = st[0]
+    gr = st[1]
+    D = st[2]
+    vd = st[3]
     R = prims.rot[j]
     inv = prims.inv_s2[j]
     g = truncated_kernel(p, prims.mu[j], R, inv, prims.ext[j])
@@ -116,18 +130,15 @@ def accumulate_pairs(
 ):
     """Scatter each point's loss gradient onto the primitives it touches (one thread per point)."""
     i = wp.tid()
-    gv = g_value[i]
-    gr = g_density[i]
     p = points[i]
-    D = wp.max(density[i], RHO0)
-    vd = wp.where(density[i] > RHO0, value[i], 0.0)
+    st = point_state(i, value, density, g_value, g_density)
     n = int(0)
     for l in range(prims.level_size.shape[0]):
         c = level_cell(p, prims.level_size[l], prims.level_dims[l])
         for nb in range(27):
             r = neighbour_range(prims, l, c, nb)
             for j in range(r[0], r[1]):
-                n += pair_grad(p, j, prims, gv, gr, D, vd, d_mu, d_ls, d_rot, d_a, d_w)
+                n += pair_grad(p, j, prims, st, d_mu, d_ls, d_rot, d_a, d_w)
     pairs[i] = n
 
 
@@ -148,17 +159,14 @@ def accumulate_pairs_split(
 ):
     """:func:`accumulate_pairs` with one thread per (point, level, neighbour cell), for GPUs."""
     i, t = wp.tid()
-    gv = g_value[i]
-    gr = g_density[i]
     l = t / 27
     p = points[i]
-    D = wp.max(density[i], RHO0)
-    vd = wp.where(density[i] > RHO0, value[i], 0.0)
+    st = point_state(i, value, density, g_value, g_density)
     c = level_cell(p, prims.level_size[l], prims.level_dims[l])
     r = neighbour_range(prims, l, c, t % 27)
     n = int(0)
     for j in range(r[0], r[1]):
-        n += pair_grad(p, j, prims, gv, gr, D, vd, d_mu, d_ls, d_rot, d_a, d_w)
+        n += pair_grad(p, j, prims, st, d_mu, d_ls, d_rot, d_a, d_w)
     if n > 0:
         wp.atomic_add(pairs, i, n)
 
@@ -180,14 +188,11 @@ def accumulate_pairs_dense(
 ):
     """Reference for :func:`accumulate_pairs`: every primitive against every point (self-test)."""
     i = wp.tid()
-    gv = g_value[i]
-    gr = g_density[i]
     p = points[i]
-    D = wp.max(density[i], RHO0)
-    vd = wp.where(density[i] > RHO0, value[i], 0.0)
+    st = point_state(i, value, density, g_value, g_density)
     n = int(0)
     for j in range(prims.mu.shape[0]):
-        n += pair_grad(p, j, prims, gv, gr, D, vd, d_mu, d_ls, d_rot, d_a, d_w)
+        n += pair_grad(p, j, prims, st, d_mu, d_ls, d_rot, d_a, d_w)
     pairs[i] = n
 
 
