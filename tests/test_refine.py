@@ -259,3 +259,45 @@ def test_refinement_gains_5_db_on_vortex_64_with_4000(cpu):
 def test_refinement_gains_on_vortex_64_with_4000_paper_configuration(cpu):
     before, after = _vortex64_gain(1500)  # about 6 minutes on one core
     assert after >= before + 5.0, (before, after)
+
+
+class _FakeClock:
+    """Advances by a fixed step per reading (the refiner reads once per iteration)."""
+
+    def __init__(self, steps):
+        self.steps = list(steps)
+        self.t = 0.0
+        self.readings = []
+
+    def __call__(self):
+        self.t += self.steps.pop(0) if len(self.steps) > 1 else self.steps[0]
+        self.readings.append(self.t)
+        return self.t
+
+
+def _valid(params):
+    assert np.all(np.isfinite(params))
+    np.testing.assert_allclose(np.linalg.norm(params[:, 6:10], axis=1), 1.0, atol=1e-5)
+    assert np.all((params[:, 11] > 0) & (params[:, 11] < 1))
+
+
+def test_time_budget_sizes_the_schedule_and_ends_in_time(cpu):
+    r, _, _ = _toy(cpu, iterations=1000)
+    clock = _FakeClock([0.01])
+    r.run(deadline=0.31, clock=clock, log_every=5)
+    # probe: readings at 0.01 (start) .. 0.07 (after 5 steps) -> 12 ms per iteration;
+    # 0.9 x (0.31 - 0.07) / 0.012 = 18 more iterations are planned (17 under float round-off)
+    assert r.budget["planned_iterations"] in (5 + 17, 5 + 18)
+    assert r.iteration == r.cfg.iterations == r.budget["planned_iterations"]
+    assert not r.budget["stopped_early"]
+    assert clock.readings[-1] <= 0.31
+    _valid(r.model_params())
+
+
+def test_time_budget_stops_early_when_steps_slow_down(cpu):
+    r, _, _ = _toy(cpu, iterations=1000)
+    clock = _FakeClock([0.01] * 7 + [0.05])  # iterations become 5x slower after the probe
+    r.run(deadline=0.31, clock=clock, log_every=5)
+    assert r.budget["stopped_early"] and r.iteration < r.budget["planned_iterations"]
+    assert clock.readings[-1] <= 0.31  # no step was started that would end past the deadline
+    _valid(r.model_params())

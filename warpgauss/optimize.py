@@ -9,7 +9,9 @@ step. Every term of the loss (see :mod:`warpgauss.kernels.backward`) has a weigh
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -18,6 +20,9 @@ from .analysis import DeviceVolume
 from .errors import WarpgaussError
 
 STRATA = (0.35, 0.40, 0.25)  # high (V > 0.4), occupied mid-range, uniform (SPEC section 3)
+BUDGET_PROBE = 5  # iterations timed to size a time-budgeted run
+BUDGET_SAFETY = 0.9  # share of the remaining budget planned as iterations
+MAX_BUDGET_ITERATIONS = 20_000  # more iterations than this gain nothing measurable
 
 
 @dataclass
@@ -135,8 +140,13 @@ class Refiner:
         from .kernels import field as kf
         from .kernels import optim as ko
 
+        from .kernels import backward as kb
+        from .kernels import sampling as ks
+
         wp = warp()
         self._wp = wp
+        for module in (kf, ko, kb, ks):  # compile now, so that no time budget pays for it
+            wp.load_module(module, device=dv.device)
         self.dv, self.cfg, self.seed = dv, config, seed
         dev = self.device = dv.device
         if config.samples < 1 or config.iterations < 0:
@@ -389,22 +399,66 @@ class Refiner:
         """Primitive updates skipped because of a non-finite gradient, over the run so far."""
         return int(self.skipped.numpy()[0])
 
-    def run(self, progress=None, log_every: int = 25) -> list[dict]:
-        """Run all iterations; ``progress(it, total, losses)`` every ``log_every`` iterations.
+    def run(
+        self,
+        progress=None,
+        log_every: int = 25,
+        deadline: float | None = None,
+        clock=time.perf_counter,
+    ) -> list[dict]:
+        """Run the iterations; ``progress(it, total, losses)`` every ``log_every`` iterations.
+
+        Args:
+            progress: Optional callback.
+            log_every: Iterations between loss records.
+            deadline: A ``clock()`` time by which refinement must have ended (time-budget mode).
+                The first :data:`BUDGET_PROBE` iterations measure the cost of one; the schedule
+                (learning-rate decay, smoothness anneal) is then resized to the iterations that
+                fit, and no iteration starts that is expected to end past the deadline. The
+                primitives are valid after every step, so stopping anywhere leaves a valid model.
+            clock: Time source (seconds); the device is synchronised before each reading.
 
         Returns:
             The logged loss records.
         """
-        history = []
-        total = self.cfg.iterations
-        for it in range(total):
+        history: list[dict] = []
+        it = 0
+        per_it = None
+        self.budget = None
+        if deadline is not None:
+            t0 = last = self._now(clock)
+            slowest = 0.0
+            self.budget = {"seconds": deadline - t0, "planned_iterations": None, "stopped_early": False}
+        while it < self.cfg.iterations:
+            if deadline is not None:
+                now = self._now(clock)
+                slowest, last = max(slowest, now - last), now
+                if per_it is None and it == BUDGET_PROBE:
+                    per_it = (now - t0) / it
+                    fit = it + int(max(deadline - now, 0.0) / max(per_it, 1e-9) * BUDGET_SAFETY)
+                    planned = max(it, min(fit, MAX_BUDGET_ITERATIONS))
+                    self.cfg = dataclasses.replace(self.cfg, iterations=planned)
+                    self.budget["planned_iterations"] = planned
+                    if it >= planned:
+                        break
+                if now + max(slowest, per_it or 0.0) > deadline:  # the next step would end too late
+                    self.budget["stopped_early"] = True
+                    break
             self.step()
-            if (it + 1) % log_every == 0 or it + 1 == total:
-                rec = {"iteration": it + 1, **self.losses()}
+            it += 1
+            if it % log_every == 0 or it == self.cfg.iterations:
+                rec = {"iteration": it, **self.losses()}
                 history.append(rec)
                 if progress is not None:
-                    progress(it + 1, total, rec)
+                    progress(it, self.cfg.iterations, rec)
+        if deadline is not None:
+            self.budget["iterations_done"] = it
+            self.budget["ms_per_iteration"] = None if per_it is None else 1000 * per_it
         return history
+
+    def _now(self, clock) -> float:
+        self._wp.synchronize_device(self.device)
+        return clock()
 
 
 def self_test(refiner: Refiner, points: int = 64) -> dict:

@@ -68,6 +68,7 @@ class EncodeOptions:
     stride: int = 1
     refine: RefineConfig = field(default_factory=RefineConfig)
     self_test: bool = True
+    time_budget: float | None = None
 
 
 def load_field(
@@ -253,6 +254,7 @@ def encode_field(
         cap = opts.allocation.resolved_cap(f.shape_xyz)
         with timer.stage("S2", "refinement"):
             refiner = Refiner(dv, params, cfg, opts.seed, opts.allocation.scale_min, cap)
+            stage_start = time.perf_counter()  # the time budget starts with compiled kernels
             if opts.self_test:
                 t0 = time.perf_counter()
                 refinement["self_test"] = self_test(refiner)
@@ -260,15 +262,20 @@ def encode_field(
             else:
                 skipped.append({"what": "self-test", "why": "--no-self-test"})
             t0 = time.perf_counter()
-            history = refiner.run(progress=on_progress, log_every=log_every)
+            deadline = None
+            if opts.time_budget is not None:  # a 5 % reserve covers the export after the last step
+                deadline = stage_start + 0.95 * opts.time_budget
+            history = refiner.run(progress=on_progress, log_every=log_every, deadline=deadline)
             seconds = time.perf_counter() - t0
             model = Model(refiner.model_params(), header)
         refinement.update(
             {
-                "iterations": cfg.iterations,
+                "time_budget": refiner.budget,
+                "iterations": refiner.cfg.iterations,
                 "samples": cfg.samples,
                 "seconds": seconds,
-                "ms_per_iteration": 1000 * seconds / cfg.iterations,
+                "iterations_done": refiner.iteration,
+                "ms_per_iteration": 1000 * seconds / max(refiner.iteration, 1),
                 "skipped_nonfinite_updates": refiner.skipped_steps(),
                 "strata_samples": dict(zip(("high", "mid", "uniform"), refiner.strata)),
                 "loss_history": history,
@@ -347,6 +354,7 @@ def encode(
     preset: str | None = None,
     refine: RefineConfig | None = None,
     self_test: bool = True,
+    time_budget: float | None = None,
     compact: bool = False,
     example: str | None = None,
     example_size: int | tuple[int, int, int] = 64,
@@ -375,6 +383,9 @@ def encode(
             "quality" (1,500 x 12,288); explicit ``iterations``/``samples`` override it.
         refine: Learning rates, loss weights and schedule (:class:`warpgauss.optimize.RefineConfig`).
         self_test: Run the binned-vs-dense self-test before refining.
+        time_budget: Seconds refinement may take once its kernels are compiled (self-test and
+            iterations); the iteration count is sized to fill it (up to 20,000) and refinement
+            ends within it, with a valid model at any stop.
         compact: Size the budget (and the report) for the compact 12-byte format.
         example: Built-in example volume name instead of ``source``.
         example_size: Size of the example volume.
@@ -399,6 +410,8 @@ def encode(
     if analytic_output is not None:
         check_writable(analytic_output, force=force)
     refine = resolve_refine(refine, preset, iterations, samples)
+    if time_budget is not None and not time_budget > 0:
+        raise WarpgaussError(f"--time-budget must be a positive number of seconds, got {time_budget}")
     opts = EncodeOptions(
         budget,
         ratio,
@@ -408,6 +421,7 @@ def encode(
         stride=(read or ReadOptions()).stride,
         refine=refine,
         self_test=self_test,
+        time_budget=time_budget,
     )
     timer = StageRecorder(on_stage=on_stage)
     with timer.stage("P", "load and normalise"):
