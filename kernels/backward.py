@@ -220,7 +220,11 @@ def finish_grads(
     grad: wp.array(dtype=vec12),  # [N] out: dL/d(raw parameters), original order
     reg_loss: wp.array(dtype=wp.vec3),  # [N] out: (anchor, aniso, cap) loss terms of the primitive
 ):
-    """Per-primitive loss terms and the chain rule to the 12 raw parameters (one thread per slot)."""
+    """Per-primitive loss terms and the chain rule to the 12 raw parameters (one thread per slot).
+
+    A primitive no sample touched this iteration gets an all-zero gradient (its per-primitive
+    terms included), which :func:`warpgauss.kernels.optim.adam_step` treats as "not visible".
+    """
     j = wp.tid()
     i = order[j]
     p = params[i]
@@ -269,6 +273,12 @@ def finish_grads(
     ga = d_a[j] + l_anchor * inv_n * 2.0 * anchor
     sw = sigmoid(p[11])
     out = vec12()
+    reg_loss[i] = wp.vec3(l_anchor * inv_n * anchor * anchor, l_aniso * inv_n * l_an, l_cap * inv_n * l_cp)
+    if d_w[j] == 0.0 and d_a[j] == 0.0 and wp.length_sq(gm) == 0.0:
+        # no pair touched this primitive this iteration: a zero gradient tells Adam to leave it
+        # (and its moments) alone, instead of coasting on stale momentum (sparse Adam)
+        grad[i] = out
+        return
     out[0] = gm[0]
     out[1] = gm[1]
     out[2] = gm[2]
@@ -282,4 +292,3 @@ def finish_grads(
     out[10] = ga
     out[11] = d_w[j] * sw * (1.0 - sw)
     grad[i] = out
-    reg_loss[i] = wp.vec3(l_anchor * inv_n * anchor * anchor, l_aniso * inv_n * l_an, l_cap * inv_n * l_cp)

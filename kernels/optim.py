@@ -47,13 +47,18 @@ def adam_step(
 ):
     """torch.optim.Adam (no weight decay) per primitive, then the constraints (one thread each).
 
-    A primitive whose gradient has a non-finite entry is left unchanged (moments too) and counted.
+    A primitive whose gradient is all zero (no sample touched it) is left unchanged, moments too,
+    as in gsplat's sparse/visible Adam: with thousands of samples and up to millions of
+    primitives most are untouched in a step, and dense Adam would keep moving them on stale
+    momentum. A primitive whose gradient has a non-finite entry is left unchanged and counted.
     """
     i = wp.tid()
     g = grad[i]
     if not all_finite(g):
         wp.atomic_add(skipped, 0, 1)
         return
+    if wp.length_sq(g) == 0.0:
+        return  # not visible this iteration: parameters and moments stay (sparse Adam)
     p = params[i]
     a = m1[i]
     b = m2[i]
