@@ -63,6 +63,13 @@ class RefineConfig:
         lr: Base learning rate (paper: 8e-3).
         lr_position, lr_scale, lr_rotation, lr_value, lr_weight: Per-group multipliers.
         lr_decay: Learning rate at the last iteration relative to the first (geometric decay).
+        touch_ref: Sample-primitive contacts per primitive per iteration at and above which the
+            full rates apply; below, rates scale by sqrt(contacts / touch_ref) (0 disables).
+            When samples are few for N (3,072 samples for 1.4M primitives touch each one about
+            0.4 times an iteration) every touch is a one-sample gradient that Adam turns into a
+            full-size step. Measured on vortex 64^3 with 20,000 Gaussians and 128 samples (0.8
+            contacts): full rates 37.7 -> 38.1 dB, 1/8 rate 45.9 dB, 1/4 45.5 dB; with 2,048
+            samples (12.5 contacts) full rates reach 53.9 dB.
         replan_every: Iterations between re-planning the bin levels from the current radii.
         partner_distance: Range of the partner offset in voxels.
         split_cells: One thread per (point, neighbour cell) instead of per point, summing through
@@ -79,6 +86,7 @@ class RefineConfig:
     lr_value: float = 3.75
     lr_weight: float = 3.75
     lr_decay: float = 0.1
+    touch_ref: float = 12.0
     beta1: float = 0.9
     beta2: float = 0.999
     eps: float = 1e-15
@@ -192,6 +200,8 @@ class Refiner:
             w.lr * w.lr_weight,
         )
         self.iteration = 0
+        self.touch_scale = 1.0  # learning-rate factor from the contact density (see touch_ref)
+        self.contacts = None
 
     def _build_strata(self) -> None:
         """Voxel lists of the high and mid strata, sorted so that sampling is deterministic."""
@@ -345,8 +355,12 @@ class Refiner:
 
         wp, cfg, it = self._wp, self.cfg, self.iteration
         self.sample(it)
-        self.field.update(replan=(it % max(cfg.replan_every, 1) == 0))
+        replan = it % max(cfg.replan_every, 1) == 0
+        self.field.update(replan=replan)
         self.forward_backward(it)
+        if replan and cfg.touch_ref > 0:  # re-estimate the contact density with the bins
+            self.contacts = float(self.pairs.numpy()[: self.m].astype(np.float64).sum()) / self.n
+            self.touch_scale = min(1.0, math.sqrt(self.contacts / cfg.touch_ref))
         t = it + 1
         wp.launch(
             ko.adam_step,
@@ -357,7 +371,7 @@ class Refiner:
                 self.m1,
                 self.m2,
                 self.lr,
-                cfg.lr_decay ** (it / max(cfg.iterations - 1, 1)),
+                self.touch_scale * cfg.lr_decay ** (it / max(cfg.iterations - 1, 1)),
                 cfg.beta1,
                 cfg.beta2,
                 cfg.eps,

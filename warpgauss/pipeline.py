@@ -275,6 +275,8 @@ def encode_field(
                 "samples": cfg.samples,
                 "seconds": seconds,
                 "iterations_done": refiner.iteration,
+                "contacts_per_primitive": refiner.contacts,
+                "lr_touch_scale": refiner.touch_scale,
                 "ms_per_iteration": 1000 * seconds / max(refiner.iteration, 1),
                 "skipped_nonfinite_updates": refiner.skipped_steps(),
                 "strata_samples": dict(zip(("high", "mid", "uniform"), refiner.strata)),
