@@ -303,3 +303,23 @@ def test_time_budget_stops_early_when_steps_slow_down(cpu):
     assert r.budget["stopped_early"] and r.iteration < r.budget["planned_iterations"]
     assert clock.readings[-1] <= 0.31  # no step was started that would end past the deadline
     _valid(r.model_params())
+
+
+def test_learning_rate_scales_with_contact_density(cpu):
+    from warpgauss.allocate import AllocationConfig, allocate
+    from warpgauss.profiling import StageRecorder
+    from warpgauss.synthetic import generate
+
+    f = normalise(generate("vortex", 24, seed=1))
+    dv = DeviceVolume(f, cpu)
+    cfg = AllocationConfig()
+    params, _ = allocate(dv, 300, 0, cfg, StageRecorder())
+    scales = {}
+    for samples in (4, 1024):
+        r = Refiner(dv, params, RefineConfig(iterations=5, samples=samples), 0, cfg.scale_min, cfg.resolved_cap(f.shape_xyz))
+        r.step()
+        expected = r.pairs.numpy()[:samples].sum() / 300
+        assert r.contacts == pytest.approx(expected)
+        assert r.touch_scale == pytest.approx(min(1.0, math.sqrt(expected / 12.0)))
+        scales[samples] = r.touch_scale
+    assert scales[4] < 0.5 and scales[1024] == 1.0
