@@ -60,9 +60,9 @@ class AllocationConfig:
         return d
 
 
-def _stream(seed: int, tag: int) -> int:
-    """A 31-bit RNG stream id for one use of the encoding seed."""
-    return int((seed * 1_000_003 + tag * 7_919 + 12_345) % (2**31 - 1))
+def rng_stream(seed: int, tag: int, salt: int = 12_345) -> int:
+    """A 31-bit RNG stream id for one use (``tag``) of the encoding seed; ``salt`` separates users."""
+    return int((seed * 1_000_003 + tag * 7_919 + salt) % (2**31 - 1))
 
 
 def draw_seeds(dv: DeviceVolume, k: int, mode: int, stream: int):
@@ -138,7 +138,7 @@ def allocate(dv: DeviceVolume, n: int, seed: int, config: AllocationConfig, time
     cap = config.resolved_cap(f.shape_xyz)
     groups = [("detail", 0, nd, config.detail_sigma), ("coverage", 1, nc, config.coverage_sigma)]
     with timer.stage("S1b", "budget draw"):
-        voxels = [draw_seeds(dv, k, mode, _stream(seed, 1 + mode)) for _, mode, k, _ in groups]
+        voxels = [draw_seeds(dv, k, mode, rng_stream(seed, 1 + mode)) for _, mode, k, _ in groups]
         wp.synchronize_device(dev)
     frames = []
     with timer.stage("S1c", "structure tensor"):
@@ -150,7 +150,7 @@ def allocate(dv: DeviceVolume, n: int, seed: int, config: AllocationConfig, time
                 wp.launch(
                     ka.seed_frames,
                     dim=k,
-                    inputs=[dv.values, dv.mask, dv.has_mask, vox, _stream(seed, 10 + mode)],
+                    inputs=[dv.values, dv.mask, dv.has_mask, vox, rng_stream(seed, 10 + mode)],
                     outputs=[mu, quat, info],
                     device=dev,
                 )

@@ -329,10 +329,6 @@ class DeviceVolume:
             self.mask = wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)
             self.has_mask = 0
 
-    @property
-    def nbytes(self) -> int:
-        return self.values.capacity + self.mask.capacity
-
 
 def structure_stats(dv: DeviceVolume, seed: int = 0) -> dict:
     """Occupancy, gradient top-10 % share and S(1)/S(16) (SPEC section 5).

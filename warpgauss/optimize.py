@@ -16,10 +16,12 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from .allocate import rng_stream
 from .analysis import DeviceVolume
 from .errors import WarpgaussError
 
 STRATA = (0.35, 0.40, 0.25)  # high (V > 0.4), occupied mid-range, uniform (SPEC section 3)
+SAMPLER_SALT = 99_991  # keeps the sampler's RNG streams apart from the allocation's
 BUDGET_PROBE = 5  # iterations timed to size a time-budgeted run
 BUDGET_SAFETY = 0.9  # share of the remaining budget planned as iterations
 MAX_BUDGET_ITERATIONS = 20_000  # more iterations than this gain nothing measurable
@@ -108,10 +110,6 @@ PRESETS = {
     "fast": {"iterations": 300, "samples": 3072},
     "quality": {"iterations": 1500, "samples": 12288},
 }
-
-
-def _stream(seed: int, tag: int) -> int:
-    return int((seed * 1_000_003 + tag * 7_919 + 99_991) % (2**31 - 1))
 
 
 def stratum_counts(m: int, n_high: int, n_mid: int) -> tuple[int, int, int]:
@@ -250,7 +248,7 @@ class Refiner:
                 max(self.n_mid, 1),
                 m_high,
                 m_mid,
-                _stream(self.seed, it),
+                rng_stream(self.seed, it, salt=SAMPLER_SALT),
                 float(pmin),
                 float(pmax),
             ],
