@@ -82,6 +82,7 @@ def normalise(
     name: str = "volume",
     source_dtype: str | None = None,
     value_range: tuple[float, float] | None = None,
+    count_candidates: bool = True,
 ) -> Field:
     """Stage P: mask NaN/Inf/fill voxels, normalise by the finite min/max, count occupancy.
 
@@ -90,6 +91,8 @@ def normalise(
         fill_value: Source value that marks missing data; such voxels are masked.
         value_range: Normalise by this (min, max) instead of the volume's own (evaluating a
             model against a volume uses the model's range); values are then not clipped.
+        count_candidates: Count occupied and detail-eligible voxels (needed to validate a
+            budget, not to evaluate a model; the counts stay 0 when skipped).
     """
     if data.ndim != 3:
         raise WarpgaussError(f"the volume is {data.ndim}D (shape {data.shape}); warpgauss encodes 3D volumes")
@@ -157,7 +160,8 @@ def normalise(
     f.n_valid = f.n_voxels - n_invalid
     if n_invalid:
         f.notes.append(f"{n_invalid} voxels are NaN/Inf/fill: masked out of seeding, sampling and every metric")
-    f.occupied, f.eligible = count_seed_candidates(values, mask)
+    if count_candidates:
+        f.occupied, f.eligible = count_seed_candidates(values, mask)
     return f
 
 

@@ -119,7 +119,7 @@ def evaluate_against(model, volume, *, full: bool = False, device: str | None = 
             f"the volume is {'x'.join(map(str, shape_xyz))} but the model's grid is "
             f"{'x'.join(map(str, model.shape_xyz))}; use the volume (and --stride) the model was encoded from"
         )
-    f = normalise(data, fill_value=fill, value_range=model.value_range)
+    f = normalise(data, fill_value=fill, value_range=model.value_range, count_candidates=False)
     result = evaluate_field(model.field(device), f, full=full)
     result["n"] = model.n
     return result
