@@ -42,13 +42,14 @@ def point_grads(
     m: int,
     value_empty: float,  # value-loss weight of empty samples (paper: 0)
     l_density: float,
-    l_smooth: float,
+    now: wp.array(dtype=wp.vec4),  # [1] this iteration's schedule; now[0][1] is the smoothness weight
     g_value: wp.array(dtype=float),  # [2M] out: dL/dV~
     g_density: wp.array(dtype=float),  # [2M] out: dL/drho
     loss: wp.array(dtype=wp.vec3),  # [M] out: (value, density, smooth) loss terms of the sample
 ):
     """dL/dV~ and dL/drho at each sample and its partner (one thread per sample)."""
     s = wp.tid()
+    l_smooth = now[0][1]
     om = weight[s]
     o = occupied[s]
     c = wp.where(o > 0.0, 1.0, value_empty)
@@ -201,37 +202,28 @@ def relu(x: float) -> float:
     return wp.max(x, 0.0)
 
 
-@wp.kernel
-def finish_grads(
-    params: wp.array(dtype=vec12),  # [N] raw training parameters
-    order: wp.array(dtype=int),  # [>=N] primitive index of each sorted slot
-    d_mu: wp.array(dtype=wp.vec3),  # [N] cell order
-    d_ls: wp.array(dtype=wp.vec3),
-    d_rot: wp.array(dtype=wp.mat33),
-    d_a: wp.array(dtype=float),
-    d_w: wp.array(dtype=float),
-    vol: wp.array3d(dtype=float),  # the normalised field, for the anchor targets
+@wp.func
+def raw_gradient(
+    p: vec12,  # raw training parameters of the primitive
+    gm: wp.vec3,  # accumulated pair gradients: dL/dmu
+    gl: wp.vec3,  # dL/dlog-sigma
+    gR: wp.mat33,  # dL/dR
+    g_a: float,  # dL/da
+    g_w: float,  # dL/dw
+    vol: wp.array3d(dtype=float),  # the normalised field, for the anchor target
     l_anchor: float,
     l_aniso: float,
     l_cap: float,
     log_aniso: float,
     log_cap: float,
     log_min: float,
-    grad: wp.array(dtype=vec12),  # [N] out: dL/d(raw parameters), original order
-    reg_loss: wp.array(dtype=wp.vec3),  # [N] out: (anchor, aniso, cap) loss terms of the primitive
+    inv_n: float,  # 1 / N
 ):
-    """Per-primitive loss terms and the chain rule to the 12 raw parameters (one thread per slot).
+    """Per-primitive loss terms and the chain rule to the 12 raw parameters.
 
-    A primitive no sample touched this iteration gets an all-zero gradient (its per-primitive
-    terms included), which :func:`warpgauss.kernels.optim.adam_step` treats as "not visible".
+    Returns:
+        (gradient, (anchor, aniso, cap) loss terms of the primitive).
     """
-    j = wp.tid()
-    i = order[j]
-    p = params[i]
-    inv_n = 1.0 / float(params.shape[0])
-    gm = d_mu[j]
-    gl = d_ls[j]
-    gR = d_rot[j]
     # quaternion: R(qh) with qh = q / |q|, Warp's (x, y, z, w) order
     qn2 = p[6] * p[6] + p[7] * p[7] + p[8] * p[8] + p[9] * p[9]
     qn = wp.sqrt(wp.max(qn2, 1.0e-20))
@@ -270,15 +262,8 @@ def finish_grads(
             gl[a_] = gl[a_] + gd
             gl[b_] = gl[b_] - gd
     anchor = p[10] - trilinear(vol, wp.vec3(p[0], p[1], p[2]))
-    ga = d_a[j] + l_anchor * inv_n * 2.0 * anchor
     sw = sigmoid(p[11])
     out = vec12()
-    reg_loss[i] = wp.vec3(l_anchor * inv_n * anchor * anchor, l_aniso * inv_n * l_an, l_cap * inv_n * l_cp)
-    if d_w[j] == 0.0 and d_a[j] == 0.0 and wp.length_sq(gm) == 0.0:
-        # no pair touched this primitive this iteration: a zero gradient tells Adam to leave it
-        # (and its moments) alone, instead of coasting on stale momentum (sparse Adam)
-        grad[i] = out
-        return
     out[0] = gm[0]
     out[1] = gm[1]
     out[2] = gm[2]
@@ -289,6 +274,49 @@ def finish_grads(
     out[7] = (gy - y * radial) / qn
     out[8] = (gz - z * radial) / qn
     out[9] = (gw - w * radial) / qn
-    out[10] = ga
-    out[11] = d_w[j] * sw * (1.0 - sw)
-    grad[i] = out
+    out[10] = g_a + l_anchor * inv_n * 2.0 * anchor
+    out[11] = g_w * sw * (1.0 - sw)
+    reg = wp.vec3(l_anchor * inv_n * anchor * anchor, l_aniso * inv_n * l_an, l_cap * inv_n * l_cp)
+    return out, reg
+
+
+@wp.func
+def touched(j: int, d_mu: wp.array(dtype=wp.vec3), d_a: wp.array(dtype=float), d_w: wp.array(dtype=float)) -> bool:
+    """Whether any pair reached slot j this iteration (all its pair gradients are exactly 0 if not)."""
+    return d_w[j] != 0.0 or d_a[j] != 0.0 or wp.length_sq(d_mu[j]) != 0.0
+
+
+@wp.kernel
+def finish_grads(
+    params: wp.array(dtype=vec12),  # [N] raw training parameters, slot order
+    d_mu: wp.array(dtype=wp.vec3),  # [N] slot order
+    d_ls: wp.array(dtype=wp.vec3),
+    d_rot: wp.array(dtype=wp.mat33),
+    d_a: wp.array(dtype=float),
+    d_w: wp.array(dtype=float),
+    vol: wp.array3d(dtype=float),  # the normalised field, for the anchor targets
+    l_anchor: float,
+    l_aniso: float,
+    l_cap: float,
+    log_aniso: float,
+    log_cap: float,
+    log_min: float,
+    grad: wp.array(dtype=vec12),  # [N] out: dL/d(raw parameters), slot order
+    reg_loss: wp.array(dtype=wp.vec3),  # [N] out: (anchor, aniso, cap) loss terms of the primitive
+):
+    """:func:`raw_gradient` of every slot (tests, self-test and loss reports; training fuses it
+    into :func:`warpgauss.kernels.optim.refine_update`).
+
+    A primitive no sample touched this iteration gets an all-zero gradient (its per-primitive
+    terms included), which Adam treats as "not visible" (sparse Adam).
+    """
+    j = wp.tid()
+    g, reg = raw_gradient(
+        params[j], d_mu[j], d_ls[j], d_rot[j], d_a[j], d_w[j], vol, l_anchor, l_aniso, l_cap, log_aniso, log_cap, log_min,
+        1.0 / float(params.shape[0]),
+    )
+    reg_loss[j] = reg
+    if touched(j, d_mu, d_a, d_w):
+        grad[j] = g
+    else:
+        grad[j] = vec12()

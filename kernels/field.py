@@ -79,6 +79,23 @@ def sigmoid(x: float) -> float:
     return 1.0 / (1.0 + wp.exp(-x))
 
 
+@wp.func
+def prepare_one(p: vec12, raw: int):
+    """(R, 1 / sigma^2, 5-sigma half-extents, weight) of one primitive, as evaluation reads them."""
+    R, s = primitive_frame(p)
+    s2 = wp.vec3(s[0] * s[0], s[1] * s[1], s[2] * s[2])
+    S = R @ wp.diag(s2) @ wp.transpose(R)
+    e = wp.vec3(
+        TRUNC_SIGMA * wp.sqrt(wp.max(S[0, 0], 0.0)),
+        TRUNC_SIGMA * wp.sqrt(wp.max(S[1, 1], 0.0)),
+        TRUNC_SIGMA * wp.sqrt(wp.max(S[2, 2], 0.0)),
+    )
+    wt = p[11]
+    if raw != 0:
+        wt = sigmoid(p[11])
+    return R, wp.vec3(1.0 / s2[0], 1.0 / s2[1], 1.0 / s2[2]), e, wt
+
+
 @wp.kernel
 def prepare_primitives(
     params: wp.array(dtype=vec12),  # [N]
@@ -93,25 +110,15 @@ def prepare_primitives(
 ):
     """Turn parameters into what evaluation reads (one thread per primitive)."""
     i = wp.tid()
+    R, inv, e, wt = prepare_one(params[i], raw)
     p = params[i]
-    R, s = primitive_frame(p)
-    s2 = wp.vec3(s[0] * s[0], s[1] * s[1], s[2] * s[2])
-    S = R @ wp.diag(s2) @ wp.transpose(R)
-    e = wp.vec3(
-        TRUNC_SIGMA * wp.sqrt(wp.max(S[0, 0], 0.0)),
-        TRUNC_SIGMA * wp.sqrt(wp.max(S[1, 1], 0.0)),
-        TRUNC_SIGMA * wp.sqrt(wp.max(S[2, 2], 0.0)),
-    )
     mu[i] = wp.vec3(p[0], p[1], p[2])
     rot[i] = R
-    inv_s2[i] = wp.vec3(1.0 / s2[0], 1.0 / s2[1], 1.0 / s2[2])
+    inv_s2[i] = inv
     ext[i] = e
     radius[i] = wp.max(e[0], wp.max(e[1], e[2]))
     a[i] = p[10]
-    if raw != 0:
-        w[i] = sigmoid(p[11])
-    else:
-        w[i] = p[11]
+    w[i] = wt
 
 
 @wp.func
@@ -123,6 +130,17 @@ def level_cell(x: wp.vec3, cell: float, dims: wp.vec3i) -> wp.vec3i:
         wp.clamp(int(wp.floor((x[1] + 0.5) * inv)), 0, dims[1] - 1),
         wp.clamp(int(wp.floor((x[2] + 0.5) * inv)), 0, dims[2] - 1),
     )
+
+
+@wp.func
+def bin_level(r: float, level_size: wp.array(dtype=float)) -> int:
+    """The first level whose cells are at least r (the last, global level catches the rest)."""
+    nlev = level_size.shape[0]
+    lev = nlev - 1
+    for l in range(nlev):
+        if level_size[l] >= r and lev == nlev - 1:
+            lev = l
+    return lev
 
 
 @wp.kernel
@@ -137,12 +155,7 @@ def bin_keys(
 ):
     """Assign each primitive to the first level whose cells are at least its radius."""
     i = wp.tid()
-    r = radius[i]
-    nlev = level_size.shape[0]
-    lev = nlev - 1
-    for l in range(nlev):
-        if level_size[l] >= r and lev == nlev - 1:
-            lev = l
+    lev = bin_level(radius[i], level_size)
     dims = level_dims[lev]
     c = level_cell(mu[i], level_size[lev], dims)
     keys[i] = level_offset[lev] + (c[2] * dims[1] + c[1]) * dims[0] + c[0]
@@ -350,3 +363,13 @@ def finish_values(num: wp.array(dtype=float), density: wp.array(dtype=float), va
     """V~ = num / max(rho, RHO0)."""
     i = wp.tid()
     value[i] = num[i] / wp.max(density[i], RHO0)
+
+
+@wp.kernel
+def clear_sums(num: wp.array(dtype=float), density: wp.array(dtype=float), pairs: wp.array(dtype=int), back_pairs: wp.array(dtype=int)):
+    """Zero the per-point accumulators of the split-cell passes (one launch instead of four)."""
+    i = wp.tid()
+    num[i] = 0.0
+    density[i] = 0.0
+    pairs[i] = 0
+    back_pairs[i] = 0

@@ -1,8 +1,15 @@
-"""Adam on the raw primitive parameters, with the parameter constraints applied after each step."""
+"""Adam on the raw primitive parameters, with the parameter constraints applied after each step.
+
+Training keeps its state in *slot order*: primitives sorted by bin cell, re-sorted only every few
+iterations (:func:`permute_slots`). Between re-bins :func:`refine_update` updates each touched slot
+in place (chain rule, Adam, constraints, re-preparation), so an iteration costs nothing per
+untouched primitive beyond one read, and :class:`SlotBounds` keeps the bins exact meanwhile.
+"""
 
 import warp as wp
 
-from .field import safe_unit_quat, vec12
+from .backward import raw_gradient, touched
+from .field import BinnedPrimitives, bin_level, level_cell, prepare_one, safe_unit_quat, vec12
 
 wp.set_module_options({"enable_backward": False})
 
@@ -26,6 +33,35 @@ def all_finite(g: vec12) -> bool:
         if not wp.isfinite(g[k]):
             return False
     return True
+
+
+@wp.func
+def adam_update(
+    p: vec12,
+    g: vec12,
+    a: vec12,
+    b: vec12,
+    lr: vec12,
+    lr_scale: float,
+    beta1: float,
+    beta2: float,
+    eps: float,
+    bc1: float,
+    bc2: float,
+    log_lo: float,
+    log_hi: float,
+):
+    """One Adam step of one primitive and its constraints; returns (parameters, m1, m2)."""
+    for k in range(12):
+        a[k] = beta1 * a[k] + (1.0 - beta1) * g[k]
+        b[k] = beta2 * b[k] + (1.0 - beta2) * g[k] * g[k]
+        p[k] = p[k] - lr_scale * lr[k] * (a[k] / bc1) / (wp.sqrt(b[k] / bc2) + eps)
+    # constraints: unit quaternion (identity if it collapsed), bounded log-scales and logit
+    p = unit_quaternion(p)
+    for k in range(3, 6):
+        p[k] = wp.clamp(p[k], log_lo, log_hi)
+    p[11] = wp.clamp(p[11], -LOGIT_BOUND, LOGIT_BOUND)
+    return p, a, b
 
 
 @wp.kernel
@@ -59,21 +95,172 @@ def adam_step(
         return
     if wp.length_sq(g) == 0.0:
         return  # not visible this iteration: parameters and moments stay (sparse Adam)
-    p = params[i]
-    a = m1[i]
-    b = m2[i]
-    for k in range(12):
-        a[k] = beta1 * a[k] + (1.0 - beta1) * g[k]
-        b[k] = beta2 * b[k] + (1.0 - beta2) * g[k] * g[k]
-        p[k] = p[k] - lr_scale * lr[k] * (a[k] / bc1) / (wp.sqrt(b[k] / bc2) + eps)
-    # constraints: unit quaternion (identity if it collapsed), bounded log-scales and logit
-    p = unit_quaternion(p)
-    for k in range(3, 6):
-        p[k] = wp.clamp(p[k], log_lo, log_hi)
-    p[11] = wp.clamp(p[11], -LOGIT_BOUND, LOGIT_BOUND)
+    p, a, b = adam_update(params[i], g, m1[i], m2[i], lr, lr_scale, beta1, beta2, eps, bc1, bc2, log_lo, log_hi)
     params[i] = p
     m1[i] = a
     m2[i] = b
+
+
+@wp.struct
+class SlotBounds:
+    """Where each training slot's primitive may go before it must be re-binned.
+
+    A primitive binned into cell c (edge S) of its level is found by every point whose 3^3
+    neighbourhood includes c. That stays true after it moves and reshapes as long as, per axis,
+    its half-extent plus its centre's distance outside the cell is at most S (edge cells extend
+    to infinity outwards, because cell lookups clamp there).
+    """
+
+    lo: wp.array(dtype=wp.vec3)  # [N] lower cell faces (-BIG on the grid's first cell)
+    hi: wp.array(dtype=wp.vec3)  # [N] upper cell faces (+BIG on the last)
+    cell: wp.array(dtype=float)  # [N] cell edge S of the slot's level
+
+
+BIG = wp.constant(1.0e30)
+
+
+@wp.kernel
+def permute_slots(
+    perm: wp.array(dtype=int),  # [>=N] old slot of each new slot (cell order)
+    raw: wp.array(dtype=vec12),  # [N] old slot order
+    m1: wp.array(dtype=vec12),
+    m2: wp.array(dtype=vec12),
+    ids: wp.array(dtype=int),  # [N] primitive id of each old slot
+    mu: wp.array(dtype=wp.vec3),  # [N] prepared, old slot order
+    radius: wp.array(dtype=float),
+    level_size: wp.array(dtype=float),
+    level_dims: wp.array(dtype=wp.vec3i),
+    raw_out: wp.array(dtype=vec12),  # [N] out: new slot order
+    m1_out: wp.array(dtype=vec12),
+    m2_out: wp.array(dtype=vec12),
+    ids_out: wp.array(dtype=int),
+    bounds: SlotBounds,  # out
+):
+    """Move the training state into cell order and record each slot's cell (one thread per slot)."""
+    i = wp.tid()
+    o = perm[i]
+    raw_out[i] = raw[o]
+    m1_out[i] = m1[o]
+    m2_out[i] = m2[o]
+    ids_out[i] = ids[o]
+    lev = bin_level(radius[o], level_size)
+    size = level_size[lev]
+    dims = level_dims[lev]
+    c = level_cell(mu[o], size, dims)
+    lo = wp.vec3()
+    hi = wp.vec3()
+    for k in range(3):
+        lo[k] = wp.where(c[k] == 0, -BIG, float(c[k]) * size - 0.5)
+        hi[k] = wp.where(c[k] == dims[k] - 1, BIG, float(c[k] + 1) * size - 0.5)
+    bounds.lo[i] = lo
+    bounds.hi[i] = hi
+    bounds.cell[i] = size
+
+
+@wp.func
+def fits_slot(mu: wp.vec3, ext: wp.vec3, lo: wp.vec3, hi: wp.vec3, size: float) -> bool:
+    """Whether a primitive of centre mu and half-extents ext is still found from its slot's cell."""
+    for k in range(3):
+        outside = wp.max(wp.max(lo[k] - mu[k], mu[k] - hi[k]), 0.0)
+        if ext[k] + outside > size:
+            return False
+    return True
+
+
+@wp.kernel
+def begin_iteration(
+    counter: wp.array(dtype=int),  # [1] iteration index
+    schedule: wp.array(dtype=wp.vec4),  # [T] (learning-rate factor, smoothness weight, bc1, bc2)
+    streams: wp.array(dtype=int),  # [T] sampler RNG stream of each iteration
+    touch: wp.array(dtype=float),  # [1] learning-rate factor from the contact density
+    now: wp.array(dtype=wp.vec4),  # [1] out: this iteration's (lr factor x touch, smoothness, bc1, bc2)
+    stream: wp.array(dtype=int),  # [1] out: this iteration's stream
+):
+    """Pick this iteration's schedule values on the device, so that a captured graph can replay."""
+    t = wp.min(counter[0], schedule.shape[0] - 1)
+    s = schedule[t]
+    now[0] = wp.vec4(s[0] * touch[0], s[1], s[2], s[3])
+    stream[0] = streams[t]
+
+
+@wp.kernel
+def end_iteration(counter: wp.array(dtype=int)):
+    counter[0] = counter[0] + 1
+
+
+@wp.kernel
+def refine_update(
+    raw: wp.array(dtype=vec12),  # [N] training parameters, slot order (updated)
+    m1: wp.array(dtype=vec12),  # [N] Adam moments (updated)
+    m2: wp.array(dtype=vec12),
+    d_mu: wp.array(dtype=wp.vec3),  # [N] pair gradients of this iteration (read, then zeroed)
+    d_ls: wp.array(dtype=wp.vec3),
+    d_rot: wp.array(dtype=wp.mat33),
+    d_a: wp.array(dtype=float),
+    d_w: wp.array(dtype=float),
+    vol: wp.array3d(dtype=float),
+    l_anchor: float,
+    l_aniso: float,
+    l_cap: float,
+    log_aniso: float,
+    log_cap: float,
+    log_min: float,
+    lr: vec12,
+    now: wp.array(dtype=wp.vec4),  # [1] (lr factor, smoothness, bc1, bc2) of this iteration
+    beta1: float,
+    beta2: float,
+    eps: float,
+    log_lo: float,
+    log_hi: float,
+    bounds: SlotBounds,
+    prims: BinnedPrimitives,  # prepared primitives, slot order (updated)
+    counts: wp.array(dtype=int),  # [2] out: (non-finite gradients skipped, updates deferred to the next re-bin)
+):
+    """Chain rule, sparse Adam, constraints and re-preparation of one slot, fused (one thread per slot).
+
+    An untouched slot costs one read of its pair gradients. A step that would carry a primitive
+    beyond what its cell's neighbourhood covers (:class:`SlotBounds`) is deferred: parameters and
+    moments stay, and the next re-bin moves it to the right cell, so evaluation stays exact.
+    """
+    j = wp.tid()
+    if not touched(j, d_mu, d_a, d_w):
+        return
+    g, reg = raw_gradient(
+        raw[j], d_mu[j], d_ls[j], d_rot[j], d_a[j], d_w[j], vol, l_anchor, l_aniso, l_cap, log_aniso, log_cap, log_min,
+        1.0 / float(raw.shape[0]),
+    )
+    d_mu[j] = wp.vec3()
+    d_ls[j] = wp.vec3()
+    d_rot[j] = wp.mat33()
+    d_a[j] = 0.0
+    d_w[j] = 0.0
+    if not all_finite(g):
+        wp.atomic_add(counts, 0, 1)
+        return
+    s = now[0]
+    p, a, b = adam_update(raw[j], g, m1[j], m2[j], lr, s[0], beta1, beta2, eps, s[2], s[3], log_lo, log_hi)
+    R, inv, e, wt = prepare_one(p, 1)
+    mu = wp.vec3(p[0], p[1], p[2])
+    if not fits_slot(mu, e, bounds.lo[j], bounds.hi[j], bounds.cell[j]):
+        wp.atomic_add(counts, 1, 1)
+        return
+    raw[j] = p
+    m1[j] = a
+    m2[j] = b
+    prims.mu[j] = mu
+    prims.rot[j] = R
+    prims.inv_s2[j] = inv
+    prims.ext[j] = e
+    prims.a[j] = p[10]
+    prims.w[j] = wt
+
+
+@wp.func
+def model_of(p: vec12) -> vec12:
+    """Training parameters -> model parameters (unit quaternion, weight = sigmoid(logit))."""
+    p = unit_quaternion(p)
+    p[11] = 1.0 / (1.0 + wp.exp(-p[11]))
+    return p
 
 
 @wp.kernel
@@ -90,6 +277,25 @@ def to_raw(params: wp.array(dtype=vec12), out: wp.array(dtype=vec12)):
 def to_model(params: wp.array(dtype=vec12), out: wp.array(dtype=vec12)):
     """Training parameters -> model parameters (unit quaternion, weight = sigmoid(logit))."""
     i = wp.tid()
-    p = unit_quaternion(params[i])
-    p[11] = 1.0 / (1.0 + wp.exp(-p[11]))
-    out[i] = p
+    out[i] = model_of(params[i])
+
+
+@wp.kernel
+def to_model_slots(raw: wp.array(dtype=vec12), ids: wp.array(dtype=int), out: wp.array(dtype=vec12)):
+    """:func:`to_model` from slot order back to primitive order (out[ids[j]] = model of slot j)."""
+    j = wp.tid()
+    out[ids[j]] = model_of(raw[j])
+
+
+@wp.kernel
+def slots_from_ids(src: wp.array(dtype=vec12), ids: wp.array(dtype=int), out: wp.array(dtype=vec12)):
+    """out[j] = src[ids[j]]: primitive order into slot order."""
+    j = wp.tid()
+    out[j] = src[ids[j]]
+
+
+@wp.kernel
+def ids_from_slots(src: wp.array(dtype=vec12), ids: wp.array(dtype=int), out: wp.array(dtype=vec12)):
+    """out[ids[j]] = src[j]: slot order back to primitive order."""
+    j = wp.tid()
+    out[ids[j]] = src[j]

@@ -82,7 +82,7 @@ def draw_samples(
     n_mid: int,
     m_high: int,  # samples drawn from the high stratum (the first m_high)
     m_mid: int,  # then this many from the mid stratum; the rest uniform over the grid
-    stream: int,  # RNG stream of this iteration
+    stream: wp.array(dtype=int),  # [1] RNG stream of this iteration
     partner_min: float,  # partner distance range in voxels
     partner_max: float,
     points: wp.array(dtype=wp.vec3),  # [2M] out: samples, then their partners
@@ -93,7 +93,7 @@ def draw_samples(
     """One training sample and its partner (one thread per sample)."""
     s = wp.tid()
     m = target.shape[0]
-    state = wp.rand_init(stream, s)
+    state = wp.rand_init(stream[0], s)
     nx = vol.shape[2]
     ny = vol.shape[1]
     idx = int(0)

@@ -73,6 +73,8 @@ class RefineConfig:
             contacts): full rates 37.7 -> 38.1 dB, 1/8 rate 45.9 dB, 1/4 45.5 dB; with 2,048
             samples (12.5 contacts) full rates reach 53.9 dB.
         replan_every: Iterations between re-planning the bin levels from the current radii.
+        rebin_every: Iterations between re-sorting the primitives into their bin cells.
+        graph: Capture one iteration as a CUDA graph and replay it (CUDA devices only).
         partner_distance: Range of the partner offset in voxels.
         split_cells: One thread per (point, neighbour cell) instead of per point, summing through
             atomics; None picks it on CUDA devices (one thread per sample leaves a GPU idle) and
@@ -93,6 +95,8 @@ class RefineConfig:
     beta2: float = 0.999
     eps: float = 1e-15
     replan_every: int = 100
+    rebin_every: int = 10
+    graph: bool = True
     partner_distance: tuple[float, float] = (0.5, 1.5)
     split_cells: bool | None = None
     weights: LossWeights = field(default_factory=LossWeights)
@@ -124,6 +128,16 @@ def stratum_counts(m: int, n_high: int, n_mid: int) -> tuple[int, int, int]:
 class Refiner:
     """N primitives under refinement on one device.
 
+    The training state (raw parameters, Adam moments, prepared primitives) lives in *slot order*,
+    sorted by bin cell. Every ``rebin_every`` iterations it is re-sorted (and every
+    ``replan_every`` the cell levels re-planned); in between, an iteration only touches the
+    primitives its samples reach, updating them in place, and a step that would carry a primitive
+    out of reach of its cell waits for the next re-bin (see
+    :class:`warpgauss.kernels.optim.SlotBounds`), so evaluation stays exact. Per-iteration
+    scalars (learning-rate factor, smoothness weight, bias corrections, RNG stream) are read on
+    the device from a precomputed schedule, so that on CUDA one iteration is captured once as a
+    graph and replayed.
+
     Args:
         dv: The normalised field on the device.
         params: (N, 12) model parameters (weight in slot 11), e.g. the analytic allocation.
@@ -142,11 +156,9 @@ class Refiner:
         scale_cap: float,
     ):
         from ._warp import warp
-        from .field import GaussianField
+        from .kernels import backward as kb
         from .kernels import field as kf
         from .kernels import optim as ko
-
-        from .kernels import backward as kb
         from .kernels import sampling as ks
 
         wp = warp()
@@ -161,19 +173,38 @@ class Refiner:
         model = wp.array(np.ascontiguousarray(params, np.float32), dtype=kf.vec12, device=dev)
         self.raw = wp.empty(n, dtype=kf.vec12, device=dev)
         wp.launch(ko.to_raw, dim=n, inputs=[model], outputs=[self.raw], device=dev)
-        self.field = GaussianField(self.raw, dv.field.shape_xyz, device=dev, raw=True)
+        self.ids = wp.array(np.arange(n, dtype=np.int32), dtype=int, device=dev)
         self.log_min = math.log(scale_min)
         self.log_cap = math.log(scale_cap)
         self.m1 = wp.zeros(n, dtype=kf.vec12, device=dev)
         self.m2 = wp.zeros(n, dtype=kf.vec12, device=dev)
+        # re-bin scratch: the state in the old slot order, and its permutation
+        self._raw_b = wp.empty_like(self.raw)
+        self._m1_b = wp.empty_like(self.m1)
+        self._m2_b = wp.empty_like(self.m2)
+        self._ids_b = wp.empty_like(self.ids)
+        self._prep = [wp.empty(n, dtype=t, device=dev) for t in (wp.vec3, wp.mat33, wp.vec3, wp.vec3, float, float, float)]
+        self._keys = wp.empty(2 * n, dtype=int, device=dev)
+        self._perm = wp.empty(2 * n, dtype=int, device=dev)
+        p = self.prims = kf.BinnedPrimitives()
+        p.order = self.ids
+        p.mu, p.rot, p.inv_s2, p.ext = (wp.empty(n, dtype=t, device=dev) for t in (wp.vec3, wp.mat33, wp.vec3, wp.vec3))
+        p.a = wp.empty(n, dtype=float, device=dev)
+        p.w = wp.empty(n, dtype=float, device=dev)
+        b = self.bounds = ko.SlotBounds()
+        b.lo = wp.empty(n, dtype=wp.vec3, device=dev)
+        b.hi = wp.empty(n, dtype=wp.vec3, device=dev)
+        b.cell = wp.empty(n, dtype=float, device=dev)
+        self.plan = None
         self.grad = wp.zeros(n, dtype=kf.vec12, device=dev)
         self.d_mu = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.d_ls = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.d_rot = wp.zeros(n, dtype=wp.mat33, device=dev)
         self.d_a = wp.zeros(n, dtype=float, device=dev)
         self.d_w = wp.zeros(n, dtype=float, device=dev)
+        self._clean = True  # the pair-gradient buffers are all zero
         self.reg_loss = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.skipped = wp.zeros(1, dtype=int, device=dev)
+        self.counts = wp.zeros(2, dtype=int, device=dev)  # (non-finite skips, deferred updates)
         m = self.m = int(config.samples)
         self.points = wp.zeros(2 * m, dtype=wp.vec3, device=dev)
         self.target = wp.zeros(m, dtype=float, device=dev)
@@ -187,7 +218,9 @@ class Refiner:
         self.g_density = wp.zeros(2 * m, dtype=float, device=dev)
         self.point_loss = wp.zeros(m, dtype=wp.vec3, device=dev)
         self.num = wp.zeros(2 * m, dtype=float, device=dev)
-        self.split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
+        self._graph = None
+        self._split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
+        self.use_graph = wp.get_device(dev).is_cuda and config.graph
         self._build_strata()
         w = config
         self.lr = kf.vec12(
@@ -197,9 +230,27 @@ class Refiner:
             w.lr * w.lr_value,
             w.lr * w.lr_weight,
         )
+        self.counter = wp.zeros(1, dtype=int, device=dev)
+        self.touch = wp.array([1.0], dtype=float, device=dev)
+        self.now = wp.zeros(1, dtype=wp.vec4, device=dev)
+        self.stream = wp.zeros(1, dtype=int, device=dev)
+        self.schedule = self.streams = None
+        self._write_schedule(max(config.iterations, 1))
         self.iteration = 0
         self.touch_scale = 1.0  # learning-rate factor from the contact density (see touch_ref)
         self.contacts = None
+        self.rebins = 0
+        self.rebin(replan=True)
+
+    @property
+    def split(self) -> bool:
+        """Split-cell kernels (one thread per point and neighbour cell) rather than point-major."""
+        return self._split
+
+    @split.setter
+    def split(self, value: bool) -> None:
+        self._split = bool(value)
+        self._graph = None
 
     def _build_strata(self) -> None:
         """Voxel lists of the high and mid strata, sorted so that sampling is deterministic."""
@@ -221,86 +272,174 @@ class Refiner:
         self.n_high, self.n_mid = n_high, n_mid
         self.strata = stratum_counts(self.m, n_high, n_mid)
 
-    def smooth_weight(self, it: int) -> float:
+    def smooth_weight(self, it):
         """Smoothness weight annealed geometrically from strong to weak over the run."""
         w = self.cfg.weights
         if w.smooth <= 0.0:
-            return 0.0
-        t = it / max(self.cfg.iterations - 1, 1)
+            return 0.0 * np.asarray(it, np.float64)
+        t = np.asarray(it, np.float64) / max(self.cfg.iterations - 1, 1)
         return w.smooth * (max(w.smooth_final, 1e-12) / w.smooth) ** t
 
-    def sample(self, it: int) -> None:
+    def _write_schedule(self, capacity: int | None = None) -> None:
+        """Per-iteration (lr factor, smoothness weight, bc1, bc2) and RNG streams, on the device."""
+        wp, cfg, dev = self._wp, self.cfg, self.device
+        t_total = max(cfg.iterations, 1)
+        capacity = max(capacity or 0, t_total, 0 if self.schedule is None else self.schedule.shape[0])
+        if self.schedule is None or self.schedule.shape[0] < capacity:
+            self.schedule = wp.zeros(capacity, dtype=wp.vec4, device=dev)
+            self.streams = wp.zeros(capacity, dtype=int, device=dev)
+            self._graph = None
+        it = np.arange(capacity, dtype=np.float64)
+        sched = np.stack(
+            [
+                cfg.lr_decay ** (np.minimum(it, t_total - 1) / max(t_total - 1, 1)),
+                self.smooth_weight(np.minimum(it, t_total - 1)),
+                1.0 - cfg.beta1 ** (it + 1),
+                1.0 - cfg.beta2 ** (it + 1),
+            ],
+            axis=1,
+        )
+        streams = np.array([rng_stream(self.seed, i, salt=SAMPLER_SALT) for i in range(capacity)], np.int64)
+        self.schedule.assign(sched.astype(np.float32))
+        self.streams.assign(streams.astype(np.int32))
+
+    # -- binning -----------------------------------------------------------------------------
+
+    def rebin(self, replan: bool = False) -> None:
+        """Sort the training state into cell order (re-planning the levels with ``replan``)."""
+        from .field import plan_bins
+        from .kernels import field as kf
+        from .kernels import optim as ko
+
+        wp, dev, n, p = self._wp, self.device, self.n, self.prims
+        mu, rot, inv_s2, ext, radius, a, w = self._prep
+        wp.launch(kf.prepare_primitives, dim=n, inputs=[self.raw, 1], outputs=self._prep, device=dev)
+        if replan or self.plan is None:
+            plan = plan_bins(radius.numpy(), self.dv.field.shape_xyz)
+            if plan != self.plan:
+                self.plan = plan
+                p.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=dev)
+                p.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=dev)
+                p.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=dev)
+                p.cell_start = wp.zeros(plan.total_cells, dtype=int, device=dev)
+                p.cell_end = wp.zeros(plan.total_cells, dtype=int, device=dev)
+                self._graph = None
+        wp.launch(
+            kf.bin_keys,
+            dim=n,
+            inputs=[mu, radius, p.level_size, p.level_dims, p.level_offset],
+            outputs=[self._keys, self._perm],
+            device=dev,
+        )
+        wp.utils.radix_sort_pairs(self._keys, self._perm, n)
+        p.cell_start.zero_()
+        p.cell_end.zero_()
+        wp.launch(kf.cell_ranges, dim=n, inputs=[self._keys, n], outputs=[p.cell_start, p.cell_end], device=dev)
+        wp.launch(
+            ko.permute_slots,
+            dim=n,
+            inputs=[self._perm, self.raw, self.m1, self.m2, self.ids, mu, radius, p.level_size, p.level_dims],
+            outputs=[self._raw_b, self._m1_b, self._m2_b, self._ids_b, self.bounds],
+            device=dev,
+        )
+        wp.launch(
+            kf.gather_sorted,
+            dim=n,
+            inputs=[self._perm, mu, rot, inv_s2, ext, a, w],
+            outputs=[p.mu, p.rot, p.inv_s2, p.ext, p.a, p.w],
+            device=dev,
+        )
+        for dst, src in ((self.raw, self._raw_b), (self.m1, self._m1_b), (self.m2, self._m2_b), (self.ids, self._ids_b)):
+            wp.copy(dst, src)  # copy back, not swap: a captured graph holds these addresses
+        if not self._clean:
+            self._zero_grads()
+        self.rebins += 1
+
+    def set_raw(self, raw: np.ndarray) -> None:
+        """Replace the training parameters ((N, 12), primitive order) and reset Adam (tests)."""
+        self.raw.assign(np.ascontiguousarray(raw, np.float32))
+        self.ids.assign(np.arange(self.n, dtype=np.int32))
+        self.m1.zero_()
+        self.m2.zero_()
+        self.rebin(replan=True)
+
+    # -- one iteration -----------------------------------------------------------------------
+
+    def _begin(self) -> None:
+        from .kernels import optim as ko
+
+        wp = self._wp
+        wp.launch(
+            ko.begin_iteration,
+            dim=1,
+            inputs=[self.counter, self.schedule, self.streams, self.touch],
+            outputs=[self.now, self.stream],
+            device=self.device,
+        )
+
+    def _draw(self) -> None:
         from .kernels import sampling as ks
 
-        wp, dv, dev = self._wp, self.dv, self.device
+        wp, dv = self._wp, self.dv
         m_high, m_mid, _ = self.strata
         pmin, pmax = self.cfg.partner_distance
         wp.launch(
             ks.draw_samples,
             dim=self.m,
-            inputs=[
-                dv.values,
-                dv.mask,
-                dv.has_mask,
-                self.high,
-                self.mid,
-                max(self.n_high, 1),
-                max(self.n_mid, 1),
-                m_high,
-                m_mid,
-                rng_stream(self.seed, it, salt=SAMPLER_SALT),
-                float(pmin),
-                float(pmax),
-            ],
+            inputs=[dv.values, dv.mask, dv.has_mask, self.high, self.mid, max(self.n_high, 1), max(self.n_mid, 1), m_high, m_mid, self.stream, float(pmin), float(pmax)],
             outputs=[self.points, self.target, self.weight, self.occupied],
-            device=dev,
+            device=self.device,
         )
 
-    def forward_backward(self, it: int) -> None:
-        """Field at the current samples, per-point gradients, pair scatter, chain rule -> self.grad."""
+    def _forward(self) -> None:
         from .kernels import backward as kb
         from .kernels import field as kf
 
-        wp, dev, w = self._wp, self.device, self.cfg.weights
-        f = self.field
+        wp, dev, w, m2 = self._wp, self.device, self.cfg.weights, 2 * self.m
         if self.split:
-            for arr in (self.num, self.density, self.pairs):
-                arr.zero_()
+            wp.launch(kf.clear_sums, dim=m2, inputs=[], outputs=[self.num, self.density, self.pairs, self.back_pairs], device=dev)
             wp.launch(
                 kf.eval_points_split,
-                dim=(2 * self.m, 27 * len(f.plan.sizes)),
-                inputs=[self.points, f.prims],
+                dim=(m2, 27 * len(self.plan.sizes)),
+                inputs=[self.points, self.prims],
                 outputs=[self.num, self.density, self.pairs],
                 device=dev,
             )
-            wp.launch(kf.finish_values, dim=2 * self.m, inputs=[self.num, self.density], outputs=[self.value], device=dev)
+            wp.launch(kf.finish_values, dim=m2, inputs=[self.num, self.density], outputs=[self.value], device=dev)
         else:
-            wp.launch(
-                kf.eval_points_binned,
-                dim=2 * self.m,
-                inputs=[self.points, f.prims],
-                outputs=[self.value, self.density, self.pairs],
-                device=dev,
-            )
+            wp.launch(kf.eval_points_binned, dim=m2, inputs=[self.points, self.prims], outputs=[self.value, self.density, self.pairs], device=dev)
         wp.launch(
             kb.point_grads,
             dim=self.m,
-            inputs=[self.value, self.density, self.target, self.weight, self.occupied, self.m, w.value_empty, w.density, self.smooth_weight(it)],
+            inputs=[self.value, self.density, self.target, self.weight, self.occupied, self.m, w.value_empty, w.density, self.now],
             outputs=[self.g_value, self.g_density, self.point_loss],
             device=dev,
         )
-        self.accumulate()
+
+    def _pairs(self, kernel, count: int) -> None:
+        wp = self._wp
+        dim = (count, 27 * len(self.plan.sizes)) if kernel.key.endswith("_split") else count
         wp.launch(
-            kb.finish_grads,
+            kernel,
+            dim=dim,
+            inputs=[self.points, self.value, self.density, self.g_value, self.g_density, self.prims],
+            outputs=[*self.pair_grads, self.back_pairs],
+            device=self.device,
+        )
+        self._clean = False
+
+    def _update(self) -> None:
+        from .kernels import optim as ko
+
+        wp, cfg, w = self._wp, self.cfg, self.cfg.weights
+        wp.launch(
+            ko.refine_update,
             dim=self.n,
             inputs=[
                 self.raw,
-                f.prims.order,
-                self.d_mu,
-                self.d_ls,
-                self.d_rot,
-                self.d_a,
-                self.d_w,
+                self.m1,
+                self.m2,
+                *self.pair_grads,
                 self.dv.values,
                 w.anchor,
                 w.aniso,
@@ -308,15 +447,76 @@ class Refiner:
                 math.log(3.0),
                 self.log_cap,
                 self.log_min,
+                self.lr,
+                self.now,
+                cfg.beta1,
+                cfg.beta2,
+                cfg.eps,
+                self.log_min - math.log(4.0),  # the cap term acts first; hard bounds catch runaways
+                self.log_cap + math.log(4.0),
+                self.bounds,
+                self.prims,
             ],
-            outputs=[self.grad, self.reg_loss],
-            device=dev,
+            outputs=[self.counts],
+            device=self.device,
         )
+
+    def _iteration_launches(self) -> None:
+        from .kernels import backward as kb
+        from .kernels import optim as ko
+
+        self._begin()
+        self._draw()
+        self._forward()
+        self._pairs(kb.accumulate_pairs_split if self.split else kb.accumulate_pairs, 2 * self.m)
+        self._update()
+        self._wp.launch(ko.end_iteration, dim=1, inputs=[self.counter], device=self.device)
+
+    def step(self) -> None:
+        """One iteration: (re-bin,) sample, forward, backward, fused chain rule + Adam + re-prepare."""
+        wp, cfg, it = self._wp, self.cfg, self.iteration
+        replan = it % max(cfg.replan_every, 1) == 0
+        if it > 0 and (replan or it % max(cfg.rebin_every, 1) == 0):
+            self.rebin(replan=replan)
+        if not self._clean:
+            self._zero_grads()
+        if self.use_graph:
+            if self._graph is None:
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                    self._iteration_launches()
+                self._graph = capture.graph
+            wp.capture_launch(self._graph)
+        else:
+            self._iteration_launches()
+        self._clean = True  # refine_update zeroed every slot it read
+        if replan and cfg.touch_ref > 0:  # re-estimate the contact density with the bins
+            self.contacts = float(self.pairs.numpy()[: self.m].astype(np.float64).sum()) / self.n
+            self.touch_scale = min(1.0, math.sqrt(self.contacts / cfg.touch_ref))
+            self.touch.fill_(self.touch_scale)
+        self.iteration += 1
+
+    # -- pieces for tests and the self-test -------------------------------------------------
+
+    def sample(self) -> None:
+        """Draw this iteration's samples (without advancing)."""
+        self._begin()
+        self._draw()
+
+    def forward_backward(self) -> None:
+        """Forward values, per-point gradients and the pair scatter at the current samples."""
+        self._begin()
+        self._forward()
+        self.accumulate()
 
     @property
     def pair_grads(self) -> tuple:
-        """The per-primitive (cell order) gradient buffers the pair pass accumulates into."""
+        """The per-primitive (slot order) gradient buffers the pair pass accumulates into."""
         return (self.d_mu, self.d_ls, self.d_rot, self.d_a, self.d_w)
+
+    def _zero_grads(self) -> None:
+        for arr in self.pair_grads:
+            arr.zero_()
+        self._clean = True
 
     def accumulate(self, kernel=None, count: int | None = None) -> None:
         """Scatter the per-point gradients of the first ``count`` points (all by default).
@@ -328,63 +528,48 @@ class Refiner:
         """
         from .kernels import backward as kb
 
-        wp, dev = self._wp, self.device
-        for arr in self.pair_grads:
-            arr.zero_()
-        count = 2 * self.m if count is None else count
-        dim = count
-        if kernel is None and self.split:
-            kernel = kb.accumulate_pairs_split
-            dim = (count, 27 * len(self.field.plan.sizes))
-            self.back_pairs.zero_()
-        elif kernel is None:
-            kernel = kb.accumulate_pairs
-        wp.launch(
-            kernel,
-            dim=dim,
-            inputs=[self.points, self.value, self.density, self.g_value, self.g_density, self.field.prims],
-            outputs=[*self.pair_grads, self.back_pairs],
-            device=dev,
-        )
+        self._zero_grads()
+        self.back_pairs.zero_()
+        if kernel is None:
+            kernel = kb.accumulate_pairs_split if self.split else kb.accumulate_pairs
+        self._pairs(kernel, 2 * self.m if count is None else count)
 
-    def step(self) -> None:
-        """One iteration: sample, re-bin, forward, backward, Adam."""
-        from .kernels import optim as ko
+    def _finish(self) -> None:
+        from .kernels import backward as kb
 
-        wp, cfg, it = self._wp, self.cfg, self.iteration
-        self.sample(it)
-        replan = it % max(cfg.replan_every, 1) == 0
-        self.field.update(replan=replan)
-        self.forward_backward(it)
-        if replan and cfg.touch_ref > 0:  # re-estimate the contact density with the bins
-            self.contacts = float(self.pairs.numpy()[: self.m].astype(np.float64).sum()) / self.n
-            self.touch_scale = min(1.0, math.sqrt(self.contacts / cfg.touch_ref))
-        t = it + 1
-        wp.launch(
-            ko.adam_step,
+        w = self.cfg.weights
+        self._wp.launch(
+            kb.finish_grads,
             dim=self.n,
-            inputs=[
-                self.raw,
-                self.grad,
-                self.m1,
-                self.m2,
-                self.lr,
-                self.touch_scale * cfg.lr_decay ** (it / max(cfg.iterations - 1, 1)),
-                cfg.beta1,
-                cfg.beta2,
-                cfg.eps,
-                1.0 - cfg.beta1**t,
-                1.0 - cfg.beta2**t,
-                self.log_min - math.log(4.0),  # the cap term acts first; hard bounds catch runaways
-                self.log_cap + math.log(4.0),
-            ],
-            outputs=[self.skipped],
+            inputs=[self.raw, *self.pair_grads, self.dv.values, w.anchor, w.aniso, w.cap, math.log(3.0), self.log_cap, self.log_min],
+            outputs=[self.grad, self.reg_loss],
             device=self.device,
         )
-        self.iteration += 1
+
+    def _to_primitive_order(self, arr) -> np.ndarray:
+        from .kernels import optim as ko
+
+        wp = self._wp
+        out = wp.empty_like(arr)
+        wp.launch(ko.ids_from_slots, dim=self.n, inputs=[arr, self.ids], outputs=[out], device=self.device)
+        return out.numpy().reshape(self.n, 12)
+
+    def gradient(self) -> np.ndarray:
+        """(N, 12) gradient of the loss w.r.t. the raw parameters, primitive order (after
+        :meth:`forward_backward`)."""
+        self._finish()
+        return self._to_primitive_order(self.grad)
+
+    def raw_params(self) -> np.ndarray:
+        """(N, 12) training parameters in primitive order."""
+        return self._to_primitive_order(self.raw)
+
+    # -- reports -----------------------------------------------------------------------------
 
     def losses(self) -> dict:
         """Loss terms of the last iteration and a running PSNR estimate over its samples (syncs)."""
+        if self._clean:
+            self._finish()  # per-primitive terms of the current parameters (pair buffers are zero)
         pl = self.point_loss.numpy().astype(np.float64).sum(0)
         rl = self.reg_loss.numpy().astype(np.float64).sum(0)
         v = self.value.numpy()[: self.m].astype(np.float64)
@@ -398,18 +583,22 @@ class Refiner:
         return terms
 
     def model_params(self) -> np.ndarray:
-        """Current primitives as model parameters (unit quaternion, weight in (0, 1))."""
+        """Current primitives as model parameters (unit quaternion, weight in (0, 1)), primitive order."""
         from .kernels import field as kf
         from .kernels import optim as ko
 
         wp = self._wp
         out = wp.empty(self.n, dtype=kf.vec12, device=self.device)
-        wp.launch(ko.to_model, dim=self.n, inputs=[self.raw], outputs=[out], device=self.device)
+        wp.launch(ko.to_model_slots, dim=self.n, inputs=[self.raw, self.ids], outputs=[out], device=self.device)
         return out.numpy().reshape(self.n, 12)
 
     def skipped_steps(self) -> int:
         """Primitive updates skipped because of a non-finite gradient, over the run so far."""
-        return int(self.skipped.numpy()[0])
+        return int(self.counts.numpy()[0])
+
+    def deferred_steps(self) -> int:
+        """Primitive updates deferred to the next re-bin (they would have left their cell's reach)."""
+        return int(self.counts.numpy()[1])
 
     def run(
         self,
@@ -438,6 +627,7 @@ class Refiner:
         per_it = None
         self.budget = None
         if deadline is not None:
+            self._write_schedule(MAX_BUDGET_ITERATIONS)  # room for any resize, before capture
             t0 = last = self._now(clock)
             slowest = 0.0
             self.budget = {"seconds": deadline - t0, "planned_iterations": None, "stopped_early": False}
@@ -450,6 +640,7 @@ class Refiner:
                     fit = it + int(max(deadline - now, 0.0) / max(per_it, 1e-9) * BUDGET_SAFETY)
                     planned = max(it, min(fit, MAX_BUDGET_ITERATIONS))
                     self.cfg = dataclasses.replace(self.cfg, iterations=planned)
+                    self._write_schedule()
                     self.budget["planned_iterations"] = planned
                     if it >= planned:
                         break
@@ -476,30 +667,32 @@ class Refiner:
 def self_test(refiner: Refiner, points: int = 64) -> dict:
     """The paper's pre-run check: binned vs dense values and gradients on a few samples.
 
-    Draws samples, evaluates the first ``points`` of them through the bins and against every
-    primitive, and compares V~, rho, the contributing pairs (forward and backward) and every
-    accumulated gradient, on the refiner's current primitives.
+    Draws samples, evaluates them through the training path (bins, split or point-major kernels)
+    and against every primitive, and compares V~, rho, the contributing pairs (forward and
+    backward) and every accumulated gradient, on the refiner's current primitives.
 
     Returns:
         The worst differences; raises :class:`WarpgaussError` if the two paths disagree.
     """
+    from .field import GaussianField
     from .kernels import backward as kb
 
-    f = refiner.field
     k = min(points, refiner.m)
-    refiner.sample(0)
-    f.update(replan=True)
-    refiner.forward_backward(0)
-    grads = refiner.pair_grads
+    refiner.rebin(replan=True)
+    refiner.sample()
+    refiner.forward_backward()
+    v = refiner.value.numpy()[:k].copy()
+    d = refiner.density.numpy()[:k].copy()
+    c = refiner.pairs.numpy()[:k].copy()
     refiner.accumulate(count=k)
-    binned = [a.numpy().copy() for a in grads]
+    binned = [a.numpy().copy() for a in refiner.pair_grads]
     pairs_b = refiner.back_pairs.numpy()[:k].copy()
     refiner.accumulate(kb.accumulate_pairs_dense, count=k)
-    dense = [a.numpy() for a in grads]
-    pairs_d = refiner.back_pairs.numpy()[:k]
+    dense = [a.numpy().copy() for a in refiner.pair_grads]
+    pairs_d = refiner.back_pairs.numpy()[:k].copy()
+    refiner._zero_grads()
     pts = refiner.points.numpy()[:k]
-    v, d, c = f.evaluate_full(pts)
-    vd, dd, cd = f.evaluate_dense(pts)
+    vd, dd, cd = GaussianField(refiner.model_params(), refiner.dv.field.shape_xyz, refiner.device).evaluate_dense(pts)
     scale = max(float(np.abs(x).max()) for x in dense) or 1.0
     result = {
         "points": k,

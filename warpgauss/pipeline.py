@@ -279,6 +279,9 @@ def encode_field(
                 "lr_touch_scale": refiner.touch_scale,
                 "ms_per_iteration": 1000 * seconds / max(refiner.iteration, 1),
                 "skipped_nonfinite_updates": refiner.skipped_steps(),
+                "deferred_updates": refiner.deferred_steps(),
+                "rebins": refiner.rebins,
+                "cuda_graph": refiner.use_graph,
                 "strata_samples": dict(zip(("high", "mid", "uniform"), refiner.strata)),
                 "loss_history": history,
             }
