@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import typer
 
+from .bench import bench_app
 from .decode import decode
 from .encode import encode
 from .evaluate import evaluate
@@ -23,6 +24,7 @@ app.command("decode")(decode)
 app.command("info")(info)
 app.command("eval")(evaluate)
 app.command("example")(example)
+app.add_typer(bench_app, name="bench")
 
 
 def run() -> None:

@@ -25,28 +25,76 @@ def stratum_of(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), h
     return -1
 
 
+BRICK = wp.constant(4)  # stratum index granularity: voxels per brick edge
+
+
 @wp.kernel
-def strata_lists(
+def brick_counts(
     vol: wp.array3d(dtype=float),
     mask: wp.array3d(dtype=wp.uint8),
     has_mask: int,
-    fill: int,  # 0: count only, 1: also write the lists
-    counts: wp.array(dtype=int),  # [2] in/out: voxels in each stratum (zeroed before)
-    high: wp.array(dtype=int),  # [>=count] out: linear voxel indices, arbitrary order
-    mid: wp.array(dtype=int),
+    high: wp.array3d(dtype=int),  # [bz, by, bx] out: high-stratum voxels in each 4^3 brick
+    mid: wp.array3d(dtype=int),  # [bz, by, bx] out: mid-stratum voxels
 ):
-    """Count (fill = 0) or list (fill = 1) the voxels of the two value strata."""
-    k, j, i = wp.tid()
-    st = stratum_of(vol, mask, has_mask, k, j, i)
-    if st < 0:
-        return
-    slot = wp.atomic_add(counts, st, 1)
-    if fill != 0:
-        idx = (k * vol.shape[1] + j) * vol.shape[2] + i
-        if st == 0:
-            high[slot] = idx
+    """Per-brick stratum counts (one thread per brick). With their prefix sums they index the
+    strata without listing voxels: a 1024^3 grid needs 64 MiB per stratum instead of 4 GiB."""
+    bk, bj, bi = wp.tid()
+    nh = int(0)
+    nm = int(0)
+    for dk in range(BRICK):
+        for dj in range(BRICK):
+            for di in range(BRICK):
+                k = bk * BRICK + dk
+                j = bj * BRICK + dj
+                i = bi * BRICK + di
+                if k < vol.shape[0] and j < vol.shape[1] and i < vol.shape[2]:
+                    st = stratum_of(vol, mask, has_mask, k, j, i)
+                    if st == 0:
+                        nh += 1
+                    elif st == 1:
+                        nm += 1
+    high[bk, bj, bi] = nh
+    mid[bk, bj, bi] = nm
+
+
+@wp.func
+def stratum_voxel(
+    vol: wp.array3d(dtype=float),
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    cum: wp.array(dtype=int),  # [B] inclusive prefix sum of the stratum's brick counts
+    stratum: int,
+    r: int,  # 0 <= r < cum[B - 1]: rank of the wanted voxel in brick-then-scan order
+) -> int:
+    """Linear index of the r-th voxel of a stratum (bricks in order, voxels in z, y, x order)."""
+    lo = int(0)
+    hi = cum.shape[0] - 1
+    while lo < hi:  # first brick whose inclusive sum exceeds r
+        mid_ = (lo + hi) / 2
+        if cum[mid_] > r:
+            hi = mid_
         else:
-            mid[slot] = idx
+            lo = mid_ + 1
+    b = lo
+    if b > 0:
+        r = r - cum[b - 1]
+    nbx = (vol.shape[2] + BRICK - 1) / BRICK
+    nby = (vol.shape[1] + BRICK - 1) / BRICK
+    bi = b % nbx
+    bj = (b / nbx) % nby
+    bk = b / (nbx * nby)
+    for dk in range(BRICK):
+        for dj in range(BRICK):
+            for di in range(BRICK):
+                k = bk * BRICK + dk
+                j = bj * BRICK + dj
+                i = bi * BRICK + di
+                if k < vol.shape[0] and j < vol.shape[1] and i < vol.shape[2]:
+                    if stratum_of(vol, mask, has_mask, k, j, i) == stratum:
+                        if r == 0:
+                            return (k * vol.shape[1] + j) * vol.shape[2] + i
+                        r -= 1
+    return 0  # unreachable when r is in range
 
 
 @wp.func
@@ -76,9 +124,9 @@ def draw_samples(
     vol: wp.array3d(dtype=float),
     mask: wp.array3d(dtype=wp.uint8),
     has_mask: int,
-    high: wp.array(dtype=int),  # [n_high] voxel list of the high stratum
-    mid: wp.array(dtype=int),  # [n_mid]
-    n_high: int,
+    high: wp.array(dtype=int),  # [B] inclusive prefix sums of the high stratum's brick counts
+    mid: wp.array(dtype=int),  # [B] the same for the mid stratum
+    n_high: int,  # voxels in the high stratum (>= 1)
     n_mid: int,
     m_high: int,  # samples drawn from the high stratum (the first m_high)
     m_mid: int,  # then this many from the mid stratum; the rest uniform over the grid
@@ -98,9 +146,9 @@ def draw_samples(
     ny = vol.shape[1]
     idx = int(0)
     if s < m_high:
-        idx = high[wp.randi(state, 0, n_high)]
+        idx = stratum_voxel(vol, mask, has_mask, high, 0, wp.randi(state, 0, n_high))
     elif s < m_high + m_mid:
-        idx = mid[wp.randi(state, 0, n_mid)]
+        idx = stratum_voxel(vol, mask, has_mask, mid, 1, wp.randi(state, 0, n_mid))
     else:
         idx = wp.randi(state, 0, nx * ny * vol.shape[0])
     i = idx % nx

@@ -344,3 +344,44 @@ def test_bins_stay_exact_between_rebins_and_far_moves_are_deferred(cpu):
     moved = r.model_params()
     r.rebin()
     np.testing.assert_array_equal(r.model_params(), moved)  # re-sorting changes no primitive
+
+
+def test_stratum_index_enumerates_each_stratum_exactly_once(device):
+    """The brick index maps rank r to the r-th stratum voxel: every voxel once, none outside."""
+    import warp as wp
+
+    from warpgauss.kernels import sampling as ks
+
+    rng = np.random.default_rng(5)
+    vol = rng.uniform(0, 1, (9, 7, 11)).astype(np.float32)  # not a multiple of the brick edge
+    vol[rng.uniform(size=vol.shape) < 0.3] = 0.0  # empty voxels belong to no stratum
+    mask = rng.uniform(size=vol.shape) > 0.1
+    f = normalise(np.where(mask, vol, np.nan), value_range=(0.0, 1.0))
+    r = Refiner(DeviceVolume(f, device), _toy_params(f), RefineConfig(iterations=1, samples=16), 0, 0.3, 4.0)
+
+    @wp.kernel
+    def enumerate_stratum(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int,
+                          cum: wp.array(dtype=int), stratum: int, out: wp.array(dtype=int)):
+        t = wp.tid()
+        out[t] = ks.stratum_voxel(vol, mask, has_mask, cum, stratum, t)
+
+    v = f.values
+    usable = f.mask if f.mask is not None else np.ones(v.shape, bool)
+    for stratum, cum, count in ((0, r.high, r.n_high), (1, r.mid, r.n_mid)):
+        want = usable & ((v > 0.4) if stratum == 0 else ((v > 0.02) & (v <= 0.4)))
+        assert count == int(want.sum()) > 0
+        out = wp.zeros(count, dtype=int, device=device)
+        wp.launch(enumerate_stratum, dim=count, inputs=[r.dv.values, r.dv.mask, r.dv.has_mask, cum, stratum, out], device=device)
+        got = np.sort(out.numpy())
+        np.testing.assert_array_equal(got, np.flatnonzero(want.ravel()))
+
+
+def _toy_params(f, n=20):
+    rng = np.random.default_rng(0)
+    p = np.zeros((n, 12), np.float32)
+    p[:, :3] = rng.uniform(0, 1, (n, 3)) * (np.array(f.shape_xyz) - 1)
+    p[:, 3:6] = 0.3
+    p[:, 9] = 1.0
+    p[:, 10] = 0.5
+    p[:, 11] = 0.5
+    return p

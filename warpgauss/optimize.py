@@ -205,23 +205,11 @@ class Refiner:
         self._clean = True  # the pair-gradient buffers are all zero
         self.reg_loss = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.counts = wp.zeros(2, dtype=int, device=dev)  # (non-finite skips, deferred updates)
-        m = self.m = int(config.samples)
-        self.points = wp.zeros(2 * m, dtype=wp.vec3, device=dev)
-        self.target = wp.zeros(m, dtype=float, device=dev)
-        self.weight = wp.zeros(m, dtype=float, device=dev)
-        self.occupied = wp.zeros(m, dtype=float, device=dev)
-        self.value = wp.zeros(2 * m, dtype=float, device=dev)
-        self.density = wp.zeros(2 * m, dtype=float, device=dev)
-        self.pairs = wp.zeros(2 * m, dtype=int, device=dev)
-        self.back_pairs = wp.zeros(2 * m, dtype=int, device=dev)
-        self.g_value = wp.zeros(2 * m, dtype=float, device=dev)
-        self.g_density = wp.zeros(2 * m, dtype=float, device=dev)
-        self.point_loss = wp.zeros(m, dtype=wp.vec3, device=dev)
-        self.num = wp.zeros(2 * m, dtype=float, device=dev)
         self._graph = None
         self._split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
         self.use_graph = wp.get_device(dev).is_cuda and config.graph
         self._build_strata()
+        self.set_samples(config.samples)
         w = config
         self.lr = kf.vec12(
             *([w.lr * w.lr_position] * 3),
@@ -242,6 +230,23 @@ class Refiner:
         self.rebins = 0
         self.rebin(replan=True)
 
+    def set_samples(self, m: int) -> None:
+        """(Re)allocate the per-sample buffers for ``m`` samples per iteration."""
+        wp, dev = self._wp, self.device
+        if m < 1:
+            raise WarpgaussError("--samples must be >= 1")
+        self.m = m = int(m)
+        if self.cfg.samples != m:
+            self.cfg = dataclasses.replace(self.cfg, samples=m)
+        self.points = wp.zeros(2 * m, dtype=wp.vec3, device=dev)
+        self.target, self.weight, self.occupied = (wp.zeros(m, dtype=float, device=dev) for _ in range(3))
+        self.value, self.density, self.g_value, self.g_density, self.num = (wp.zeros(2 * m, dtype=float, device=dev) for _ in range(5))
+        self.pairs = wp.zeros(2 * m, dtype=int, device=dev)
+        self.back_pairs = wp.zeros(2 * m, dtype=int, device=dev)
+        self.point_loss = wp.zeros(m, dtype=wp.vec3, device=dev)
+        self.strata = stratum_counts(m, self.n_high, self.n_mid)
+        self._graph = None
+
     @property
     def split(self) -> bool:
         """Split-cell kernels (one thread per point and neighbour cell) rather than point-major."""
@@ -253,24 +258,20 @@ class Refiner:
         self._graph = None
 
     def _build_strata(self) -> None:
-        """Voxel lists of the high and mid strata, sorted so that sampling is deterministic."""
+        """Prefix sums of per-brick stratum counts: the index the sampler draws stratum voxels from."""
         from .kernels import sampling as ks
 
         wp, dv, dev = self._wp, self.dv, self.device
-        counts = wp.zeros(2, dtype=int, device=dev)
-        dummy = wp.zeros(1, dtype=int, device=dev)
-        wp.launch(ks.strata_lists, dim=dv.values.shape, inputs=[dv.values, dv.mask, dv.has_mask, 0], outputs=[counts, dummy, dummy], device=dev)
-        n_high, n_mid = (int(c) for c in counts.numpy())
-        self.high = wp.zeros(max(2 * n_high, 2), dtype=int, device=dev)
-        self.mid = wp.zeros(max(2 * n_mid, 2), dtype=int, device=dev)
-        counts.zero_()
-        wp.launch(ks.strata_lists, dim=dv.values.shape, inputs=[dv.values, dv.mask, dv.has_mask, 1], outputs=[counts, self.high, self.mid], device=dev)
-        for lst, k in ((self.high, n_high), (self.mid, n_mid)):
-            if k > 1:  # list order from atomics is arbitrary on a GPU
-                vals = wp.zeros(2 * k, dtype=int, device=dev)
-                wp.utils.radix_sort_pairs(lst, vals, k)
-        self.n_high, self.n_mid = n_high, n_mid
-        self.strata = stratum_counts(self.m, n_high, n_mid)
+        nz, ny, nx = dv.values.shape
+        b = ks.BRICK
+        bshape = (-(-nz // b), -(-ny // b), -(-nx // b))
+        counts = [wp.empty(bshape, dtype=int, device=dev) for _ in range(2)]
+        wp.launch(ks.brick_counts, dim=bshape, inputs=[dv.values, dv.mask, dv.has_mask], outputs=counts, device=dev)
+        self.high, self.mid = (wp.empty(int(np.prod(bshape)), dtype=int, device=dev) for _ in range(2))
+        for c, cum in zip(counts, (self.high, self.mid)):
+            wp.utils.array_scan(c.flatten(), cum, inclusive=True)
+        last = int(np.prod(bshape)) - 1
+        self.n_high, self.n_mid = (int(cum[last:].numpy()[0]) for cum in (self.high, self.mid))
 
     def smooth_weight(self, it):
         """Smoothness weight annealed geometrically from strong to weak over the run."""
