@@ -26,7 +26,7 @@ def encode(
     samples: Annotated[int | None, typer.Option(help="Samples per iteration (default 3072)")] = None,
     preset: Annotated[str | None, typer.Option(help="paper (1500 x 3072), fast (300 x 3072) or quality (1500 x 12288)")] = None,
     no_self_test: Annotated[bool, typer.Option("--no-self-test", help="Skip the binned-vs-dense self-test")] = False,
-    time_budget: Annotated[float | None, typer.Option(help="Seconds refinement may take; iterations are sized to fill it")] = None,
+    time_budget: Annotated[float | None, typer.Option(help="Seconds refinement may take: it keeps >= 1,500 iterations, spends spare time on more samples (unless --samples is given), ends in time")] = None,
     lr: Annotated[float, typer.Option(help="Adam base learning rate (per-group multipliers apply)")] = 8e-3,
     w_value_empty: Annotated[float, typer.Option(help="Loss weight: value term at empty samples (paper: 0)")] = 1.0,
     w_density: Annotated[float, typer.Option(help="Loss weight: density towards 1 where occupied")] = 0.001,

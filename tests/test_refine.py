@@ -285,9 +285,9 @@ def test_time_budget_sizes_the_schedule_and_ends_in_time(cpu):
     r, _, _ = _toy(cpu, iterations=1000)
     clock = _FakeClock([0.01])
     r.run(deadline=0.31, clock=clock, log_every=5)
-    # probe: readings at 0.01 (start) .. 0.07 (after 5 steps) -> 12 ms per iteration;
-    # 0.9 x (0.31 - 0.07) / 0.012 = 18 more iterations are planned (17 under float round-off)
-    assert r.budget["planned_iterations"] in (5 + 17, 5 + 18)
+    # probe: readings at 0.02 (before the first step) .. 0.07 (after 5 steps) -> 10 ms per
+    # iteration; 0.9 x (0.31 - 0.07) / 0.01 = 21.6 more iterations are planned
+    assert r.budget["planned_iterations"] in (5 + 21, 5 + 22)
     assert r.iteration == r.cfg.iterations == r.budget["planned_iterations"]
     assert not r.budget["stopped_early"]
     assert clock.readings[-1] <= 0.31
@@ -385,3 +385,38 @@ def _toy_params(f, n=20):
     p[:, 10] = 0.5
     p[:, 11] = 0.5
     return p
+
+
+def test_time_budget_spends_spare_time_on_samples(cpu):
+    """Cost = 1 ms + 10 us per sample: the budget keeps >= 30 iterations and raises the samples."""
+    from warpgauss.allocate import AllocationConfig, allocate
+    from warpgauss.profiling import StageRecorder
+    from warpgauss.synthetic import generate
+
+    f = normalise(generate("vortex", 24, seed=1))
+    dv = DeviceVolume(f, cpu)
+    cfg = AllocationConfig()
+    params, _ = allocate(dv, 300, 0, cfg, StageRecorder())
+    rc = RefineConfig(iterations=100_000, samples=64, budget_min_iterations=30)
+    r = Refiner(dv, params, rc, 0, cfg.scale_min, cfg.resolved_cap(f.shape_xyz))
+    t = [0.0]
+
+    def clock():  # one reading per iteration, advancing by the cost of the current sample count
+        t[0] += 0.001 + 1e-5 * r.m
+        return t[0]
+
+    r.run(deadline=0.5, clock=clock, log_every=1000)
+    b = r.budget
+    assert b["cost_model_ms"]["fixed"] == pytest.approx(1.0, rel=1e-6)
+    assert b["cost_model_ms"]["per_1000_samples"] == pytest.approx(10.0, rel=1e-6)
+    # 16 x 64 samples leave >= 30 iterations, 32 x 64 would not
+    assert r.m == b["samples"] == 1024
+    assert 30 <= b["planned_iterations"] == r.iteration == r.cfg.iterations < 60
+    assert t[0] <= 0.5 and not b["stopped_early"]
+    _valid(r.model_params())
+    # with the choice off, the samples stay and the iterations grow instead
+    rc2 = RefineConfig(iterations=100_000, samples=64, budget_min_iterations=30, budget_samples=False)
+    r = Refiner(dv, params, rc2, 0, cfg.scale_min, cfg.resolved_cap(f.shape_xyz))
+    t[0] = 0.0
+    r.run(deadline=0.5, clock=clock, log_every=1000)
+    assert r.m == 64 and r.iteration > 200

@@ -25,6 +25,7 @@ SAMPLER_SALT = 99_991  # keeps the sampler's RNG streams apart from the allocati
 BUDGET_PROBE = 5  # iterations timed to size a time-budgeted run
 BUDGET_SAFETY = 0.9  # share of the remaining budget planned as iterations
 MAX_BUDGET_ITERATIONS = 20_000  # more iterations than this gain nothing measurable
+BUDGET_SAMPLE_STEPS = (1, 2, 4, 8, 16, 32, 64)  # sample-count multiples a time budget may choose
 
 
 @dataclass
@@ -75,6 +76,9 @@ class RefineConfig:
         replan_every: Iterations between re-planning the bin levels from the current radii.
         rebin_every: Iterations between re-sorting the primitives into their bin cells.
         graph: Capture one iteration as a CUDA graph and replay it (CUDA devices only).
+        budget_samples: In time-budget mode, spend time the schedule does not need on more
+            samples per iteration (see :meth:`Refiner.run`); off when samples were set explicitly.
+        budget_min_iterations: Iterations a time budget secures before it raises the samples.
         partner_distance: Range of the partner offset in voxels.
         split_cells: One thread per (point, neighbour cell) instead of per point, summing through
             atomics; None picks it on CUDA devices (one thread per sample leaves a GPU idle) and
@@ -99,6 +103,8 @@ class RefineConfig:
     graph: bool = True
     partner_distance: tuple[float, float] = (0.5, 1.5)
     split_cells: bool | None = None
+    budget_samples: bool = True
+    budget_min_iterations: int = 1500
     weights: LossWeights = field(default_factory=LossWeights)
 
     def to_dict(self) -> dict:
@@ -614,10 +620,16 @@ class Refiner:
             progress: Optional callback.
             log_every: Iterations between loss records.
             deadline: A ``clock()`` time by which refinement must have ended (time-budget mode).
-                The first :data:`BUDGET_PROBE` iterations measure the cost of one; the schedule
-                (learning-rate decay, smoothness anneal) is then resized to the iterations that
-                fit, and no iteration starts that is expected to end past the deadline. The
-                primitives are valid after every step, so stopping anywhere leaves a valid model.
+                The first :data:`BUDGET_PROBE` iterations measure the cost of one; with
+                ``budget_samples`` the next :data:`BUDGET_PROBE` run at 4x the samples, which
+                gives the cost as fixed + per-sample parts, and the samples are set to the
+                largest of :data:`BUDGET_SAMPLE_STEPS` x the configured count that still leaves
+                ``budget_min_iterations`` (more samples per iteration gain as much as more
+                iterations past that, and are what a large N needs to touch every primitive).
+                The schedule (learning-rate decay, smoothness anneal) is then resized to the
+                iterations that fit, and no iteration starts that is expected to end past the
+                deadline. The primitives are valid after every step, so stopping anywhere leaves a
+                valid model.
             clock: Time source (seconds); the device is synchronised before each reading.
 
         Returns:
@@ -625,29 +637,14 @@ class Refiner:
         """
         history: list[dict] = []
         it = 0
-        per_it = None
         self.budget = None
         if deadline is not None:
             self._write_schedule(MAX_BUDGET_ITERATIONS)  # room for any resize, before capture
-            t0 = last = self._now(clock)
-            slowest = 0.0
-            self.budget = {"seconds": deadline - t0, "planned_iterations": None, "stopped_early": False}
+            plan = _BudgetPlan(self, deadline, clock)
+            self.budget = plan.report
         while it < self.cfg.iterations:
-            if deadline is not None:
-                now = self._now(clock)
-                slowest, last = max(slowest, now - last), now
-                if per_it is None and it == BUDGET_PROBE:
-                    per_it = (now - t0) / it
-                    fit = it + int(max(deadline - now, 0.0) / max(per_it, 1e-9) * BUDGET_SAFETY)
-                    planned = max(it, min(fit, MAX_BUDGET_ITERATIONS))
-                    self.cfg = dataclasses.replace(self.cfg, iterations=planned)
-                    self._write_schedule()
-                    self.budget["planned_iterations"] = planned
-                    if it >= planned:
-                        break
-                if now + max(slowest, per_it or 0.0) > deadline:  # the next step would end too late
-                    self.budget["stopped_early"] = True
-                    break
+            if deadline is not None and not plan.before_step(it):
+                break
             self.step()
             it += 1
             if it % log_every == 0 or it == self.cfg.iterations:
@@ -656,13 +653,84 @@ class Refiner:
                 if progress is not None:
                     progress(it, self.cfg.iterations, rec)
         if deadline is not None:
-            self.budget["iterations_done"] = it
-            self.budget["ms_per_iteration"] = None if per_it is None else 1000 * per_it
+            plan.finish(it)
         return history
 
     def _now(self, clock) -> float:
         self._wp.synchronize_device(self.device)
         return clock()
+
+
+class _BudgetPlan:
+    """Sizes a time-budgeted run from timed probe iterations (see :meth:`Refiner.run`)."""
+
+    def __init__(self, refiner: Refiner, deadline: float, clock):
+        self.r, self.deadline, self.clock = refiner, deadline, clock
+        self.t0 = self.last = refiner._now(clock)
+        self.slowest = 0.0
+        self.per_it: float | None = None
+        self.base_m = refiner.m
+        self.phase = "probe"
+        self.mark: tuple[int, float] | None = None  # (iteration, time) where the current probe began
+        self.report = {"seconds": deadline - self.t0, "planned_iterations": None, "stopped_early": False, "samples": refiner.m}
+
+    def _remaining_iterations(self, now: float, cost: float) -> int:
+        return int(max(self.deadline - now, 0.0) / max(cost, 1e-9) * BUDGET_SAFETY)
+
+    def before_step(self, it: int) -> bool:
+        """Whether iteration ``it`` may start; re-plans at the end of each probe."""
+        r, cfg = self.r, self.r.cfg
+        now = self.r._now(self.clock)
+        self.slowest, self.last = max(self.slowest, now - self.last), now
+        if self.mark is None:
+            self.mark = (it, now)
+        if self.phase != "run" and it == self.mark[0] + BUDGET_PROBE:
+            cost = (now - self.mark[1]) / BUDGET_PROBE
+            if self.phase == "probe":
+                self.report["ms_per_iteration_probe"] = 1000 * cost
+                self.per_it = cost
+                wide = 4 * self.base_m
+                enough = self._remaining_iterations(now, cost) >= cfg.budget_min_iterations + 4 * BUDGET_PROBE
+                if cfg.budget_samples and enough:
+                    self.phase, self.mark = "probe4", (it, now)
+                    r.set_samples(wide)
+                    self.slowest = 0.0
+                    return True
+                self._plan(it, now, cost)
+            else:  # cost = a + b m from the two probes
+                c1 = self.per_it
+                b = max((cost - c1) / (3 * self.base_m), 0.0)
+                a = max(c1 - b * self.base_m, 0.0)
+                self.report["ms_per_iteration_probe4"] = 1000 * cost
+                self.report["cost_model_ms"] = {"fixed": 1000 * a, "per_1000_samples": 1e6 * b}
+                m = self.base_m
+                for k in BUDGET_SAMPLE_STEPS:
+                    if it + self._remaining_iterations(now, a + b * k * self.base_m) >= cfg.budget_min_iterations:
+                        m = k * self.base_m
+                if m != r.m:
+                    r.set_samples(m)
+                self.per_it = a + b * m
+                self.slowest = 0.0
+                self._plan(it, now, self.per_it)
+            if it >= r.cfg.iterations:
+                return False
+        if now + max(self.slowest, self.per_it or 0.0) > self.deadline:  # the next step would end too late
+            self.report["stopped_early"] = True
+            return False
+        return True
+
+    def _plan(self, it: int, now: float, cost: float) -> None:
+        r = self.r
+        planned = max(it, min(it + self._remaining_iterations(now, cost), MAX_BUDGET_ITERATIONS))
+        r.cfg = dataclasses.replace(r.cfg, iterations=planned)
+        r._write_schedule()
+        self.phase = "run"
+        self.report["planned_iterations"] = planned
+        self.report["samples"] = r.m
+
+    def finish(self, it: int) -> None:
+        self.report["iterations_done"] = it
+        self.report["ms_per_iteration"] = None if self.per_it is None else 1000 * self.per_it
 
 
 def self_test(refiner: Refiner, points: int = 64) -> dict:

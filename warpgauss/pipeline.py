@@ -158,7 +158,7 @@ def resolve_refine(
     if samples is not None:
         if samples < 1:
             raise WarpgaussError(f"--samples must be >= 1, got {samples}")
-        cfg = dataclasses.replace(cfg, samples=int(samples))
+        cfg = dataclasses.replace(cfg, samples=int(samples), budget_samples=False)  # the user's count stays
     return cfg
 
 
@@ -272,7 +272,7 @@ def encode_field(
             {
                 "time_budget": refiner.budget,
                 "iterations": refiner.cfg.iterations,
-                "samples": cfg.samples,
+                "samples": refiner.m,
                 "seconds": seconds,
                 "iterations_done": refiner.iteration,
                 "contacts_per_primitive": refiner.contacts,
@@ -389,8 +389,9 @@ def encode(
         refine: Learning rates, loss weights and schedule (:class:`warpgauss.optimize.RefineConfig`).
         self_test: Run the binned-vs-dense self-test before refining.
         time_budget: Seconds refinement may take once its kernels are compiled (self-test and
-            iterations); the iteration count is sized to fill it (up to 20,000) and refinement
-            ends within it, with a valid model at any stop.
+            iterations); spare time goes to more samples per iteration (unless ``samples`` is
+            given) once 1,500 iterations fit, then to iterations (up to 20,000); refinement ends
+            within it, with a valid model at any stop.
         compact: Size the budget (and the report) for the compact 12-byte format.
         example: Built-in example volume name instead of ``source``.
         example_size: Size of the example volume.
