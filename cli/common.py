@@ -22,23 +22,48 @@ def fail(message: str) -> None:
     raise typer.Exit(2)
 
 
-def handle_errors(fn):
-    """Turn the user's mistakes (bad input, missing files) into one line and exit code 2.
+def debugging() -> bool:
+    """``warpgauss --debug ...`` or WARPGAUSS_DEBUG=1: show tracebacks instead of one-line errors."""
+    return bool(os.environ.get("WARPGAUSS_DEBUG"))
 
-    Set WARPGAUSS_DEBUG=1 to see the traceback instead.
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
+
+
+def handle_errors(fn):
+    """Turn every failure into one line on stderr: exit code 2, no traceback (``--debug`` shows it).
+
+    The user's mistakes (bad input, missing files, refused options) are stated as they are; an
+    unexpected exception is reported as an internal error with a hint to rerun with ``--debug``.
+    Ctrl-C outside refinement (which handles it itself) exits 130 with one line.
     """
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
+        except (typer.Exit, typer.Abort, SystemExit):
+            raise
         except (WarpgaussError, FileNotFoundError, IsADirectoryError, PermissionError) as e:
-            if os.environ.get("WARPGAUSS_DEBUG"):
+            if debugging():
                 raise
-            msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            msg = _first_line(e)
             if isinstance(e, FileNotFoundError) and e.filename:
                 msg = f"no such file: {e.filename}"
+            elif isinstance(e, PermissionError) and e.filename:
+                msg = f"permission denied: {e.filename}"
             fail(msg)
+        except KeyboardInterrupt:
+            if debugging():
+                raise
+            err_console.print("[bold red]interrupted[/]", markup=True)
+            raise typer.Exit(130) from None
+        except Exception as e:  # noqa: BLE001 - a bug: still one line, the traceback on request
+            if debugging():
+                raise
+            fail(f"internal error: {type(e).__name__}: {_first_line(e)} (rerun with --debug for the traceback, and please report it)")
 
     return wrapper
 

@@ -46,6 +46,9 @@ def encode(
     report: Annotated[Path | None, typer.Option(help="Run report JSON; default OUTPUT.report.json")] = None,
     full_eval: Annotated[bool, typer.Option("--full-eval", help="PSNR on the full grid, not 500,000 samples")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the run report as JSON on stdout")] = False,
+    checkpoint: Annotated[Path | None, typer.Option(help="Refinement checkpoint file; default OUTPUT.ckpt (deleted when the run ends)")] = None,
+    checkpoint_every: Annotated[float, typer.Option(help="Seconds between checkpoints (Ctrl-C also writes one)")] = 60.0,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its checkpoint (same input and options)")] = False,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing output files")] = False,
 ) -> None:
     """Encode a volume into N anisotropic Gaussians, evaluate it and write the model and a report."""
@@ -61,7 +64,7 @@ def encode(
     stem = example if example is not None else _stem(input)
     out = output or Path(f"{stem}.wgs")
     rep_path = report or out.with_name(out.name + ".report.json")
-    check_writable(rep_path, force=force)
+    check_writable(rep_path, force=force or resume)
 
     weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
     status = None if as_json else err_console.status("starting", spinner="dots")
@@ -86,6 +89,9 @@ def encode(
             refine=RefineConfig(lr=lr, weights=weights),
             self_test=not no_self_test,
             time_budget=time_budget,
+            checkpoint=checkpoint,
+            checkpoint_every=checkpoint_every,
+            resume=resume,
             compact=compact,
             example=example,
             example_size=size,
@@ -106,8 +112,18 @@ def encode(
     atomic_write_bytes(rep_path, (json.dumps(rep, indent=2, sort_keys=True, default=str) + "\n").encode())
     if as_json:
         print_json(rep)
-    else:
+    elif not rep.get("interrupted"):
         _print_summary(rep)
+    if rep.get("interrupted"):
+        r = rep["refinement"]
+        ck = r.get("checkpoint") or {}
+        err_console.print(
+            f"interrupted at iteration {r['iterations_done']}/{r['iterations']}: wrote {rep['output']} (a valid model of "
+            f"the state reached)" + (f" and {ck['path']}; continue with the same command and --resume" if ck.get("path") else ""),
+            soft_wrap=True,
+            highlight=False,
+        )
+        raise typer.Exit(130)
 
 
 def _stem(path: Path) -> str:

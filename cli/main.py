@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import typer
 
 from .bench import bench_app
@@ -19,6 +21,15 @@ app = typer.Typer(
     pretty_exceptions_show_locals=False,
     rich_markup_mode=None,
 )
+
+
+@app.callback()
+def main(debug: bool = typer.Option(False, "--debug", help="Show the full traceback of any failure")) -> None:
+    """Compress scalar volumes into a fixed budget of anisotropic 3D Gaussians (NVIDIA Warp)."""
+    if debug:
+        os.environ["WARPGAUSS_DEBUG"] = "1"
+
+
 app.command("encode")(encode)
 app.command("decode")(decode)
 app.command("info")(info)

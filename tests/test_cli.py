@@ -170,3 +170,22 @@ def test_encode_builtin_example_writes_model_and_report(tmp_path):
     rep = json.loads((tmp_path / "bubbles.wgs.report.json").read_text())
     assert rep["input"]["example"] == "bubbles" and rep["budget"]["n"] == 200
     assert 0.01 < rep["structure"]["occupancy"] < 0.05
+
+
+def test_unexpected_failure_is_one_line_and_debug_shows_the_traceback(tmp_path, monkeypatch):
+    import warpgauss.model
+
+    def broken(*a, **k):
+        raise RuntimeError("boom\nsecond line")
+
+    monkeypatch.setattr(warpgauss.model.Model, "load", broken)
+    path = tmp_path / "m.wgs"
+    path.write_bytes(b"x")
+    res = CliRunner().invoke(app, ["info", str(path)])
+    assert res.exit_code == 2
+    assert "internal error: RuntimeError: boom (rerun with --debug" in res.output
+    assert "second line" not in res.output and "Traceback" not in res.output
+    monkeypatch.delenv("WARPGAUSS_DEBUG", raising=False)
+    res = CliRunner().invoke(app, ["--debug", "info", str(path)])
+    os.environ.pop("WARPGAUSS_DEBUG", None)  # --debug sets it for the process
+    assert isinstance(res.exception, RuntimeError)  # propagated with its traceback

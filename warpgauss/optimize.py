@@ -234,6 +234,8 @@ class Refiner:
         self.touch_scale = 1.0  # learning-rate factor from the contact density (see touch_ref)
         self.contacts = None
         self.rebins = 0
+        self.stop_requested = False
+        self.interrupted = False
         self.rebin(replan=True)
 
     def set_samples(self, m: int) -> None:
@@ -571,6 +573,76 @@ class Refiner:
         """(N, 12) training parameters in primitive order."""
         return self._to_primitive_order(self.raw)
 
+    # -- checkpoints -------------------------------------------------------------------------
+
+    def state(self) -> tuple[dict, dict]:
+        """Everything the next iterations depend on, between two steps: (arrays, scalars).
+
+        Arrays are in slot order with the bins as they stand (cells, slot bounds), so that
+        :meth:`restore` continues bit-identically on the same device; the prepared primitives
+        are not stored, since they are a function of the raw parameters.
+        """
+        b, p = self.bounds, self.prims
+        arrays = {
+            "raw": self.raw.numpy(),
+            "m1": self.m1.numpy(),
+            "m2": self.m2.numpy(),
+            "ids": self.ids.numpy(),
+            "bounds_lo": b.lo.numpy(),
+            "bounds_hi": b.hi.numpy(),
+            "bounds_cell": b.cell.numpy(),
+            "cell_start": p.cell_start.numpy(),
+            "cell_end": p.cell_end.numpy(),
+            "counts": self.counts.numpy(),
+        }
+        scalars = {
+            "n": self.n,
+            "iteration": self.iteration,
+            "iterations": self.cfg.iterations,
+            "samples": self.m,
+            "touch_scale": self.touch_scale,
+            "contacts": self.contacts,
+            "rebins": self.rebins,
+            "split": self.split,
+            "plan": {"sizes": list(self.plan.sizes), "dims": [list(d) for d in self.plan.dims], "offsets": list(self.plan.offsets), "total_cells": self.plan.total_cells},
+        }
+        return {k: np.ascontiguousarray(v) for k, v in arrays.items()}, scalars
+
+    def restore(self, arrays: dict, scalars: dict) -> None:
+        """Continue from :meth:`state` (same primitives count; shapes checked by the caller)."""
+        from .field import BinPlan
+        from .kernels import field as kf
+
+        wp, dev, p, b = self._wp, self.device, self.prims, self.bounds
+        if int(scalars["n"]) != self.n:
+            raise WarpgaussError(f"checkpoint holds {scalars['n']} primitives, this run has {self.n}")
+        pl = scalars["plan"]
+        plan = BinPlan(tuple(float(x) for x in pl["sizes"]), tuple(tuple(int(v) for v in d) for d in pl["dims"]), tuple(int(x) for x in pl["offsets"]), int(pl["total_cells"]))
+        self.plan = plan
+        p.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=dev)
+        p.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=dev)
+        p.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=dev)
+        p.cell_start = wp.array(arrays["cell_start"], dtype=int, device=dev)
+        p.cell_end = wp.array(arrays["cell_end"], dtype=int, device=dev)
+        for dst, key in ((self.raw, "raw"), (self.m1, "m1"), (self.m2, "m2"), (self.ids, "ids"), (b.lo, "bounds_lo"), (b.hi, "bounds_hi"), (b.cell, "bounds_cell"), (self.counts, "counts")):
+            dst.assign(arrays[key])
+        mu, rot, inv_s2, ext, radius, a, w = self._prep
+        wp.launch(kf.prepare_primitives, dim=self.n, inputs=[self.raw, 1], outputs=[p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w], device=dev)
+        self._zero_grads()
+        if int(scalars["samples"]) != self.m:
+            self.set_samples(int(scalars["samples"]))
+        if int(scalars["iterations"]) != self.cfg.iterations:
+            self.cfg = dataclasses.replace(self.cfg, iterations=int(scalars["iterations"]))
+            self._write_schedule()
+        self.split = bool(scalars["split"])
+        self.iteration = int(scalars["iteration"])
+        self.counter.assign(np.array([self.iteration], np.int32))
+        self.touch_scale = float(scalars["touch_scale"])
+        self.touch.fill_(self.touch_scale)
+        self.contacts = scalars["contacts"]
+        self.rebins = int(scalars["rebins"])
+        self._graph = None
+
     # -- reports -----------------------------------------------------------------------------
 
     def losses(self) -> dict:
@@ -613,6 +685,7 @@ class Refiner:
         log_every: int = 25,
         deadline: float | None = None,
         clock=time.perf_counter,
+        after_step=None,
     ) -> list[dict]:
         """Run the iterations; ``progress(it, total, losses)`` every ``log_every`` iterations.
 
@@ -631,27 +704,37 @@ class Refiner:
                 deadline. The primitives are valid after every step, so stopping anywhere leaves a
                 valid model.
             clock: Time source (seconds); the device is synchronised before each reading.
+            after_step: Optional callback(refiner) after every step (checkpoints). Setting
+                :attr:`stop_requested` (e.g. from a SIGINT handler) ends the run between two
+                steps, with :attr:`interrupted` set.
 
         Returns:
             The logged loss records.
         """
         history: list[dict] = []
-        it = 0
+        it = 0  # steps taken by this call (a resumed run starts past 0)
         self.budget = None
+        self.interrupted = False
         if deadline is not None:
             self._write_schedule(MAX_BUDGET_ITERATIONS)  # room for any resize, before capture
             plan = _BudgetPlan(self, deadline, clock)
             self.budget = plan.report
-        while it < self.cfg.iterations:
+        while self.iteration < self.cfg.iterations:
+            if self.stop_requested:  # set from a signal handler: stop between two steps
+                self.interrupted = True
+                break
             if deadline is not None and not plan.before_step(it):
                 break
             self.step()
             it += 1
-            if it % log_every == 0 or it == self.cfg.iterations:
-                rec = {"iteration": it, **self.losses()}
+            done = self.iteration
+            if done % log_every == 0 or done == self.cfg.iterations:
+                rec = {"iteration": done, **self.losses()}
                 history.append(rec)
                 if progress is not None:
-                    progress(it, self.cfg.iterations, rec)
+                    progress(done, self.cfg.iterations, rec)
+            if after_step is not None:
+                after_step(self)
         if deadline is not None:
             plan.finish(it)
         return history
@@ -747,8 +830,7 @@ def self_test(refiner: Refiner, points: int = 64) -> dict:
     from .kernels import backward as kb
 
     k = min(points, refiner.m)
-    refiner.rebin(replan=True)
-    refiner.sample()
+    refiner.sample()  # the training state is left as it was (samples are redrawn by the next step)
     refiner.forward_backward()
     v = refiner.value.numpy()[:k].copy()
     d = refiner.density.numpy()[:k].copy()

@@ -69,6 +69,9 @@ class EncodeOptions:
     refine: RefineConfig = field(default_factory=RefineConfig)
     self_test: bool = True
     time_budget: float | None = None
+    checkpoint: str | os.PathLike | None = None
+    checkpoint_every: float = 60.0
+    resume: bool = False
 
 
 def load_field(
@@ -255,7 +258,10 @@ def encode_field(
         with timer.stage("S2", "refinement"):
             refiner = Refiner(dv, params, cfg, opts.seed, opts.allocation.scale_min, cap)
             stage_start = time.perf_counter()  # the time budget starts with compiled kernels
-            if opts.self_test:
+            ckpt = _Checkpoints(opts, params, cfg, dev)
+            if opts.resume:
+                ckpt.resume(refiner)
+            if opts.self_test:  # the self-test leaves the training state as it was
                 t0 = time.perf_counter()
                 refinement["self_test"] = self_test(refiner)
                 refinement["self_test"]["seconds"] = time.perf_counter() - t0
@@ -263,21 +269,30 @@ def encode_field(
                 skipped.append({"what": "self-test", "why": "--no-self-test"})
             t0 = time.perf_counter()
             deadline = None
-            if opts.time_budget is not None:  # a 5 % reserve covers the export after the last step
+            if opts.time_budget is not None and not opts.resume:  # 5 % reserve for the export
                 deadline = stage_start + 0.95 * opts.time_budget
-            history = refiner.run(progress=on_progress, log_every=log_every, deadline=deadline)
+            ckpt.start(t0)
+            with _stop_on_sigint(refiner):
+                history = refiner.run(progress=on_progress, log_every=log_every, deadline=deadline, after_step=ckpt.maybe_save)
             seconds = time.perf_counter() - t0
+            if refiner.interrupted:
+                ckpt.save(refiner)
             model = Model(refiner.model_params(), header)
+        sessions = ckpt.sessions + [{"from_iteration": ckpt.start_iteration, "to_iteration": refiner.iteration, "seconds": seconds}]
+        total = sum(x["seconds"] for x in sessions)
         refinement.update(
             {
                 "time_budget": refiner.budget,
                 "iterations": refiner.cfg.iterations,
                 "samples": refiner.m,
-                "seconds": seconds,
+                "seconds": total,
+                "sessions": sessions,
                 "iterations_done": refiner.iteration,
+                "interrupted": refiner.interrupted,
+                "checkpoint": ckpt.report(),
                 "contacts_per_primitive": refiner.contacts,
                 "lr_touch_scale": refiner.touch_scale,
-                "ms_per_iteration": 1000 * seconds / max(refiner.iteration, 1),
+                "ms_per_iteration": 1000 * total / max(refiner.iteration, 1),
                 "skipped_nonfinite_updates": refiner.skipped_steps(),
                 "deferred_updates": refiner.deferred_steps(),
                 "rebins": refiner.rebins,
@@ -286,6 +301,9 @@ def encode_field(
                 "loss_history": history,
             }
         )
+        if refiner.interrupted:
+            evaluate = False
+            skipped.append({"what": "EV evaluation", "why": f"interrupted at iteration {refiner.iteration}"})
     else:
         skipped.append({"what": "S2 refinement", "why": "iterations = 0: the analytic model is the result"})
 
@@ -300,7 +318,7 @@ def encode_field(
             else:
                 evaluation["final"] = evaluate_field(model.field(dev), f, full=full_eval)
         evaluation["gain_db"] = evaluation["final"]["psnr_db"] - evaluation["analytic"]["psnr_db"]
-    else:
+    elif not refinement.get("interrupted"):
         skipped.append({"what": "EV evaluation", "why": "disabled by the caller"})
 
     bpp = 12 if opts.compact else 48
@@ -330,9 +348,120 @@ def encode_field(
         "refinement": refinement,
         "evaluation": evaluation,
         "psnr_db": evaluation.get("final", {}).get("psnr_db"),
+        "interrupted": bool(refinement.get("interrupted")),
         "skipped": skipped,
     }
     return model
+
+
+class _Checkpoints:
+    """When to write refinement checkpoints, and resuming from one (see :mod:`warpgauss.checkpoint`)."""
+
+    def __init__(self, opts: EncodeOptions, params: np.ndarray, cfg: RefineConfig, device: str):
+        from . import checkpoint
+
+        self.path = None if opts.checkpoint is None else Path(opts.checkpoint)
+        self.every = float(opts.checkpoint_every)
+        settings = {k: v for k, v in cfg.to_dict().items() if k not in ("iterations", "samples")}
+        settings.update({"requested_iterations": cfg.iterations, "requested_samples": cfg.samples, "seed": opts.seed})
+        self.fingerprint = checkpoint.fingerprint(params, settings)
+        self.device = device
+        self.sessions: list[dict] = []
+        self.start_iteration = 0
+        self.written = 0
+        self.last_iteration: int | None = None
+        self.resumed_from: int | None = None
+
+    def resume(self, refiner) -> None:
+        from . import checkpoint
+
+        if self.path is None:
+            raise WarpgaussError("--resume needs a checkpoint path (--checkpoint PATH, or an output file)")
+        arrays, meta = checkpoint.load(self.path)
+        if meta.get("fingerprint") != self.fingerprint:
+            raise WarpgaussError(
+                f"{self.path} was written for another input, budget, seed or other refinement options; "
+                "resume with the options of the interrupted run, or encode without --resume"
+            )
+        ids = arrays["ids"]
+        if ids.shape[0] != refiner.n or not np.array_equal(np.sort(ids), np.arange(refiner.n)):
+            raise WarpgaussError(f"{self.path} is damaged (its primitive ids are not a permutation); delete it")
+        scalars = meta["refiner"]
+        if arrays["cell_start"].shape[0] != int(scalars["plan"]["total_cells"]):
+            raise WarpgaussError(f"{self.path} is damaged (cell table size); delete it")
+        refiner.restore(arrays, scalars)
+        self.sessions = list(meta.get("sessions", []))
+        self.start_iteration = self.resumed_from = refiner.iteration
+
+    def start(self, t0: float) -> None:
+        self.t0 = self.last = t0
+
+    def maybe_save(self, refiner) -> None:
+        if self.path is not None and time.perf_counter() - self.last >= self.every:
+            self.save(refiner)
+
+    def save(self, refiner) -> None:
+        from . import checkpoint
+
+        if self.path is None:
+            return
+        now = time.perf_counter()
+        arrays, scalars = refiner.state()
+        session = {"from_iteration": self.start_iteration, "to_iteration": refiner.iteration, "seconds": now - self.t0}
+        meta = {
+            "fingerprint": self.fingerprint,
+            "device": self.device,
+            "iteration": refiner.iteration,
+            "refiner": scalars,
+            "sessions": self.sessions + [session],
+            "warpgauss_version": __version__,
+        }
+        checkpoint.save(self.path, arrays, meta)
+        self.last = time.perf_counter()
+        self.written += 1
+        self.last_iteration = refiner.iteration
+
+    def report(self) -> dict | None:
+        if self.path is None:
+            return None
+        return {
+            "path": str(self.path),
+            "every_seconds": self.every,
+            "written": self.written,
+            "last_iteration": self.last_iteration,
+            "resumed_from_iteration": self.resumed_from,
+        }
+
+
+class _stop_on_sigint:
+    """While refining in the main thread, a first Ctrl-C asks the refiner to stop between steps
+    (the state reached is then saved); a second one interrupts at once."""
+
+    def __init__(self, refiner):
+        self.refiner = refiner
+        self.previous = None
+
+    def __enter__(self):
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            self.previous = signal.getsignal(signal.SIGINT)
+
+            def handler(signum, frame):
+                if self.refiner.stop_requested:
+                    raise KeyboardInterrupt
+                self.refiner.stop_requested = True
+
+            signal.signal(signal.SIGINT, handler)
+        return self
+
+    def __exit__(self, *exc):
+        import signal
+
+        if self.previous is not None:
+            signal.signal(signal.SIGINT, self.previous)
+        return False
 
 
 def finish_report(model: Model, timer: StageRecorder) -> dict:
@@ -360,6 +489,9 @@ def encode(
     refine: RefineConfig | None = None,
     self_test: bool = True,
     time_budget: float | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: float = 60.0,
+    resume: bool = False,
     compact: bool = False,
     example: str | None = None,
     example_size: int | tuple[int, int, int] = 64,
@@ -392,6 +524,12 @@ def encode(
             iterations); spare time goes to more samples per iteration (unless ``samples`` is
             given) once 1,500 iterations fit, then to iterations (up to 20,000); refinement ends
             within it, with a valid model at any stop.
+        checkpoint: Where refinement writes checkpoints (atomically, every ``checkpoint_every``
+            seconds and on Ctrl-C); None: ``OUTPUT.ckpt`` when ``output`` is given, else none.
+            Deleted once the model is written.
+        checkpoint_every: Seconds between checkpoints.
+        resume: Continue from the checkpoint (same input and options; the result is the model an
+            uninterrupted run gives, bit-identical on the same CPU). Overwrites ``output``.
         compact: Size the budget (and the report) for the compact 12-byte format.
         example: Built-in example volume name instead of ``source``.
         example_size: Size of the example volume.
@@ -412,9 +550,15 @@ def encode(
     from ._fs import check_writable
 
     if output is not None:
-        check_writable(output, force=force)
+        check_writable(output, force=force or resume)  # a resume replaces its interrupted model
     if analytic_output is not None:
-        check_writable(analytic_output, force=force)
+        check_writable(analytic_output, force=force or resume)
+    if checkpoint is None and output is not None:
+        checkpoint = Path(str(output) + ".ckpt")
+    if resume and (checkpoint is None or not Path(checkpoint).is_file()):
+        raise WarpgaussError(f"--resume: no checkpoint at {checkpoint}; encode without --resume")
+    if not checkpoint_every >= 0:
+        raise WarpgaussError(f"--checkpoint-every must be >= 0 seconds, got {checkpoint_every}")
     refine = resolve_refine(refine, preset, iterations, samples)
     if time_budget is not None and not time_budget > 0:
         raise WarpgaussError(f"--time-budget must be a positive number of seconds, got {time_budget}")
@@ -428,6 +572,9 @@ def encode(
         refine=refine,
         self_test=self_test,
         time_budget=time_budget,
+        checkpoint=checkpoint,
+        checkpoint_every=checkpoint_every,
+        resume=resume,
     )
     timer = StageRecorder(on_stage=on_stage)
     with timer.stage("P", "load and normalise"):
@@ -443,11 +590,13 @@ def encode(
         on_stats=on_stats,
         on_progress=on_progress,
         analytic_output=analytic_output,
-        force=force,
+        force=force or resume,
     )
     if output is not None:
         with timer.stage("S3", "export"):
-            model.save(output, compact=compact, force=force)
+            model.save(output, compact=compact, force=True if resume else force)
         model.report["output"] = str(Path(output))
+    if checkpoint is not None and not model.report.get("interrupted") and Path(checkpoint).is_file():
+        Path(checkpoint).unlink()  # the run finished: its model replaces the checkpoint
     finish_report(model, timer)
     return model

@@ -1,0 +1,120 @@
+"""Checkpoints, Ctrl-C and resume: an interrupted run continues to the model an uninterrupted one gives."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import warpgauss
+from warpgauss import checkpoint
+from warpgauss.cli.main import app
+from warpgauss.errors import WarpgaussError
+
+RUN = {"example": "vortex", "example_size": 24, "budget": 300, "iterations": 120, "samples": 512, "device": "cpu", "seed": 3}
+
+
+def _reference(tmp_path):
+    return warpgauss.encode(**RUN, output=tmp_path / "ref.wgs")
+
+
+def test_ctrl_c_writes_a_valid_model_and_resume_gives_the_uninterrupted_model(tmp_path, cpu):
+    ref = _reference(tmp_path)
+    out = tmp_path / "run.wgs"
+
+    def progress(it, total, rec):  # a real SIGINT to this process, as Ctrl-C sends
+        if it == 50:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    a = warpgauss.encode(**RUN, output=out, checkpoint_every=3600, on_progress=progress)
+    assert a.report["interrupted"] and a.report["refinement"]["iterations_done"] == 50
+    ckpt = Path(str(out) + ".ckpt")
+    assert ckpt.is_file()
+    part = warpgauss.Model.load(out)  # the state reached, as a valid model
+    assert part.n == 300 and np.all(np.isfinite(part.params))
+    assert not np.array_equal(part.params, ref.params)
+    b = warpgauss.encode(**RUN, output=out, resume=True)
+    assert not b.report["interrupted"]
+    assert b.params.tobytes() == ref.params.tobytes()  # bit-identical on the CPU
+    assert warpgauss.Model.load(out).params.tobytes() == ref.params.tobytes()
+    r = b.report["refinement"]
+    assert [(s["from_iteration"], s["to_iteration"]) for s in r["sessions"]] == [(0, 50), (50, 120)]
+    assert r["seconds"] == pytest.approx(sum(s["seconds"] for s in r["sessions"]))
+    assert r["checkpoint"]["resumed_from_iteration"] == 50
+    assert not ckpt.exists()  # removed once the final model is written
+
+
+def test_sigkill_mid_run_then_resume_from_the_last_periodic_checkpoint(tmp_path, cpu):
+    ref = _reference(tmp_path)
+    out = tmp_path / "killed.wgs"
+    ckpt = Path(str(out) + ".ckpt")
+    args = [sys.executable, "-m", "warpgauss.cli.main", "encode", "--example", "vortex", "--size", "24", "--budget", "300",
+            "--iterations", "120", "--samples", "512", "--device", "cpu", "--seed", "3", "--checkpoint-every", "0", "-o", str(out)]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.time() + 120
+        reached = 0
+        while time.time() < deadline and proc.poll() is None:
+            if ckpt.is_file():
+                try:
+                    reached = checkpoint.load(ckpt)[1]["iteration"]
+                except WarpgaussError:
+                    reached = 0  # never a partial file, but be safe while polling
+                if reached >= 20:
+                    break
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.stderr.read().decode()
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert not out.exists()  # nothing partial at the destination
+    arrays, meta = checkpoint.load(ckpt)
+    assert 20 <= meta["iteration"] < 120
+    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "24", "--budget", "300", "--iterations", "120",
+                                   "--samples", "512", "--device", "cpu", "--seed", "3", "-o", str(out), "--resume", "--json"])
+    assert res.exit_code == 0, res.output
+    assert warpgauss.Model.load(out).params.tobytes() == ref.params.tobytes()
+    rep = json.loads(Path(str(out) + ".report.json").read_text())
+    sessions = rep["refinement"]["sessions"]
+    assert sessions[0]["from_iteration"] == 0 and sessions[-1]["to_iteration"] == 120
+    assert all(a["to_iteration"] == b["from_iteration"] for a, b in zip(sessions, sessions[1:]))
+    assert rep["refinement"]["seconds"] == pytest.approx(sum(s["seconds"] for s in sessions))
+
+
+def test_resume_refuses_other_options_and_damaged_checkpoints(tmp_path, cpu):
+    out = tmp_path / "m.wgs"
+
+    def progress(it, total, rec):
+        if it == 25:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    warpgauss.encode(**RUN, output=out, checkpoint_every=3600, on_progress=progress)
+    ckpt = Path(str(out) + ".ckpt")
+    other = dict(RUN, seed=4)
+    with pytest.raises(WarpgaussError, match="another input, budget, seed or other refinement options"):
+        warpgauss.encode(**other, output=out, resume=True)
+    good = ckpt.read_bytes()
+    cases = {
+        "truncated": good[: len(good) // 2],
+        "flipped": good[:100] + bytes([good[100] ^ 0xFF]) + good[101:],
+        "garbage": b"not a checkpoint at all",
+    }
+    for name, data in cases.items():
+        ckpt.write_bytes(data)
+        res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "24", "--budget", "300", "--iterations", "120",
+                                       "--samples", "512", "--device", "cpu", "--seed", "3", "-o", str(out), "--resume"])
+        assert res.exit_code == 2, (name, res.output)
+        assert "checkpoint" in res.output and "Traceback" not in res.output, (name, res.output)
+    ckpt.unlink()
+    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "24", "-o", str(out), "--resume", "--device", "cpu"])
+    assert res.exit_code == 2 and "no checkpoint at" in res.output
