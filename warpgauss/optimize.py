@@ -236,6 +236,7 @@ class Refiner:
         self.rebins = 0
         self.stop_requested = False
         self.interrupted = False
+        self.graph_error = None
         self.rebin(replan=True)
 
     def set_samples(self, m: int) -> None:
@@ -489,11 +490,15 @@ class Refiner:
             self.rebin(replan=replan)
         if not self._clean:
             self._zero_grads()
-        if self.use_graph:
-            if self._graph is None:
+        if self.use_graph and self._graph is None:
+            try:
                 with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
                     self._iteration_launches()
                 self._graph = capture.graph
+            except Exception as e:  # noqa: BLE001 - a driver without graph support: plain launches
+                self.use_graph = False
+                self.graph_error = f"{type(e).__name__}: {e}"
+        if self.use_graph:
             wp.capture_launch(self._graph)
         else:
             self._iteration_launches()

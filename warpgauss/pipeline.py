@@ -297,6 +297,7 @@ def encode_field(
                 "deferred_updates": refiner.deferred_steps(),
                 "rebins": refiner.rebins,
                 "cuda_graph": refiner.use_graph,
+                "cuda_graph_error": refiner.graph_error,
                 "strata_samples": dict(zip(("high", "mid", "uniform"), refiner.strata)),
                 "loss_history": history,
             }
