@@ -12,6 +12,7 @@ from .encode import encode
 from .evaluate import evaluate
 from .example import example
 from .info import info
+from .stats import stats
 
 app = typer.Typer(
     name="warpgauss",
@@ -35,6 +36,7 @@ app.command("decode")(decode)
 app.command("info")(info)
 app.command("eval")(evaluate)
 app.command("example")(example)
+app.command("stats")(stats)
 app.add_typer(bench_app, name="bench")
 
 

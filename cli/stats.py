@@ -1,0 +1,79 @@
+"""`warpgauss stats`: structure statistics, seed limit and a budget table, before encoding."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .common import handle_errors, human_bytes, out_console, parse_shape, print_json
+
+
+@handle_errors
+def stats(
+    input: Annotated[Path | None, typer.Argument(help="Volume file (any format encode reads)")] = None,
+    example: Annotated[str | None, typer.Option(help="A built-in example volume instead of a file")] = None,
+    size: Annotated[int, typer.Option(help="Edge length of the --example volume")] = 64,
+    budgets: Annotated[str | None, typer.Option(help="Budgets to tabulate, e.g. 2000,20000,200000 (N_max is always added)")] = None,
+    device: Annotated[str | None, typer.Option(help="Warp device: cpu, cuda, cuda:N (default: CUDA if present)")] = None,
+    stride: Annotated[int, typer.Option(help="Take every K-th voxel on each axis")] = 1,
+    shape: Annotated[str | None, typer.Option(help="Raw files: XxYxZ when the name does not say")] = None,
+    dtype: Annotated[str | None, typer.Option(help="Raw files: uint8, int16, float32, ...")] = None,
+    endian: Annotated[str | None, typer.Option(help="Raw files: little (default) or big")] = None,
+    dataset: Annotated[str | None, typer.Option(help="HDF5: dataset path")] = None,
+    variable: Annotated[str | None, typer.Option(help="netCDF: variable name")] = None,
+    fill_value: Annotated[float | None, typer.Option(help="Source value marking missing data (masked out)")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print a JSON object")] = False,
+) -> None:
+    """Occupancy, gradient top-10 %, S(1)/S(16), the seed limit N_max and the bytes and compression
+    ratio of a ladder of budgets (full precision and compact), with a one-line reading."""
+    from warpgauss.errors import WarpgaussError
+    from warpgauss.pipeline import ReadOptions, load_field
+    from warpgauss.stats import DEFAULT_BUDGETS, field_stats
+
+    if (input is None) == (example is None):
+        raise WarpgaussError("give a volume file or --example NAME (one of them)")
+    ladder = DEFAULT_BUDGETS
+    if budgets is not None:
+        try:
+            ladder = tuple(int(float(x)) for x in budgets.replace("_", "").split(",") if x.strip())
+        except ValueError:
+            ladder = ()
+        if not ladder or min(ladder) < 1:
+            raise WarpgaussError(f"--budgets must be a comma-separated list of positive integers, got {budgets!r}")
+    t0 = time.perf_counter()
+    f, _ = load_field(input, ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value), example=example, example_size=size)
+    load_seconds = time.perf_counter() - t0
+    res = field_stats(f, device, ladder)
+    res["seconds_load"] = load_seconds
+    if as_json:
+        print_json(res)
+        return
+    out_console.print(
+        f"[bold]{res['name']}[/] {'x'.join(map(str, res['shape_xyz']))} {res['source_dtype']} "
+        f"({human_bytes(res['source_bytes'])}), values [{res['value_min']:g}, {res['value_max']:g}]"
+        + (f", {res['masked_voxels']:,} masked voxels" if res["masked_voxels"] else ""),
+        soft_wrap=True,
+    )
+    out_console.print(
+        f"occupancy {100 * res['occupancy']:.2f} %   gradient top-10 % {100 * res['grad_top10']:.1f} %   "
+        f"S(1)/S(16) {res['s1_s16']:.4f}   N_max {res['n_max']:,}" + ("   (statistics sampled)" if res["sampled"] else ""),
+        soft_wrap=True,
+    )
+    from rich.table import Table
+
+    t = Table(show_edge=False, header_style="bold")
+    for col in ("N", "bytes", "ratio", "compact bytes", "compact ratio"):
+        t.add_column(col, justify="right")
+    for b in res["budgets"]:
+        t.add_row(
+            f"{b['n']:,}" + (" (N_max)" if b["is_n_max"] else ""),
+            f"{b['bytes']:,}",
+            f"{b['compression_ratio']:.2f}x",
+            f"{b['compact_bytes']:,}",
+            f"{b['compact_compression_ratio']:.2f}x",
+        )
+    out_console.print(t)
+    out_console.print(f"reading: {res['reading']}", soft_wrap=True)

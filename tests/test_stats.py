@@ -1,0 +1,60 @@
+"""`warpgauss stats`: values equal an independent numpy computation (SPEC section 5)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from test_allocate import _blobs, _stats_numpy
+from typer.testing import CliRunner
+
+from warpgauss.cli.main import app
+from warpgauss.io import write_volume
+
+
+def test_stats_json_equals_numpy(tmp_path, cpu):
+    v = _blobs(40, seed=6)
+    path = write_volume(tmp_path / "blobs_40x40x40_float32.raw", v.astype(np.float32))
+    res = CliRunner().invoke(app, ["stats", str(path), "--device", "cpu", "--json", "--budgets", "100,1000,100000000"])
+    assert res.exit_code == 0, res.output
+    got = json.loads(res.stdout)
+    ref = _stats_numpy(v)
+    assert got["occupancy"] == pytest.approx(ref["occupancy"], abs=1e-12)
+    assert got["grad_top10"] == pytest.approx(ref["grad_top10"], rel=1e-5)
+    assert got["s1"] == pytest.approx(ref["s1"], rel=1e-5)
+    assert got["s16"] == pytest.approx(ref["s16"], rel=1e-5)
+    assert got["s1_s16"] == pytest.approx(ref["s1"] / ref["s16"], rel=1e-5)
+    # seed limit from the occupied voxels and those of them with a non-zero gradient
+    w = v.astype(np.float64)
+    w = (w - w.min()) / (w.max() - w.min())
+    occ = w > 0.02
+    g = np.sqrt(sum(np.gradient(w, axis=a) ** 2 for a in range(3)))
+    e, o = int((occ & (g > 0)).sum()), int(occ.sum())
+    assert got["n_max"] == math.floor(min(e / 0.55, o / 0.45))
+    # the table: feasible budgets and N_max, exact sizes (one 4 KiB header block)
+    ns = [b["n"] for b in got["budgets"]]
+    assert ns == [100, 1000, got["n_max"]]
+    for b in got["budgets"]:
+        assert b["bytes"] == 48 * b["n"] + 4096 and b["compact_bytes"] == 12 * b["n"] + 4096
+        assert b["compression_ratio"] == pytest.approx(v.size * 4 / b["bytes"])
+    assert got["reading"]
+
+
+def test_stats_readings_tell_the_example_fields_apart(cpu):
+    from warpgauss.pipeline import load_field
+    from warpgauss.stats import field_stats
+
+    read = {}
+    for name in ("bubbles", "interface", "turbulence"):
+        f, _ = load_field(None, example=name, example_size=64)
+        read[name] = field_stats(f, "cpu")["reading"]
+    assert read["bubbles"].startswith("sparse")
+    assert "interface-concentrated" in read["interface"]
+    assert "turbulence-like" in read["turbulence"]
+
+
+def test_stats_refuses_bad_budgets():
+    res = CliRunner().invoke(app, ["stats", "--example", "vortex", "--size", "16", "--budgets", "0,5"])
+    assert res.exit_code == 2 and "--budgets must be" in res.output
