@@ -18,6 +18,7 @@ def encode(
     example: Annotated[str | None, typer.Option(help="Encode a built-in example volume instead of a file")] = None,
     size: Annotated[int, typer.Option(help="Edge length of the --example volume")] = 64,
     budget: Annotated[int | None, typer.Option("--budget", "-n", help="Number of Gaussians N (exact)")] = None,
+    ladder: Annotated[str | None, typer.Option(help="Several budgets, e.g. 2000,20000,200000: one read and analysis, one model each (OUTPUT with .nN before the suffix)")] = None,
     ratio: Annotated[float | None, typer.Option(help="Target compression ratio (N from SPEC section 4); default 20")] = None,
     seed: Annotated[int, typer.Option(help="Seed: same seed and device give the same model")] = 0,
     device: Annotated[str | None, typer.Option(help="Warp device: cpu, cuda, cuda:N (default: CUDA if present)")] = None,
@@ -67,6 +68,15 @@ def encode(
     check_writable(rep_path, force=force or resume)
 
     weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
+    if ladder is not None:
+        if budget is not None or ratio is not None or resume or time_budget is not None or save_analytic is not None:
+            fail("--ladder gives the budgets: it does not combine with --budget, --ratio, --time-budget, --resume or --save-analytic")
+        _encode_ladder(
+            ladder, input, out, example, size, seed, device, iterations, samples, preset, RefineConfig(lr=lr, weights=weights),
+            not no_self_test, compact, ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
+            full_eval, as_json, force,
+        )
+        return
     status = None if as_json else err_console.status("starting", spinner="dots")
     if status is not None:
         status.start()
@@ -124,6 +134,63 @@ def encode(
             highlight=False,
         )
         raise typer.Exit(130)
+
+
+def _encode_ladder(text, input, out, example, size, seed, device, iterations, samples, preset, refine, self_test, compact, read, full_eval, as_json, force) -> None:
+    import warpgauss
+    from warpgauss._fs import atomic_write_bytes, check_writable
+    from warpgauss.errors import WarpgaussError
+
+    try:
+        budgets = [int(float(x)) for x in text.replace("_", "").split(",") if x.strip()]
+    except ValueError:
+        budgets = []
+    if not budgets or min(budgets) < 1:
+        raise WarpgaussError(f"--ladder must be a comma-separated list of positive budgets, got {text!r}")
+    pattern = str(out.with_name(f"{out.stem}.n{{n}}{out.suffix or '.wgs'}"))
+    for n in sorted(set(budgets)):
+        check_writable(Path(pattern.format(n=n) + ".report.json"), force=force)
+    status = None if as_json else err_console.status("starting", spinner="dots")
+    if status is not None:
+        status.start()
+    try:
+        models = warpgauss.encode_ladder(
+            input, budgets=budgets, output_pattern=pattern, force=force, seed=seed, device=device, iterations=iterations,
+            samples=samples, preset=preset, refine=refine, self_test=self_test, compact=compact, example=example,
+            example_size=size, read=read, full_eval=full_eval,
+            on_stage=None if status is None else lambda name, title: status.update(f"[bold]{name}[/] {title}"),
+        )
+    finally:
+        if status is not None:
+            status.stop()
+    rows = []
+    for m in models:
+        rep = m.report
+        rep["report"] = rep["output"] + ".report.json"
+        atomic_write_bytes(rep["report"], (json.dumps(rep, indent=2, sort_keys=True, default=str) + "\n").encode())
+        ev = rep["evaluation"]
+        rows.append(
+            {
+                "n": rep["budget"]["n"],
+                "bytes": rep["budget"]["bytes"],
+                "compression_ratio": rep["budget"]["compression_ratio"],
+                "psnr_analytic_db": ev["analytic"]["psnr_db"],
+                "psnr_db": ev["final"]["psnr_db"],
+                "seconds": rep["total_seconds"],
+                "output": rep["output"],
+            }
+        )
+    if as_json:
+        print_json({"ladder": rows})
+        return
+    from rich.table import Table
+
+    t = Table(show_edge=False, header_style="bold")
+    for col in ("N", "bytes", "ratio", "analytic dB", "PSNR dB", "seconds", "model"):
+        t.add_column(col, justify="left" if col == "model" else "right")
+    for r in rows:
+        t.add_row(f"{r['n']:,}", f"{r['bytes']:,}", f"{r['compression_ratio']:.2f}x", f"{r['psnr_analytic_db']:.2f}", f"{r['psnr_db']:.2f}", f"{r['seconds']:.2f}", r["output"])
+    out_console.print(t)
 
 
 def _stem(path: Path) -> str:

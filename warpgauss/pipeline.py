@@ -204,6 +204,7 @@ def encode_field(
     log_every: int = 25,
     analytic_output=None,
     force: bool = False,
+    cache: dict | None = None,
 ) -> Model:
     """Stages S1a-S1e, S1x, S2 and EV on a normalised field; returns the model with its report.
 
@@ -220,6 +221,8 @@ def encode_field(
         log_every: Iterations between loss records (and progress calls).
         analytic_output: If given, also write the analytic (pre-refinement) model there (S1x).
         force: Overwrite ``analytic_output`` if it exists.
+        cache: A dict shared by encodes of the same field on the same device (a budget ladder):
+            the device volume and structure statistics of the first are reused (S1a skipped).
     """
     from .wgs import header_size
 
@@ -236,9 +239,16 @@ def encode_field(
 
     from .analysis import DeviceVolume, structure_stats
 
-    with timer.stage("S1a", "occupancy, gradients, structure statistics"):
-        dv = DeviceVolume(f, dev)
-        stats = structure_stats(dv)
+    if cache is not None and cache.get("device") == dev and cache.get("field") is f:
+        dv, stats = cache["dv"], cache["stats"]
+        skipped.append({"what": "S1a", "why": "device volume and statistics reused from the previous budget of the ladder", "seconds_saved": cache["seconds"]})
+    else:
+        t0 = time.perf_counter()
+        with timer.stage("S1a", "occupancy, gradients, structure statistics"):
+            dv = DeviceVolume(f, dev)
+            stats = structure_stats(dv)
+        if cache is not None:
+            cache.update({"device": dev, "field": f, "dv": dv, "stats": stats, "seconds": time.perf_counter() - t0})
     if on_stats is not None:
         on_stats(stats)
 
@@ -601,3 +611,81 @@ def encode(
         Path(checkpoint).unlink()  # the run finished: its model replaces the checkpoint
     finish_report(model, timer)
     return model
+
+
+def encode_ladder(
+    source=None,
+    *,
+    budgets,
+    output_pattern: str | None = None,
+    force: bool = False,
+    seed: int = 0,
+    device: str | None = None,
+    iterations: int | None = None,
+    samples: int | None = None,
+    preset: str | None = None,
+    refine: RefineConfig | None = None,
+    self_test: bool = True,
+    compact: bool = False,
+    example: str | None = None,
+    example_size: int | tuple[int, int, int] = 64,
+    read: ReadOptions | None = None,
+    allocation: AllocationConfig | None = None,
+    full_eval: bool = False,
+    on_stage=None,
+    on_progress=None,
+) -> list[Model]:
+    """Encode one volume at several budgets, reading and analysing it once (the paper's ladders).
+
+    Args:
+        budgets: Primitive counts; all are checked against the seed limit before any encoding.
+        output_pattern: If given, each model is written to ``output_pattern.format(n=N)``.
+        Others: as :func:`encode`.
+
+    Returns:
+        One model per budget (ascending), each with its report; ``report["ladder"]`` says what
+        was shared.
+    """
+    from ._fs import check_writable
+
+    ladder = sorted({int(b) for b in budgets})
+    if not ladder or ladder[0] < 1:
+        raise WarpgaussError(f"--ladder needs positive budgets, got {list(budgets)}")
+    paths = [None] * len(ladder)
+    if output_pattern is not None:
+        paths = [Path(output_pattern.format(n=n)) for n in ladder]
+        for p in paths:
+            check_writable(p, force=force)
+    refine = resolve_refine(refine, preset, iterations, samples)
+    first = StageRecorder(on_stage=on_stage)
+    with first.stage("P", "load and normalise"):
+        f, info = load_field(source, read, example=example, example_size=example_size)
+    load_seconds = first.seconds("P")
+    from .wgs import header_size
+
+    bpp = 12 if compact else 48
+    probe = EncodeOptions(budget=ladder[-1], seed=seed, compact=compact, refine=refine)
+    check_budget(f, ladder[-1], header_size(_header_for(f, probe), 1 << 40, compact=compact), bpp)
+    cache: dict = {}
+    models = []
+    for i, (n, path) in enumerate(zip(ladder, paths)):
+        timer = first if i == 0 else StageRecorder(on_stage=on_stage)
+        opts = EncodeOptions(
+            n, None, seed, compact, allocation or AllocationConfig(), stride=(read or ReadOptions()).stride,
+            refine=refine, self_test=self_test and i == 0,
+        )
+        model = encode_field(
+            f, opts, device=device, timer=timer, input_info=info, full_eval=full_eval, on_progress=on_progress, cache=cache
+        )
+        if i > 0:
+            model.report["skipped"].insert(0, {"what": "P", "why": "volume loaded once for the ladder", "seconds_saved": load_seconds})
+            if self_test:
+                model.report["skipped"].append({"what": "self-test", "why": "run once for the ladder, with the first budget"})
+        if path is not None:
+            with timer.stage("S3", "export"):
+                model.save(path, compact=compact, force=force)
+            model.report["output"] = str(path)
+        finish_report(model, timer)
+        model.report["ladder"] = {"budgets": ladder, "position": i, "shared": ["P", "S1a"] if i else []}
+        models.append(model)
+    return models

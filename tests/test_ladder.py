@@ -1,0 +1,51 @@
+"""Budget ladders: one read and analysis, and each model equal to its own single encode."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+import warpgauss
+from warpgauss.cli.main import app
+from warpgauss.errors import WarpgaussError
+
+KW = {"example": "vortex", "example_size": 24, "iterations": 30, "samples": 256, "device": "cpu", "seed": 2}
+
+
+def test_ladder_models_equal_single_encodes_and_share_the_analysis(tmp_path, cpu):
+    models = warpgauss.encode_ladder(budgets=[400, 100], output_pattern=str(tmp_path / "m.n{n}.wgs"), **KW)
+    assert [m.n for m in models] == [100, 400]
+    for m in models:
+        single = warpgauss.encode(budget=m.n, **KW)
+        assert m.params.tobytes() == single.params.tobytes()  # same seed, same device
+        assert m.report["psnr_db"] == pytest.approx(single.report["psnr_db"], abs=1e-9)
+        assert warpgauss.Model.load(tmp_path / f"m.n{m.n}.wgs").params.tobytes() == m.params.tobytes()
+    stages = [[s["stage"] for s in m.report["stages"]] for m in models]
+    assert "P" in stages[0] and "S1a" in stages[0]
+    assert "P" not in stages[1] and "S1a" not in stages[1]  # reused, and said so
+    assert {s["what"] for s in models[1].report["skipped"]} >= {"P", "S1a"}
+    assert models[1].report["ladder"] == {"budgets": [100, 400], "position": 1, "shared": ["P", "S1a"]}
+    assert models[1].report["psnr_db"] > models[0].report["psnr_db"]
+
+
+def test_ladder_refuses_an_infeasible_top_budget_before_encoding(tmp_path, cpu):
+    with pytest.raises(WarpgaussError, match="exceeds the seed limit"):
+        warpgauss.encode_ladder(budgets=[10, 10**8], output_pattern=str(tmp_path / "x.n{n}.wgs"), **KW)
+    assert not list(tmp_path.iterdir())
+
+
+def test_ladder_cli_prints_psnr_per_budget(tmp_path, cpu):
+    out = tmp_path / "v.wgs"
+    args = ["encode", "--example", "vortex", "--size", "24", "--ladder", "100,300", "--iterations", "20", "--samples", "256",
+            "--device", "cpu", "-o", str(out), "--json"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    rows = json.loads(res.stdout)["ladder"]
+    assert [r["n"] for r in rows] == [100, 300]
+    for r in rows:
+        assert (tmp_path / f"v.n{r['n']}.wgs").is_file() and (tmp_path / f"v.n{r['n']}.wgs.report.json").is_file()
+        assert r["psnr_db"] > r["psnr_analytic_db"]
+    res = CliRunner().invoke(app, [*args[:-1], "--budget", "5"])
+    assert res.exit_code == 2 and "does not combine" in res.output
