@@ -50,6 +50,8 @@ def encode(
     checkpoint: Annotated[Path | None, typer.Option(help="Refinement checkpoint file; default OUTPUT.ckpt (deleted when the run ends)")] = None,
     checkpoint_every: Annotated[float, typer.Option(help="Seconds between checkpoints (Ctrl-C also writes one)")] = 60.0,
     resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its checkpoint (same input and options)")] = False,
+    target_psnr: Annotated[float | None, typer.Option(help="dB: skip refinement if the analytic model reaches it, else stop once a validation PSNR does")] = None,
+    plateau: Annotated[float | None, typer.Option(help="dB: stop refinement once the validation PSNR gains less than this over 300 iterations")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite existing output files")] = False,
 ) -> None:
     """Encode a volume into N anisotropic Gaussians, evaluate it and write the model and a report."""
@@ -102,6 +104,8 @@ def encode(
             checkpoint=checkpoint,
             checkpoint_every=checkpoint_every,
             resume=resume,
+            target_psnr=target_psnr,
+            plateau_db=plateau,
             compact=compact,
             example=example,
             example_size=size,

@@ -26,6 +26,8 @@ BUDGET_PROBE = 5  # iterations timed to size a time-budgeted run
 BUDGET_SAFETY = 0.9  # share of the remaining budget planned as iterations
 MAX_BUDGET_ITERATIONS = 20_000  # more iterations than this gain nothing measurable
 BUDGET_SAMPLE_STEPS = (1, 2, 4, 8, 16, 32, 64)  # sample-count multiples a time budget may choose
+VALIDATION_POINTS = 65_536  # voxels whose PSNR decides the target and plateau stops
+SELF_TESTS: dict[str, dict] = {}  # device -> passed self-test result: once per process and device
 
 
 @dataclass
@@ -79,6 +81,10 @@ class RefineConfig:
         budget_samples: In time-budget mode, spend time the schedule does not need on more
             samples per iteration (see :meth:`Refiner.run`); off when samples were set explicitly.
         budget_min_iterations: Iterations a time budget secures before it raises the samples.
+        target_psnr: Stop once the validation PSNR (see :meth:`Refiner.set_validation`),
+            checked every ``check_every`` iterations, reaches this many dB.
+        plateau_db: Stop once the validation PSNR gained less than this over the last
+            ``plateau_window`` iterations.
         partner_distance: Range of the partner offset in voxels.
         split_cells: One thread per (point, neighbour cell) instead of per point, summing through
             atomics; None picks it on CUDA devices (one thread per sample leaves a GPU idle) and
@@ -105,6 +111,10 @@ class RefineConfig:
     split_cells: bool | None = None
     budget_samples: bool = True
     budget_min_iterations: int = 1500
+    target_psnr: float | None = None
+    plateau_db: float | None = None
+    check_every: int = 100
+    plateau_window: int = 300
     weights: LossWeights = field(default_factory=LossWeights)
 
     def to_dict(self) -> dict:
@@ -237,6 +247,9 @@ class Refiner:
         self.stop_requested = False
         self.interrupted = False
         self.graph_error = None
+        self.val_points = None
+        self.checks: list[dict] = []
+        self.stop_reason: str | None = None
         self.rebin(replan=True)
 
     def set_samples(self, m: int) -> None:
@@ -578,6 +591,55 @@ class Refiner:
         """(N, 12) training parameters in primitive order."""
         return self._to_primitive_order(self.raw)
 
+    # -- validation (target PSNR, plateau) ---------------------------------------------------
+
+    def set_validation(self, f, points: int = VALIDATION_POINTS) -> None:
+        """Fix the voxel centres whose PSNR decides the target and plateau stops.
+
+        Up to ``points`` valid voxels drawn uniformly with a fixed seed (all of them on small
+        grids); PSNR as stage EV defines it, on normalised values.
+        """
+        from .evaluate import EVAL_SEED
+
+        wp = self._wp
+        n = f.n_voxels
+        idx = np.arange(n, dtype=np.int64) if n <= points else np.random.default_rng(EVAL_SEED + 1).integers(0, n, points, dtype=np.int64)
+        if f.mask is not None:
+            idx = idx[f.mask.reshape(-1)[idx]]
+        nz, ny, nx = f.values.shape
+        pts = np.stack([idx % nx, (idx // nx) % ny, idx // (nx * ny)], axis=1).astype(np.float32)
+        self.val_truth = f.values.reshape(-1)[idx].astype(np.float64)
+        self.val_points = wp.array(pts, dtype=wp.vec3, device=self.device)
+        self._val_out = [wp.empty(len(idx), dtype=t, device=self.device) for t in (float, float, int)]
+
+    def validation_psnr(self) -> float:
+        """PSNR of the current primitives at the validation voxels (syncs)."""
+        from .evaluate import psnr_from_mse
+        from .kernels import field as kf
+
+        if self.val_points is None or self.val_points.shape[0] == 0:
+            raise WarpgaussError("no validation voxels: call set_validation first")
+        self._wp.launch(kf.eval_points_binned, dim=self.val_points.shape[0], inputs=[self.val_points, self.prims], outputs=self._val_out, device=self.device)
+        err = self._val_out[0].numpy().astype(np.float64) - self.val_truth
+        return psnr_from_mse(float(np.mean(err * err)))
+
+    def _check_stop(self) -> bool:
+        """At check iterations: record the validation PSNR; True if a target or plateau stop applies."""
+        cfg, done = self.cfg, self.iteration
+        if (cfg.target_psnr is None and cfg.plateau_db is None) or self.val_points is None or done % max(cfg.check_every, 1):
+            return False
+        psnr = self.validation_psnr()
+        self.checks.append({"iteration": done, "psnr_db": psnr})
+        if cfg.target_psnr is not None and psnr >= cfg.target_psnr:
+            self.stop_reason = f"target PSNR {cfg.target_psnr:g} dB reached ({psnr:.2f} dB)"
+            return True
+        if cfg.plateau_db is not None:
+            then = [c for c in self.checks if c["iteration"] <= done - cfg.plateau_window]
+            if then and psnr - then[-1]["psnr_db"] < cfg.plateau_db:
+                self.stop_reason = f"plateau: +{psnr - then[-1]['psnr_db']:.3f} dB over {done - then[-1]['iteration']} iterations (< {cfg.plateau_db:g} dB)"
+                return True
+        return False
+
     # -- checkpoints -------------------------------------------------------------------------
 
     def state(self) -> tuple[dict, dict]:
@@ -740,6 +802,8 @@ class Refiner:
                     progress(done, self.cfg.iterations, rec)
             if after_step is not None:
                 after_step(self)
+            if self._check_stop():
+                break
         if deadline is not None:
             plan.finish(it)
         return history

@@ -260,8 +260,22 @@ def encode_field(
             analytic.save(analytic_output, compact=opts.compact, force=force)
     model = analytic
     refinement: dict = {"iterations": 0}
-    if opts.refine.iterations > 0:
-        from .optimize import Refiner, self_test
+    early_eval = None
+    if opts.refine.iterations > 0 and opts.refine.target_psnr is not None and evaluate:
+        from .evaluate import evaluate_field
+
+        with timer.stage("EVa", "analytic model evaluation (for --target-psnr)"):
+            early_eval = evaluate_field(analytic.field(dev), f, full=full_eval)
+        if early_eval["psnr_db"] >= opts.refine.target_psnr:
+            skipped.append(
+                {
+                    "what": "S2 refinement",
+                    "why": f"the analytic model already reaches the target ({early_eval['psnr_db']:.2f} >= {opts.refine.target_psnr:g} dB)",
+                }
+            )
+            refinement = {"iterations": 0, "stop": {"reason": "target PSNR reached by the analytic model", "iterations_skipped": opts.refine.iterations}}
+    if opts.refine.iterations > 0 and not refinement.get("stop"):
+        from .optimize import SELF_TESTS, Refiner, self_test
 
         cfg = opts.refine
         cap = opts.allocation.resolved_cap(f.shape_xyz)
@@ -271,12 +285,20 @@ def encode_field(
             ckpt = _Checkpoints(opts, params, cfg, dev)
             if opts.resume:
                 ckpt.resume(refiner)
-            if opts.self_test:  # the self-test leaves the training state as it was
+            if opts.self_test and dev in SELF_TESTS:  # once per process and device: the kernels cannot change
+                refinement["self_test"] = {**SELF_TESTS[dev], "reused": True}
+                skipped.append(
+                    {"what": "self-test", "why": "passed earlier in this process on this device", "seconds_saved": SELF_TESTS[dev]["seconds"]}
+                )
+            elif opts.self_test:  # the self-test leaves the training state as it was
                 t0 = time.perf_counter()
                 refinement["self_test"] = self_test(refiner)
                 refinement["self_test"]["seconds"] = time.perf_counter() - t0
+                SELF_TESTS[dev] = dict(refinement["self_test"])
             else:
                 skipped.append({"what": "self-test", "why": "--no-self-test"})
+            if cfg.target_psnr is not None or cfg.plateau_db is not None:
+                refiner.set_validation(f)
             t0 = time.perf_counter()
             deadline = None
             if opts.time_budget is not None and not opts.resume:  # 5 % reserve for the export
@@ -312,6 +334,18 @@ def encode_field(
                 "loss_history": history,
             }
         )
+        if refiner.stop_reason is not None:
+            left = refiner.cfg.iterations - refiner.iteration
+            refinement["stop"] = {
+                "reason": refiner.stop_reason,
+                "at_iteration": refiner.iteration,
+                "iterations_skipped": left,
+                "seconds_saved_estimate": left * total / max(refiner.iteration, 1),
+                "checks": refiner.checks,
+            }
+            skipped.append({"what": f"S2 iterations {refiner.iteration}-{refiner.cfg.iterations}", "why": refiner.stop_reason, "seconds_saved": refinement["stop"]["seconds_saved_estimate"]})
+        elif refiner.checks:
+            refinement["checks"] = refiner.checks
         if refiner.interrupted:
             evaluate = False
             skipped.append({"what": "EV evaluation", "why": f"interrupted at iteration {refiner.iteration}"})
@@ -323,7 +357,7 @@ def encode_field(
         from .evaluate import evaluate_field
 
         with timer.stage("EV", "evaluation"):
-            evaluation["analytic"] = evaluate_field(analytic.field(dev), f, full=full_eval)
+            evaluation["analytic"] = early_eval or evaluate_field(analytic.field(dev), f, full=full_eval)
             if model is analytic:
                 evaluation["final"] = evaluation["analytic"]
             else:
@@ -503,6 +537,8 @@ def encode(
     checkpoint: str | os.PathLike | None = None,
     checkpoint_every: float = 60.0,
     resume: bool = False,
+    target_psnr: float | None = None,
+    plateau_db: float | None = None,
     compact: bool = False,
     example: str | None = None,
     example_size: int | tuple[int, int, int] = 64,
@@ -541,6 +577,10 @@ def encode(
         checkpoint_every: Seconds between checkpoints.
         resume: Continue from the checkpoint (same input and options; the result is the model an
             uninterrupted run gives, bit-identical on the same CPU). Overwrites ``output``.
+        target_psnr: Skip refinement if the analytic model reaches this PSNR (dB), else stop it
+            once a 65,536-voxel validation PSNR, checked every 100 iterations, does.
+        plateau_db: Stop refinement once that validation PSNR gained less than this (dB) over
+            the last 300 iterations.
         compact: Size the budget (and the report) for the compact 12-byte format.
         example: Built-in example volume name instead of ``source``.
         example_size: Size of the example volume.
@@ -571,6 +611,10 @@ def encode(
     if not checkpoint_every >= 0:
         raise WarpgaussError(f"--checkpoint-every must be >= 0 seconds, got {checkpoint_every}")
     refine = resolve_refine(refine, preset, iterations, samples)
+    for name, value in (("--target-psnr", target_psnr), ("--plateau", plateau_db)):
+        if value is not None and not value > 0:
+            raise WarpgaussError(f"{name} must be a positive number of dB, got {value}")
+    refine = dataclasses.replace(refine, target_psnr=target_psnr, plateau_db=plateau_db)
     if time_budget is not None and not time_budget > 0:
         raise WarpgaussError(f"--time-budget must be a positive number of seconds, got {time_budget}")
     opts = EncodeOptions(

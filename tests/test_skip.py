@@ -1,0 +1,62 @@
+"""Skipping what a field does not need: target PSNR, plateau, the self-test once per device."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import warpgauss
+from warpgauss import optimize
+
+KW = {"example": "vortex", "example_size": 24, "budget": 300, "samples": 256, "device": "cpu", "seed": 1}
+
+
+def _skipped(m) -> set:
+    return {s["what"] for s in m.report["skipped"]}
+
+
+def test_target_reached_by_the_analytic_model_skips_refinement(cpu):
+    analytic = warpgauss.encode(**KW, iterations=0)
+    m = warpgauss.encode(**KW, iterations=500, target_psnr=analytic.report["psnr_db"] - 1.0)
+    assert "S2 refinement" in _skipped(m) and m.report["refinement"]["stop"]["iterations_skipped"] == 500
+    assert m.params.tobytes() == analytic.params.tobytes()
+    assert "S2" not in [s["stage"] for s in m.report["stages"]]
+
+
+def test_target_stops_refinement_once_reached(cpu):
+    full = warpgauss.encode(**KW, iterations=600)
+    analytic_db = full.report["evaluation"]["analytic"]["psnr_db"]
+    target = analytic_db + 0.5 * (full.report["psnr_db"] - analytic_db)  # reached well before the end
+    m = warpgauss.encode(**KW, iterations=600, target_psnr=target)
+    stop = m.report["refinement"]["stop"]
+    assert stop["at_iteration"] < 600 and stop["at_iteration"] % 100 == 0
+    assert stop["checks"][-1]["psnr_db"] >= target  # stopped at the first check that reached it
+    assert all(c["psnr_db"] < target for c in stop["checks"][:-1])
+    # the validation set is the whole 24^3 grid here, so the check is the reported PSNR
+    assert m.report["psnr_db"] == pytest.approx(stop["checks"][-1]["psnr_db"], abs=1e-4)
+    assert m.report["psnr_db"] >= target
+    assert stop["seconds_saved_estimate"] > 0 and any("target PSNR" in s["why"] for s in m.report["skipped"])
+
+
+def test_plateau_stops_when_the_gain_over_the_window_is_small(cpu):
+    m = warpgauss.encode(**KW, iterations=1000, plateau_db=50.0)  # any gain is "small"
+    stop = m.report["refinement"]["stop"]
+    assert stop["reason"].startswith("plateau") and stop["at_iteration"] == 400  # first check with 300 behind it
+    assert [c["iteration"] for c in stop["checks"]] == [100, 200, 300, 400]
+    assert np.all(np.isfinite(m.params))
+
+
+def test_self_test_runs_once_per_process_and_device(cpu, monkeypatch):
+    monkeypatch.setattr(optimize, "SELF_TESTS", {})
+    import warpgauss.pipeline  # noqa: F401  (the pipeline imports the dict at call time)
+
+    a = warpgauss.encode(**KW, iterations=5)
+    b = warpgauss.encode(**KW, iterations=5)
+    assert a.report["refinement"]["self_test"]["passed"] and not a.report["refinement"]["self_test"].get("reused")
+    assert b.report["refinement"]["self_test"]["reused"] and "self-test" in _skipped(b)
+    assert a.params.tobytes() == b.params.tobytes()
+
+
+def test_bad_stop_options_are_refused():
+    with pytest.raises(warpgauss.WarpgaussError, match="--target-psnr must be a positive"):
+        warpgauss.encode(**KW, target_psnr=-3)
