@@ -8,23 +8,9 @@ from typing import Annotated
 
 import typer
 
-from .common import handle_errors, out_console
+from .common import handle_errors, out_console, parse_int_list
 
 bench_app = typer.Typer(help="Benchmarks.", no_args_is_help=True, add_completion=False)
-
-
-def _ints(text: str | None, what: str) -> tuple[int, ...] | None:
-    from warpgauss.errors import WarpgaussError
-
-    if text is None:
-        return None
-    try:
-        values = tuple(int(float(x)) for x in text.replace("_", "").split(",") if x.strip())
-    except ValueError:
-        values = ()
-    if not values or min(values) < 1:
-        raise WarpgaussError(f"{what} must be a comma-separated list of positive integers, got {text!r}")
-    return values
 
 
 @bench_app.command("kernels")
@@ -56,8 +42,8 @@ def kernels(
     d = GPU_DEFAULTS if cuda else CPU_DEFAULTS
     cfg = KernelBenchConfig(
         size=size or d["size"],
-        ns=_ints(n, "--n") or d["ns"],
-        samples=_ints(samples, "--samples") or d["samples"],
+        ns=parse_int_list(n, "--n") or d["ns"],
+        samples=parse_int_list(samples, "--samples") or d["samples"],
         repeat=repeat,
         dense_max_n=dense_max_n if dense_max_n is not None else (650_000 if cuda else 2_000),
         decode=not no_decode,

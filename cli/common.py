@@ -82,6 +82,19 @@ def parse_shape(text: str | None, what: str = "--shape") -> tuple[int, int, int]
     return shape
 
 
+def parse_int_list(text: str | None, what: str) -> tuple[int, ...] | None:
+    """'2000,20000,2e5' -> (2000, 20000, 200000); None stays None; refuses empty or non-positive lists."""
+    if text is None:
+        return None
+    try:
+        values = tuple(int(float(x)) for x in text.replace("_", "").split(",") if x.strip())
+    except ValueError:
+        values = ()
+    if not values or min(values) < 1:
+        raise WarpgaussError(f"{what} must be a comma-separated list of positive integers, got {text!r}")
+    return values
+
+
 def print_json(obj) -> None:
     sys.stdout.write(json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
 

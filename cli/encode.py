@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .common import err_console, fail, handle_errors, human_bytes, out_console, parse_shape, print_json
+from .common import err_console, fail, handle_errors, human_bytes, out_console, parse_int_list, parse_shape, print_json
 
 
 @handle_errors
@@ -143,14 +143,8 @@ def encode(
 def _encode_ladder(text, input, out, example, size, seed, device, iterations, samples, preset, refine, self_test, compact, read, full_eval, as_json, force) -> None:
     import warpgauss
     from warpgauss._fs import atomic_write_bytes, check_writable
-    from warpgauss.errors import WarpgaussError
 
-    try:
-        budgets = [int(float(x)) for x in text.replace("_", "").split(",") if x.strip()]
-    except ValueError:
-        budgets = []
-    if not budgets or min(budgets) < 1:
-        raise WarpgaussError(f"--ladder must be a comma-separated list of positive budgets, got {text!r}")
+    budgets = parse_int_list(text, "--ladder")
     pattern = str(out.with_name(f"{out.stem}.n{{n}}{out.suffix or '.wgs'}"))
     for n in sorted(set(budgets)):
         check_writable(Path(pattern.format(n=n) + ".report.json"), force=force)

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from .common import handle_errors, human_bytes, out_console, parse_shape, print_json
+from .common import handle_errors, human_bytes, out_console, parse_int_list, parse_shape, print_json
 
 
 @handle_errors
@@ -35,14 +35,7 @@ def stats(
 
     if (input is None) == (example is None):
         raise WarpgaussError("give a volume file or --example NAME (one of them)")
-    ladder = DEFAULT_BUDGETS
-    if budgets is not None:
-        try:
-            ladder = tuple(int(float(x)) for x in budgets.replace("_", "").split(",") if x.strip())
-        except ValueError:
-            ladder = ()
-        if not ladder or min(ladder) < 1:
-            raise WarpgaussError(f"--budgets must be a comma-separated list of positive integers, got {budgets!r}")
+    ladder = parse_int_list(budgets, "--budgets") or DEFAULT_BUDGETS
     t0 = time.perf_counter()
     f, _ = load_field(input, ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value), example=example, example_size=size)
     load_seconds = time.perf_counter() - t0

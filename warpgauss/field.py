@@ -79,6 +79,17 @@ def plan_bins(radius: np.ndarray, shape_xyz: tuple[int, int, int]) -> BinPlan:
     return BinPlan(tuple(sizes), tuple(dims), offsets, int(sum(counts)))
 
 
+def set_plan(prims, plan: BinPlan, device: str, cell_start=None, cell_end=None) -> None:
+    """Give a ``BinnedPrimitives`` the level arrays of ``plan`` and cell tables (zeroed, or given)."""
+    wp = warp()
+    prims.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=device)
+    prims.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=device)
+    prims.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=device)
+    for name, table in (("cell_start", cell_start), ("cell_end", cell_end)):
+        arr = wp.zeros(plan.total_cells, dtype=int, device=device) if table is None else wp.array(table, dtype=int, device=device)
+        setattr(prims, name, arr)
+
+
 class GaussianField:
     """A primitive set resident on one Warp device, ready for truncation-aware evaluation.
 
@@ -148,11 +159,7 @@ class GaussianField:
             plan = plan_bins(self.radius.numpy(), self.shape_xyz)
             if plan != self.plan:
                 self.plan = plan
-                prims.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=dev)
-                prims.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=dev)
-                prims.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=dev)
-                prims.cell_start = wp.zeros(plan.total_cells, dtype=int, device=dev)
-                prims.cell_end = wp.zeros(plan.total_cells, dtype=int, device=dev)
+                set_plan(prims, plan, dev)
         wp.launch(
             kf.bin_keys,
             dim=n,

@@ -330,7 +330,7 @@ class Refiner:
 
     def rebin(self, replan: bool = False) -> None:
         """Sort the training state into cell order (re-planning the levels with ``replan``)."""
-        from .field import plan_bins
+        from .field import plan_bins, set_plan
         from .kernels import field as kf
         from .kernels import optim as ko
 
@@ -341,11 +341,7 @@ class Refiner:
             plan = plan_bins(radius.numpy(), self.dv.field.shape_xyz)
             if plan != self.plan:
                 self.plan = plan
-                p.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=dev)
-                p.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=dev)
-                p.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=dev)
-                p.cell_start = wp.zeros(plan.total_cells, dtype=int, device=dev)
-                p.cell_end = wp.zeros(plan.total_cells, dtype=int, device=dev)
+                set_plan(p, plan, dev)
                 self._graph = None
         wp.launch(
             kf.bin_keys,
@@ -677,7 +673,7 @@ class Refiner:
 
     def restore(self, arrays: dict, scalars: dict) -> None:
         """Continue from :meth:`state` (same primitives count; shapes checked by the caller)."""
-        from .field import BinPlan
+        from .field import BinPlan, set_plan
         from .kernels import field as kf
 
         wp, dev, p, b = self._wp, self.device, self.prims, self.bounds
@@ -686,11 +682,7 @@ class Refiner:
         pl = scalars["plan"]
         plan = BinPlan(tuple(float(x) for x in pl["sizes"]), tuple(tuple(int(v) for v in d) for d in pl["dims"]), tuple(int(x) for x in pl["offsets"]), int(pl["total_cells"]))
         self.plan = plan
-        p.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=dev)
-        p.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=dev)
-        p.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=dev)
-        p.cell_start = wp.array(arrays["cell_start"], dtype=int, device=dev)
-        p.cell_end = wp.array(arrays["cell_end"], dtype=int, device=dev)
+        set_plan(p, plan, dev, arrays["cell_start"], arrays["cell_end"])
         for dst, key in ((self.raw, "raw"), (self.m1, "m1"), (self.m2, "m2"), (self.ids, "ids"), (b.lo, "bounds_lo"), (b.hi, "bounds_hi"), (b.cell, "bounds_cell"), (self.counts, "counts")):
             dst.assign(arrays[key])
         mu, rot, inv_s2, ext, radius, a, w = self._prep
