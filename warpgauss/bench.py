@@ -84,12 +84,13 @@ class _Timer:
             fn()
         wp.synchronize_device(self.device)
         if self.cuda:
+            stream = wp.get_stream(self.device)
             e0 = wp.Event(self.device, enable_timing=True)
             e1 = wp.Event(self.device, enable_timing=True)
-            wp.record_event(e0)
+            stream.record_event(e0)
             for _ in range(repeat):
                 fn()
-            wp.record_event(e1)
+            stream.record_event(e1)
             return wp.get_event_elapsed_time(e0, e1) / repeat
         t0 = time.perf_counter()
         for _ in range(repeat):
