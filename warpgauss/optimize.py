@@ -141,6 +141,20 @@ def stratum_counts(m: int, n_high: int, n_mid: int) -> tuple[int, int, int]:
     return m_high, m_mid, m - m_high - m_mid
 
 
+def load_kernels(device: str) -> None:
+    """Compile (or load from the cache) every kernel module refinement uses, so that no time
+    budget pays for it."""
+    from ._warp import warp
+    from .kernels import backward as kb
+    from .kernels import field as kf
+    from .kernels import optim as ko
+    from .kernels import sampling as ks
+
+    wp = warp()
+    for module in (kf, ko, kb, ks):
+        wp.load_module(module, device=device)
+
+
 class Refiner:
     """N primitives under refinement on one device.
 
@@ -179,8 +193,7 @@ class Refiner:
 
         wp = warp()
         self._wp = wp
-        for module in (kf, ko, kb, ks):  # compile now, so that no time budget pays for it
-            wp.load_module(module, device=dv.device)
+        load_kernels(dv.device)
         self.dv, self.cfg, self.seed = dv, config, seed
         dev = self.device = dv.device
         if config.samples < 1 or config.iterations < 0:
