@@ -12,6 +12,7 @@ from .encode import encode
 from .evaluate import evaluate
 from .example import example
 from .info import info
+from .render import render
 from .stats import stats
 
 app = typer.Typer(
@@ -37,6 +38,7 @@ app.command("info")(info)
 app.command("eval")(evaluate)
 app.command("example")(example)
 app.command("stats")(stats)
+app.command("render")(render)
 app.add_typer(bench_app, name="bench")
 
 
