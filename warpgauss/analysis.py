@@ -69,8 +69,78 @@ class Field:
         return self.occupied / max(self.n_valid, 1)
 
     def to_original(self, normalised: np.ndarray) -> np.ndarray:
-        """Map normalised values back to the source's units."""
-        return (normalised.astype(np.float64) * (self.vmax - self.vmin) + self.vmin).astype(np.float32)
+        """Map normalised values back to the source's units (see :func:`denormalise`)."""
+        return denormalise(normalised, self.vmin, self.vmax)
+
+
+F32_MAX = float(np.finfo(np.float32).max)
+F32_TINY = float(np.finfo(np.float32).tiny)  # smallest normal float32
+_F32_SAFE = 1e30  # float32 normalisation only where values, range and scale stay within 1e-30..1e30
+
+
+class _NormPlan:
+    """How stage P maps source values to (x - lo) / (hi - lo) without overflow, NaN or lost scale.
+
+    float32 arithmetic (fast, exact enough for <= 4-byte sources) is used only while neither the
+    values, nor the range, nor 1 / range leave 1e-30..1e30; otherwise float64, dividing by the range
+    where 1 / range would overflow (subnormal data) and halving first where hi - lo itself overflows
+    (float64 data near +-1.8e308). Values normalised by a given range are clamped to finite float32.
+    """
+
+    def __init__(self, lo: float, hi: float, data_lo: float, data_hi: float, exact: bool, clip: bool):
+        self.lo, self.clip = lo, clip
+        span = hi - lo
+        self.halve = not np.isfinite(span)
+        if self.halve:
+            self.lo, span = 0.5 * lo, 0.5 * hi - 0.5 * lo
+        self.span = span
+        self.scale = 1.0 / span
+        reach = max(abs(lo), abs(hi), abs(data_lo), abs(data_hi))
+        # the largest |normalised| value (outside [0, 1] only with a given value range)
+        h = 0.5 if self.halve else 1.0
+        out = max(abs(data_lo * h - self.lo), abs(data_hi * h - self.lo)) / span
+        self.f32 = not exact and not self.halve and reach <= _F32_SAFE and 1 / _F32_SAFE <= span <= _F32_SAFE
+        self.f32 = self.f32 and out <= _F32_SAFE
+        self.divide = not (np.isfinite(self.scale) and abs(self.scale) >= np.finfo(np.float64).tiny)
+        self.bound = not clip and not out <= F32_MAX
+
+    def apply(self, s: np.ndarray) -> np.ndarray:
+        if self.f32:
+            v = s.astype(np.float32, copy=True)
+            v -= np.float32(self.lo)
+            v *= np.float32(self.scale)
+        else:
+            v = s.astype(np.float64, copy=True)
+            if self.halve:
+                v *= 0.5
+            v -= self.lo
+            if self.divide:
+                v /= self.span
+            else:
+                v *= self.scale
+        if self.clip:
+            np.clip(v, 0.0, 1.0, out=v)
+        elif self.bound:
+            np.clip(v, -F32_MAX, F32_MAX, out=v)
+        return v
+
+
+def denormalise(normalised: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Normalised values back to source units: lo + v (hi - lo), overflow-safe.
+
+    Returns float32, or float64 where float32 cannot hold the range: beyond +-3.4e38 (a float64
+    source near +-1e308) or narrower than float32's smallest normal number (subnormal data), so that
+    no finite source value decodes to inf or to a few subnormal steps.
+    """
+    v = np.asarray(normalised, dtype=np.float64)
+    lo, hi = float(lo), float(hi)
+    if np.isfinite(hi - lo):
+        out = v * (hi - lo) + lo
+    else:  # hi - lo overflows: interpolate from both ends, each term bounded by max(|lo|, |hi|)
+        out = lo * (1.0 - v) + hi * v
+    if max(abs(lo), abs(hi)) > F32_MAX or hi - lo < F32_TINY:
+        return out
+    return np.clip(out, -F32_MAX, F32_MAX).astype(np.float32)  # an overshoot past the range stays finite
 
 
 def normalise(
@@ -102,7 +172,6 @@ def normalise(
         raise WarpgaussError(f"the volume's dtype {data.dtype} is not a real number type")
     nz = data.shape[0]
     exact = np.dtype(data.dtype).itemsize > 4 or np.dtype(data.dtype) in (np.int32, np.uint32)
-    work = np.float64 if exact else np.float32  # float32 arithmetic is exact enough for <= 4-byte sources
     maybe_invalid = np.issubdtype(data.dtype, np.floating) or fill_value is not None
 
     def scan(z0: int):
@@ -123,22 +192,21 @@ def normalise(
     n_invalid = sum(p[2] for p in parts)
     if not np.isfinite(lo):
         raise WarpgaussError("the volume has no finite value (all NaN/Inf or fill); nothing to encode")
+    data_lo, data_hi = lo, hi
     clip = value_range is None
     if value_range is not None:
         lo, hi = float(value_range[0]), float(value_range[1])
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            raise WarpgaussError(f"the value range ({lo:g}, {hi:g}) is not finite; the model is damaged")
     if hi <= lo:
         raise WarpgaussError(f"the volume is constant ({lo:g} everywhere it is valid); there is no structure to encode")
     values = np.empty(data.shape, np.float32)
     mask = np.ones(data.shape, bool) if n_invalid else None
-    scale = 1.0 / (hi - lo)
+    plan = _NormPlan(lo, hi, data_lo, data_hi, exact, clip)
 
     def fill(z0: int):
         s = np.asarray(data[z0 : z0 + SLAB])
-        v = s.astype(work, copy=True)
-        v -= work(lo)
-        v *= work(scale)
-        if clip:
-            np.clip(v, 0.0, 1.0, out=v)
+        v = plan.apply(s)
         if mask is not None:
             ok = _valid(s, fill_value)
             v[~ok] = 0.0

@@ -170,13 +170,16 @@ class Model:
             progress: Optional callback(done, total).
 
         Returns:
-            (nz, ny, nx) float32 array.
+            (nz, ny, nx) float32 array (float64 where float32 cannot hold the value range, see
+            :func:`warpgauss.analysis.denormalise`).
         """
+        from .analysis import denormalise
+
         v = self.field(device).decode(shape, progress=progress)
         if normalised:
             return v
         lo, hi = self.value_range
-        return (v.astype(np.float64) * (hi - lo) + lo).astype(np.float32)
+        return denormalise(v, lo, hi)
 
     def decoded_spacing(self, shape: tuple[int, int, int] | None = None) -> tuple[float, float, float]:
         """Physical voxel spacing of a decode at ``shape`` (same extent as the encoded grid)."""
