@@ -227,6 +227,10 @@ def raw_gradient(
     # quaternion: R(qh) with qh = q / |q|, Warp's (x, y, z, w) order
     qn2 = p[6] * p[6] + p[7] * p[7] + p[8] * p[8] + p[9] * p[9]
     qn = wp.sqrt(wp.max(qn2, 1.0e-20))
+    if not wp.isfinite(qn2):  # |q| beyond 1.8e19: scale before squaring, as safe_unit_quat does
+        big = wp.max(wp.max(wp.abs(p[6]), wp.abs(p[7])), wp.max(wp.abs(p[8]), wp.abs(p[9])))
+        u = wp.vec4(p[6] / big, p[7] / big, p[8] / big, p[9] / big)
+        qn = big * wp.length(u)
     x = p[6] / qn
     y = p[7] / qn
     z = p[8] / qn

@@ -28,10 +28,23 @@ LOG_SCALE_MAX = wp.constant(12.0)  # exp(12) = 1.6e5 voxels: keeps s^2 finite in
 
 @wp.func
 def safe_unit_quat(qx: float, qy: float, qz: float, qw: float) -> wp.quat:
-    """Normalise a quaternion, falling back to the identity when it is (nearly) zero."""
+    """Normalise a quaternion, falling back to the identity when it is (nearly) zero or not finite.
+
+    Beyond |q| ~ 1.8e19 the squared norm overflows float32 (1/sqrt(inf) = 0 would return a zero
+    quaternion): such a q is scaled by its largest component first.
+    """
     n2 = qx * qx + qy * qy + qz * qz + qw * qw
     if n2 < 1.0e-20:
         return wp.quat_identity()
+    if not wp.isfinite(n2):
+        if not (wp.isfinite(qx) and wp.isfinite(qy) and wp.isfinite(qz) and wp.isfinite(qw)):
+            return wp.quat_identity()
+        big = wp.max(wp.max(wp.abs(qx), wp.abs(qy)), wp.max(wp.abs(qz), wp.abs(qw)))
+        qx = qx / big
+        qy = qy / big
+        qz = qz / big
+        qw = qw / big
+        n2 = qx * qx + qy * qy + qz * qz + qw * qw
     inv = 1.0 / wp.sqrt(n2)
     return wp.quat(qx * inv, qy * inv, qz * inv, qw * inv)
 
