@@ -281,7 +281,9 @@ def _colour_curve(x: np.ndarray, pts: np.ndarray, space: str) -> np.ndarray:
             out[sel] = _diverging(a, b, t)
         else:
             ha, hb = np.array(colorsys.rgb_to_hsv(*a)), np.array(colorsys.rgb_to_hsv(*b))
-            out[sel] = [colorsys.hsv_to_rgb(*(ha * (1 - u) + hb * u)) for u in t]
+            if abs(hb[0] - ha[0]) > 0.5:  # the short way round the hue circle (VTK's HSVWrap)
+                hb[0] += 1.0 if hb[0] < ha[0] else -1.0
+            out[sel] = [colorsys.hsv_to_rgb(*((ha * (1 - u) + hb * u) % [1.0, 2.0, 2.0])) for u in t]
     return out
 
 
@@ -327,28 +329,23 @@ class TransferFunction:
 
     def with_colormap(self, name: str) -> TransferFunction:
         """The same opacity with a named colormap's colours."""
-        return TransferFunction(colormap(name, len(self.opacity)), self.opacity, _label(name, self.source.get("opacity")), {**self.source, "colormap": name})
+        return TransferFunction(colormap(name, len(self.opacity)), self.opacity, str(name), {**self.source, "colormap": str(name)})
 
     def with_opacity(self, points) -> TransferFunction:
         """The same colours with a piecewise-linear opacity curve through ``points`` (or a string)."""
         pts = parse_opacity(points) if isinstance(points, str) else _check_points(list(points), "opacity")
         x = np.linspace(0.0, 1.0, len(self.opacity))
         src = {**self.source, "opacity": [list(p) for p in pts]}
-        return TransferFunction(self.rgb, _piecewise(x, pts), _label(src.get("colormap", self.name), pts), src)
+        return TransferFunction(self.rgb, _piecewise(x, pts), self.name, src)
 
     def describe(self) -> dict:
         return {"name": self.name, **self.source}
 
 
-def _label(cmap, opacity) -> str:
-    return str(cmap) if opacity is None else f"{cmap}"
-
-
 def make_transfer_function(colormap_name: str = "viridis", opacity="linear") -> TransferFunction:
     """A named colormap with an opacity curve (points or a string for :func:`parse_opacity`)."""
-    x = np.linspace(0.0, 1.0, LUT_SIZE)
     tf = TransferFunction(colormap(colormap_name), np.zeros(LUT_SIZE), str(colormap_name), {"colormap": str(colormap_name)})
-    return tf.with_opacity(opacity) if opacity is not None else tf.with_opacity([(float(x[0]), 0.0), (1.0, 1.0)])
+    return tf.with_opacity("linear" if opacity is None else opacity)
 
 
 def from_header(header: dict) -> TransferFunction:
