@@ -11,9 +11,11 @@ from .decode import decode
 from .encode import encode
 from .evaluate import evaluate
 from .example import example
+from .export import export
 from .info import info
 from .render import render
 from .stats import stats
+from .view import view
 
 app = typer.Typer(
     name="warpgauss",
@@ -39,6 +41,8 @@ app.command("eval")(evaluate)
 app.command("example")(example)
 app.command("stats")(stats)
 app.command("render")(render)
+app.command("export")(export)
+app.command("view")(view)
 app.add_typer(bench_app, name="bench")
 
 

@@ -340,3 +340,50 @@ def test_cli_render_refusals(vortex, tmp_path, args, message):
     assert len(lines) == 1 and "Traceback" not in r.output, r.output
     assert message.lower() in lines[0].lower(), lines[0]
     assert not (tmp_path / "OUT.png").exists() and (tmp_path / "EXISTS.png").read_bytes() == b"x"
+
+
+def test_cli_view_screenshot_and_no_display(cpu, vortex, tmp_path):
+    """`view --screenshot` renders one frame off-screen; without a display and without it, a clean refusal."""
+    from PIL import Image as PILImage
+
+    _, d = vortex
+    shot = tmp_path / "view.png"
+    r = runner.invoke(app, ["view", str(d / "vortex.wgs"), "--screenshot", str(shot), "--size", "96x80", "--device", cpu])
+    assert r.exit_code == 0, r.output
+    img = np.asarray(PILImage.open(shot).convert("RGB"))
+    assert img.shape == (80, 96, 3) and img.mean() > 5  # the volume and the outline are drawn
+    r = runner.invoke(app, ["view", str(d / "vortex.wgs")], env={"DISPLAY": None, "WAYLAND_DISPLAY": None})
+    assert r.exit_code == 2 and "no display" in r.stderr and "--screenshot" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_viewer_controls_change_the_frame(cpu, vortex):
+    """The viewer's keys (colormap, opacity, density, method, shading) each give a different frame."""
+    from warpgauss.cli.view import Viewer
+
+    model, _ = vortex
+    v = Viewer(model, size=(48, 40), device=cpu, off_screen=True)
+    frames = [v.frame(48, 40).rgb]
+    for action in (v.next_colormap, v.next_opacity, lambda: v.scale_density(3.0), v.toggle_method, v.toggle_shading):
+        action()
+        frames.append(v.frame(48, 40).rgb)
+        assert np.abs(frames[-1] - frames[-2]).max() > 0.01
+    assert v.method == "march"
+    v.plotter.close()
+
+
+def test_render_benchmark_runs_on_cpu_at_tiny_sizes(tmp_path):
+    """benchmarks/bench_render.py (fps of both paths; GPU sizes by default) with tiny CPU flags."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_render.py"
+    spec = importlib.util.spec_from_file_location("_bench_render", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "render.json"
+    res = bench.main(["--budgets", "200", "--size", "16", "--resolution", "24x16", "--frames", "1", "--device", "cpu", "--out", str(out)])
+    saved = json.loads(out.read_text())
+    assert saved["device_name"] and saved["warp_version"] and saved["date"] and saved["command"].startswith("bench_render.py")
+    assert [r["method"] for r in res["rows"]] == ["march", "splat"]
+    assert all(r["kernel_fps"] > 0 and r["width"] == 24 and r["height"] == 16 for r in saved["rows"])
