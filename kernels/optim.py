@@ -96,6 +96,9 @@ def adam_step(
     if wp.length_sq(g) == 0.0:
         return  # not visible this iteration: parameters and moments stay (sparse Adam)
     p, a, b = adam_update(params[i], g, m1[i], m2[i], lr, lr_scale, beta1, beta2, eps, bc1, bc2, log_lo, log_hi)
+    if not (all_finite(p) and all_finite(a) and all_finite(b)):
+        wp.atomic_add(skipped, 0, 1)  # a non-finite step (rate, bias correction) never lands
+        return
     params[i] = p
     m1[i] = a
     m2[i] = b
@@ -117,6 +120,14 @@ class SlotBounds:
 
 
 BIG = wp.constant(1.0e30)
+REACH_SLACK = wp.constant(1.1)  # headroom on a deferred step's reach: the next gradient differs a little
+
+
+@wp.kernel
+def effective_radius(radius: wp.array(dtype=float), reach: wp.array(dtype=float)):
+    """Binning radius = max(extent, the reach a deferred step asked for)."""
+    i = wp.tid()
+    radius[i] = wp.max(radius[i], reach[i])
 
 
 @wp.kernel
@@ -214,13 +225,16 @@ def refine_update(
     log_hi: float,
     bounds: SlotBounds,
     prims: BinnedPrimitives,  # prepared primitives, slot order (updated)
-    counts: wp.array(dtype=int),  # [2] out: (non-finite gradients skipped, updates deferred to the next re-bin)
+    counts: wp.array(dtype=int),  # [2] out: (non-finite steps skipped, updates deferred to the next re-bin)
+    reach: wp.array(dtype=float),  # [N] out: binning radius a deferred slot needs at the next re-bin
 ):
     """Chain rule, sparse Adam, constraints and re-preparation of one slot, fused (one thread per slot).
 
     An untouched slot costs one read of its pair gradients. A step that would carry a primitive
     beyond what its cell's neighbourhood covers (:class:`SlotBounds`) is deferred: parameters and
-    moments stay, and the next re-bin moves it to the right cell, so evaluation stays exact.
+    moments stay, and the slot records the reach the step needs (extent plus move), which the
+    next re-bin uses to choose its level, so that the step fits then and evaluation stays exact.
+    A step whose result is not finite (a bad rate or bias correction) is skipped and counted.
     """
     j = wp.tid()
     if not touched(j, d_mu, d_a, d_w):
@@ -239,9 +253,18 @@ def refine_update(
         return
     s = now[0]
     p, a, b = adam_update(raw[j], g, m1[j], m2[j], lr, s[0], beta1, beta2, eps, s[2], s[3], log_lo, log_hi)
+    if not (all_finite(p) and all_finite(a) and all_finite(b)):
+        wp.atomic_add(counts, 0, 1)  # a non-finite step (rate, bias correction) never lands
+        return
     R, inv, e, wt = prepare_one(p, 1)
     mu = wp.vec3(p[0], p[1], p[2])
     if not fits_slot(mu, e, bounds.lo[j], bounds.hi[j], bounds.cell[j]):
+        # the next re-bin gives this slot a level whose cells cover the step it wanted
+        old = raw[j]
+        need = float(0.0)
+        for k in range(3):
+            need = wp.max(need, e[k] + wp.abs(p[k] - old[k]))
+        reach[j] = REACH_SLACK * need
         wp.atomic_add(counts, 1, 1)
         return
     raw[j] = p

@@ -21,7 +21,7 @@ from ._fs import atomic_path
 from .errors import WarpgaussError
 
 FORMAT = "warpgauss-checkpoint"
-VERSION = 1
+VERSION = 2  # 2: deferred-step reach
 META = "__meta__"
 MAX_META_BYTES = 1 << 24
 ARRAYS = {  # name: (dtype, trailing shape) of every array a checkpoint must hold
@@ -35,6 +35,7 @@ ARRAYS = {  # name: (dtype, trailing shape) of every array a checkpoint must hol
     "cell_start": (np.int32, ()),
     "cell_end": (np.int32, ()),
     "counts": (np.int32, ()),
+    "reach": (np.float32, ()),
 }
 
 

@@ -120,6 +120,36 @@ class RefineConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    def validate(self) -> None:
+        """Refuse settings that would diverge or fail late, naming the option."""
+
+        def finite(x) -> bool:
+            return isinstance(x, (int, float)) and math.isfinite(x)
+
+        positive = ("lr", "lr_position", "lr_scale", "lr_rotation", "lr_value", "lr_weight", "lr_decay", "eps")
+        for name in positive:
+            v = getattr(self, name)
+            if not (finite(v) and v > 0):
+                raise WarpgaussError(f"{name} must be a positive finite number, got {v}")
+        for name in ("beta1", "beta2"):
+            v = getattr(self, name)
+            if not (finite(v) and 0 <= v < 1):
+                raise WarpgaussError(f"{name} must be in [0, 1), got {v}")
+        for name in ("touch_ref",):
+            v = getattr(self, name)
+            if not (finite(v) and v >= 0):
+                raise WarpgaussError(f"{name} must be >= 0, got {v}")
+        for name in ("replan_every", "rebin_every", "check_every", "plateau_window", "budget_min_iterations"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                raise WarpgaussError(f"{name} must be a positive integer, got {v}")
+        lo, hi = self.partner_distance
+        if not (finite(lo) and finite(hi) and 0 <= lo <= hi):
+            raise WarpgaussError(f"partner_distance must be 0 <= min <= max, got {self.partner_distance}")
+        for name, v in asdict(self.weights).items():
+            if not (finite(v) and v >= 0):
+                raise WarpgaussError(f"loss weight {name} must be a finite number >= 0, got {v} (--w-{name.replace('_', '-')})")
+
 
 # quality: measured on the H100 (benchmarks/results/quality_grid_h100.json, vortex and interface
 # at 128^3 with 20,000 Gaussians, split-cell kernels): 1,500 x 12,288 gives +2.7 / +1.0 dB over
@@ -234,6 +264,7 @@ class Refiner:
         self._clean = True  # the pair-gradient buffers are all zero
         self.reg_loss = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.counts = wp.zeros(2, dtype=int, device=dev)  # (non-finite skips, deferred updates)
+        self.reach = wp.zeros(n, dtype=float, device=dev)  # binning radius deferred steps ask for
         self._graph = None
         self._split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
         self.use_graph = wp.get_device(dev).is_cuda and config.graph
@@ -350,6 +381,7 @@ class Refiner:
         wp, dev, n, p = self._wp, self.device, self.n, self.prims
         mu, rot, inv_s2, ext, radius, a, w = self._prep
         wp.launch(kf.prepare_primitives, dim=n, inputs=[self.raw, 1], outputs=self._prep, device=dev)
+        wp.launch(ko.effective_radius, dim=n, inputs=[radius, self.reach], device=dev)
         if replan or self.plan is None:
             plan = plan_bins(radius.numpy(), self.dv.field.shape_xyz)
             if plan != self.plan:
@@ -383,6 +415,7 @@ class Refiner:
         )
         for dst, src in ((self.raw, self._raw_b), (self.m1, self._m1_b), (self.m2, self._m2_b), (self.ids, self._ids_b)):
             wp.copy(dst, src)  # copy back, not swap: a captured graph holds these addresses
+        self.reach.zero_()
         if not self._clean:
             self._zero_grads()
         self.rebins += 1
@@ -489,7 +522,7 @@ class Refiner:
                 self.bounds,
                 self.prims,
             ],
-            outputs=[self.counts],
+            outputs=[self.counts, self.reach],
             device=self.device,
         )
 
@@ -670,6 +703,7 @@ class Refiner:
             "cell_start": p.cell_start.numpy(),
             "cell_end": p.cell_end.numpy(),
             "counts": self.counts.numpy(),
+            "reach": self.reach.numpy(),
         }
         scalars = {
             "n": self.n,
@@ -696,7 +730,7 @@ class Refiner:
         plan = BinPlan(tuple(float(x) for x in pl["sizes"]), tuple(tuple(int(v) for v in d) for d in pl["dims"]), tuple(int(x) for x in pl["offsets"]), int(pl["total_cells"]))
         self.plan = plan
         set_plan(p, plan, dev, arrays["cell_start"], arrays["cell_end"])
-        for dst, key in ((self.raw, "raw"), (self.m1, "m1"), (self.m2, "m2"), (self.ids, "ids"), (b.lo, "bounds_lo"), (b.hi, "bounds_hi"), (b.cell, "bounds_cell"), (self.counts, "counts")):
+        for dst, key in ((self.raw, "raw"), (self.m1, "m1"), (self.m2, "m2"), (self.ids, "ids"), (b.lo, "bounds_lo"), (b.hi, "bounds_hi"), (b.cell, "bounds_cell"), (self.counts, "counts"), (self.reach, "reach")):
             dst.assign(arrays[key])
         mu, rot, inv_s2, ext, radius, a, w = self._prep
         wp.launch(kf.prepare_primitives, dim=self.n, inputs=[self.raw, 1], outputs=[p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w], device=dev)
@@ -744,7 +778,7 @@ class Refiner:
         return out.numpy().reshape(self.n, 12)
 
     def skipped_steps(self) -> int:
-        """Primitive updates skipped because of a non-finite gradient, over the run so far."""
+        """Primitive updates skipped because their gradient or result was not finite, so far."""
         return int(self.counts.numpy()[0])
 
     def deferred_steps(self) -> int:

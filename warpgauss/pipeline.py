@@ -162,6 +162,7 @@ def resolve_refine(
         if samples < 1:
             raise WarpgaussError(f"--samples must be >= 1, got {samples}")
         cfg = dataclasses.replace(cfg, samples=int(samples), budget_samples=False)  # the user's count stays
+    cfg.validate()
     return cfg
 
 

@@ -122,7 +122,9 @@ def test_corner_spike_budget_one():
     """A spike at the corner has a one-sided gradient: N_max = 1, one primitive is placed on it."""
     v = np.zeros((8, 8, 8), np.float32)
     v[0, 0, 0] = 5.0
-    m = encode(v, 1)
+    # 100 iterations: after its first re-bin the lone primitive moves and grows, and the fit dips
+    # below the all-zero model for a few dozen steps before it climbs well past it (39 dB)
+    m = encode(v, 1, iterations=100)
     dec, _ = assert_valid_model(m, 1, v.shape, min_psnr=10 * math.log10(512))  # beats the all-zero model
     assert m.report["budget"]["n_max"] == 1
     assert dec[0, 0, 0] > 0.3 and dec[0, 0, 0] >= dec.max() - 1e-6 and np.abs(m.params[0, :3]).max() < 1.0

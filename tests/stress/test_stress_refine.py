@@ -235,16 +235,9 @@ def test_kernel_guards_on_degenerate_model_parameters():
     np.testing.assert_allclose(v1, v64, rtol=1e-5, atol=1e-6)
 
 
-# -- known bugs (issue #7 findings, fixes proposed to the owner of kernels/optim.py) ---------------
+# -- issue #7 findings, fixed: deferral reach, settings validation, non-finite steps -------------
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="kernels/optim.py refine_update defers a step that would leave its cell's reach by dropping it (parameters "
-    "and moments stay); the next re-bin bins the unchanged parameters into the same cell, so a primitive whose "
-    "5-sigma extent equals its level's cell size (plan_bins sizes the first level by the smallest radius) can "
-    "never grow or move out: with budget 1 or 2 every update of the run is deferred and refinement does nothing",
-)
 @pytest.mark.parametrize("budget", [1, 2])
 def test_refinement_moves_a_budget_of_one_or_two(budget):
     m = warpgauss.encode(field8(), budget=budget, iterations=100, samples=256, device="cpu", seed=0, full_eval=True)
@@ -253,11 +246,6 @@ def test_refinement_moves_a_budget_of_one_or_two(budget):
     assert ev["final"]["psnr_db"] > ev["analytic"]["psnr_db"] + 0.5, ev
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="with all primitives alike (identity rotation, equal isotropic scales) every one sits at its cell's "
-    "edge, and every update of the run is deferred (see test_refinement_moves_a_budget_of_one_or_two)",
-)
 def test_identical_primitives_are_not_frozen_by_deferral(refiner):
     r, raw0 = refiner
     raw = raw0.copy()
@@ -269,12 +257,6 @@ def test_identical_primitives_are_not_frozen_by_deferral(refiner):
     assert r.deferred_steps() < 0.5 * 30 * r.n, r.deferred_steps()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="refinement settings are not validated: a negative or non-finite learning rate or loss weight "
-    "runs (gradient ascent) or fails late with an unrelated header/JSON message; resolve_refine "
-    "(warpgauss/pipeline.py) should refuse them up front, naming the option",
-)
 @pytest.mark.parametrize("bad", [{"lr": -1.0}, {"lr": float("nan")}, {"beta2": 1.0}, {"lr_decay": -0.5}])
 @pytest.mark.filterwarnings("ignore:invalid value encountered in power")
 def test_invalid_refinement_settings_are_refused_naming_the_option(bad):
@@ -283,12 +265,6 @@ def test_invalid_refinement_settings_are_refused_naming_the_option(bad):
         warpgauss.encode(field8(), budget=10, iterations=20, samples=64, device="cpu", refine=RefineConfig(**bad))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="kernels/optim.py adam_update checks the gradient, not the step: a non-finite learning-rate factor or "
-    "bias correction (beta2 = 1 gives 0 / 0, lr_decay < 0 a NaN schedule) writes NaN parameters into the model; "
-    "refine_update should skip and count a step whose result is not finite, as it does for a non-finite gradient",
-)
 @pytest.mark.parametrize("bad", [{"beta2": 1.0}, {"lr_decay": -0.5}])
 @pytest.mark.filterwarnings("ignore:invalid value encountered in power")
 def test_a_non_finite_step_never_reaches_the_parameters(bad):
