@@ -136,6 +136,7 @@ class GaussianField:
         p.a = wp.empty_like(self.a)
         p.w = wp.empty_like(self.w)
         self.plan: BinPlan | None = None
+        self._active = None
         self.update(replan=True)
 
     def update(self, replan: bool = False) -> None:
@@ -147,6 +148,7 @@ class GaussianField:
                 level, only slower if primitives grew or shrank a lot.
         """
         wp, kf, dev, n = self._wp, self._k, self.device, self.n
+        self._active = None  # the activity grid follows the primitives
         wp.launch(
             kf.prepare_primitives,
             dim=n,
@@ -222,6 +224,8 @@ class GaussianField:
         Yields:
             (z0, slab): first output slice and a (h, ny, nx) float32 array in normalised units.
         """
+        from .kernels import decode as kd
+
         wp, kf, dev = self._wp, self._k, self.device
         out_shape = tuple(int(s) for s in (shape_xyz or self.shape_xyz))
         if len(out_shape) != 3 or min(out_shape) < 1:
@@ -230,17 +234,43 @@ class GaussianField:
         scale = wp.vec3(*(self.shape_xyz[a] / out_shape[a] for a in range(3)))
         slab = max(1, min(nz, DECODE_SLAB_VOXELS // (nx * ny)))
         buf = wp.empty((slab, ny, nx), dtype=float, device=dev)
+        active = self.active_bricks()
         for z0 in range(0, nz, slab):
             h = min(slab, nz - z0)
             view = buf if h == slab else wp.empty((h, ny, nx), dtype=float, device=dev)
-            wp.launch(
-                kf.eval_grid_binned,
-                dim=(h, ny, nx),
-                inputs=[z0, scale, self.prims],
-                outputs=[view],
-                device=dev,
-            )
+            if active is None:
+                wp.launch(kf.eval_grid_binned, dim=(h, ny, nx), inputs=[z0, scale, self.prims], outputs=[view], device=dev)
+            else:
+                wp.launch(kd.eval_grid_active, dim=(h, ny, nx), inputs=[z0, scale, self.prims, active], outputs=[view], device=dev)
             yield z0, view.numpy()
+
+    def active_bricks(self):
+        """8^3-voxel bricks of the model grid that some primitive's 5-sigma box reaches (a Warp
+        uint8 array), or None when a primitive is too large to mark (then every brick counts).
+
+        Decoding writes 0 without evaluation elsewhere: exactly the model's value there.
+        """
+        if self._active is not None:
+            return self._active[0]
+        from .kernels import decode as kd
+
+        wp, dev = self._wp, self.device
+        b = int(kd.BRICK_EDGE)
+        nx, ny, nz = self.shape_xyz
+        active = wp.zeros((-(-nz // b), -(-ny // b), -(-nx // b)), dtype=wp.uint8, device=dev)
+        everything = wp.zeros(1, dtype=int, device=dev)
+        wp.launch(kd.mark_bricks, dim=self.n, inputs=[self.mu, self.ext], outputs=[active, everything], device=dev)
+        if int(everything.numpy()[0]):
+            self._active = (None, 1.0)
+        else:
+            self._active = (active, float(active.numpy().mean()))
+        return self._active[0]
+
+    @property
+    def active_fraction(self) -> float:
+        """Share of the model grid's bricks a decode evaluates (1.0 when every brick does)."""
+        self.active_bricks()
+        return self._active[1]
 
     def decode(
         self,
