@@ -677,6 +677,7 @@ def encode_ladder(
     example_size: int | tuple[int, int, int] = 64,
     read: ReadOptions | None = None,
     allocation: AllocationConfig | None = None,
+    evaluate: bool = True,
     full_eval: bool = False,
     on_stage=None,
     on_progress=None,
@@ -685,6 +686,7 @@ def encode_ladder(
 
     Args:
         budgets: Primitive counts; all are checked against the seed limit before any encoding.
+        evaluate: Run stage EV for each model (benchmarks that measure PSNR their own way skip it).
         output_pattern: If given, each model is written to ``output_pattern.format(n=N)``.
         Others: as :func:`encode`.
 
@@ -721,7 +723,7 @@ def encode_ladder(
             refine=refine, self_test=self_test and i == 0,
         )
         model = encode_field(
-            f, opts, device=device, timer=timer, input_info=info, full_eval=full_eval, on_progress=on_progress, cache=cache
+            f, opts, device=device, timer=timer, input_info=info, evaluate=evaluate, full_eval=full_eval, on_progress=on_progress, cache=cache
         )
         if i > 0:
             model.report["skipped"].insert(0, {"what": "P", "why": "volume loaded once for the ladder", "seconds_saved": load_seconds})
