@@ -102,17 +102,17 @@ class Viewer:
         self._text = pl.add_text("", position="upper_left", font_size=9, color="white")
         self._last = None
         pl.ren_win.AddObserver("StartEvent", self._on_start)
-        if not off_screen:
-            pl.iren.add_observer("StartInteractionEvent", self._start_interaction)
-            pl.iren.add_observer("EndInteractionEvent", self._end_interaction)
-            for key in ("plus", "minus"):
-                pl.clear_events_for_key(key)
-            pl.add_key_event("c", self.next_colormap)
-            pl.add_key_event("o", self.next_opacity)
-            pl.add_key_event("plus", lambda: self.scale_density(1.5))
-            pl.add_key_event("minus", lambda: self.scale_density(1 / 1.5))
-            pl.add_key_event("m", self.toggle_method)
-            pl.add_key_event("l", self.toggle_shading)
+        pl.iren.add_observer("StartInteractionEvent", self._start_interaction)
+        pl.iren.add_observer("EndInteractionEvent", self._end_interaction)
+        for key in ("plus", "minus"):
+            pl.clear_events_for_key(key)
+        pl.add_key_event("c", self.next_colormap)
+        pl.add_key_event("o", self.next_opacity)
+        pl.add_key_event("plus", lambda: self.scale_density(1.5))
+        pl.add_key_event("minus", lambda: self.scale_density(1 / 1.5))
+        pl.add_key_event("m", self.toggle_method)
+        pl.add_key_event("l", self.toggle_shading)
+        if not off_screen:  # the slider is for hands; screenshots show the frame alone
             d = self.density
             pl.add_slider_widget(
                 lambda v: self.set_density(10.0**v), [math.log10(d) - 2, math.log10(d) + 2], value=math.log10(d),

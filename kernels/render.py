@@ -416,15 +416,3 @@ def support_bounds(
     for a in range(3):
         wp.atomic_min(bounds, a, lo[a])
         wp.atomic_max(bounds, 3 + a, hi[a])
-
-
-@wp.kernel
-def to_rgb8(
-    image: wp.array2d(dtype=wp.vec4),  # [H, W]
-    out: wp.array3d(dtype=wp.uint8),  # [H, W, C] out, C = 3 or 4
-):
-    """Clamp and quantise an image to 8 bits per channel (round to nearest)."""
-    j, i = wp.tid()
-    px = image[j, i]
-    for c in range(out.shape[2]):
-        out[j, i, c] = wp.uint8(int(wp.clamp(px[c], 0.0, 1.0) * 255.0 + 0.5))

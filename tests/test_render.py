@@ -364,11 +364,14 @@ def test_viewer_controls_change_the_frame(cpu, vortex):
     model, _ = vortex
     v = Viewer(model, size=(48, 40), device=cpu, off_screen=True)
     frames = [v.frame(48, 40).rgb]
-    for action in (v.next_colormap, v.next_opacity, lambda: v.scale_density(3.0), v.toggle_method, v.toggle_shading):
-        action()
+    keys = v.plotter.iren._key_press_event_callbacks  # what a key press in the window calls
+    for key in ("c", "o", "plus", "minus", "m", "l"):
+        assert keys[key], key
+        for callback in keys[key]:
+            callback()
         frames.append(v.frame(48, 40).rgb)
-        assert np.abs(frames[-1] - frames[-2]).max() > 0.01
-    assert v.method == "march"
+        assert np.abs(frames[-1] - frames[-2]).max() > 0.01, key
+    assert v.method == "march" and not v.settings.shading and v.tf.name == "magma"
     v.plotter.close()
 
 
