@@ -306,7 +306,8 @@ class _Marcher:
         occ.max_value = wp.zeros(ncell, dtype=float, device=self.device)
         occ.state = wp.zeros(ncell, dtype=int, device=self.device)
         self.occ = occ
-        self.box_voxels = (np.full(3, -0.5), np.asarray(scene.shape_xyz, np.float64) - 0.5)
+        self.grid_box = (np.full(3, -0.5), np.asarray(scene.shape_xyz, np.float64) - 0.5)
+        self.box_voxels = self.grid_box  # where anything can be seen (narrowed by the model to its supports)
         self._tf_key = None
         self._tf = None
 
@@ -322,12 +323,14 @@ class _Marcher:
             self._tf_key, self._tf = key, lut
         return self._tf
 
-    def params(self, settings: RenderSettings, view: View):
+    def params(self, settings: RenderSettings, view: View, tf: TransferFunction | None = None):
         wp, kr = self._wp, self._k
         p = kr.MarchParams()
         p.vox_per_world = wp.vec3(*(1.0 / self.scene.world_per_voxel))
-        p.box_lo = wp.vec3(*map(float, self.box_voxels[0]))
-        p.box_hi = wp.vec3(*map(float, self.box_voxels[1]))
+        # where V~ = 0 is visible (opacity at 0 > 0) the whole grid box is; else only the supports
+        lo, hi = self.grid_box if tf is not None and tf.opacity[0] > 0 else self.box_voxels
+        p.box_lo = wp.vec3(*map(float, lo))
+        p.box_hi = wp.vec3(*map(float, hi))
         p.step = float(settings.step)
         p.density = settings.density_for(self.scene)
         p.ert = float(settings.ert)
@@ -357,7 +360,7 @@ class _Marcher:
         h, w = settings.height, settings.width
         image = wp.empty((h, w), dtype=wp.vec4, device=dev)
         evals = wp.empty((h, w), dtype=int, device=dev)
-        prm = self.params(settings, view)
+        prm = self.params(settings, view, tf)
         wp.synchronize_device(dev)
         t0 = time.perf_counter()
         wp.launch(kr.march, dim=(h, w), inputs=[src, view.struct(), prm, lut, self.occ], outputs=[image, evals], device=dev)
@@ -389,8 +392,8 @@ class ModelRenderer(_Marcher):
         bounds = wp.array(np.array([big, big, big, -big, -big, -big], np.float32), dtype=float, device=self.device)
         wp.launch(kr.support_bounds, dim=f.n, inputs=[f.mu, f.ext], outputs=[bounds], device=self.device)
         b = bounds.numpy().astype(np.float64)
-        lo = np.maximum(self.box_voxels[0], b[:3])
-        hi = np.minimum(self.box_voxels[1], b[3:])
+        lo = np.maximum(self.grid_box[0], b[:3])
+        hi = np.minimum(self.grid_box[1], b[3:])
         self.box_voxels = (lo, np.maximum(hi, lo))
         self._source = self.field.prims
 
