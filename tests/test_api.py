@@ -88,3 +88,17 @@ def test_iterations_zero_is_the_analytic_model_and_presets_resolve(interface32):
     assert resolve_refine(None, "quality", 10, None).iterations == 10  # explicit beats the preset
     with pytest.raises(warpgauss.WarpgaussError, match="unknown preset"):
         resolve_refine(None, "best", None, None)
+
+
+def test_written_files_get_the_usual_permissions(tmp_path):
+    import os
+    import stat
+
+    from warpgauss._fs import atomic_write_bytes
+
+    old = os.umask(0o022)
+    try:
+        atomic_write_bytes(tmp_path / "x.json", b"{}")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE((tmp_path / "x.json").stat().st_mode) == 0o644  # not mkstemp's 0600
