@@ -24,6 +24,9 @@ TRUNC_SIGMA = wp.constant(5.0)
 RHO0 = wp.constant(0.05)  # density floor of the normalisation
 LOG_SCALE_MIN = wp.constant(-9.0)  # exp(-9) = 1.2e-4 voxel: keeps 1/s^2 finite in float32
 LOG_SCALE_MAX = wp.constant(12.0)  # exp(12) = 1.6e5 voxels: keeps s^2 finite in float32
+# |a| and |w| as evaluation reads them: w a G <= 1e30, so sums over up to 3e8 primitives stay finite
+# (models hold a near [0, 1] and w in (0, 1]; only a crafted file reaches the bound)
+VALUE_BOUND = wp.constant(1.0e15)
 
 
 @wp.func
@@ -130,8 +133,8 @@ def prepare_primitives(
     inv_s2[i] = inv
     ext[i] = e
     radius[i] = wp.max(e[0], wp.max(e[1], e[2]))
-    a[i] = p[10]
-    w[i] = wt
+    a[i] = wp.clamp(p[10], -VALUE_BOUND, VALUE_BOUND)
+    w[i] = wp.clamp(wt, -VALUE_BOUND, VALUE_BOUND)
 
 
 @wp.func

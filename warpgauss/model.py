@@ -10,6 +10,7 @@ and a default transfer function.
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -81,6 +82,83 @@ def make_header(
     }
 
 
+def _is_number(x) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def _is_count(x, least: int) -> bool:
+    return not isinstance(x, bool) and isinstance(x, int) and x >= least
+
+
+def _header_problem(h: dict) -> str | None:
+    """What is wrong with the fields of a loaded header that decoding and reports read, or None.
+
+    The checksums prove a file is as written, not that its writer filled the fields sensibly: a
+    crafted header must be refused here, not crash later (a string grid, a zero-voxel axis, an
+    inverted value range, a grid too large to index).
+    """
+    from .analysis import MAX_VOXELS
+
+    g, v, src = h.get("grid"), h.get("values"), h.get("source")
+    if not isinstance(g, dict):
+        return "'grid' is not an object"
+    shape = g.get("shape_xyz")
+    if not (isinstance(shape, list) and len(shape) == 3 and all(_is_count(x, 1) for x in shape)):
+        return f"grid shape_xyz {shape!r} is not three positive integers"
+    if math.prod(shape) > MAX_VOXELS:
+        return f"grid {shape!r} has more than {MAX_VOXELS} voxels"
+    for key in ("spacing", "origin"):
+        x = g.get(key)
+        if not (isinstance(x, list) and len(x) == 3 and all(_is_number(c) for c in x)):
+            return f"grid {key} {x!r} is not three finite numbers"
+    if not (isinstance(v, dict) and _is_number(v.get("min")) and _is_number(v.get("max")) and v["min"] < v["max"]):
+        return f"value range {v!r} is not two finite numbers min < max"
+    if not (isinstance(src, dict) and _is_count(src.get("bytes"), 0)):
+        return f"source {src!r} has no byte count"
+    if "itemsize" in src and not _is_count(src["itemsize"], 1):
+        return f"source itemsize {src['itemsize']!r} is not a positive integer"
+    for key in ("encoding", "transfer_function"):
+        if h.get(key) is not None and not isinstance(h[key], dict):
+            return f"'{key}' is not an object"
+    tf = h.get("transfer_function") or {}
+    if "colormap" in tf and not isinstance(tf["colormap"], str):
+        return f"transfer_function colormap {tf['colormap']!r} is not a string"
+    if "lut_rgba8" in tf and not isinstance(tf["lut_rgba8"], str):
+        return "transfer_function lut_rgba8 is not a hex string"
+    op = tf.get("opacity")
+    if op is not None and not (
+        isinstance(op, list) and all(isinstance(q, list) and len(q) == 2 and all(map(_is_number, q)) for q in op)
+    ):
+        return f"transfer_function opacity {op!r} is not a list of [value, opacity] pairs"
+    stride = (h.get("encoding") or {}).get("stride", 1)
+    if not _is_count(stride, 1):
+        return f"encoding stride {stride!r} is not a positive integer"
+    if "name" in h and not isinstance(h["name"], str):
+        return f"name {h['name']!r} is not a string"
+    return None
+
+
+def _check_decode_size(shape) -> None:
+    """Refuse a decode grid this machine cannot hold (the result, and a float64 copy on the way to
+    source units) before anything is allocated for it."""
+    try:
+        dims = [int(v) for v in shape]
+    except (TypeError, ValueError):
+        dims = []
+    if len(dims) != 3 or min(dims) < 1:
+        raise WarpgaussError(f"decode shape must be three positive sizes (x, y, z), got {shape!r}")
+    need = math.prod(dims) * 12  # float32 result + float64 source units
+    try:
+        ram = int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return
+    if need > ram:
+        raise WarpgaussError(
+            f"decoding to {'x'.join(map(str, dims))} needs about {need / 2**30:.1f} GiB, more than this machine's "
+            f"{ram / 2**30:.1f} GiB of memory; choose a smaller --shape"
+        )
+
+
 class Model:
     """A fixed-budget Gaussian model of a scalar volume.
 
@@ -144,6 +222,9 @@ class Model:
         for key in ("grid", "values", "source"):
             if key not in header:
                 raise WarpgaussError(f"{p}: the header lacks '{key}'; the file was not written by warpgauss")
+        problem = _header_problem(header)
+        if problem is not None:
+            raise WarpgaussError(f"{p}: the header's {problem}; the file is damaged or was not written by warpgauss")
         return cls(params, header)
 
     # -- evaluation ------------------------------------------------------------------------
@@ -175,6 +256,7 @@ class Model:
         """
         from .analysis import denormalise
 
+        _check_decode_size(shape if shape is not None else self.shape_xyz)
         v = self.field(device).decode(shape, progress=progress)
         if normalised:
             return v
