@@ -21,8 +21,11 @@ gOpenMol ``.plt``. Formats written: ``.vti``, ``.npy``, ``.raw`` and ``.h5``/``.
 
 from __future__ import annotations
 
+import gzip
+import math
 import os
 import re
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -122,6 +125,8 @@ _RAW_NAME = re.compile(
 
 _RAW_SUFFIXES = (".raw", ".bin")
 
+MAX_READ_VOXELS = 2**31 - 1  # = warpgauss.analysis.MAX_VOXELS: the kernels index voxels with int32
+
 
 def parse_raw_name(filename: str | os.PathLike) -> tuple[tuple[int, int, int], np.dtype] | None:
     """Shape and dtype from the open scientific-visualization naming ``name_XxYxZ_dtype.raw``.
@@ -152,7 +157,7 @@ def _resolve_dtype(dtype) -> np.dtype:
         return _RAW_DTYPES[dtype.lower()]
     try:
         dt = np.dtype(dtype)
-    except TypeError:
+    except (TypeError, ValueError, SyntaxError):  # numpy parses dtype strings: "0" and "01" raise these
         dt = None
     if dt is None or dt.kind not in "iuf":
         raise WarpgaussError(f"unknown dtype {dtype!r}; use one of {', '.join(_RAW_DTYPES)}")
@@ -266,8 +271,50 @@ def _hdf5_array(path: Path, ds, shape: tuple, stride: int) -> tuple[np.ndarray, 
     offset = ds.id.get_offset() if ds.chunks is None else None
     if offset is not None and ds.size > 0 and not ds.external:
         return np.memmap(path, dtype=ds.dtype, mode="r", offset=offset, shape=shape), False
+    # read into memory: the declared shape is all we know (a chunked or never-written dataset
+    # may declare terabytes in a few bytes of file), so check it before allocating
+    voxels = _check_declared(f"{path.name}:{ds.name}", shape, ds.dtype.itemsize, stride)
     s = slice(None, None, stride)
-    return np.asarray(ds[(0,) * (ds.ndim - 3) + (s, s, s)]), True
+    try:
+        return np.asarray(ds[(0,) * (ds.ndim - 3) + (s, s, s)]), True
+    except MemoryError:
+        raise WarpgaussError(
+            f"not enough memory to read {path.name}:{ds.name} ({voxels} voxels x {ds.dtype.itemsize} bytes); "
+            "use a larger --stride"
+        ) from None
+    except OSError as e:  # a damaged chunk or a missing compression filter
+        raise WarpgaussError(f"cannot read {path.name}:{ds.name} ({_first_line(e)})") from None
+
+
+def _physical_memory() -> int | None:
+    try:
+        return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def _check_declared(what: str, shape_zyx, itemsize: int, stride: int = 1) -> int:
+    """Refuse a declared grid before anything is allocated for it; returns the voxels to read.
+
+    A header's dimensions are only a claim: compressed or sparse storage lets a few bytes declare
+    terabytes. Beyond :data:`MAX_READ_VOXELS` (after the stride) or beyond this machine's physical
+    memory the read is refused with the way out (a larger ``--stride``).
+    """
+    kept = [-(-int(n) // stride) for n in shape_zyx]
+    voxels = math.prod(kept)
+    shown = _fmt_xyz(tuple(shape_zyx)[::-1])
+    if voxels > MAX_READ_VOXELS:
+        raise WarpgaussError(
+            f"{what} declares {shown} voxels ({voxels} after --stride {stride}), more than the {MAX_READ_VOXELS} "
+            "warpgauss can encode; use a larger --stride"
+        )
+    ram = _physical_memory()
+    if ram is not None and voxels * int(itemsize) > ram:
+        raise WarpgaussError(
+            f"{what} declares {shown} voxels of {itemsize} bytes ({voxels * int(itemsize) / 2**30:.1f} GiB after "
+            f"--stride {stride}), more than this machine's {ram / 2**30:.1f} GiB of memory; use a larger --stride"
+        )
+    return voxels
 
 
 def _list_datasets(found: list[tuple[str, tuple]], limit: int = 12) -> str:
@@ -333,10 +380,10 @@ def _read_pyvista(path: Path, **_) -> _Read:
     """
     import pyvista as pv
 
-    try:
-        mesh = pv.read(path)
-    except Exception as e:  # VTK and pyvista raise a mix of types for unreadable files
-        raise WarpgaussError(f"cannot read {path.name} with pyvista ({_first_line(e)})") from e
+    _precheck_vtk(path)
+    mesh, vtk_error = _quiet_pyvista_read(pv, path)
+    if vtk_error is not None:  # whatever VTK returned after an error is not the file's data
+        raise WarpgaussError(f"cannot read {path.name}: VTK reports: {vtk_error}")
     if not isinstance(mesh, pv.ImageData):
         raise WarpgaussError(
             f"{path.name} holds a {type(mesh).__name__}, not image data on a regular grid; "
@@ -365,6 +412,223 @@ def _read_pyvista(path: Path, **_) -> _Read:
         )
     xyz = arr.reshape(dims, order="F")  # [x, y, z]
     return _Read(np.ascontiguousarray(xyz.transpose(2, 1, 0)), spacing=spacing, origin=origin)  # type: ignore[arg-type]
+
+
+_NRRD_SIZES = {
+    1: ("uchar", "unsigned char", "uint8", "uint8_t", "signed char", "int8", "int8_t", "char"),
+    2: ("short", "short int", "signed short", "signed short int", "int16", "int16_t", "ushort", "unsigned short",
+        "unsigned short int", "uint16", "uint16_t"),
+    4: ("int", "signed int", "int32", "int32_t", "uint", "unsigned int", "uint32", "uint32_t", "float"),
+}
+_META_SIZES = {"MET_UCHAR": 1, "MET_CHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4, "MET_UINT": 4,
+               "MET_FLOAT": 4, "MET_LONG": 4, "MET_ULONG": 4}
+
+
+def _quiet_pyvista_read(pv, path: Path):
+    """``pv.read`` with VTK's own error output (its logger, pyvista's warnings and log records)
+    held back: a damaged file must end in one line, not thirty. Returns (mesh, first VTK error)."""
+    import contextlib
+    import logging
+    import warnings
+
+    verbosity = getattr(pv, "vtk_verbosity", None)
+    quiet = verbosity("off") if verbosity is not None else contextlib.nullcontext()
+    previous = logging.root.manager.disable
+    with warnings.catch_warnings(), quiet, pv.VtkErrorCatcher() as catcher:
+        warnings.simplefilter("ignore")
+        logging.disable(logging.CRITICAL)
+        try:
+            mesh = pv.read(path)
+        except Exception as e:  # VTK and pyvista raise a mix of types for unreadable files
+            raise WarpgaussError(f"cannot read {path.name} with pyvista ({_first_line(e)})") from e
+        finally:
+            logging.disable(previous)
+    errors = [ev for ev in catcher.events if str(getattr(ev, "kind", "ERROR")) == "ERROR"]
+    if not errors:
+        return mesh, None
+    text = str(getattr(errors[0], "alert", "") or errors[0]).strip()
+    return mesh, (text.splitlines() or ["unknown error"])[0]
+
+
+def _precheck_vtk(path: Path) -> None:
+    """Check the dimensions a VTK/NRRD/MetaImage/NIfTI header declares before VTK allocates for them.
+
+    VTK trusts a header's sizes: a 90-byte NRRD declaring 99999^3 voxels makes it throw
+    ``std::bad_alloc`` and abort the process. The declared grid is refused here if it is empty,
+    larger than warpgauss can encode or than this machine's memory, or (uncompressed data in the
+    same file) larger than the bytes the file holds. Headers this cannot parse are left to VTK.
+    """
+    name = path.name.lower()
+    if name.endswith((".nrrd", ".nhdr")):
+        found = _nrrd_declared(path)
+    elif name.endswith((".mha", ".mhd")):
+        found = _meta_declared(path)
+    elif name.endswith((".nii", ".nii.gz")):
+        found = _nifti_declared(path)
+    else:
+        found = _vtk_xml_or_legacy_declared(path)
+    if found is None:
+        return
+    dims, itemsize, need_after = found
+    if not dims or min(dims) < 1:
+        raise WarpgaussError(f"{path.name} declares an empty grid (sizes {dims}); the header is damaged")
+    _check_declared(path.name, tuple(dims)[::-1], itemsize)
+    if need_after is not None:
+        offset, amount, mode = need_after
+        have = _gzip_bytes(path, offset, amount) if mode == "gzip" else path.stat().st_size - offset
+        if have < amount:
+            raise WarpgaussError(
+                f"{path.name} declares {'x'.join(map(str, dims))} voxels ({amount} bytes of data) but holds "
+                f"{max(have, 0)}; the file is truncated or its header is damaged"
+            )
+
+
+def _gzip_bytes(path: Path, offset: int, enough: int) -> int:
+    """Bytes a gzip stream starting at ``offset`` (of the file, or of its gunzipped content for a
+    ``.gz`` file) decompresses to, counted in 1 MiB pieces up to ``enough``; memory stays bounded."""
+    import zlib
+
+    outer_gz = path.name.lower().endswith(".gz")
+    total = 0
+    try:
+        with (gzip.open(path, "rb") if outer_gz else open(path, "rb")) as fh:
+            fh.seek(offset) if not outer_gz else fh.read(offset)
+            if outer_gz:  # the file itself is gzip: count what follows the header
+                while total < enough:
+                    piece = fh.read(1 << 20)
+                    if not piece:
+                        break
+                    total += len(piece)
+                return total
+            z = zlib.decompressobj(16 + zlib.MAX_WBITS)
+            while total < enough:
+                piece = fh.read(1 << 20)
+                if not piece:
+                    break
+                total += len(z.decompress(piece, enough - total + 1))
+                while z.unconsumed_tail and total < enough:
+                    total += len(z.decompress(z.unconsumed_tail, enough - total + 1))
+    except (OSError, EOFError, zlib.error):
+        pass
+    return total
+
+
+def _head_text(path: Path, limit: int = 65536) -> bytes:
+    with open(path, "rb") as fh:
+        return fh.read(limit)
+
+
+def _ints(text: str) -> list[int] | None:
+    try:
+        return [int(float(v)) for v in text.replace(",", " ").split()]
+    except (ValueError, OverflowError):
+        return None
+
+
+def _nrrd_declared(path: Path):
+    head = _head_text(path)
+    if not head.startswith(b"NRRD"):
+        raise WarpgaussError(f"{path.name} does not start with the NRRD magic; it is not a NRRD file")
+    fields = _nrrd_fields(path)
+    sizes = _ints(fields.get("sizes", ""))
+    if not sizes:
+        raise WarpgaussError(f"{path.name} has no valid 'sizes:' field; the NRRD header is damaged")
+    kind = fields.get("type", "").strip().lower()
+    itemsize = next((k for k, names in _NRRD_SIZES.items() if kind in names), 8)
+    need = None
+    end = head.find(b"\n\n")
+    detached = "data file" in fields or "datafile" in fields
+    encoding = fields.get("encoding", "").strip().lower()
+    if not detached and end >= 0:
+        if encoding == "raw":
+            need = (end + 2, math.prod(sizes) * itemsize, "raw")
+        elif encoding in ("gzip", "gz"):
+            need = (end + 2, math.prod(sizes) * itemsize, "gzip")
+        elif encoding in ("ascii", "text", "txt"):
+            # vtkNrrdReader returns zeros and noise for ASCII data instead of failing (VTK 9.x)
+            raise WarpgaussError(
+                f"{path.name} stores its values as ASCII text, which the NRRD reader (VTK) reads as garbage; "
+                "convert it to raw or gzip encoding (e.g. unu save -e raw) and retry"
+            )
+    return sizes, itemsize, need
+
+
+def _meta_declared(path: Path):
+    head = _head_text(path)
+    fields: dict[str, str] = {}
+    offset = None
+    pos = 0
+    for line in head.split(b"\n"):
+        pos += len(line) + 1
+        key, sep, value = line.decode("latin-1").partition("=")
+        if sep:
+            fields[key.strip()] = value.strip()
+        if key.strip() == "ElementDataFile":
+            offset = pos
+            break
+    sizes = _ints(fields.get("DimSize", ""))
+    if not sizes:
+        raise WarpgaussError(f"{path.name} has no valid 'DimSize =' line; it is not a MetaImage header")
+    channels = _ints(fields.get("ElementNumberOfChannels", "1")) or [1]
+    itemsize = _META_SIZES.get(fields.get("ElementType", ""), 8) * max(channels[0], 1)
+    need = None
+    compressed = fields.get("CompressedData", "False").strip().lower() == "true"
+    if fields.get("ElementDataFile", "").strip().upper() == "LOCAL" and not compressed and offset is not None:
+        need = (offset, math.prod(sizes) * itemsize, "raw")
+    return sizes, itemsize, need
+
+
+def _nifti_declared(path: Path):
+    if path.name.lower().endswith(".gz"):
+        try:
+            with gzip.open(path, "rb") as fh:
+                head = fh.read(544)
+        except (OSError, EOFError) as e:
+            raise WarpgaussError(f"cannot decompress {path.name} ({_first_line(e)})") from None
+        size = None
+    else:
+        head = _head_text(path, 544)
+        size = path.stat().st_size
+    for e in ("<", ">"):
+        if len(head) >= 348 and struct.unpack(e + "i", head[:4])[0] == 348:
+            dim = struct.unpack(e + "8h", head[40:56])
+            bitpix = struct.unpack(e + "h", head[72:74])[0]
+            offset = struct.unpack(e + "f", head[108:112])[0]
+            break
+        if len(head) >= 540 and struct.unpack(e + "i", head[:4])[0] == 540:
+            dim = struct.unpack(e + "8q", head[16:80])
+            bitpix = struct.unpack(e + "h", head[14:16])[0]
+            offset = struct.unpack(e + "q", head[168:176])[0]
+            break
+    else:
+        raise WarpgaussError(f"{path.name} has no NIfTI-1 or NIfTI-2 header (sizeof_hdr is not 348 or 540)")
+    ndim = int(dim[0])
+    if not 1 <= ndim <= 7:
+        raise WarpgaussError(f"{path.name} declares {ndim} dimensions; the NIfTI header is damaged")
+    sizes = [int(v) for v in dim[1 : ndim + 1]]
+    itemsize = max(int(bitpix) // 8, 1) if 0 < bitpix <= 256 else 8
+    need = None
+    if np.isfinite(offset) and 0 <= offset < 2**40 and min(sizes) >= 1:
+        need = (int(offset), math.prod(sizes) * itemsize, "gzip" if size is None else "raw")
+    return sizes, itemsize, need
+
+
+_VTK_EXTENT = re.compile(rb'WholeExtent\s*=\s*"([^"]*)"')
+_VTK_DIMS = re.compile(rb"DIMENSIONS\s+(-?\d+)\s+(-?\d+)\s+(-?\d+)")
+
+
+def _vtk_xml_or_legacy_declared(path: Path):
+    head = _head_text(path)
+    m = _VTK_EXTENT.search(head)
+    if m:
+        ext = _ints(m.group(1).decode("latin-1"))
+        if not ext or len(ext) != 6:
+            raise WarpgaussError(f"{path.name} has a WholeExtent that is not six integers; the file is damaged")
+        return [ext[1] - ext[0] + 1, ext[3] - ext[2] + 1, ext[5] - ext[4] + 1], 8, None
+    m = _VTK_DIMS.search(head)
+    if m:
+        return [int(v) for v in m.groups()], 8, None
+    return None
 
 
 def _nrrd_undo_vtk_components(path: Path, arr: np.ndarray, spacing) -> tuple[np.ndarray, tuple] | None:
@@ -654,10 +918,13 @@ def _finish(p: Path, suffix: str, got: _Read, stride: int) -> Volume:
         data = data[::stride, ::stride, ::stride]
     if not data.dtype.isnative:
         data = data.astype(data.dtype.newbyteorder("="))
+    # a header's inf/NaN geometry (metadata only) must not reach the model header, which is strict JSON
+    spacing = tuple(float(v) * stride if np.isfinite(v) else float(stride) for v in got.spacing)
+    origin = tuple(float(v) if np.isfinite(v) else 0.0 for v in got.origin)
     return Volume(
         data=data,
-        spacing=tuple(float(v) * stride for v in got.spacing),  # type: ignore[arg-type]
-        origin=tuple(float(v) for v in got.origin),  # type: ignore[arg-type]
+        spacing=spacing,  # type: ignore[arg-type]
+        origin=origin,  # type: ignore[arg-type]
         name=_volume_name(p.name, suffix),
         source_dtype=data.dtype.name,
         path=str(p),
@@ -716,11 +983,17 @@ def _volume_name(filename: str, suffix: str) -> str:
 
 
 def _attr_xyz(attrs, key: str, default: tuple[float, float, float]) -> tuple[float, float, float]:
+    """Three finite numbers from an attribute; the default for anything else (metadata only)."""
     value = attrs.get(key)
     if value is None:
         return default
-    arr = np.asarray(value, dtype=np.float64).ravel()
-    return tuple(float(v) for v in arr) if arr.size == 3 else default  # type: ignore[return-value]
+    try:
+        arr = np.asarray(value, dtype=np.float64).ravel()
+    except (TypeError, ValueError):  # a string, a compound value...
+        return default
+    if arr.size != 3 or not np.isfinite(arr).all():
+        return default
+    return tuple(float(v) for v in arr)  # type: ignore[return-value]
 
 
 def _fill_attr(attrs) -> float | None:
