@@ -247,6 +247,8 @@ def _map_slabs(fn, nz: int) -> list:
 def _valid(s: np.ndarray, fill_value: float | None) -> np.ndarray:
     ok = np.isfinite(s) if np.issubdtype(s.dtype, np.floating) else np.ones(s.shape, bool)
     if fill_value is not None:
+        if np.issubdtype(s.dtype, np.floating) and not abs(fill_value) <= float(np.finfo(s.dtype).max):
+            return ok  # no finite value of this dtype equals it (and casting it would overflow)
         ok &= s != fill_value
     return ok
 

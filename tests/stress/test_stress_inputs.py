@@ -366,3 +366,12 @@ def test_same_seed_same_model_on_an_awkward_volume():
     v[:, 3:5, 4:9] = np.nan
     a, b = encode(v, 15), encode(v, 15)
     assert np.array_equal(a.params, b.params)
+
+
+@pytest.mark.parametrize("fill", [1e300, -1e39, float("inf"), float("nan")])
+def test_fill_values_no_voxel_can_hold_are_harmless(fill):
+    """A --fill-value beyond the dtype's range (or inf, or NaN) masks nothing extra and warns about nothing."""
+    v = smooth().astype(np.float32)
+    v[0, 0, 0] = np.inf
+    f = strict(normalise, v, fill_value=fill)
+    assert f.n_valid == v.size - 1

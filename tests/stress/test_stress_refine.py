@@ -57,12 +57,8 @@ def _long_run(iterations: int):
     return m
 
 
-def test_1000_iterations_without_nan():
-    _long_run(1000)
-
-
-@pytest.mark.slow
 def test_10000_iterations_without_nan():
+    """The issue's 10,000 iterations on a tiny problem (8^3, 10 Gaussians, 64 samples): ~6 s on CPU."""
     _long_run(10_000)
 
 
