@@ -7,7 +7,12 @@ measures the worst relative error against the float64 references in ``tests/refe
 asserts a bound derived from float32 round-off (about n * 2^-24 worst case for n terms, typically
 sqrt(n) * 2^-24); the measured values are printed (``pytest -s``) and recorded as properties.
 
-Measured on the CPU device (warp-lang 1.19): see the ``worst`` lines printed by each test.
+Measured on the CPU device (warp-lang 1.19), worst relative error against float64:
+    1,000 primitives at every point:  rho 1.3e-6, V~ 1.6e-6
+    10,000 primitives at every point: rho 4.4e-6, V~ 6.7e-6   (2^-24 = 6.0e-8; sqrt(n) 2^-24 = 6.0e-6)
+    values of both signs, 5,000:      5.1e-8 of the sum's condition sum |w a G| / rho
+    binned vs dense, 3 levels, 4,000: 3.5e-6
+    gradient scatter, > 1,000 terms per entry: 5.2e-5 of the largest entry of each parameter group
 """
 
 from __future__ import annotations
