@@ -27,6 +27,7 @@ from .optimize import PRESETS, RefineConfig
 from .profiling import StageRecorder
 
 DEFAULT_RATIO = 20.0  # used when neither a budget nor a ratio is given
+MAX_SAMPLES = 1 << 24  # samples per iteration: 16.8M is 1.7 GB of per-sample buffers and 64x the largest preset
 
 
 @dataclass
@@ -74,6 +75,14 @@ class EncodeOptions:
     resume: bool = False
 
 
+def _available_memory() -> int | None:
+    """Bytes of physical memory available now (Linux), or None where that cannot be read."""
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
 def load_field(
     source,
     read: ReadOptions | None = None,
@@ -97,8 +106,20 @@ def load_field(
     s = read.stride
     fill = read.fill_value
     if example is not None:
+        from .analysis import MAX_VOXELS
         from .synthetic import generate
 
+        dims = (example_size,) * 3 if isinstance(example_size, (int, np.integer)) else tuple(example_size)
+        voxels = int(np.prod([int(d) for d in dims], dtype=object))
+        if voxels > MAX_VOXELS:
+            largest = int(round(MAX_VOXELS ** (1 / 3))) - 1
+            raise WarpgaussError(f"--size {example_size} gives {voxels:,} voxels, more than the {MAX_VOXELS:,} warpgauss indexes; use --size {largest} or less")
+        free = _available_memory()
+        if free is not None and 3 * 4 * voxels > free:  # the float32 field and generation temporaries
+            raise WarpgaussError(
+                f"--size {example_size} needs about {3 * 4 * voxels / 2**30:.1f} GiB to generate, more than the "
+                f"{free / 2**30:.1f} GiB available; use a smaller --size"
+            )
         data = generate(example, example_size, seed=0)[::s, ::s, ::s]
         name, spacing, origin, dtype, path = example, (float(s),) * 3, (0.0, 0.0, 0.0), "float32", None
     elif isinstance(source, np.ndarray):
@@ -159,8 +180,10 @@ def resolve_refine(
             raise WarpgaussError(f"--iterations must be >= 0, got {iterations}")
         cfg = dataclasses.replace(cfg, iterations=int(iterations))
     if samples is not None:
-        if samples < 1:
-            raise WarpgaussError(f"--samples must be >= 1, got {samples}")
+        if samples < 1 or samples > MAX_SAMPLES:
+            raise WarpgaussError(
+                f"--samples must be between 1 and {MAX_SAMPLES:,} (about 100 bytes of buffers per sample), got {samples}"
+            )
         cfg = dataclasses.replace(cfg, samples=int(samples), budget_samples=False)  # the user's count stays
     cfg.validate()
     return cfg
