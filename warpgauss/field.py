@@ -90,6 +90,34 @@ def set_plan(prims, plan: BinPlan, device: str, cell_start=None, cell_end=None) 
         setattr(prims, name, arr)
 
 
+def sort_into_cells(prims, prepared, keys, order, device: str) -> None:
+    """Bin prepared primitives on ``prims``' levels, sort them by cell, record each cell's range
+    and gather them into ``prims`` in cell order.
+
+    Args:
+        prims: ``BinnedPrimitives`` with its plan's arrays (:func:`set_plan`).
+        prepared: (mu, rot, inv_s2, ext, radius, a, w) of every primitive, any order.
+        keys, order: Scratch of 2 N ints; ``order`` ends as the source index of each sorted slot.
+    """
+    from .kernels import field as kf
+
+    wp = warp()
+    mu, rot, inv_s2, ext, radius, a, w = prepared
+    n = mu.shape[0]
+    wp.launch(kf.bin_keys, dim=n, inputs=[mu, radius, prims.level_size, prims.level_dims, prims.level_offset], outputs=[keys, order], device=device)
+    wp.utils.radix_sort_pairs(keys, order, n)
+    prims.cell_start.zero_()
+    prims.cell_end.zero_()
+    wp.launch(kf.cell_ranges, dim=n, inputs=[keys, n], outputs=[prims.cell_start, prims.cell_end], device=device)
+    wp.launch(
+        kf.gather_sorted,
+        dim=n,
+        inputs=[order, mu, rot, inv_s2, ext, a, w],
+        outputs=[prims.mu, prims.rot, prims.inv_s2, prims.ext, prims.a, prims.w],
+        device=device,
+    )
+
+
 class GaussianField:
     """A primitive set resident on one Warp device, ready for truncation-aware evaluation.
 
@@ -162,24 +190,8 @@ class GaussianField:
             if plan != self.plan:
                 self.plan = plan
                 set_plan(prims, plan, dev)
-        wp.launch(
-            kf.bin_keys,
-            dim=n,
-            inputs=[self.mu, self.radius, prims.level_size, prims.level_dims, prims.level_offset],
-            outputs=[self._keys, prims.order],
-            device=dev,
-        )
-        wp.utils.radix_sort_pairs(self._keys, prims.order, n)
-        prims.cell_start.zero_()
-        prims.cell_end.zero_()
-        wp.launch(kf.cell_ranges, dim=n, inputs=[self._keys, n], outputs=[prims.cell_start, prims.cell_end], device=dev)
-        wp.launch(
-            kf.gather_sorted,
-            dim=n,
-            inputs=[prims.order, self.mu, self.rot, self.inv_s2, self.ext, self.a, self.w],
-            outputs=[prims.mu, prims.rot, prims.inv_s2, prims.ext, prims.a, prims.w],
-            device=dev,
-        )
+        prepared = (self.mu, self.rot, self.inv_s2, self.ext, self.radius, self.a, self.w)
+        sort_into_cells(prims, prepared, self._keys, prims.order, dev)
 
     def _eval(self, points: np.ndarray, dense: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         wp, kf, dev = self._wp, self._k, self.device

@@ -374,12 +374,12 @@ class Refiner:
 
     def rebin(self, replan: bool = False) -> None:
         """Sort the training state into cell order (re-planning the levels with ``replan``)."""
-        from .field import plan_bins, set_plan
+        from .field import plan_bins, set_plan, sort_into_cells
         from .kernels import field as kf
         from .kernels import optim as ko
 
         wp, dev, n, p = self._wp, self.device, self.n, self.prims
-        mu, rot, inv_s2, ext, radius, a, w = self._prep
+        mu, radius = self._prep[0], self._prep[4]
         wp.launch(kf.prepare_primitives, dim=n, inputs=[self.raw, 1], outputs=self._prep, device=dev)
         wp.launch(ko.effective_radius, dim=n, inputs=[radius, self.reach], device=dev)
         if replan or self.plan is None:
@@ -388,29 +388,12 @@ class Refiner:
                 self.plan = plan
                 set_plan(p, plan, dev)
                 self._graph = None
-        wp.launch(
-            kf.bin_keys,
-            dim=n,
-            inputs=[mu, radius, p.level_size, p.level_dims, p.level_offset],
-            outputs=[self._keys, self._perm],
-            device=dev,
-        )
-        wp.utils.radix_sort_pairs(self._keys, self._perm, n)
-        p.cell_start.zero_()
-        p.cell_end.zero_()
-        wp.launch(kf.cell_ranges, dim=n, inputs=[self._keys, n], outputs=[p.cell_start, p.cell_end], device=dev)
+        sort_into_cells(p, self._prep, self._keys, self._perm, dev)
         wp.launch(
             ko.permute_slots,
             dim=n,
             inputs=[self._perm, self.raw, self.m1, self.m2, self.ids, mu, radius, p.level_size, p.level_dims],
             outputs=[self._raw_b, self._m1_b, self._m2_b, self._ids_b, self.bounds],
-            device=dev,
-        )
-        wp.launch(
-            kf.gather_sorted,
-            dim=n,
-            inputs=[self._perm, mu, rot, inv_s2, ext, a, w],
-            outputs=[p.mu, p.rot, p.inv_s2, p.ext, p.a, p.w],
             device=dev,
         )
         for dst, src in ((self.raw, self._raw_b), (self.m1, self._m1_b), (self.m2, self._m2_b), (self.ids, self._ids_b)):
@@ -732,7 +715,7 @@ class Refiner:
         set_plan(p, plan, dev, arrays["cell_start"], arrays["cell_end"])
         for dst, key in ((self.raw, "raw"), (self.m1, "m1"), (self.m2, "m2"), (self.ids, "ids"), (b.lo, "bounds_lo"), (b.hi, "bounds_hi"), (b.cell, "bounds_cell"), (self.counts, "counts"), (self.reach, "reach")):
             dst.assign(arrays[key])
-        mu, rot, inv_s2, ext, radius, a, w = self._prep
+        radius = self._prep[4]  # scratch: the prepared primitives go straight into slot order
         wp.launch(kf.prepare_primitives, dim=self.n, inputs=[self.raw, 1], outputs=[p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w], device=dev)
         self._zero_grads()
         if int(scalars["samples"]) != self.m:
