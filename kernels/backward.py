@@ -12,10 +12,13 @@ Per iteration, with M samples p_s and M partner points p'_s (p_s jittered by abo
 
 Training parameters per primitive: mu(3), log-sigma(3), unnormalised quaternion(4), a, weight
 logit (w = sigmoid). The point pass (:func:`point_grads`) turns the forward values into dL/dV~
-and dL/drho per point; the pair pass (:func:`accumulate_pairs`) visits exactly the pairs the
-forward pass visited (same bins, same ``truncated_kernel``) and accumulates, per primitive in
-cell order, dL/dmu, dL/dlog-sigma, dL/dR (3x3), dL/da and dL/dw; :func:`finish_grads` adds the
-per-primitive terms and chains R(q/|q|) and the sigmoid into the 12 raw gradients.
+and dL/drho per point; the pair pass visits exactly the pairs the forward pass visited (same
+bins, same ``truncated_kernel``) and accumulates, per primitive in cell order, dL/dmu,
+dL/dlog-sigma, dL/dR (3x3), dL/da and dL/dw. Training uses :func:`accumulate_prims` (one thread
+per primitive gathering from the cell-sorted points, no atomics: bit-identical reruns);
+:func:`accumulate_pairs` (one thread per point scattering through atomics) is its reference.
+:func:`finish_grads` adds the per-primitive terms and chains R(q/|q|) and the sigmoid into the
+12 raw gradients.
 
 Derivation of the pair terms (d = p - mu, y = R^T d, m = sum_k y_k^2 / s_k^2, G = exp(-m/2)):
     dG/dmu = G R (y / s^2)          dG/dls_k = G y_k^2 / s_k^2      dG/dR = -G d (y / s^2)^T
@@ -27,7 +30,7 @@ Derivation of the pair terms (d = p - mu, y = R^T d, m = sum_k y_k^2 / s_k^2, G 
 import warp as wp
 
 from .analysis import trilinear
-from .field import RHO0, BinnedPrimitives, level_cell, neighbour_range, sigmoid, truncated_kernel, vec12
+from .field import RHO0, BinnedPrimitives, level_cell, neighbour_cell, neighbour_range, sigmoid, truncated_kernel, vec12
 
 wp.set_module_options({"enable_backward": False})
 
@@ -144,32 +147,97 @@ def accumulate_pairs(
 
 
 @wp.kernel
-def accumulate_pairs_split(
+def gather_point_state(
+    order: wp.array(dtype=int),  # [>=K] point index of each sorted (level, point) entry
     points: wp.array(dtype=wp.vec3),  # [P]
-    value: wp.array(dtype=float),
-    density: wp.array(dtype=float),
-    g_value: wp.array(dtype=float),
-    g_density: wp.array(dtype=float),
-    prims: BinnedPrimitives,
-    d_mu: wp.array(dtype=wp.vec3),
-    d_ls: wp.array(dtype=wp.vec3),
-    d_rot: wp.array(dtype=wp.mat33),
-    d_a: wp.array(dtype=float),
-    d_w: wp.array(dtype=float),
-    pairs: wp.array(dtype=int),  # [P] out (zeroed before)
+    value: wp.array(dtype=float),  # [P] forward V~
+    density: wp.array(dtype=float),  # [P] forward rho
+    g_value: wp.array(dtype=float),  # [P]
+    g_density: wp.array(dtype=float),  # [P]
+    pos: wp.array(dtype=wp.vec3),  # [K] out: position of each sorted entry
+    state: wp.array(dtype=wp.vec4),  # [K] out: point_state() of each sorted entry
 ):
-    """:func:`accumulate_pairs` with one thread per (point, level, neighbour cell), for GPUs."""
-    i, t = wp.tid()
-    l = t / 27
-    p = points[i]
-    st = point_state(i, value, density, g_value, g_density)
-    c = level_cell(p, prims.level_size[l], prims.level_dims[l])
-    r = neighbour_range(prims, l, c, t % 27)
-    n = int(0)
-    for j in range(r[0], r[1]):
-        n += pair_grad(p, j, prims, st, d_mu, d_ls, d_rot, d_a, d_w)
-    if n > 0:
-        wp.atomic_add(pairs, i, n)
+    """Copy what the pair pass reads of each point into cell order (one thread per entry)."""
+    k = wp.tid()
+    i = order[k]
+    pos[k] = points[i]
+    state[k] = point_state(i, value, density, g_value, g_density)
+
+
+@wp.kernel
+def accumulate_prims(
+    slot_cell: wp.array(dtype=int),  # [N] cell id each sorted slot is binned in
+    prims: BinnedPrimitives,
+    point_start: wp.array(dtype=int),  # [C] first sorted point entry of each cell
+    point_end: wp.array(dtype=int),  # [C] one past the last
+    pos: wp.array(dtype=wp.vec3),  # [K] sorted point positions (gather_point_state)
+    state: wp.array(dtype=wp.vec4),  # [K] sorted point states
+    order: wp.array(dtype=int),  # [>=K] point index of each sorted entry (for the pair count)
+    count_pairs: int,  # 1: add each contributing pair to pairs[point] (tests, self-test)
+    pairs: wp.array(dtype=int),  # [P] out (zeroed before when counting)
+    d_mu: wp.array(dtype=wp.vec3),  # [N] out (cell order, overwritten): dL/dmu
+    d_ls: wp.array(dtype=wp.vec3),  # [N] out: dL/dlog-sigma
+    d_rot: wp.array(dtype=wp.mat33),  # [N] out: dL/dR
+    d_a: wp.array(dtype=float),  # [N] out: dL/da
+    d_w: wp.array(dtype=float),  # [N] out: dL/dw (activated weight)
+):
+    """Gather each primitive's gradient from the points around it (one thread per primitive).
+
+    The primitive-major form of :func:`accumulate_pairs`: a primitive binned in cell c of level l
+    is visited by exactly the points whose level-l cell has c among its 3^3 neighbours, i.e. the
+    points binned (on level l) in c's neighbours. Each thread sums its pairs in a fixed order and
+    stores the result once: no atomics, so reruns are bit-identical on every device, and the
+    threads of one cell read the same point ranges.
+    """
+    j = wp.tid()
+    cid = slot_cell[j]
+    l = int(0)
+    for q in range(1, prims.level_offset.shape[0]):
+        if prims.level_offset[q] <= cid:
+            l = q
+    dims = prims.level_dims[l]
+    off = prims.level_offset[l]
+    local = cid - off
+    c = wp.vec3i(local % dims[0], (local / dims[0]) % dims[1], local / (dims[0] * dims[1]))
+    mu = prims.mu[j]
+    R = prims.rot[j]
+    inv = prims.inv_s2[j]
+    e = prims.ext[j]
+    a = prims.a[j]
+    w = prims.w[j]
+    s_ky = wp.vec3(0.0, 0.0, 0.0)  # sum k y/s^2: d_mu = R s_ky
+    s_ls = wp.vec3(0.0, 0.0, 0.0)
+    s_rot = wp.mat33(0.0)
+    s_a = float(0.0)
+    s_w = float(0.0)
+    for nb in range(27):
+        nc = neighbour_cell(dims, c, nb)
+        if nc >= 0:
+            for k in range(point_start[off + nc], point_end[off + nc]):
+                p = pos[k]
+                g = truncated_kernel(p, mu, R, inv, e)
+                if g > 0.0:
+                    if count_pairs != 0:
+                        wp.atomic_add(pairs, order[k], 1)
+                    st = state[k]
+                    gv = st[0]
+                    gr = st[1]
+                    if gv != 0.0 or gr != 0.0:
+                        dv_dg = (a - st[3]) / st[2]
+                        kk = w * (gv * dv_dg + gr) * g  # dL/dG * G
+                        d = p - mu
+                        yl = wp.transpose(R) @ d
+                        ys = wp.vec3(yl[0] * inv[0], yl[1] * inv[1], yl[2] * inv[2])
+                        s_ky += kk * ys
+                        s_ls += kk * wp.vec3(yl[0] * ys[0], yl[1] * ys[1], yl[2] * ys[2])
+                        s_rot -= kk * wp.outer(d, ys)
+                        s_a += gv * w * g / st[2]
+                        s_w += g * (gv * dv_dg + gr)
+    d_mu[j] = R @ s_ky
+    d_ls[j] = s_ls
+    d_rot[j] = s_rot
+    d_a[j] = s_a
+    d_w[j] = s_w
 
 
 @wp.kernel

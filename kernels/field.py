@@ -244,15 +244,23 @@ class BinnedPrimitives:
 
 
 @wp.func
-def neighbour_range(prims: BinnedPrimitives, l: int, c: wp.vec3i, nb: int) -> wp.vec2i:
-    """[start, end) of sorted primitives in neighbour nb (0..26) of cell c on level l; empty outside."""
-    dims = prims.level_dims[l]
+def neighbour_cell(dims: wp.vec3i, c: wp.vec3i, nb: int) -> int:
+    """Id within its level of neighbour nb (0..26) of cell c on a level of ``dims`` cells; -1 outside."""
     x = c[0] + nb % 3 - 1
     y = c[1] + (nb / 3) % 3 - 1
     z = c[2] + nb / 9 - 1
     if x < 0 or y < 0 or z < 0 or x >= dims[0] or y >= dims[1] or z >= dims[2]:
+        return -1
+    return (z * dims[1] + y) * dims[0] + x
+
+
+@wp.func
+def neighbour_range(prims: BinnedPrimitives, l: int, c: wp.vec3i, nb: int) -> wp.vec2i:
+    """[start, end) of sorted primitives in neighbour nb (0..26) of cell c on level l; empty outside."""
+    local = neighbour_cell(prims.level_dims[l], c, nb)
+    if local < 0:
         return wp.vec2i(0, 0)
-    cid = prims.level_offset[l] + (z * dims[1] + y) * dims[0] + x
+    cid = prims.level_offset[l] + local
     return wp.vec2i(prims.cell_start[cid], prims.cell_end[cid])
 
 
@@ -341,51 +349,100 @@ def eval_points_dense(
 
 
 @wp.kernel
-def eval_points_split(
-    points: wp.array(dtype=wp.vec3),  # [P]
+def eval_points_ordered(
+    points: wp.array(dtype=wp.vec3),  # [P] query positions
+    order: wp.array(dtype=int),  # [>=P] point index of each thread, cell-sorted for coherent reads
     prims: BinnedPrimitives,
-    num: wp.array(dtype=float),  # [P] out (zeroed before): sum w a G
-    density: wp.array(dtype=float),  # [P] out (zeroed before): sum w G
-    pairs: wp.array(dtype=int),  # [P] out (zeroed before)
+    value: wp.array(dtype=float),  # [P] out: V~
+    density: wp.array(dtype=float),  # [P] out: rho
+    pairs: wp.array(dtype=int),  # [P] out: contributing pairs
+):
+    """:func:`eval_points_binned` visiting the points in ``order`` (neighbouring threads read the
+    same cells; results are stored at the point's own index)."""
+    k = wp.tid()
+    i = order[k]
+    s = binned_sums(points[i], prims)
+    value[i] = s[0] / wp.max(s[1], RHO0)
+    density[i] = s[1]
+    pairs[i] = int(s[2])
+
+
+@wp.kernel
+def eval_points_partial(
+    points: wp.array(dtype=wp.vec3),  # [P]
+    order: wp.array(dtype=int),  # [>=P] point index of each row, cell-sorted
+    prims: BinnedPrimitives,
+    part: wp.array2d(dtype=wp.vec3),  # [P, 27 L] out: (sum w a G, sum w G, pairs) per neighbour cell
 ):
     """Partial sums of one (point, level, neighbour cell) each: 27 L threads per point.
 
     For GPUs, where one thread per point leaves the chip idle when there are few points (a
-    training iteration has thousands); the sums then meet through atomics, so their float order
-    varies run to run. :func:`finish_values` turns (num, density) into V~.
+    training iteration may have only thousands). Every partial is stored, none is added
+    atomically: :func:`finish_partials` sums them in a fixed order, so reruns are bit-identical.
     """
-    i, t = wp.tid()
+    k, t = wp.tid()
     l = t / 27
-    p = points[i]
+    p = points[order[k]]
     c = level_cell(p, prims.level_size[l], prims.level_dims[l])
     r = neighbour_range(prims, l, c, t % 27)
     sn = float(0.0)
     sd = float(0.0)
-    n = int(0)
+    n = float(0.0)
     for j in range(r[0], r[1]):
         g = truncated_kernel(p, prims.mu[j], prims.rot[j], prims.inv_s2[j], prims.ext[j])
         if g > 0.0:
             sn += prims.w[j] * prims.a[j] * g
             sd += prims.w[j] * g
-            n += 1
-    if n > 0:
-        wp.atomic_add(num, i, sn)
-        wp.atomic_add(density, i, sd)
-        wp.atomic_add(pairs, i, n)
+            n += 1.0
+    part[k, t] = wp.vec3(sn, sd, n)
 
 
 @wp.kernel
-def finish_values(num: wp.array(dtype=float), density: wp.array(dtype=float), value: wp.array(dtype=float)):
-    """V~ = num / max(rho, RHO0)."""
-    i = wp.tid()
-    value[i] = num[i] / wp.max(density[i], RHO0)
+def finish_partials(
+    order: wp.array(dtype=int),  # [>=P]
+    part: wp.array2d(dtype=wp.vec3),  # [P, 27 L] from eval_points_partial
+    value: wp.array(dtype=float),  # [P] out: V~ = num / max(rho, RHO0)
+    density: wp.array(dtype=float),  # [P] out
+    pairs: wp.array(dtype=int),  # [P] out
+):
+    """Sum each point's partials in neighbour order (one thread per point)."""
+    k = wp.tid()
+    s = wp.vec3(0.0, 0.0, 0.0)
+    for t in range(part.shape[1]):
+        s += part[k, t]
+    i = order[k]
+    value[i] = s[0] / wp.max(s[1], RHO0)
+    density[i] = s[1]
+    pairs[i] = int(s[2])
 
 
 @wp.kernel
-def clear_sums(num: wp.array(dtype=float), density: wp.array(dtype=float), pairs: wp.array(dtype=int), back_pairs: wp.array(dtype=int)):
-    """Zero the per-point accumulators of the split-cell passes (one launch instead of four)."""
-    i = wp.tid()
-    num[i] = 0.0
-    density[i] = 0.0
-    pairs[i] = 0
-    back_pairs[i] = 0
+def point_keys(
+    points: wp.array(dtype=wp.vec3),  # [>=count]
+    count: int,  # points to bin; the launch has L * count threads
+    level_size: wp.array(dtype=float),  # [L]
+    level_dims: wp.array(dtype=wp.vec3i),  # [L]
+    level_offset: wp.array(dtype=int),  # [L]
+    keys: wp.array(dtype=int),  # [2 L count] out: cell id of (level, point) in the first L count entries
+    values: wp.array(dtype=int),  # [2 L count] out: point index
+):
+    """Bin every point on every level (the same cells the primitives are binned in)."""
+    k = wp.tid()
+    l = k / count
+    i = k - l * count
+    dims = level_dims[l]
+    c = level_cell(points[i], level_size[l], dims)
+    keys[k] = level_offset[l] + (c[2] * dims[1] + c[1]) * dims[0] + c[0]
+    values[k] = i
+
+
+@wp.kernel
+def slot_cells(
+    cell_start: wp.array(dtype=int),  # [C]
+    cell_end: wp.array(dtype=int),  # [C]
+    slot_cell: wp.array(dtype=int),  # [N] out: the cell each sorted slot is binned in
+):
+    """Invert the cell ranges: the cell id of every sorted slot (one thread per cell)."""
+    c = wp.tid()
+    for j in range(cell_start[c], cell_end[c]):
+        slot_cell[j] = c

@@ -208,13 +208,15 @@ def test_loss_decreases_and_psnr_improves_on_a_toy_problem(device):
     assert np.all((out[:, 11] > 0) & (out[:, 11] < 1))
 
 
-def test_same_seed_gives_a_bit_identical_refined_model_on_cpu(cpu):
-    a, _, _ = _toy(cpu, iterations=30)
-    b, _, _ = _toy(cpu, iterations=30)
+def test_same_seed_gives_a_bit_identical_refined_model(device):
+    """Same seed, same device => same model, on CUDA too: the forward sums its partials in a
+    fixed order and the pair pass is primitive-major (no float atomics anywhere in a step)."""
+    a, _, _ = _toy(device, iterations=30)
+    b, _, _ = _toy(device, iterations=30)
     a.run(log_every=30)
     b.run(log_every=30)
     assert a.model_params().tobytes() == b.model_params().tobytes()
-    c, _, _ = _toy(cpu, seed=1, iterations=30)
+    c, _, _ = _toy(device, seed=1, iterations=30)
     c.run(log_every=30)
     assert not np.array_equal(a.model_params(), c.model_params())
 
@@ -225,6 +227,45 @@ def test_self_test_passes_and_compares_both_paths(device, split):
     r.split = split
     res = self_test(r)
     assert res["passed"] and res["pairs_equal"] and res["gradient_max_rel_diff"] < 1e-4
+
+
+@pytest.mark.parametrize("split", [False, True], ids=["point-major", "split-cells"])
+def test_primitive_major_pair_pass_equals_the_atomic_point_scatter(device, split):
+    """The primitive-major gather visits the same pairs as the point-major scatter it replaced
+    and sums the same gradients (in another order: float32 rounding only)."""
+    from warpgauss.kernels import backward as kb
+
+    r, _, _ = _toy(device, iterations=1)
+    r.split = split
+    r.sample()
+    r.forward_backward()
+    mine = [a.numpy().copy() for a in r.pair_grads]
+    pairs = r.back_pairs.numpy().copy()
+    np.testing.assert_array_equal(pairs, r.pairs.numpy())
+    assert pairs.sum() > 10 * r.m  # a real workload: every point touches primitives
+    r.accumulate(kb.accumulate_pairs)
+    ref = [a.numpy().copy() for a in r.pair_grads]
+    np.testing.assert_array_equal(pairs, r.back_pairs.numpy())
+    for x, y in zip(mine, ref):
+        scale = float(np.abs(y).max())
+        assert scale > 0
+        np.testing.assert_allclose(x, y, rtol=0, atol=2e-5 * scale)
+
+
+def test_a_primitive_outgrowing_the_levels_triggers_a_replan(cpu):
+    """Between re-plans a grown primitive would land in the global level, where one thread of
+    the pair pass would visit every point: the re-bin re-plans instead."""
+    r, _, _ = _toy(cpu, iterations=1)
+    top = r.plan.sizes[-2]
+    raw = r.raw.numpy()
+    raw[0, 3:6] = np.log(top)  # 5 sigma = 5x the largest planned cell
+    r.raw.assign(raw)
+    r.rebin(replan=False)
+    assert r._global_members() == 0
+    assert r.plan.sizes[-2] > top
+    r.sample()
+    r.forward_backward()
+    np.testing.assert_array_equal(r.pairs.numpy(), r.back_pairs.numpy())
 
 
 def test_split_and_point_major_paths_agree(cpu):

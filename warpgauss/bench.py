@@ -39,6 +39,7 @@ class KernelBenchConfig:
     decode: bool = True
     sigma_spacing: float = 0.7
     seed: int = 0
+    atomic_baseline: bool = True  # also time the point-major atomic scatter (the pre-sort baseline)
 
 
 def bench_field(size: int):
@@ -108,6 +109,17 @@ class _Timer:
         wp.synchronize_device(self.device)
         return 1000.0 * (time.perf_counter() - t0) / repeat
 
+    def each_ms(self, fn: Callable[[], None], repeat: int) -> list[float]:
+        """Wall milliseconds of each call, synchronised after every one (shows periodic work)."""
+        wp, out = self.wp, []
+        wp.synchronize_device(self.device)
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            fn()
+            wp.synchronize_device(self.device)
+            out.append(1000.0 * (time.perf_counter() - t0))
+        return out
+
 
 def _device_bytes(wp, device: str) -> int | None:
     if wp.get_device(device).is_cuda and wp.is_mempool_enabled(device):
@@ -139,6 +151,7 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
         r = Refiner(dv, params, rc, cfg.seed, 0.3, max(2.0, cfg.size / 16))
         entry = {"n": n, "levels": len(r.plan.sizes), "cells": r.plan.total_cells}
         entry["bin_ms"] = timer.ms(r.rebin, cfg.repeat)
+        entry["rebin_wall_ms"] = timer.wall_ms(r.rebin, cfg.repeat)
         entry["device_bytes_after_setup"] = _device_bytes(wp, dev)
         raw0 = r.raw_params()
         for m in cfg.samples:
@@ -149,14 +162,20 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
             row["forward_ms"] = timer.ms(r._forward, cfg.repeat)
             pairs = r.pairs.numpy().astype(np.float64)
             row["pairs_per_point"] = float(pairs.mean())
-            kernel = kb.accumulate_pairs_split if r.split else kb.accumulate_pairs
-            row["backward_ms"] = timer.ms(lambda: r._pairs(kernel, 2 * m), cfg.repeat)
-            both = timer.ms(lambda: (r._pairs(kernel, 2 * m), r._update()), cfg.repeat)
+            row["point_sort_ms"] = timer.ms(lambda: r._sort_points(2 * m), cfg.repeat)
+            row["backward_ms"] = timer.ms(r._backward, cfg.repeat)
+            if cfg.atomic_baseline:  # the point-major atomic scatter the primitive-major pass replaced
+                row["backward_atomic_ms"] = timer.ms(lambda: r._pairs(kb.accumulate_pairs, 2 * m), cfg.repeat)
+                r._zero_grads()
+            both = timer.ms(lambda: (r._backward(), r._update()), cfg.repeat)
             row["update_ms"] = max(both - row["backward_ms"], 0.0)
             r._zero_grads()
             fb = row["forward_ms"] + row["backward_ms"]
             row["gpairs_per_s"] = 2 * m * row["pairs_per_point"] / (fb * 1e-3) / 1e9 if fb > 0 else None
             row["iteration_ms"] = timer.wall_ms(r.step, cfg.repeat)
+            each = timer.each_ms(r.step, 2 * cfg.repeat)
+            row["step_ms_median"] = float(np.median(each))
+            row["step_ms_max"] = float(np.max(each))
             if r.use_graph:
                 r.use_graph = False
                 row["iteration_nograph_ms"] = timer.wall_ms(r.step, cfg.repeat)
@@ -201,7 +220,8 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
         "rows": rows,
         "notes": [
             "stage times: CUDA events around repeat back-to-back calls (GPU time incl. launch gaps); CPU: wall clock",
-            "forward = clear + evaluation + per-point loss gradients; backward = pair scatter (atomics); "
+            "forward = point sort by cell + evaluation + per-point loss gradients; backward = primitive-major pair gather "
+            "(backward_atomic_ms: the point-major atomic scatter it replaced); "
             "update = fused chain rule + sparse Adam + re-preparation (measured as backward+update minus backward)",
             "iteration = wall clock per Refiner.step, re-bins every 10 iterations included",
             "gpairs_per_s = contributing Gaussian-sample pairs (samples and partners) / (forward + backward time)",
@@ -226,10 +246,13 @@ def _decode_on_device(gf) -> None:
 def _format_row(r: dict) -> str:
     s = (
         f"N {r['n']:>9,d} M {r['samples']:>9,d} | sample {r['sample_ms']:8.3f} fwd {r['forward_ms']:8.3f} "
-        f"bwd {r['backward_ms']:8.3f} upd {r['update_ms']:8.3f} | iter {r['iteration_ms']:8.3f}"
+        f"bwd {r['backward_ms']:8.3f}"
+        + (f" (atomic {r['backward_atomic_ms']:8.3f})" if "backward_atomic_ms" in r else "")
+        + f" upd {r['update_ms']:8.3f} | iter {r['iteration_ms']:8.3f}"
     )
     if "iteration_nograph_ms" in r:
         s += f" (no graph {r['iteration_nograph_ms']:8.3f})"
+    s += f" ms, step median {r['step_ms_median']:.3f} max {r['step_ms_max']:.3f}"
     s += f" ms | {r['pairs_per_point']:7.1f} pairs/pt {r['gpairs_per_s'] or 0:7.2f} Gpairs/s"
     if "dense_forward_ms" in r:
         s += f" | dense fwd {r['dense_forward_ms']:9.3f} ms = {r['dense_over_binned']:6.1f}x"
@@ -241,13 +264,13 @@ def format_table(result: dict) -> str:
     lines = [
         f"{result['device_name']}, Warp {result['warp_version']}, field {result['config']['size']}^3",
         "",
-        "| N | samples | sample ms | forward ms | backward ms | update ms | iteration ms | no-graph ms | pairs/point | G pairs/s | dense x |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| N | samples | sample ms | forward ms | backward ms | atomic bwd ms | update ms | iteration ms | no-graph ms | pairs/point | G pairs/s | dense x |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["rows"]:
         lines.append(
             f"| {r['n']:,} | {r['samples']:,} | {r['sample_ms']:.3f} | {r['forward_ms']:.3f} | {r['backward_ms']:.3f} | "
-            f"{r['update_ms']:.3f} | {r['iteration_ms']:.3f} | {r.get('iteration_nograph_ms', float('nan')):.3f} | "
+            f"{r.get('backward_atomic_ms', float('nan')):.3f} | {r['update_ms']:.3f} | {r['iteration_ms']:.3f} | {r.get('iteration_nograph_ms', float('nan')):.3f} | "
             f"{r['pairs_per_point']:.1f} | {r['gpairs_per_s'] or 0:.2f} | {r.get('dense_over_binned', float('nan')):.1f} |"
         )
     lines += ["", "| N | levels | bin ms | decode s | Gvoxels/s |", "|---|---|---|---|---|"]

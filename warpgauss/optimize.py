@@ -86,9 +86,11 @@ class RefineConfig:
         plateau_db: Stop once the validation PSNR gained less than this over the last
             ``plateau_window`` iterations.
         partner_distance: Range of the partner offset in voxels.
-        split_cells: One thread per (point, neighbour cell) instead of per point, summing through
-            atomics; None picks it on CUDA devices (one thread per sample leaves a GPU idle) and
-            not on the CPU (where it only adds work, and the serial sums stay bit-reproducible).
+        split_cells: Forward pass with one thread per (point, neighbour cell) instead of per
+            point, the partial sums stored and added in a fixed order; None picks it on CUDA
+            devices (one thread per sample leaves a GPU idle) and not on the CPU (where it only
+            adds work). Either way reruns are bit-identical. Above
+            :data:`PARTIAL_MAX_ENTRIES` partials the point-major pass is used.
     """
 
     iterations: int = 1500
@@ -150,6 +152,8 @@ class RefineConfig:
             if not (finite(v) and v >= 0):
                 raise WarpgaussError(f"loss weight {name} must be a finite number >= 0, got {v} (--w-{name.replace('_', '-')})")
 
+
+PARTIAL_MAX_ENTRIES = 1 << 24  # (point, neighbour cell) partial sums of the split forward pass (192 MiB)
 
 # quality: measured on the H100 (benchmarks/results/quality_grid_h100.json, vortex and interface
 # at 128^3 with 20,000 Gaussians, split-cell kernels): 1,500 x 12,288 gives +2.7 / +1.0 dB over
@@ -265,6 +269,9 @@ class Refiner:
         self.reg_loss = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.counts = wp.zeros(2, dtype=int, device=dev)  # (non-finite skips, deferred updates)
         self.reach = wp.zeros(n, dtype=float, device=dev)  # binning radius deferred steps ask for
+        self.slot_cell = wp.zeros(n, dtype=int, device=dev)  # cell of each sorted slot (pair pass)
+        self._pbuf: dict | None = None  # per-iteration point binning buffers (see _point_buffers)
+        self._sorted_count = 0  # points binned by the last _sort_points (0: stale)
         self._graph = None
         self._split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
         self.use_graph = wp.get_device(dev).is_cuda and config.graph
@@ -306,11 +313,13 @@ class Refiner:
             self.cfg = dataclasses.replace(self.cfg, samples=m)
         self.points = wp.zeros(2 * m, dtype=wp.vec3, device=dev)
         self.target, self.weight, self.occupied = (wp.zeros(m, dtype=float, device=dev) for _ in range(3))
-        self.value, self.density, self.g_value, self.g_density, self.num = (wp.zeros(2 * m, dtype=float, device=dev) for _ in range(5))
+        self.value, self.density, self.g_value, self.g_density = (wp.zeros(2 * m, dtype=float, device=dev) for _ in range(4))
         self.pairs = wp.zeros(2 * m, dtype=int, device=dev)
         self.back_pairs = wp.zeros(2 * m, dtype=int, device=dev)
         self.point_loss = wp.zeros(m, dtype=wp.vec3, device=dev)
         self.strata = stratum_counts(m, self.n_high, self.n_mid)
+        self._pbuf = None
+        self._sorted_count = 0
         self._graph = None
 
     @property
@@ -388,7 +397,17 @@ class Refiner:
                 self.plan = plan
                 set_plan(p, plan, dev)
                 self._graph = None
+                self._pbuf = None
         sort_into_cells(p, self._prep, self._keys, self._perm, dev)
+        if not replan and self._global_members() > 0:
+            # a primitive outgrew the planned levels: re-plan rather than let one thread of the
+            # primitive-major pair pass visit every point
+            self.plan = plan_bins(radius.numpy(), self.dv.field.shape_xyz)
+            set_plan(p, self.plan, dev)
+            self._graph = None
+            self._pbuf = None
+            sort_into_cells(p, self._prep, self._keys, self._perm, dev)
+        self._slot_cells()
         wp.launch(
             ko.permute_slots,
             dim=n,
@@ -402,6 +421,18 @@ class Refiner:
         if not self._clean:
             self._zero_grads()
         self.rebins += 1
+
+    def _global_members(self) -> int:
+        """Primitives binned in the last, global level (syncs; normally 0 after a re-plan)."""
+        c = self.plan.total_cells - 1
+        p = self.prims
+        return int(p.cell_end[c:].numpy()[0] - p.cell_start[c:].numpy()[0])
+
+    def _slot_cells(self) -> None:
+        from .kernels import field as kf
+
+        p = self.prims
+        self._wp.launch(kf.slot_cells, dim=self.plan.total_cells, inputs=[p.cell_start, p.cell_end], outputs=[self.slot_cell], device=self.device)
 
     def set_raw(self, raw: np.ndarray) -> None:
         """Replace the training parameters ((N, 12), primitive order) and reset Adam (tests)."""
@@ -439,23 +470,61 @@ class Refiner:
             device=self.device,
         )
 
+    def _point_buffers(self) -> dict:
+        """Buffers that bin the 2 M points of an iteration on every level (allocated outside any
+        graph capture; the sort's scratch is reserved for the largest sort this refiner runs)."""
+        if self._pbuf is None:
+            wp, dev = self._wp, self.device
+            levels, p2 = len(self.plan.sizes), 2 * self.m
+            k = levels * p2
+            b = {
+                "keys": wp.empty(2 * k, dtype=int, device=dev),
+                "order": wp.empty(2 * k, dtype=int, device=dev),
+                "start": wp.zeros(self.plan.total_cells, dtype=int, device=dev),
+                "end": wp.zeros(self.plan.total_cells, dtype=int, device=dev),
+                "pos": wp.empty(k, dtype=wp.vec3, device=dev),
+                "state": wp.empty(k, dtype=wp.vec4, device=dev),
+                "part": wp.empty((p2, 27 * levels), dtype=wp.vec3, device=dev) if self._use_partials() else None,
+            }
+            # CUB keeps one scratch buffer per context and re-allocates it for a larger sort: sort
+            # the largest count now, so that a captured graph never refers to a freed buffer
+            big = max(k, self.n)
+            scratch = [wp.zeros(2 * big, dtype=int, device=dev) for _ in range(2)]
+            wp.utils.radix_sort_pairs(scratch[0], scratch[1], big)
+            self._pbuf = b
+        return self._pbuf
+
+    def _use_partials(self) -> bool:
+        return self.split and 2 * self.m * 27 * len(self.plan.sizes) <= PARTIAL_MAX_ENTRIES
+
+    def _sort_points(self, count: int) -> None:
+        """Bin the first ``count`` points on every level and sort them by cell (stable: the
+        order within a cell is the point index, so the pair pass sums in a fixed order)."""
+        from .kernels import field as kf
+
+        wp, dev, p, b = self._wp, self.device, self.prims, self._point_buffers()
+        k = len(self.plan.sizes) * count
+        wp.launch(kf.point_keys, dim=k, inputs=[self.points, count, p.level_size, p.level_dims, p.level_offset], outputs=[b["keys"], b["order"]], device=dev)
+        wp.utils.radix_sort_pairs(b["keys"], b["order"], k, 0, max(1, (self.plan.total_cells - 1).bit_length()))
+        b["start"].zero_()
+        b["end"].zero_()
+        wp.launch(kf.cell_ranges, dim=k, inputs=[b["keys"], k], outputs=[b["start"], b["end"]], device=dev)
+        self._sorted_count = count
+
     def _forward(self) -> None:
+        """Sort the points by cell, evaluate V~ and rho at them, and the per-point loss gradients."""
         from .kernels import backward as kb
         from .kernels import field as kf
 
         wp, dev, w, m2 = self._wp, self.device, self.cfg.weights, 2 * self.m
-        if self.split:
-            wp.launch(kf.clear_sums, dim=m2, inputs=[], outputs=[self.num, self.density, self.pairs, self.back_pairs], device=dev)
-            wp.launch(
-                kf.eval_points_split,
-                dim=(m2, 27 * len(self.plan.sizes)),
-                inputs=[self.points, self.prims],
-                outputs=[self.num, self.density, self.pairs],
-                device=dev,
-            )
-            wp.launch(kf.finish_values, dim=m2, inputs=[self.num, self.density], outputs=[self.value], device=dev)
+        self._sort_points(m2)
+        b = self._pbuf
+        order = b["order"]  # its first 2 M entries: the points in level-0 cell order
+        if self._use_partials():
+            wp.launch(kf.eval_points_partial, dim=b["part"].shape, inputs=[self.points, order, self.prims], outputs=[b["part"]], device=dev)
+            wp.launch(kf.finish_partials, dim=m2, inputs=[order, b["part"]], outputs=[self.value, self.density, self.pairs], device=dev)
         else:
-            wp.launch(kf.eval_points_binned, dim=m2, inputs=[self.points, self.prims], outputs=[self.value, self.density, self.pairs], device=dev)
+            wp.launch(kf.eval_points_ordered, dim=m2, inputs=[self.points, order, self.prims], outputs=[self.value, self.density, self.pairs], device=dev)
         wp.launch(
             kb.point_grads,
             dim=self.m,
@@ -464,12 +533,40 @@ class Refiner:
             device=dev,
         )
 
+    def _backward(self, count: int | None = None, count_pairs: bool = False) -> None:
+        """Primitive-major pair pass over the first ``count`` points (all 2 M by default):
+        overwrites the pair-gradient buffers, no atomics (bit-identical reruns)."""
+        from .kernels import backward as kb
+
+        wp, dev, b = self._wp, self.device, self._point_buffers()
+        count = 2 * self.m if count is None else int(count)
+        if self._sorted_count != count:
+            self._sort_points(count)
+        k = len(self.plan.sizes) * count
+        wp.launch(
+            kb.gather_point_state,
+            dim=k,
+            inputs=[b["order"], self.points, self.value, self.density, self.g_value, self.g_density],
+            outputs=[b["pos"], b["state"]],
+            device=dev,
+        )
+        if count_pairs:
+            self.back_pairs.zero_()
+        wp.launch(
+            kb.accumulate_prims,
+            dim=self.n,
+            inputs=[self.slot_cell, self.prims, b["start"], b["end"], b["pos"], b["state"], b["order"], int(count_pairs)],
+            outputs=[self.back_pairs, *self.pair_grads],
+            device=dev,
+        )
+        self._clean = False
+
     def _pairs(self, kernel, count: int) -> None:
+        """A point-major pair kernel (atomics; the references of tests and the self-test)."""
         wp = self._wp
-        dim = (count, 27 * len(self.plan.sizes)) if kernel.key.endswith("_split") else count
         wp.launch(
             kernel,
-            dim=dim,
+            dim=count,
             inputs=[self.points, self.value, self.density, self.g_value, self.g_density, self.prims],
             outputs=[*self.pair_grads, self.back_pairs],
             device=self.device,
@@ -510,13 +607,12 @@ class Refiner:
         )
 
     def _iteration_launches(self) -> None:
-        from .kernels import backward as kb
         from .kernels import optim as ko
 
         self._begin()
         self._draw()
         self._forward()
-        self._pairs(kb.accumulate_pairs_split if self.split else kb.accumulate_pairs, 2 * self.m)
+        self._backward()
         self._update()
         self._wp.launch(ko.end_iteration, dim=1, inputs=[self.counter], device=self.device)
 
@@ -529,6 +625,7 @@ class Refiner:
         if not self._clean:
             self._zero_grads()
         if self.use_graph and self._graph is None:
+            self._point_buffers()  # allocations and sort scratch before the capture
             try:
                 with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
                     self._iteration_launches()
@@ -553,6 +650,7 @@ class Refiner:
         """Draw this iteration's samples (without advancing)."""
         self._begin()
         self._draw()
+        self._sorted_count = 0
 
     def forward_backward(self) -> None:
         """Forward values, per-point gradients and the pair scatter at the current samples."""
@@ -571,20 +669,19 @@ class Refiner:
         self._clean = True
 
     def accumulate(self, kernel=None, count: int | None = None) -> None:
-        """Scatter the per-point gradients of the first ``count`` points (all by default).
+        """Gradients of the first ``count`` points (all by default), with the pairs counted.
 
         Args:
             kernel: A point-major pair kernel (the dense reference in the self-test); None for
-                the refiner's own (split per cell on GPUs, point-major on the CPU).
-            count: Points to scatter from, the first ``count`` of the buffers.
+                the refiner's own primitive-major pass.
+            count: Points to gather from, the first ``count`` of the buffers.
         """
-        from .kernels import backward as kb
-
         self._zero_grads()
         self.back_pairs.zero_()
         if kernel is None:
-            kernel = kb.accumulate_pairs_split if self.split else kb.accumulate_pairs
-        self._pairs(kernel, 2 * self.m if count is None else count)
+            self._backward(count, count_pairs=True)
+        else:
+            self._pairs(kernel, 2 * self.m if count is None else count)
 
     def _finish(self) -> None:
         from .kernels import backward as kb
@@ -713,6 +810,8 @@ class Refiner:
         plan = BinPlan(tuple(float(x) for x in pl["sizes"]), tuple(tuple(int(v) for v in d) for d in pl["dims"]), tuple(int(x) for x in pl["offsets"]), int(pl["total_cells"]))
         self.plan = plan
         set_plan(p, plan, dev, arrays["cell_start"], arrays["cell_end"])
+        self._slot_cells()
+        self._pbuf = None
         for dst, key in ((self.raw, "raw"), (self.m1, "m1"), (self.m2, "m2"), (self.ids, "ids"), (b.lo, "bounds_lo"), (b.hi, "bounds_hi"), (b.cell, "bounds_cell"), (self.counts, "counts"), (self.reach, "reach")):
             dst.assign(arrays[key])
         radius = self._prep[4]  # scratch: the prepared primitives go straight into slot order
