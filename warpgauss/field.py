@@ -236,9 +236,7 @@ class GaussianField:
         Yields:
             (z0, slab): first output slice and a (h, ny, nx) float32 array in normalised units.
         """
-        from .kernels import decode as kd
-
-        wp, kf, dev = self._wp, self._k, self.device
+        wp, dev = self._wp, self.device
         out_shape = tuple(int(s) for s in (shape_xyz or self.shape_xyz))
         if len(out_shape) != 3 or min(out_shape) < 1:
             raise WarpgaussError(f"decode shape must be three positive sizes (x, y, z), got {shape_xyz}")
@@ -246,15 +244,24 @@ class GaussianField:
         scale = wp.vec3(*(self.shape_xyz[a] / out_shape[a] for a in range(3)))
         slab = max(1, min(nz, DECODE_SLAB_VOXELS // (nx * ny)))
         buf = wp.empty((slab, ny, nx), dtype=float, device=dev)
-        active = self.active_bricks()
         for z0 in range(0, nz, slab):
             h = min(slab, nz - z0)
             view = buf if h == slab else wp.empty((h, ny, nx), dtype=float, device=dev)
-            if active is None:
-                wp.launch(kf.eval_grid_binned, dim=(h, ny, nx), inputs=[z0, scale, self.prims], outputs=[view], device=dev)
-            else:
-                wp.launch(kd.eval_grid_active, dim=(h, ny, nx), inputs=[z0, scale, self.prims, active], outputs=[view], device=dev)
+            self.decode_slab(view, z0, scale)
             yield z0, view.numpy()
+
+    def decode_slab(self, out, z0: int, scale) -> None:
+        """Evaluate one (h, ny, nx) device slab starting at output slice ``z0`` (no host copy)."""
+        from .kernels import decode as kd
+
+        active = self.active_bricks()
+        use = active is not None
+        if not use:
+            active = self._wp.ones((1, 1, 1), dtype=self._wp.uint8, device=self.device)
+        h, ny, nx = out.shape
+        self._wp.launch(
+            kd.eval_grid_blocked, dim=kd.blocked_threads(h, ny, nx), inputs=[z0, scale, self.prims, active, int(use)], outputs=[out], device=self.device
+        )
 
     def active_bricks(self):
         """8^3-voxel bricks of the model grid that some primitive's 5-sigma box reaches (a Warp
