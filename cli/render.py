@@ -1,4 +1,5 @@
-"""`warpgauss render`: a model (ray marching or EWA splatting) or a dense volume (the reference) to PNG."""
+"""`warpgauss render`: a model (exact ray marching, ray marching of its decoded grid, or EWA splatting)
+or a dense volume (the reference) to PNG."""
 
 from __future__ import annotations
 
@@ -91,7 +92,8 @@ def check_png(path: Path) -> None:
 def render(
     input: Annotated[Path, typer.Argument(help="Model (.wgs) or volume file (the reference rendering)")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Image file (.png)")],
-    method: Annotated[str, typer.Option(help="march (ray marching of V~) or splat (EWA splatting); models only")] = "march",
+    method: Annotated[str, typer.Option(help="march (exact ray marching of V~), cached (ray marching of V~ decoded once onto a grid: fast) or splat (EWA splatting); models only")] = "march",
+    cache_res: Annotated[int | None, typer.Option("--cache-res", help="--method cached: voxels along the cache grid's longest axis, aspect kept (default: the model's grid)")] = None,
     compare: Annotated[Path | None, typer.Option(help="Volume the model encodes: write model | reference | |difference| and print image PSNR and SSIM")] = None,
     size: Annotated[str, typer.Option(help="Image size N or WxH in pixels")] = "512",
     colormap: Annotated[str | None, typer.Option(help="viridis, magma, inferno, plasma, cividis, turbo, coolwarm, jet, grayscale (NAME_r reverses); default: the model's")] = None,
@@ -132,8 +134,12 @@ def render(
     check_writable(output, force=force)
     if not input.exists():
         raise WarpgaussError(f"no such file: {input}")
-    if method not in ("march", "splat"):
-        raise WarpgaussError(f"--method must be march or splat, got {method!r}")
+    if method not in ("march", "cached", "splat"):
+        raise WarpgaussError(f"--method must be march, cached or splat, got {method!r}")
+    if cache_res is not None and method != "cached":
+        raise WarpgaussError(f"--cache-res applies to --method cached, not {method}")
+    if cache_res is not None and cache_res < 1:
+        raise WarpgaussError(f"--cache-res must be a positive number of voxels along the longest axis, got {cache_res}")
     width, height = parse_size(size)
     camera = Camera(
         azimuth=azimuth, elevation=elevation, distance=distance, zoom=zoom, fov=fov, ortho=ortho,
@@ -153,19 +159,22 @@ def render(
         raise WarpgaussError(f"no such transfer-function file: {tf}")
 
     if is_model_file(input):
-        summary = _render_model(input, output, method, compare, camera, settings, colormap, opacity, tf, read, diff_gain, device, force)
+        summary = _render_model(input, output, method, compare, camera, settings, colormap, opacity, tf, read, diff_gain, device, force, cache_res)
     else:
         if compare is not None:
             raise WarpgaussError("--compare takes the volume a model encodes; render the model (.wgs) with --compare VOLUME")
         if method != "march":
-            raise WarpgaussError("a volume is rendered by ray marching only (--method splat needs a model)")
+            raise WarpgaussError(f"a volume is rendered by ray marching only (--method {method} needs a model)")
         summary = _render_volume(input, output, camera, settings, colormap, opacity, tf, read, device, force)
     if as_json:
         print_json(summary)
         return
+    cache = ""
+    if "cache_seconds" in summary:
+        cache = f"; cache {'x'.join(map(str, summary['cache_shape']))} built once in {summary['cache_seconds']:.3f} s"
     out_console.print(
         f"wrote {output} ({summary['width']}x{summary['height']}, {summary['method']}, "
-        f"{summary['seconds']:.3f} s on {summary['device']})",
+        f"{summary['seconds']:.3f} s per frame on {summary['device']}{cache})",
         soft_wrap=True,
     )
     if "image_psnr_db" in summary:
@@ -191,21 +200,22 @@ def _read_normalised(path: Path, read, value_range=None):
     return vol, f
 
 
-def _render_model(path, output, method, compare, camera, settings, colormap, opacity, tf_path, read, gain, device, force) -> dict:
+def _render_model(path, output, method, compare, camera, settings, colormap, opacity, tf_path, read, gain, device, force, cache_res=None) -> dict:
+    from warpgauss._warp import resolve_device
     from warpgauss.model import Model
-    from warpgauss.render import ModelRenderer, Scene, VolumeRenderer, image_psnr, image_ssim, resolve_view, save_png, side_by_side
+    from warpgauss.render import (
+        Scene, VolumeRenderer, cache_grid_shape, check_cache_memory, image_psnr, image_ssim, make_renderer, resolve_view, save_png,
+        side_by_side,
+    )
 
     model = Model.load(path)
     if compare is not None and not compare.exists():
         raise WarpgaussError(f"no such file: {compare}")
+    if method == "cached":  # refuse a cache that cannot be held before anything is built
+        check_cache_memory(cache_grid_shape(model.shape_xyz, cache_res), resolve_device(device))
     tf = _transfer(model.header, colormap, opacity, tf_path, model.value_range)
     with err_console.status(f"rendering {model.n} Gaussians ({method})", spinner="dots"):
-        if method == "splat":
-            from warpgauss.splat import SplatRenderer
-
-            renderer = SplatRenderer(model, device)
-        else:
-            renderer = ModelRenderer(model, device)
+        renderer = make_renderer(model, method, device, cache_res=cache_res)
         view = resolve_view(camera, renderer.scene, settings.width, settings.height)
         img = renderer.render(view, tf, settings)
         summary = {

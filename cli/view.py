@@ -1,10 +1,16 @@
 """`warpgauss view`: an interactive window (pyvista/VTK) showing frames from our renderers.
 
 VTK owns the window, the mouse (orbit, pan, zoom through its trackball camera) and the keys; every
-frame is drawn by :class:`~warpgauss.splat.SplatRenderer` or :class:`~warpgauss.render.ModelRenderer`
-from VTK's camera and shown as the window's background image, with the grid's outline drawn by VTK
-on top for orientation. Keys: ``c`` next colormap, ``o`` next opacity curve, ``+``/``-`` density
-x/÷ 1.5, ``m`` splat <-> ray marching, ``l`` shading on/off; a slider sets the density too.
+frame is drawn by one of our renderers from VTK's camera and shown as the window's background
+image, with the grid's outline drawn by VTK on top for orientation.
+
+Methods: ``cached`` (the default: the model decoded once onto a grid, kept on the device and ray
+marched as a dense volume, :class:`~warpgauss.render.CachedRenderer`), ``splat``
+(:class:`~warpgauss.splat.SplatRenderer`) and ``march``, the exact ray marching of V~
+(:class:`~warpgauss.render.ModelRenderer`): seconds per frame for large models, so while the mouse
+drags the camera its frames come from the cached grid and the exact frame is drawn once the
+camera stops. Keys: ``c`` next colormap, ``o`` next opacity curve, ``+``/``-`` density x/÷ 1.5,
+``m`` next method (cached -> splat -> march), ``l`` shading on/off; a slider sets the density too.
 ``--screenshot PATH`` renders one frame off-screen and exits (what the tests run).
 """
 
@@ -25,6 +31,7 @@ from .common import handle_errors, out_console
 from .render import check_png, parse_colour, parse_size
 
 COLORMAPS = ("viridis", "magma", "inferno", "plasma", "cividis", "turbo", "coolwarm", "grayscale")
+METHODS = ("cached", "splat", "march")  # the order the m key cycles through
 OPACITIES = ("linear", "0:0,0.3:0,1:1", "0:0,0.6:0,1:1", "0:0,0.5:0.8,1:0", "0.3")
 
 
@@ -40,24 +47,27 @@ class Viewer:
 
     Args:
         model: The :class:`warpgauss.Model`.
-        method: "splat" (interactive speed) or "march".
+        method: "cached" (ray marching of the decoded grid, interactive speed), "splat" or "march"
+            (exact; frames while dragging come from the cached grid).
         size: Window (width, height).
         off_screen: Render without a window (screenshots, tests).
+        cache_res: Voxels along the cache grid's longest axis (None: the model's grid).
     """
 
-    def __init__(self, model, *, method="splat", size=(768, 768), tf=None, settings=None, camera=None, device=None,
-                 off_screen=False, preview_scale=0.5):
+    def __init__(self, model, *, method="cached", size=(768, 768), tf=None, settings=None, camera=None, device=None,
+                 off_screen=False, preview_scale=0.5, cache_res=None):
         import pyvista as pv
         from vtkmodules.vtkCommonDataModel import vtkImageData
         from vtkmodules.vtkRenderingCore import vtkImageActor, vtkRenderer
 
-        from warpgauss.render import Camera, ModelRenderer, RenderSettings, resolve_view
-        from warpgauss.splat import SplatRenderer
+        from warpgauss.render import Camera, RenderSettings, resolve_view
         from warpgauss.transfer import from_header
 
+        if method not in METHODS:
+            raise WarpgaussError(f"--method must be cached, splat or march, got {method!r}")
         self.model = model
         self.device = device
-        self._renderers = {"splat": SplatRenderer, "march": ModelRenderer}
+        self.cache_res = cache_res
         self._cache: dict = {}
         self.method = method
         self.tf = tf or from_header(model.header)
@@ -120,10 +130,20 @@ class Viewer:
             )
 
     # -- state changes (each redraws) --------------------------------------------------------
-    def renderer(self):
-        if self.method not in self._cache:
-            self._cache[self.method] = self._renderers[self.method](self.model, self.device)
-        return self._cache[self.method]
+    def renderer(self, method: str | None = None):
+        """The renderer of ``method`` (default: the current one), built on first use."""
+        from warpgauss.render import make_renderer
+
+        method = method or self.method
+        if method not in self._cache:
+            self._cache[method] = make_renderer(
+                self.model, method, self.device, cache_res=self.cache_res if method == "cached" else None
+            )
+        return self._cache[method]
+
+    def frame_method(self) -> str:
+        """What draws the next frame: the exact march hands frames during a drag to the cached grid."""
+        return "cached" if self.method == "march" and self.interacting else self.method
 
     def next_colormap(self):
         self.cmap_index = (self.cmap_index + 1) % len(COLORMAPS)
@@ -143,7 +163,7 @@ class Viewer:
         self.redraw()
 
     def toggle_method(self):
-        self.method = "march" if self.method == "splat" else "splat"
+        self.method = METHODS[(METHODS.index(self.method) + 1) % len(METHODS)]
         self.redraw()
 
     def toggle_shading(self):
@@ -182,7 +202,7 @@ class Viewer:
         from warpgauss.render import with_settings
 
         s = with_settings(self.settings, width=int(width), height=int(height), density=self.density)
-        return self.renderer().render(self.vtk_view(int(width), int(height)), self.tf, s)
+        return self.renderer(self.frame_method()).render(self.vtk_view(int(width), int(height)), self.tf, s)
 
     def _on_start(self, *_):
         w, h = self.plotter.ren_win.GetSize()
@@ -191,7 +211,7 @@ class Viewer:
         scale = self.preview_scale if self.interacting else 1.0
         fw, fh = max(1, int(w * scale)), max(1, int(h * scale))
         cam = self.plotter.camera
-        key = (fw, fh, tuple(cam.position), tuple(cam.focal_point), tuple(cam.up), cam.view_angle, cam.parallel_scale)
+        key = (fw, fh, self.frame_method(), tuple(cam.position), tuple(cam.focal_point), tuple(cam.up), cam.view_angle, cam.parallel_scale)
         if key == self._last:
             return
         self._last = key
@@ -199,9 +219,9 @@ class Viewer:
         self._show(img.rgb8(), w, h)
         self._text.SetText(
             2,
-            f"{self.method}  {self.tf.name}  opacity {OPACITIES[self.opacity_index]}  density {self.density:.3g}  "
+            f"{img.method}  {self.tf.name}  opacity {OPACITIES[self.opacity_index]}  density {self.density:.3g}  "
             f"{'shaded' if self.settings.shading else 'flat'}  {img.seconds * 1000:.0f} ms\n"
-            "c colormap  o opacity  +/- density  m march/splat  l shading",
+            "c colormap  o opacity  +/- density  m cached/splat/march  l shading",
         )
 
     def _show(self, rgb8: np.ndarray, w: int, h: int):
@@ -237,7 +257,8 @@ class Viewer:
 @handle_errors
 def view(
     model: Annotated[Path, typer.Argument(help="Model file (.wgs)")],
-    method: Annotated[str, typer.Option(help="splat (interactive speed) or march (ray marching)")] = "splat",
+    method: Annotated[str, typer.Option(help="cached (ray marching of V~ decoded once onto a grid; interactive), splat (EWA splatting) or march (exact ray marching; dragging shows the cached grid)")] = "cached",
+    cache_res: Annotated[int | None, typer.Option("--cache-res", help="Voxels along the cache grid's longest axis, aspect kept (default: the model's grid)")] = None,
     size: Annotated[str, typer.Option(help="Window size N or WxH")] = "768",
     colormap: Annotated[str | None, typer.Option(help="Start colormap (default: the model's)")] = None,
     opacity: Annotated[str | None, typer.Option(help="Start opacity curve value:opacity,...")] = None,
@@ -258,8 +279,10 @@ def view(
     from warpgauss.render import Camera, RenderSettings
     from warpgauss.transfer import resolve_transfer_function
 
-    if method not in ("march", "splat"):
-        raise WarpgaussError(f"--method must be march or splat, got {method!r}")
+    if method not in METHODS:
+        raise WarpgaussError(f"--method must be cached, splat or march, got {method!r}")
+    if cache_res is not None and cache_res < 1:
+        raise WarpgaussError(f"--cache-res must be a positive number of voxels along the longest axis, got {cache_res}")
     if not 0.1 <= preview_scale <= 1.0:
         raise WarpgaussError(f"--preview-scale must be in [0.1, 1], got {preview_scale}")
     if screenshot is None and not display_available():
@@ -271,13 +294,18 @@ def view(
         check_writable(screenshot, force=force)
     w, h = parse_size(size)
     m = Model.load(model)
+    if method in ("cached", "march"):  # march drags on the cached grid too; refuse what cannot be held first
+        from warpgauss._warp import resolve_device
+        from warpgauss.render import cache_grid_shape, check_cache_memory
+
+        check_cache_memory(cache_grid_shape(m.shape_xyz, cache_res), resolve_device(device))
     tfn = resolve_transfer_function(m.header, path=tf, colormap_name=colormap, opacity=opacity)
     settings = RenderSettings(density=density, background=parse_colour(background))
     settings.validate()
     camera = Camera(azimuth=azimuth, elevation=elevation, zoom=zoom)
     camera.validate()
     viewer = Viewer(m, method=method, size=(w, h), tf=tfn, settings=settings, camera=camera, device=device,
-                    off_screen=screenshot is not None, preview_scale=preview_scale)
+                    off_screen=screenshot is not None, preview_scale=preview_scale, cache_res=cache_res)
     if screenshot is not None:
         viewer.screenshot(screenshot)
         out_console.print(f"wrote {screenshot} ({w}x{h}, {method}, off-screen)")

@@ -10,14 +10,22 @@ T * (1 - exp(-sigma * step)) * colour. Rays stop early once T falls below a thre
 Empty-space skipping uses a coarse occupancy grid built by a kernel: a cell that no primitive's
 5-sigma box touches holds V~ = 0 exactly (its samples all get the transfer function's value at 0,
 composited in closed form), and a cell whose largest contributing value maps to zero opacity over
-[0, max] is skipped. Both are exact: the skipped samples would have added nothing else.
+[0, max] is skipped. Both are exact: the skipped samples would have added nothing else. A dense
+grid marks its cells the same way from its non-zero voxels (:func:`mark_voxels`).
+
+Shading needs the gradient only where a sample is visible: the mixture computes it in the same
+pass as the value when shading is on (one traversal of the binned primitives serves both), the
+dense grid only for samples of non-zero opacity (six more trilinear taps, none for the rest).
 
 Render space ("world") is the model's voxel grid scaled by spacing / min(spacing), so one world
 unit is one voxel along the finest axis; t is measured in world units.
 
 The same marcher serves the model (:class:`warpgauss.kernels.field.BinnedPrimitives`, evaluated
-through :func:`~warpgauss.kernels.field.binned_sums`) and a dense grid (:class:`DenseVolume`,
-trilinear), through the overloaded ``field_sample``.
+through :func:`~warpgauss.kernels.field.binned_sums`: the exact ``march``) and a dense grid
+(:class:`DenseVolume`, trilinear), through the overloaded ``march_sample`` / ``sample_gradient``.
+The dense grid is either a reference volume or the model decoded once onto a grid (the ``cached``
+method of :mod:`warpgauss.render`): then a sample reads 1 voxel neighbourhood instead of the
+~1000 candidate primitives of the binned mixture.
 """
 
 import typing
@@ -83,7 +91,7 @@ class Occupancy:
     cell: float  # cell edge in model voxels
     dims: wp.vec3i
     enabled: int  # 0: march every sample
-    touched: wp.array(dtype=int)  # [C] 1 where any primitive support (or voxel stencil) reaches
+    touched: wp.array(dtype=int)  # [C] 1 where any primitive support (or non-zero voxel's stencil) reaches
     max_value: wp.array(dtype=float)  # [C] largest value that can occur in the cell
     state: wp.array(dtype=int)  # [C] CELL_EMPTY / CELL_SKIP / CELL_MARCH for the current TF
 
@@ -155,15 +163,47 @@ def dense_value(src: DenseVolume, p: wp.vec3) -> float:
 
 
 @wp.func
+def dense_gradient(src: DenseVolume, p: wp.vec3) -> wp.vec3:
+    """Gradient of the trilinear grid at p by central differences of one model voxel (model voxel units)."""
+    gx = dense_value(src, p + wp.vec3(1.0, 0.0, 0.0)) - dense_value(src, p - wp.vec3(1.0, 0.0, 0.0))
+    gy = dense_value(src, p + wp.vec3(0.0, 1.0, 0.0)) - dense_value(src, p - wp.vec3(0.0, 1.0, 0.0))
+    gz = dense_value(src, p + wp.vec3(0.0, 0.0, 1.0)) - dense_value(src, p - wp.vec3(0.0, 0.0, 1.0))
+    return wp.vec3(0.5 * gx, 0.5 * gy, 0.5 * gz)
+
+
+@wp.func
 def field_sample(src: DenseVolume, p: wp.vec3, want_grad: int) -> wp.vec4:
     """(V, gradient) of the trilinear grid at p; gradient by central differences of one model voxel."""
     v = dense_value(src, p)
     if want_grad == 0:
         return wp.vec4(v, 0.0, 0.0, 0.0)
-    gx = dense_value(src, p + wp.vec3(1.0, 0.0, 0.0)) - dense_value(src, p - wp.vec3(1.0, 0.0, 0.0))
-    gy = dense_value(src, p + wp.vec3(0.0, 1.0, 0.0)) - dense_value(src, p - wp.vec3(0.0, 1.0, 0.0))
-    gz = dense_value(src, p + wp.vec3(0.0, 0.0, 1.0)) - dense_value(src, p - wp.vec3(0.0, 0.0, 1.0))
-    return wp.vec4(v, 0.5 * gx, 0.5 * gy, 0.5 * gz)
+    g = dense_gradient(src, p)
+    return wp.vec4(v, g[0], g[1], g[2])
+
+
+@wp.func
+def march_sample(src: BinnedPrimitives, p: wp.vec3, shading: int) -> wp.vec4:
+    """What the marcher reads first at a sample: the mixture's value, and its gradient when shading
+    (one traversal of the candidates gives both; a second one for visible samples only would cost more)."""
+    return field_sample(src, p, shading)
+
+
+@wp.func
+def march_sample(src: DenseVolume, p: wp.vec3, shading: int) -> wp.vec4:
+    """What the marcher reads first at a sample of the grid: the value only (one trilinear tap)."""
+    return wp.vec4(dense_value(src, p), 0.0, 0.0, 0.0)
+
+
+@wp.func
+def sample_gradient(src: BinnedPrimitives, p: wp.vec3, s: wp.vec4) -> wp.vec3:
+    """The gradient for shading a visible sample: the mixture's came with ``s``."""
+    return wp.vec3(s[1], s[2], s[3])
+
+
+@wp.func
+def sample_gradient(src: DenseVolume, p: wp.vec3, s: wp.vec4) -> wp.vec3:
+    """The gradient for shading a visible sample of the grid, evaluated now (six taps)."""
+    return dense_gradient(src, p)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -311,7 +351,7 @@ def march(
                         break
                 k = kn
                 continue
-        s = field_sample(src, p, prm.shading)
+        s = march_sample(src, p, prm.shading)
         n_eval += 1
         rgba = tf_lookup(tf, s[0])
         sigma = rgba[3] * prm.density
@@ -319,7 +359,7 @@ def march(
             a = 1.0 - wp.exp(-sigma * prm.step)
             rgb = wp.vec3(rgba[0], rgba[1], rgba[2])
             if prm.shading != 0:
-                rgb = shade(rgb, wp.vec3(s[1], s[2], s[3]), -d_w, prm)
+                rgb = shade(rgb, sample_gradient(src, p, s), -d_w, prm)
             col += trans * a * rgb
             trans *= 1.0 - a
             if trans < prm.ert:
@@ -373,22 +413,38 @@ def mark_primitives(
 @wp.kernel
 def mark_voxels(
     vol: DenseVolume,
-    occ: Occupancy,  # touched and max_value are updated
+    occ: Occupancy,  # touched and max_value are updated (zeroed before)
 ):
-    """Mark the cells a voxel's trilinear stencil (+-1 voxel) reaches (one thread per voxel)."""
+    """Mark the cells a non-zero voxel can reach (one thread per voxel).
+
+    A sample's value reads the voxels within one volume voxel of it (trilinear, clamped at the
+    edges), its gradient those within one model voxel more (central differences). A non-zero
+    voxel raises ``max_value`` over the first reach and marks ``touched`` over the second, so an
+    untouched cell has value 0 and gradient 0 at every sample: exactly what the marcher composites
+    in closed form for an empty cell. Zero voxels mark nothing.
+    """
     k, j, i = wp.tid()
-    v = wp.clamp(vol.values[k, j, i], 0.0, 1.0)
+    raw = vol.values[k, j, i]
+    if raw == 0.0:
+        return
+    v = wp.clamp(raw, 0.0, 1.0)
     # voxel centre in model voxel coordinates
     c = wp.cw_div(wp.vec3(float(i), float(j), float(k)) + wp.vec3(0.5), vol.scale) - wp.vec3(0.5)
     r = wp.cw_div(wp.vec3(1.0), vol.scale)
-    lo = level_cell(c - r, occ.cell, occ.dims)
-    hi = level_cell(c + r, occ.cell, occ.dims)
+    rg = r + wp.vec3(1.0)
+    lo = level_cell(c - rg, occ.cell, occ.dims)
+    hi = level_cell(c + rg, occ.cell, occ.dims)
     for z in range(lo[2], hi[2] + 1):
         for y in range(lo[1], hi[1] + 1):
             for x in range(lo[0], hi[0] + 1):
-                cid = (z * occ.dims[1] + y) * occ.dims[0] + x
-                occ.touched[cid] = 1
-                wp.atomic_max(occ.max_value, cid, v)
+                occ.touched[(z * occ.dims[1] + y) * occ.dims[0] + x] = 1
+    if v > 0.0:
+        lo = level_cell(c - r, occ.cell, occ.dims)
+        hi = level_cell(c + r, occ.cell, occ.dims)
+        for z in range(lo[2], hi[2] + 1):
+            for y in range(lo[1], hi[1] + 1):
+                for x in range(lo[0], hi[0] + 1):
+                    wp.atomic_max(occ.max_value, (z * occ.dims[1] + y) * occ.dims[0] + x, v)
 
 
 @wp.kernel

@@ -383,11 +383,13 @@ def test_cli_view_screenshot_and_no_display(cpu, vortex, tmp_path):
 
 
 def test_viewer_controls_change_the_frame(cpu, vortex):
-    """The viewer's keys (colormap, opacity, density, method, shading) each give a different frame."""
+    """The viewer's keys (colormap, opacity, density, method, shading) each give a different frame;
+    it starts on the cached grid, and the exact march hands frames during a drag to the cached grid."""
     from warpgauss.cli.view import Viewer
 
     model, _ = vortex
     v = Viewer(model, size=(48, 40), device=cpu, off_screen=True)
+    assert v.method == "cached" and v.frame(48, 40).method == "cached"
     frames = [v.frame(48, 40).rgb]
     keys = v.plotter.iren._key_press_event_callbacks  # what a key press in the window calls
     for key in ("c", "o", "plus", "minus", "m", "l"):
@@ -396,7 +398,14 @@ def test_viewer_controls_change_the_frame(cpu, vortex):
             callback()
         frames.append(v.frame(48, 40).rgb)
         assert np.abs(frames[-1] - frames[-2]).max() > 0.01, key
-    assert v.method == "march" and not v.settings.shading and v.tf.name == "magma"
+    assert v.method == "splat" and not v.settings.shading and v.tf.name == "magma"
+    v.toggle_method()
+    assert v.method == "march" and v.frame(48, 40).method == "march"
+    v.interacting = True
+    assert v.frame(48, 40).method == "cached"
+    v.interacting = False
+    v.toggle_method()
+    assert v.method == "cached"
     v.plotter.close()
 
 
@@ -413,5 +422,8 @@ def test_render_benchmark_runs_on_cpu_at_tiny_sizes(tmp_path):
     res = bench.main(["--budgets", "200", "--size", "16", "--resolution", "24x16", "--frames", "1", "--device", "cpu", "--out", str(out)])
     saved = json.loads(out.read_text())
     assert saved["device_name"] and saved["warp_version"] and saved["date"] and saved["command"].startswith("bench_render.py")
-    assert [r["method"] for r in res["rows"]] == ["march", "splat"]
-    assert all(r["kernel_fps"] > 0 and r["width"] == 24 and r["height"] == 16 for r in saved["rows"])
+    assert [r["method"] for r in res["rows"]] == ["march", "splat", "cached"] and saved["complete"]
+    assert all(r["kernel_fps"] > 0 and r["width"] == 24 and r["height"] == 16 and not r["cut_short"] for r in saved["rows"])
+    cached = saved["rows"][2]
+    assert cached["cache_seconds"] > 0 and cached["cache_shape"] == [16, 16, 16]
+    assert saved["rows"][0]["cache_seconds"] is None

@@ -4,6 +4,18 @@
     img = render_model(model, Camera(azimuth=30, elevation=20), settings=RenderSettings(width=512))
     save_png("vortex.png", img.rgb8())
 
+Three ways to draw a model (``method``):
+
+- ``"march"`` (:class:`ModelRenderer`): exact ray marching of V~; every sample evaluates the
+  binned mixture (about a thousand candidate primitives at 1.4M), seconds per frame on a GPU.
+- ``"cached"`` (:class:`CachedRenderer`): V~ decoded once onto a grid (the model's own by
+  default, ``cache_res`` for another), kept on the device and marched as a dense volume
+  (trilinear samples, central-difference gradients) by the same kernel that draws the reference.
+  The decode is a one-time cost (``cache_seconds``); frames cost what a dense volume's do. It
+  equals :class:`VolumeRenderer` on ``model.decode(normalised=True)`` bit for bit, and differs from
+  the exact march by the grid's trilinear interpolation (measured in tests/test_render_cached.py).
+- ``"splat"`` (:class:`warpgauss.splat.SplatRenderer`): EWA splatting, an approximation.
+
 Coordinates: "world" is the model's voxel grid scaled by spacing / min(spacing) (one world unit
 is one voxel along the finest axis); explicit camera positions are physical coordinates, as
 ParaView shows them (origin + voxel index x spacing). Values are the model's normalised [0, 1].
@@ -27,6 +39,8 @@ from .transfer import TransferFunction, make_transfer_function
 
 DEFAULT_DENSITY = 10.0  # extinction per world unit at opacity 1 = this / largest extent in world units
 OCCUPANCY_TARGET = 128  # occupancy cells per axis at most (cells of at least 2 voxels)
+METHODS = ("march", "cached", "splat")  # how a model is drawn (see the module docstring)
+CACHE_MEMORY_SHARE = 0.5  # a cache may take at most this share of the device's free memory (CPU: of RAM)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -258,9 +272,11 @@ class Image:
 
     Attributes:
         rgba: (H, W, 4) float32: colour composited over the background, alpha = 1 - transmittance.
-        seconds: Render time (kernel launches to synchronisation; compilation excluded).
-        method: "march", "splat" or "reference".
-        stats: Extra figures (field evaluations per pixel, splats drawn...).
+        seconds: Render time (kernel launches to synchronisation; compilation and, for "cached",
+            the one-time decode excluded).
+        method: "march", "cached", "splat" or "reference".
+        stats: Extra figures (field evaluations per pixel, splats drawn, the cache's shape and
+            build seconds...).
     """
 
     rgba: np.ndarray
@@ -352,6 +368,18 @@ class _Marcher:
         wp.launch(kr.sample_points, dim=pts.shape[0], inputs=[self._source, pts, int(gradient)], outputs=[out], device=self.device)
         return out.numpy()
 
+    def _attach_volume(self, values, shape_xyz: tuple[int, int, int]):
+        """Make a device grid (nz, ny, nx) spanning the scene's extent the render source and mark
+        the occupancy from its non-zero voxels."""
+        wp, kr = self._wp, self._k
+        vol = kr.DenseVolume()
+        vol.values = values
+        vol.scale = wp.vec3(*(float(n) / float(m) for n, m in zip(shape_xyz, self.scene.shape_xyz)))
+        nx, ny, nz = shape_xyz
+        wp.launch(kr.mark_voxels, dim=(nz, ny, nx), inputs=[vol, self.occ], device=self.device)
+        self.volume = self._source = vol
+        return vol
+
     def _march(self, src, view: View, tf: TransferFunction, settings: RenderSettings, method: str) -> Image:
         wp, kr, dev = self._wp, self._k, self.device
         settings.validate()
@@ -371,7 +399,10 @@ class _Marcher:
 
 
 class ModelRenderer(_Marcher):
-    """Ray marching of a model's mixture field V~ through the binned evaluator.
+    """Exact ray marching of a model's mixture field V~ through the binned evaluator (``method="march"``).
+
+    Every sample visits the binned candidates near it and its shading uses the analytic gradient;
+    for interactive frame rates march the decoded grid instead (:class:`CachedRenderer`).
 
     Args:
         model: A :class:`warpgauss.Model`, or (params, header) of one.
@@ -421,12 +452,7 @@ class VolumeRenderer(_Marcher):
         nz, ny, nx = values.shape
         scene = scene or Scene((nx, ny, nz))
         super().__init__(scene, device)
-        wp, kr = self._wp, self._k
-        vol = kr.DenseVolume()
-        vol.values = wp.array(values, dtype=float, device=self.device)
-        vol.scale = wp.vec3(*(float(n) / float(m) for n, m in zip((nx, ny, nz), scene.shape_xyz)))
-        self.volume = self._source = vol
-        wp.launch(kr.mark_voxels, dim=(nz, ny, nx), inputs=[vol, self.occ], device=self.device)
+        self._attach_volume(self._wp.array(values, dtype=float, device=self.device), (nx, ny, nz))
 
     def render(self, camera: Camera | View | None = None, tf: TransferFunction | None = None, settings: RenderSettings | None = None) -> Image:
         """One frame of the dense grid by ray marching (trilinear samples)."""
@@ -435,27 +461,186 @@ class VolumeRenderer(_Marcher):
         return self._march(self.volume, view, tf or make_transfer_function(), settings, "reference")
 
 
-def render_model(model, camera: Camera | None = None, tf: TransferFunction | None = None, settings: RenderSettings | None = None, *, method: str = "march", device: str | None = None) -> Image:
-    """Render a model by ray marching (``method="march"``) or EWA splatting (``"splat"``).
+def cache_grid_shape(shape_xyz, cache_res: int | None = None) -> tuple[int, int, int]:
+    """The grid a cached renderer decodes onto: the model's own, or ``cache_res`` voxels along its
+    longest axis with the others scaled to keep the aspect (at least 1 voxel each).
+
+    Raises:
+        WarpgaussError: ``cache_res`` is not a positive integer, or the grid exceeds the int32
+            voxel indexing of the kernels.
+    """
+    from .analysis import MAX_VOXELS
+
+    shape = tuple(int(n) for n in shape_xyz)
+    if len(shape) != 3 or min(shape) < 1:
+        raise WarpgaussError(f"a cache grid must be three positive sizes (x, y, z), got {shape_xyz!r}")
+    if cache_res is not None:
+        if isinstance(cache_res, bool) or not isinstance(cache_res, (int, np.integer)) or cache_res < 1:
+            raise WarpgaussError(f"--cache-res must be a positive number of voxels along the longest axis, got {cache_res!r}")
+        longest = max(shape)
+        shape = tuple(max(1, int(round(n * int(cache_res) / longest))) for n in shape)
+    voxels = math.prod(shape)
+    if voxels > MAX_VOXELS:
+        raise WarpgaussError(
+            f"a {'x'.join(map(str, shape))} cache has {voxels:,} voxels, more than the {MAX_VOXELS:,} the kernels index; "
+            "choose a smaller --cache-res"
+        )
+    return shape
+
+
+def device_memory_bytes(device: str) -> int | None:
+    """Memory a new allocation can use on ``device``: free GPU memory, or the machine's RAM for the
+    CPU (None when unknown)."""
+    wp = warp()
+    d = wp.get_device(device)
+    if d.is_cuda:
+        return int(d.free_memory)
+    try:
+        return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def check_cache_memory(shape_xyz, device: str) -> None:
+    """Refuse a cache larger than :data:`CACHE_MEMORY_SHARE` of the device's memory, before allocating it."""
+    need = 4 * math.prod(int(n) for n in shape_xyz)  # float32 voxels; the occupancy adds < 1/8 of that
+    have = device_memory_bytes(device)
+    if have is not None and need > CACHE_MEMORY_SHARE * have:
+        raise WarpgaussError(
+            f"a {'x'.join(map(str, shape_xyz))} cache needs {need / 2**30:.2f} GiB, more than {CACHE_MEMORY_SHARE:.0%} of the "
+            f"{have / 2**30:.2f} GiB available on {device}; choose a smaller --cache-res"
+        )
+
+
+class CachedRenderer(_Marcher):
+    """Ray marching of a model's V~ decoded once onto a grid kept on the device.
+
+    The decode is the model's full-grid decode (bricks no primitive reaches are written 0 without
+    evaluation, which is their exact value) straight into device memory; the grid is then marched
+    as a dense volume: trilinear samples, shading from central differences of one model voxel,
+    occupancy from its non-zero voxels. Only camera, transfer function and lighting change between
+    frames, so the decode is paid once (:attr:`cache_seconds`).
+
+    .. note:: trades exactness for speed: the image is the exact march's up to the trilinear
+       interpolation of the cached grid (a finer ``cache_res`` is closer and costs memory, and the
+       decode time grows with the voxel count); it equals :class:`VolumeRenderer` on
+       ``model.decode(shape, normalised=True)`` bit for bit.
+
+    Args:
+        model: A :class:`warpgauss.Model`, or (params, header) of one.
+        device: Warp device (None: CUDA when present, else CPU).
+        cache_res: Voxels along the longest axis of the cache (aspect kept); None: the model grid.
+        cache_shape: Explicit cache grid (x, y, z); overrides ``cache_res``.
+
+    Attributes:
+        cache_shape: The cached grid (x, y, z).
+        cache_seconds: Seconds to upload and bin the primitives, decode the grid and mark the
+            occupancy (synchronised; kernel compilation excluded).
+    """
+
+    def __init__(self, model, device: str | None = None, *, cache_res: int | None = None, cache_shape: tuple[int, int, int] | None = None):
+        from .field import DECODE_SLAB_VOXELS, GaussianField
+        from .kernels import decode as kd
+        from .kernels import field as kf
+
+        params, header = (model.params, model.header) if hasattr(model, "params") else model
+        scene = Scene.from_header(header)
+        if cache_shape is not None:
+            shape = cache_grid_shape(cache_shape)
+        else:
+            shape = cache_grid_shape(scene.shape_xyz, cache_res)
+        wp = warp()
+        dev = resolve_device(device)
+        check_cache_memory(shape, dev)
+        super().__init__(scene, dev)
+        self.header = header
+        self.cache_shape = shape
+        wp.load_module(kf, device=dev)
+        wp.load_module(kd, device=dev)
+        wp.synchronize_device(dev)
+        t0 = time.perf_counter()
+        field = GaussianField(params, scene.shape_xyz, device=dev)
+        nx, ny, nz = shape
+        values = wp.empty((nz, ny, nx), dtype=float, device=dev)
+        scale = wp.vec3(*(scene.shape_xyz[a] / shape[a] for a in range(3)))  # as GaussianField.iter_slabs
+        active = field.active_bricks()
+        slab = max(1, min(nz, DECODE_SLAB_VOXELS // (nx * ny)))
+        for z0 in range(0, nz, slab):
+            out = values[z0 : min(nz, z0 + slab)]
+            if active is None:
+                wp.launch(kf.eval_grid_binned, dim=out.shape, inputs=[z0, scale, field.prims], outputs=[out], device=dev)
+            else:
+                wp.launch(kd.eval_grid_active, dim=out.shape, inputs=[z0, scale, field.prims, active], outputs=[out], device=dev)
+        self.n = field.n
+        del field  # the primitives are not needed any more: only the grid stays on the device
+        self._attach_volume(values, shape)
+        wp.synchronize_device(dev)
+        self.cache_seconds = time.perf_counter() - t0
+
+    @property
+    def cache_bytes(self) -> int:
+        return 4 * math.prod(self.cache_shape)
+
+    def render(self, camera: Camera | View | None = None, tf: TransferFunction | None = None, settings: RenderSettings | None = None) -> Image:
+        """One frame of the cached grid by ray marching (the decode is not repeated)."""
+        settings = settings or RenderSettings()
+        view = camera if isinstance(camera, View) else resolve_view(camera or Camera(), self.scene, settings.width, settings.height)
+        img = self._march(self.volume, view, tf or make_transfer_function(), settings, "cached")
+        img.stats.update(cache_shape=list(self.cache_shape), cache_seconds=self.cache_seconds)
+        return img
+
+
+def make_renderer(model, method: str = "march", device: str | None = None, *, cache_res: int | None = None):
+    """The renderer of ``method`` ("march", "cached" or "splat") for a model.
+
+    Args:
+        model: The :class:`warpgauss.Model`.
+        method: See the module docstring.
+        device: Warp device.
+        cache_res: "cached" only: voxels along the cache's longest axis (None: the model grid).
+    """
+    if method not in METHODS:
+        raise WarpgaussError(f"unknown render method {method!r}; use {', '.join(METHODS)}")
+    if cache_res is not None and method != "cached":
+        raise WarpgaussError(f"--cache-res applies to --method cached, not {method}")
+    if method == "march":
+        return ModelRenderer(model, device)
+    if method == "cached":
+        return CachedRenderer(model, device, cache_res=cache_res)
+    from .splat import SplatRenderer
+
+    return SplatRenderer(model, device)
+
+
+def render_model(
+    model,
+    camera: Camera | None = None,
+    tf: TransferFunction | None = None,
+    settings: RenderSettings | None = None,
+    *,
+    method: str = "march",
+    device: str | None = None,
+    cache_res: int | None = None,
+) -> Image:
+    """Render a model by exact ray marching (``method="march"``), ray marching of its decoded grid
+    (``"cached"``) or EWA splatting (``"splat"``).
+
+    For several frames of one model build the renderer once (:func:`make_renderer`): the cached
+    path's decode is then paid once.
 
     Args:
         model: The :class:`warpgauss.Model`.
         camera: Camera (default orbit view).
         tf: Transfer function (default: the model header's).
         settings: Image size, step, density, lighting.
-        method: "march" or "splat".
+        method: "march", "cached" or "splat".
         device: Warp device.
+        cache_res: "cached" only: voxels along the cache's longest axis (None: the model grid).
     """
     from .transfer import from_header
 
     tf = tf or from_header(model.header)
-    if method == "march":
-        return ModelRenderer(model, device).render(camera, tf, settings)
-    if method == "splat":
-        from .splat import SplatRenderer
-
-        return SplatRenderer(model, device).render(camera, tf, settings)
-    raise WarpgaussError(f"unknown render method {method!r}; use march or splat")
+    return make_renderer(model, method, device, cache_res=cache_res).render(camera, tf, settings)
 
 
 # ------------------------------------------------------------------------------------------------
