@@ -102,3 +102,22 @@ def test_written_files_get_the_usual_permissions(tmp_path):
     finally:
         os.umask(old)
     assert stat.S_IMODE((tmp_path / "x.json").stat().st_mode) == 0o644  # not mkstemp's 0600
+
+
+def test_a_refinement_that_loses_to_the_analytic_model_is_discarded():
+    """A learning rate of 1 wrecks 20 iterations: the encoder keeps the better, analytic model and
+    says so in the report (a user asked for the most accurate model of this size)."""
+    import numpy as np
+
+    import warpgauss
+    from warpgauss.optimize import RefineConfig
+    from warpgauss.synthetic import generate
+
+    vol = generate("vortex", 24)
+    bad = warpgauss.encode(vol, budget=300, refine=RefineConfig(iterations=20, samples=512, lr=1.0), device="cpu", seed=0)
+    ev = bad.report["evaluation"]
+    assert ev["discarded_refined"]["psnr_db"] < ev["analytic"]["psnr_db"]
+    assert ev["final"] == ev["analytic"] and ev["gain_db"] == 0.0
+    assert any(s["what"] == "refined model" for s in bad.report["skipped"])
+    analytic = warpgauss.encode(vol, budget=300, iterations=0, device="cpu", seed=0)
+    np.testing.assert_array_equal(bad.params, analytic.params)

@@ -387,6 +387,17 @@ def encode_field(
                 evaluation["final"] = evaluation["analytic"]
             else:
                 evaluation["final"] = evaluate_field(model.field(dev), f, full=full_eval)
+                refined_db, analytic_db = evaluation["final"]["psnr_db"], evaluation["analytic"]["psnr_db"]
+                if refined_db < analytic_db:  # e.g. too few iterations for a large N: keep the better model
+                    evaluation["discarded_refined"] = evaluation["final"]
+                    evaluation["final"] = evaluation["analytic"]
+                    model = analytic
+                    skipped.append(
+                        {
+                            "what": "refined model",
+                            "why": f"it scored {refined_db:.2f} dB, below the analytic model's {analytic_db:.2f} dB: the analytic model is the result",
+                        }
+                    )
         evaluation["gain_db"] = evaluation["final"]["psnr_db"] - evaluation["analytic"]["psnr_db"]
     elif not refinement.get("interrupted"):
         skipped.append({"what": "EV evaluation", "why": "disabled by the caller"})
