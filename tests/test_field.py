@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from conftest import random_params
@@ -93,3 +95,14 @@ def test_huge_and_degenerate_primitives_stay_finite(device):
     f = GaussianField(p, (8, 8, 8), device=device)
     v = f.decode()
     assert np.all(np.isfinite(v))
+
+
+def test_bin_plan_is_stable_while_radii_drift_within_their_octaves():
+    """Refinement re-plans every 100 iterations; a plan that changes with every small drift of the
+    smallest radius would re-allocate the tables and re-capture the iteration graph each time."""
+    rng = np.random.default_rng(0)
+    r = rng.uniform(2.1, 30.0, 5000)
+    a = plan_bins(r, (96, 80, 64))
+    b = plan_bins(r * rng.uniform(0.97, 1.03, r.size).clip(2.05 / r, 31.0 / r), (96, 80, 64))
+    assert a == b
+    assert math.log2(a.sizes[0]).is_integer()  # levels start at a power of two

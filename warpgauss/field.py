@@ -9,6 +9,7 @@ with the identical cut; it is for tests and the pre-run self-test only.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -43,9 +44,9 @@ class BinPlan:
 def plan_bins(radius: np.ndarray, shape_xyz: tuple[int, int, int]) -> BinPlan:
     """Choose cell levels for primitives of the given truncation radii on a grid of ``shape_xyz``.
 
-    One level per occupied power-of-two radius class, its cells as large as the largest radius of
-    the class (so a point needs only the 3^3 neighbouring cells), coarsened where a level would
-    exceed :data:`MAX_LEVEL_CELLS`. A final global level catches any primitive larger than planned,
+    One level per occupied power-of-two radius class (classes start at a power of two), its cells
+    as large as the largest radius of the class (so a point needs only the 3^3 neighbouring
+    cells), coarsened where a level would exceed :data:`MAX_LEVEL_CELLS`. A final global level catches any primitive larger than planned,
     so evaluation stays exact even with a stale plan.
 
     Args:
@@ -58,7 +59,9 @@ def plan_bins(radius: np.ndarray, shape_xyz: tuple[int, int, int]) -> BinPlan:
     sizes: list[float] = []
     dims: list[tuple[int, int, int]] = []
     if r.size:
-        base = max(float(r.min()), MIN_CELL)
+        # a power of two: the plan then stays the same while radii drift within their octaves, so
+        # a refiner re-planning every 100 iterations keeps its tables and its captured graph
+        base = 2.0 ** math.floor(math.log2(max(float(r.min()), MIN_CELL)))
         classes = np.unique(np.ceil(np.log2(np.maximum(r, base) / base) - 1e-9).astype(np.int64))
         for c in classes:
             size = base * 2.0 ** int(c)
