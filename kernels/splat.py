@@ -207,9 +207,19 @@ def blend(
     image: wp.array2d(dtype=wp.vec4),  # [H, W] out
     drawn: wp.array2d(dtype=int),  # [H, W] out: splats that contributed to the pixel
 ):
-    """Front-to-back alpha blending of a pixel's tile list (one thread per pixel)."""
-    j, i = wp.tid()
-    t = (j / TILE) * tiles_x + i / TILE
+    """Front-to-back alpha blending of a pixel's tile list (one thread per pixel).
+
+    Threads run tile by tile (TILE^2 consecutive threads per tile), so a warp's pixels share one
+    tile's list: the same loop bounds and the same primitive reads for all 32 (a row-major warp
+    would straddle two tiles).
+    """
+    tid = wp.tid()
+    t = tid / (TILE * TILE)
+    local = tid - t * TILE * TILE
+    j = (t / tiles_x) * TILE + local / TILE
+    i = (t % tiles_x) * TILE + local % TILE
+    if j >= image.shape[0] or i >= image.shape[1]:
+        return
     px = wp.vec2(float(i) + 0.5, float(j) + 0.5)
     col = wp.vec3(0.0)
     trans = float(1.0)

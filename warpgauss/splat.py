@@ -104,12 +104,13 @@ class SplatRenderer(_Marcher):
                 outputs=[self.pair_keys, self.pair_prims],
                 device=dev,
             )
-            wp.utils.radix_sort_pairs(self.pair_keys, self.pair_prims, pairs)
+            # keys are tile ids: sort only their bits (stable, so each tile keeps depth order)
+            wp.utils.radix_sort_pairs(self.pair_keys, self.pair_prims, pairs, 0, max(1, (tiles_x * tiles_y - 1).bit_length()))
             wp.launch(self._kf.cell_ranges, dim=pairs, inputs=[self.pair_keys, pairs], outputs=[tile_start, tile_end], device=dev)
         prims = self.pair_prims if pairs > 0 else self.order
         wp.launch(
             ks.blend,
-            dim=(h, w),
+            dim=tiles_x * tiles_y * ks.TILE * ks.TILE,
             inputs=[cam, prm, tiles_x, tile_start, tile_end, prims, self.xy, self.conic, self.amp, self.color],
             outputs=[image, drawn],
             device=dev,
