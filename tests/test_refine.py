@@ -236,8 +236,10 @@ def test_primitive_major_pair_pass_equals_the_atomic_point_scatter(device, split
     from warpgauss.kernels import backward as kb
 
     r, _, _ = _toy(device, iterations=1)
-    r.split = split
+    r.split = not split
     r.sample()
+    r.forward_backward()  # buffers made for the other forward pass first: switching must re-make them
+    r.split = split
     r.forward_backward()
     mine = [a.numpy().copy() for a in r.pair_grads]
     pairs = r.back_pairs.numpy().copy()

@@ -331,6 +331,7 @@ class Refiner:
     def split(self, value: bool) -> None:
         self._split = bool(value)
         self._graph = None
+        self._pbuf = None  # the partial-sum buffer exists only for the split pass
 
     def _build_strata(self) -> None:
         """Prefix sums of per-brick stratum counts: the index the sampler draws stratum voxels from."""
