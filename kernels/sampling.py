@@ -1,6 +1,10 @@
 """Stratified training samples (SPEC section 3): 35 % from V > 0.4, 40 % from occupied mid-range
 voxels, 25 % uniform over the grid, each jittered off-grid by up to half a voxel, with targets
 from trilinear interpolation and a partner point about a voxel away for the smoothness term.
+
+When empty samples carry no loss (value-loss weight of empty samples 0, the paper's setting) the
+uniform 25 % are drawn among the occupied voxels instead of the whole grid: a sample where
+V <= 0.02 would add nothing to any loss term.
 """
 
 import warp as wp
@@ -130,6 +134,8 @@ def draw_samples(
     n_mid: int,
     m_high: int,  # samples drawn from the high stratum (the first m_high)
     m_mid: int,  # then this many from the mid stratum; the rest uniform over the grid
+    occ_high: int,  # voxels in the high stratum (may be 0)
+    occ_total: int,  # occupied voxels (high + mid); > 0: the uniform samples are drawn among them
     stream: wp.array(dtype=int),  # [1] RNG stream of this iteration
     partner_min: float,  # partner distance range in voxels
     partner_max: float,
@@ -149,6 +155,12 @@ def draw_samples(
         idx = stratum_voxel(vol, mask, has_mask, high, 0, wp.randi(state, 0, n_high))
     elif s < m_high + m_mid:
         idx = stratum_voxel(vol, mask, has_mask, mid, 1, wp.randi(state, 0, n_mid))
+    elif occ_total > 0:  # uniform over the occupied voxels (empty samples carry no gradient)
+        rank = wp.randi(state, 0, occ_total)
+        if rank < occ_high:
+            idx = stratum_voxel(vol, mask, has_mask, high, 0, rank)
+        else:
+            idx = stratum_voxel(vol, mask, has_mask, mid, 1, rank - occ_high)
     else:
         idx = wp.randi(state, 0, nx * ny * vol.shape[0])
     i = idx % nx

@@ -419,6 +419,30 @@ def test_stratum_index_enumerates_each_stratum_exactly_once(device):
         np.testing.assert_array_equal(got, np.flatnonzero(want.ravel()))
 
 
+@pytest.mark.parametrize("value_empty", [0.0, 1.0])
+def test_uniform_samples_avoid_empty_space_only_when_it_carries_no_loss(cpu, value_empty):
+    """With no value loss on empty samples the uniform stratum is drawn among occupied voxels;
+    with one it still covers the whole grid (empty space then has a loss to fit)."""
+    from warpgauss.synthetic import generate
+
+    f = normalise(generate("interface", 24, seed=1))
+    occupied = f.values > 0.02
+    assert 0.05 < occupied.mean() < 0.8
+    w = LossWeights(value_empty=value_empty)
+    r = Refiner(DeviceVolume(f, cpu), _toy_params(f), RefineConfig(iterations=1, samples=4000, weights=w), 0, 0.3, 4.0)
+    assert r.uniform_occupied == (value_empty == 0.0)
+    r.sample()
+    m_high, m_mid, m_uni = r.strata
+    assert m_uni > 500
+    pts = r.points.numpy()[m_high + m_mid : r.m]
+    ijk = np.clip(np.rint(pts).astype(int), 0, np.array(f.shape_xyz) - 1)
+    on = occupied[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+    if value_empty == 0.0:
+        assert on.all()
+    else:
+        assert 0.5 * (1 - occupied.mean()) < 1 - on.mean() < 1.5 * (1 - occupied.mean())
+
+
 def _toy_params(f, n=20):
     rng = np.random.default_rng(0)
     p = np.zeros((n, 12), np.float32)

@@ -60,3 +60,18 @@ def test_self_test_runs_once_per_process_and_device(cpu, monkeypatch):
 def test_bad_stop_options_are_refused():
     with pytest.raises(warpgauss.WarpgaussError, match="--target-psnr must be a positive"):
         warpgauss.encode(**KW, target_psnr=-3)
+
+
+def test_the_uniform_stratum_restriction_is_logged_only_when_it_applies():
+    import warpgauss
+    from warpgauss.optimize import LossWeights, RefineConfig
+    from warpgauss.synthetic import generate
+
+    vol = generate("interface", 24)
+    for value_empty, logged in ((0.0, True), (1.0, False)):
+        cfg = RefineConfig(iterations=5, samples=256, weights=LossWeights(value_empty=value_empty))
+        m = warpgauss.encode(vol, budget=300, refine=cfg, device="cpu", seed=0)
+        hits = [s for s in m.report["skipped"] if s["what"] == "uniform samples in empty space"]
+        assert bool(hits) == logged
+        if logged:
+            assert 0.0 < hits[0]["uniform_samples_moved_share"] < 1.0

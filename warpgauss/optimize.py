@@ -276,6 +276,9 @@ class Refiner:
         self._split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
         self.use_graph = wp.get_device(dev).is_cuda and config.graph
         self._build_strata()
+        # with no value loss on empty samples, one where V <= 0.02 adds nothing to any term: draw
+        # the uniform stratum among the occupied voxels instead of the whole grid
+        self.uniform_occupied = config.weights.value_empty == 0 and self.n_high + self.n_mid > 0
         self.set_samples(config.samples)
         w = config
         self.lr = kf.vec12(
@@ -466,7 +469,22 @@ class Refiner:
         wp.launch(
             ks.draw_samples,
             dim=self.m,
-            inputs=[dv.values, dv.mask, dv.has_mask, self.high, self.mid, max(self.n_high, 1), max(self.n_mid, 1), m_high, m_mid, self.stream, float(pmin), float(pmax)],
+            inputs=[
+                dv.values,
+                dv.mask,
+                dv.has_mask,
+                self.high,
+                self.mid,
+                max(self.n_high, 1),
+                max(self.n_mid, 1),
+                m_high,
+                m_mid,
+                self.n_high,
+                self.n_high + self.n_mid if self.uniform_occupied else 0,
+                self.stream,
+                float(pmin),
+                float(pmax),
+            ],
             outputs=[self.points, self.target, self.weight, self.occupied],
             device=self.device,
         )

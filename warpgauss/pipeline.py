@@ -307,6 +307,15 @@ def encode_field(
             load_kernels(dev)
             stage_start = time.perf_counter()  # the time budget starts with compiled kernels
             refiner = Refiner(dv, params, cfg, opts.seed, opts.allocation.scale_min, cap)
+            if refiner.uniform_occupied:
+                occ = refiner.n_high + refiner.n_mid
+                skipped.append(
+                    {
+                        "what": "uniform samples in empty space",
+                        "why": f"value_empty = 0: a sample where V <= 0.02 adds no loss; the uniform stratum is drawn among the {occ:,} occupied voxels",
+                        "uniform_samples_moved_share": 1.0 - occ / dv.field.values.size,
+                    }
+                )
             ckpt = _Checkpoints(opts, params, cfg, dev)
             if opts.resume:
                 ckpt.resume(refiner)
