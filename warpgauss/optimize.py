@@ -279,6 +279,8 @@ class Refiner:
         # with no value loss on empty samples, one where V <= 0.02 adds nothing to any term: draw
         # the uniform stratum among the occupied voxels instead of the whole grid
         self.uniform_occupied = config.weights.value_empty == 0 and self.n_high + self.n_mid > 0
+        # partners serve only the smoothness term: with its weight 0 they are not evaluated
+        self._partners = config.weights.smooth > 0
         self.set_samples(config.samples)
         w = config
         self.lr = kf.vec12(
@@ -494,7 +496,7 @@ class Refiner:
         graph capture; the sort's scratch is reserved for the largest sort this refiner runs)."""
         if self._pbuf is None:
             wp, dev = self._wp, self.device
-            levels, p2 = len(self.plan.sizes), 2 * self.m
+            levels, p2 = len(self.plan.sizes), self.n_points
             k = levels * p2
             b = {
                 "keys": wp.empty(2 * k, dtype=int, device=dev),
@@ -514,7 +516,23 @@ class Refiner:
         return self._pbuf
 
     def _use_partials(self) -> bool:
-        return self.split and 2 * self.m * 27 * len(self.plan.sizes) <= PARTIAL_MAX_ENTRIES
+        return self.split and self.n_points * 27 * len(self.plan.sizes) <= PARTIAL_MAX_ENTRIES
+
+    @property
+    def partners(self) -> bool:
+        """Whether an iteration evaluates the partner points (the smoothness term needs them)."""
+        return self._partners
+
+    @partners.setter
+    def partners(self, value: bool) -> None:
+        self._partners = bool(value)
+        self._pbuf = None
+        self._graph = None
+
+    @property
+    def n_points(self) -> int:
+        """Points evaluated per iteration: the samples and, for the smoothness term, their partners."""
+        return 2 * self.m if self.partners else self.m
 
     def _sort_points(self, count: int) -> None:
         """Bin the first ``count`` points on every level and sort them by cell (stable: the
@@ -535,10 +553,10 @@ class Refiner:
         from .kernels import backward as kb
         from .kernels import field as kf
 
-        wp, dev, w, m2 = self._wp, self.device, self.cfg.weights, 2 * self.m
+        wp, dev, w, m2 = self._wp, self.device, self.cfg.weights, self.n_points
         self._sort_points(m2)
         b = self._pbuf
-        order = b["order"]  # its first 2 M entries: the points in level-0 cell order
+        order = b["order"]  # its first n_points entries: the points in level-0 cell order
         if self._use_partials():
             wp.launch(kf.eval_points_partial, dim=b["part"].shape, inputs=[self.points, order, self.prims], outputs=[b["part"]], device=dev)
             wp.launch(kf.finish_partials, dim=m2, inputs=[order, b["part"]], outputs=[self.value, self.density, self.pairs], device=dev)
@@ -558,7 +576,7 @@ class Refiner:
         from .kernels import backward as kb
 
         wp, dev, b = self._wp, self.device, self._point_buffers()
-        count = 2 * self.m if count is None else int(count)
+        count = self.n_points if count is None else int(count)
         if self._sorted_count != count:
             self._sort_points(count)
         k = len(self.plan.sizes) * count
@@ -700,7 +718,7 @@ class Refiner:
         if kernel is None:
             self._backward(count, count_pairs=True)
         else:
-            self._pairs(kernel, 2 * self.m if count is None else count)
+            self._pairs(kernel, self.n_points if count is None else count)
 
     def _finish(self) -> None:
         from .kernels import backward as kb

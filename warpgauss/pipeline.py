@@ -316,6 +316,13 @@ def encode_field(
                         "uniform_samples_moved_share": 1.0 - occ / dv.field.values.size,
                     }
                 )
+            if not refiner.partners:
+                skipped.append(
+                    {
+                        "what": "partner points",
+                        "why": "smoothness weight 0: the partners serve only that term, so each iteration evaluates the samples alone (half the points)",
+                    }
+                )
             ckpt = _Checkpoints(opts, params, cfg, dev)
             if opts.resume:
                 ckpt.resume(refiner)
