@@ -51,33 +51,6 @@ def mark_bricks(
 
 
 @wp.kernel
-def eval_grid_active(
-    z0: int,  # first output slice of this slab
-    scale: wp.vec3,  # model voxels per output voxel along x, y, z
-    prims: BinnedPrimitives,
-    active: wp.array3d(dtype=wp.uint8),  # [bz, by, bx] bricks of the model grid some primitive reaches
-    out: wp.array3d(dtype=float),  # [nz_slab, ny, nx] out
-):
-    """:func:`warpgauss.kernels.field.eval_grid_binned` that writes 0 without evaluating where no
-    primitive reaches (exactly the value the evaluation would give there)."""
-    k, j, i = wp.tid()
-    p = wp.vec3(
-        (float(i) + 0.5) * scale[0] - 0.5,
-        (float(j) + 0.5) * scale[1] - 0.5,
-        (float(k + z0) + 0.5) * scale[2] - 0.5,
-    )
-    b = float(BRICK_EDGE)
-    bx = wp.clamp(int(wp.floor((p[0] + 0.5) / b)), 0, active.shape[2] - 1)
-    by = wp.clamp(int(wp.floor((p[1] + 0.5) / b)), 0, active.shape[1] - 1)
-    bz = wp.clamp(int(wp.floor((p[2] + 0.5) / b)), 0, active.shape[0] - 1)
-    if active[bz, by, bx] == wp.uint8(0):
-        out[k, j, i] = 0.0
-        return
-    s = binned_sums(p, prims)
-    out[k, j, i] = s[0] / wp.max(s[1], RHO0)
-
-
-@wp.kernel
 def eval_grid_blocked(
     z0: int,  # first output slice of this slab
     scale: wp.vec3,  # model voxels per output voxel along x, y, z
@@ -86,7 +59,9 @@ def eval_grid_blocked(
     use_active: int,  # 0: evaluate everywhere (a primitive too large to mark bricks)
     out: wp.array3d(dtype=float),  # [nz_slab, ny, nx] out
 ):
-    """:func:`eval_grid_active` with threads grouped in 8^3 blocks, each warp a 4x4x2 voxel block.
+    """:func:`warpgauss.kernels.field.eval_grid_binned` that writes 0 without evaluating where no
+    primitive reaches (exactly the value the evaluation would give there), with threads grouped in
+    8^3 blocks, each warp a 4x4x2 voxel block.
 
     A warp of a row-major launch spans 32 voxels along x, often two or three cells of a level, and
     its threads walk different cell ranges; a compact 4x4x2 block mostly shares them. The values

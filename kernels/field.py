@@ -283,6 +283,14 @@ def binned_sums(p: wp.vec3, b: BinnedPrimitives) -> wp.vec3:
     return wp.vec3(num, den, pairs)
 
 
+@wp.func
+def store_sums(i: int, s: wp.vec3, value: wp.array(dtype=float), density: wp.array(dtype=float), pairs: wp.array(dtype=int)):
+    """Write point i's V~ = num / max(rho, RHO0), rho and pair count from (num, rho, pairs) sums."""
+    value[i] = s[0] / wp.max(s[1], RHO0)
+    density[i] = s[1]
+    pairs[i] = int(s[2])
+
+
 @wp.kernel
 def eval_points_binned(
     points: wp.array(dtype=wp.vec3),  # [M] query positions (voxel units, x,y,z)
@@ -293,10 +301,7 @@ def eval_points_binned(
 ):
     """V~ at arbitrary points through the binned primitives (one thread per point)."""
     i = wp.tid()
-    s = binned_sums(points[i], prims)
-    value[i] = s[0] / wp.max(s[1], RHO0)
-    density[i] = s[1]
-    pairs[i] = int(s[2])
+    store_sums(i, binned_sums(points[i], prims), value, density, pairs)
 
 
 @wp.kernel
@@ -359,12 +364,8 @@ def eval_points_ordered(
 ):
     """:func:`eval_points_binned` visiting the points in ``order`` (neighbouring threads read the
     same cells; results are stored at the point's own index)."""
-    k = wp.tid()
-    i = order[k]
-    s = binned_sums(points[i], prims)
-    value[i] = s[0] / wp.max(s[1], RHO0)
-    density[i] = s[1]
-    pairs[i] = int(s[2])
+    i = order[wp.tid()]
+    store_sums(i, binned_sums(points[i], prims), value, density, pairs)
 
 
 @wp.kernel
@@ -410,10 +411,7 @@ def finish_partials(
     s = wp.vec3(0.0, 0.0, 0.0)
     for t in range(part.shape[1]):
         s += part[k, t]
-    i = order[k]
-    value[i] = s[0] / wp.max(s[1], RHO0)
-    density[i] = s[1]
-    pairs[i] = int(s[2])
+    store_sums(order[k], s, value, density, pairs)
 
 
 @wp.kernel

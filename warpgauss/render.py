@@ -563,14 +563,9 @@ class CachedRenderer(_Marcher):
         nx, ny, nz = shape
         values = wp.empty((nz, ny, nx), dtype=float, device=dev)
         scale = wp.vec3(*(scene.shape_xyz[a] / shape[a] for a in range(3)))  # as GaussianField.iter_slabs
-        active = field.active_bricks()
         slab = max(1, min(nz, DECODE_SLAB_VOXELS // (nx * ny)))
         for z0 in range(0, nz, slab):
-            out = values[z0 : min(nz, z0 + slab)]
-            if active is None:
-                wp.launch(kf.eval_grid_binned, dim=out.shape, inputs=[z0, scale, field.prims], outputs=[out], device=dev)
-            else:
-                wp.launch(kd.eval_grid_active, dim=out.shape, inputs=[z0, scale, field.prims, active], outputs=[out], device=dev)
+            field.decode_slab(values[z0 : min(nz, z0 + slab)], z0, scale)
         self.n = field.n
         del field  # the primitives are not needed any more: only the grid stays on the device
         self._attach_volume(values, shape)
