@@ -159,6 +159,20 @@ def bin_level(r: float, level_size: wp.array(dtype=float)) -> int:
     return lev
 
 
+@wp.func
+def cell_key(
+    x: wp.vec3,
+    l: int,
+    level_size: wp.array(dtype=float),
+    level_dims: wp.array(dtype=wp.vec3i),
+    level_offset: wp.array(dtype=int),
+) -> int:
+    """Global id of the level-l cell holding x (the key primitives and points are sorted by)."""
+    dims = level_dims[l]
+    c = level_cell(x, level_size[l], dims)
+    return level_offset[l] + (c[2] * dims[1] + c[1]) * dims[0] + c[0]
+
+
 @wp.kernel
 def bin_keys(
     mu: wp.array(dtype=wp.vec3),  # [N]
@@ -171,10 +185,7 @@ def bin_keys(
 ):
     """Assign each primitive to the first level whose cells are at least its radius."""
     i = wp.tid()
-    lev = bin_level(radius[i], level_size)
-    dims = level_dims[lev]
-    c = level_cell(mu[i], level_size[lev], dims)
-    keys[i] = level_offset[lev] + (c[2] * dims[1] + c[1]) * dims[0] + c[0]
+    keys[i] = cell_key(mu[i], bin_level(radius[i], level_size), level_size, level_dims, level_offset)
     values[i] = i
 
 
@@ -428,9 +439,7 @@ def point_keys(
     k = wp.tid()
     l = k / count
     i = k - l * count
-    dims = level_dims[l]
-    c = level_cell(points[i], level_size[l], dims)
-    keys[k] = level_offset[l] + (c[2] * dims[1] + c[1]) * dims[0] + c[0]
+    keys[k] = cell_key(points[i], l, level_size, level_dims, level_offset)
     values[k] = i
 
 
