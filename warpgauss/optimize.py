@@ -389,7 +389,7 @@ class Refiner:
 
     def rebin(self, replan: bool = False) -> None:
         """Sort the training state into cell order (re-planning the levels with ``replan``)."""
-        from .field import plan_bins, set_plan, sort_into_cells
+        from .field import sort_into_cells
         from .kernels import field as kf
         from .kernels import optim as ko
 
@@ -398,20 +398,11 @@ class Refiner:
         wp.launch(kf.prepare_primitives, dim=n, inputs=[self.raw, 1], outputs=self._prep, device=dev)
         wp.launch(ko.effective_radius, dim=n, inputs=[radius, self.reach], device=dev)
         if replan or self.plan is None:
-            plan = plan_bins(radius.numpy(), self.dv.field.shape_xyz)
-            if plan != self.plan:
-                self.plan = plan
-                set_plan(p, plan, dev)
-                self._graph = None
-                self._pbuf = None
+            self._replan(radius)
         sort_into_cells(p, self._prep, self._keys, self._perm, dev)
-        if not replan and self._global_members() > 0:
-            # a primitive outgrew the planned levels: re-plan rather than let one thread of the
-            # primitive-major pair pass visit every point
-            self.plan = plan_bins(radius.numpy(), self.dv.field.shape_xyz)
-            set_plan(p, self.plan, dev)
-            self._graph = None
-            self._pbuf = None
+        # a primitive that outgrew the planned levels sits in the global level, where one thread
+        # of the primitive-major pair pass would visit every point: re-plan instead
+        if not replan and self._global_members() > 0 and self._replan(radius):
             sort_into_cells(p, self._prep, self._keys, self._perm, dev)
         self._slot_cells()
         wp.launch(
@@ -427,6 +418,20 @@ class Refiner:
         if not self._clean:
             self._zero_grads()
         self.rebins += 1
+
+    def _replan(self, radius) -> bool:
+        """Plan the levels for the current radii; returns whether the plan changed (then the cell
+        tables, point buffers and captured graph are rebuilt)."""
+        from .field import plan_bins, set_plan
+
+        plan = plan_bins(radius.numpy(), self.dv.field.shape_xyz)
+        if plan == self.plan:
+            return False
+        self.plan = plan
+        set_plan(self.prims, plan, self.device)
+        self._graph = None
+        self._pbuf = None
+        return True
 
     def _global_members(self) -> int:
         """Primitives binned in the last, global level (syncs; normally 0 after a re-plan)."""
