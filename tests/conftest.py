@@ -32,6 +32,25 @@ def random_quaternions(rng: np.random.Generator, n: int) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
+def uniform_params(
+    rng: np.random.Generator,
+    n: int,
+    centre: tuple[float, float],
+    log_scale: tuple[float, float],
+    value: tuple[float, float] = (0.0, 1.0),
+    weight: tuple[float, float] = (0.05, 1.0),
+) -> np.ndarray:
+    """(n, 12) model parameters: centres and log-scales uniform per axis in the given ranges,
+    random unit quaternions, a and w uniform (drawn in that order from ``rng``)."""
+    p = np.zeros((n, 12), np.float32)
+    p[:, 0:3] = rng.uniform(*centre, (n, 3))
+    p[:, 3:6] = rng.uniform(*log_scale, (n, 3))
+    p[:, 6:10] = random_quaternions(rng, n)
+    p[:, 10] = rng.uniform(*value, n)
+    p[:, 11] = rng.uniform(*weight, n)
+    return p
+
+
 def random_params(
     rng: np.random.Generator,
     n: int,

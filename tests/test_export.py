@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import uniform_params
 from typer.testing import CliRunner
 
 from test_render import header
@@ -13,14 +14,7 @@ from warpgauss.model import Model
 
 
 def random_model(n=50, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), seed=0) -> Model:
-    rng = np.random.default_rng(seed)
-    p = np.zeros((n, 12), np.float32)
-    p[:, :3] = rng.uniform(0, 15, (n, 3))
-    p[:, 3:6] = rng.uniform(-0.5, 1.0, (n, 3))
-    q = rng.normal(size=(n, 4))
-    p[:, 6:10] = q / np.linalg.norm(q, axis=1, keepdims=True)
-    p[:, 10] = rng.uniform(0, 1, n)
-    p[:, 11] = rng.uniform(0.05, 1, n)
+    p = uniform_params(np.random.default_rng(seed), n, centre=(0, 15), log_scale=(-0.5, 1.0))
     h = header((16, 16, 16), spacing, origin)
     h["values"] = {"min": -3.0, "max": 5.0}
     return Model(p, h)

@@ -12,6 +12,7 @@ import zlib
 
 import numpy as np
 import pytest
+from conftest import uniform_params
 
 from warpgauss.errors import WarpgaussError
 from warpgauss.wgs import (
@@ -30,14 +31,7 @@ from warpgauss.wgs import (
 
 def realistic_params(rng: np.random.Generator, n: int, box: float = 256.0) -> np.ndarray:
     """Centres in a box^3 volume, log-scales in [-1, 2.5], random unit quaternions, a in [0,1], w in [0.01,1]."""
-    p = np.empty((n, 12), np.float32)
-    p[:, 0:3] = rng.uniform(0.0, box, (n, 3))
-    p[:, 3:6] = rng.uniform(-1.0, 2.5, (n, 3))
-    q = rng.normal(size=(n, 4))
-    p[:, 6:10] = q / np.linalg.norm(q, axis=1, keepdims=True)
-    p[:, 10] = rng.uniform(0.0, 1.0, n)
-    p[:, 11] = rng.uniform(0.01, 1.0, n)
-    return p
+    return uniform_params(rng, n, centre=(0.0, box), log_scale=(-1.0, 2.5), weight=(0.01, 1.0))
 
 
 def make_header() -> dict:

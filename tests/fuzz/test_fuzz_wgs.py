@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import uniform_params
 from fuzz_support import assert_clear_refusal, fuzz
 from hypothesis import assume, example, given
 from hypothesis import strategies as st
@@ -29,15 +30,7 @@ _TMP = Path(tempfile.mkdtemp(prefix="wgs-fuzz-"))
 
 
 def _params(n: int, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    p = np.zeros((n, 12), np.float32)
-    p[:, :3] = rng.uniform(0, 8, (n, 3))
-    p[:, 3:6] = rng.uniform(-1, 1, (n, 3))
-    q = rng.normal(size=(n, 4))
-    p[:, 6:10] = q / np.linalg.norm(q, axis=1, keepdims=True)
-    p[:, 10] = rng.uniform(0, 1, n)
-    p[:, 11] = rng.uniform(0.05, 1, n)
-    return p
+    return uniform_params(np.random.default_rng(seed), n, centre=(0, 8), log_scale=(-1, 1))
 
 
 def _header() -> dict:
