@@ -7,8 +7,9 @@ decode seconds, for:
 - ``wg-full``: warpgauss, full-precision file (48 N + H bytes), one model per budget of a ladder
   (one read and one S1a analysis for the whole ladder, as ``encode --ladder``);
 - ``wg-compact``: the same models saved with ``compact=True`` (12 N + H), reloaded and decoded;
-- ``sz3-matched``: SZ3 (PyPI ``pysz``), absolute error bound bisected until its ratio is within
-  ``--match-tol`` of each warpgauss full-precision ratio; ``sz3``: SZ3 at a few error bounds;
+- ``sz3-matched``: SZ3 (PyPI ``pysz``), absolute error bound searched (log-log regula falsi from
+  the SZ3 curve's bracket) until its ratio is within ``--match-tol`` of each warpgauss
+  full-precision ratio; ``sz3``: SZ3 at a few error bounds;
 - ``zfp-rate`` (fixed rate, bits/value), ``zfp-rate-matched`` (the rate giving each warpgauss
   ratio) and ``zfp-acc`` (fixed accuracy, absolute tolerance), PyPI ``zfpy``.
 
@@ -21,6 +22,13 @@ counted in every row), allocation and refinement (with the one-off self-test in 
 Decode seconds: the full-grid decode (warpgauss: ``Model.decode``; compact: load + decode).
 
 The JSON is rewritten atomically after every row, so a run that is stopped keeps what it measured.
+On a large volume (512^3, 1024^3) ``--volume-dir`` generates the example fields side by side into
+``.npy`` files first, and ``--workers K`` runs the single-threaded SZ3/ZFP calls K at a time in
+separate processes that map those files, after every warpgauss row (so the GPU encodes never share
+the host with them):
+
+    python benchmarks/bench_rd.py --device cuda:0 --size 512 --preset paper --real none \\
+        --budgets 16000,128000,512000 --volume-dir /tmp/vol --workers 12 --out rd_h100_512.json
 
     python benchmarks/bench_rd.py --size 128 --budgets 1000,4000,16000 --preset fast \\
         --real nAChR_M2_water.plt,1jzv.ccp4 --out benchmarks/results/rd_cpu_128.json
@@ -60,12 +68,17 @@ ZFP_TOLERANCES = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 1e-4)  # x (max - min)
 
 
 class Truth:
-    """The reference every codec is scored against: normalised float64 values and the valid set."""
+    """The reference every codec is scored against: the raw values, their min/max and the valid set.
+
+    PSNR is accumulated in float64 over z-slabs, so scoring a 1024^3 volume needs no float64 copy.
+    """
+
+    SLAB = 1 << 22  # voxels per slab
 
     def __init__(self, raw: np.ndarray, vmin: float, vmax: float, valid: np.ndarray | None):
         self.vmin, self.vmax = float(vmin), float(vmax)
+        self.raw = raw
         self.valid = valid
-        self.norm = (raw.astype(np.float64) - self.vmin) / (self.vmax - self.vmin)
         # what SZ3 and ZFP compress: float32 in source units, masked voxels set to the minimum
         self.codec_input = np.ascontiguousarray(raw, dtype=np.float32)
         if valid is not None:
@@ -73,13 +86,21 @@ class Truth:
 
     def psnr(self, recon: np.ndarray, normalised: bool = False) -> float:
         """PSNR (dB) of a full-grid reconstruction (source units, or [0, 1] with ``normalised``)."""
-        r = recon.astype(np.float64)
-        if not normalised:
-            r = (r - self.vmin) / (self.vmax - self.vmin)
-        err = r - self.norm
-        if self.valid is not None:
-            err = err[self.valid]
-        mse = float(np.mean(err * err))
+        span = self.vmax - self.vmin
+        nz = self.raw.shape[0]
+        step = max(1, self.SLAB // max(1, int(np.prod(self.raw.shape[1:]))))
+        total, count = 0.0, 0
+        for z0 in range(0, nz, step):
+            z1 = min(nz, z0 + step)
+            r = recon[z0:z1].astype(np.float64)
+            if not normalised:
+                r = (r - self.vmin) / span
+            err = r - (self.raw[z0:z1].astype(np.float64) - self.vmin) / span
+            if self.valid is not None:
+                err = err[self.valid[z0:z1]]
+            total += float(np.dot(err.ravel(), err.ravel()))
+            count += err.size
+        mse = total / max(count, 1)
         return float(10.0 * math.log10(1.0 / max(mse, 1e-20)))
 
 
@@ -113,40 +134,136 @@ def zfp_run(data: np.ndarray, **mode):
     return len(comp), dec.reshape(data.shape), t1 - t0, t2 - t1
 
 
-def sz3_matched(data: np.ndarray, source_bytes: int, target: float, rng: float, tol: float, max_steps: int = 40):
-    """Bisect SZ3's absolute error bound (log scale) until its ratio is within ``tol`` of ``target``.
+def sz3_matched(data, source_bytes, target, rng, tol, max_steps=40, seen=(), run=sz3_run):
+    """Search SZ3's absolute error bound until its ratio is within ``tol`` of ``target``.
 
-    Returns (eb, nbytes, decoded, enc_s, dec_s, steps, reached)."""
-    lo, hi = 1e-9 * rng, 2.0 * rng
+    The ratio grows with the bound, close to a power law, so the search interpolates log(ratio)
+    against log(bound) between the nearest bounds below and above the target (regula falsi,
+    falling back to the geometric midpoint when one side stalls), and steps by 10x until it has
+    both. ``seen`` holds (bound, ratio) pairs already measured on this volume (the SZ3 curve):
+    they bracket the target from the start, which saves most of the runs on a large volume.
+
+    Returns (eb, nbytes, decoded, enc_s, dec_s, steps, reached): steps counts the runs made here.
+    """
+    lo_eb, hi_eb = 1e-9 * rng, 2.0 * rng  # the search never leaves this range
+    lo = max(((e, r) for e, r in seen if r < target and e >= lo_eb), default=None)
+    hi = min(((e, r) for e, r in seen if r >= target and e <= hi_eb), default=None)
     best = None
+    last_side = stall = 0
     for step in range(1, max_steps + 1):
-        eb = math.sqrt(lo * hi)
-        nbytes, dec, te, td = sz3_run(data, eb)
+        if lo and hi:
+            if hi[0] / lo[0] < 1.0 + 1e-6:
+                break
+            t = math.log(target / lo[1]) / math.log(hi[1] / lo[1]) if hi[1] > lo[1] else 0.5
+            t = 0.5 if stall >= 2 else min(max(t, 0.02), 0.98)
+            eb = math.exp(math.log(lo[0]) + t * math.log(hi[0] / lo[0]))
+        elif lo:
+            eb = min(lo[0] * 10.0, hi_eb)
+        elif hi:
+            eb = max(hi[0] / 10.0, lo_eb)
+        else:
+            eb = 1e-2 * rng
+        nbytes, dec, te, td = run(data, eb)
         ratio = source_bytes / nbytes
         if best is None or abs(math.log(ratio / target)) < abs(math.log(best[1] / target)):
             best = (eb, ratio, nbytes, dec, te, td, step)
         if abs(ratio / target - 1.0) <= tol:
             break
-        if ratio < target:
-            lo = eb
+        side = -1 if ratio < target else 1
+        stall = stall + 1 if side == last_side else 0
+        last_side = side
+        if side < 0:
+            lo = (eb, ratio)
+            if eb >= hi_eb:
+                break  # even the largest bound gives less than the target ratio
         else:
-            hi = eb
-        if hi / lo < 1.0 + 1e-6:
-            break
+            hi = (eb, ratio)
+            if eb <= lo_eb:
+                break  # even the smallest bound gives more than the target ratio
     eb, ratio, nbytes, dec, te, td, step = best
     return eb, nbytes, dec, te, td, step, abs(ratio / target - 1.0) <= tol
+
+
+def codec_task(task: dict) -> dict:
+    """Run one reference-codec setting on one volume and score it: the benchmark row.
+
+    ``task`` names the volume by file (``raw``: an ``.npy`` of the source values, ``valid``:
+    an optional ``.npy`` mask), so a worker process maps it rather than receiving a copy.
+    """
+    raw = np.load(task["raw"], mmap_mode="r")
+    valid = np.load(task["valid"]) if task.get("valid") else None
+    truth = Truth(raw, task["vmin"], task["vmax"], valid)
+    data, sb, rng, kind = truth.codec_input, task["source_bytes"], task["vmax"] - task["vmin"], task["kind"]
+    if kind == "sz3":
+        cb, d, te, tdec = sz3_run(data, task["eb"])
+        row = {"codec": "sz3", "param": f"eb={task['eb'] / rng:.3g}R", "abs_error_bound": task["eb"]}
+    elif kind == "sz3-matched":
+        seen = [tuple(x) for x in task.get("seen", ())]
+        eb, cb, d, te, tdec, steps, ok = sz3_matched(data, sb, task["target"], rng, task["tol"], seen=seen)
+        row = {
+            "codec": "sz3-matched",
+            "param": f"eb={eb / rng:.3g}R",
+            "abs_error_bound": eb,
+            "matched_to": {**task["matched_to"], "within_tol": ok, "search_steps": steps},
+        }
+    elif kind == "zfp-rate":
+        cb, d, te, tdec = zfp_run(data, rate=task["rate"])
+        row = {"codec": "zfp-rate", "param": f"rate={task['rate']:.3g}", "rate_bits_per_value": task["rate"]}
+        if "matched_to" in task:
+            row.update(codec="zfp-rate-matched", matched_to=task["matched_to"])
+    elif kind == "zfp-acc":
+        cb, d, te, tdec = zfp_run(data, tolerance=task["tol"])
+        row = {"codec": "zfp-acc", "param": f"tol={task['tol'] / rng:.3g}R", "tolerance": task["tol"]}
+    else:
+        raise ValueError(f"unknown codec task {kind!r}")
+    row.update({"ratio": sb / cb, "bytes": cb, "psnr_db": truth.psnr(d), "encode_s": te, "decode_s": tdec})
+    return row
 
 
 # ---------------------------------------------------------------------------- volumes
 
 
+def example_path(volume_dir: Path, name: str, size: int) -> Path:
+    return Path(volume_dir) / f"{name}_{size}.npy"
+
+
+def _generate_one(job: tuple[str, int, str]) -> tuple[str, float]:
+    name, size, path = job
+    t0 = time.perf_counter()
+    vol = generate(name, size, seed=0)
+    tmp = Path(path).with_name(Path(path).name + ".tmp.npy")
+    np.save(tmp, vol)
+    os.replace(tmp, path)
+    return name, time.perf_counter() - t0
+
+
+def generate_examples(names: list[str], size: int, volume_dir: Path, workers: int) -> dict[str, float]:
+    """Write each example field at ``size`` to ``volume_dir`` (one process per field): name -> seconds.
+
+    A 1024^3 field takes minutes of single-threaded numpy; generating the fields side by side and
+    mapping the files later keeps that off the benchmark's critical path.
+    """
+    Path(volume_dir).mkdir(parents=True, exist_ok=True)
+    jobs = [(n, size, str(example_path(volume_dir, n, size))) for n in names if not example_path(volume_dir, n, size).is_file()]
+    if not jobs:
+        return {}
+    if workers <= 1 or len(jobs) == 1:
+        return dict(_generate_one(j) for j in jobs)
+    with _pool(min(workers, len(jobs))) as pool:
+        return dict(pool.map(_generate_one, jobs))
+
+
 def volumes(args):
-    """(label, load_field source kwargs, raw array in source units) for each requested volume."""
+    """(label, load_field source kwargs, raw array in source units, its .npy path or None) per volume."""
     from warpgauss.io import read_volume
 
     for name in [x for x in args.fields.split(",") if x]:
-        raw = generate(name, args.size, seed=0)
-        yield f"{name} {args.size}^3", {"source": raw}, raw
+        path = example_path(args.volume_dir, name, args.size) if args.volume_dir else None
+        if path is not None and path.is_file():
+            raw = np.load(path, mmap_mode="r")  # written by generate_examples: a plain float32 array
+        else:
+            raw, path = generate(name, args.size, seed=0), None
+        yield f"{name} {args.size}^3", {"source": np.asarray(raw)}, raw, path
     real = args.real
     if real in ("", "none") or not DATA_DIR.is_dir():
         return
@@ -165,7 +282,7 @@ def volumes(args):
         yield f"{fname} {shape}" + (f" (stride {stride})" if stride > 1 else ""), {
             "source": str(path),
             "read": ReadOptions(stride=stride),
-        }, raw
+        }, raw, None
 
 
 # ---------------------------------------------------------------------------- benchmark
@@ -196,40 +313,44 @@ def _available(module: str) -> str | None:
         return None
 
 
-def bench_volume(label, src, raw, args, dev, result, out):
-    entry = {"rows": []}
-    result["volumes"][label] = entry
+def _pool(workers: int):
+    """Worker processes that import this file afresh (spawn: no copy of a parent's CUDA context)."""
+    import multiprocessing as mp
+    import sys
+    from concurrent.futures import ProcessPoolExecutor
 
-    def add(row):
-        entry["rows"].append(row)
-        _print(label, row)
-        _write(result, out)
+    here = str(Path(__file__).resolve().parent)
+    if here not in sys.path:  # the workers import this module by name
+        sys.path.insert(0, here)
+    return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
 
+
+def bench_warpgauss(label, src, raw, args, dev, add) -> tuple[dict, Truth, list[tuple[int, float, float]]]:
+    """warpgauss rows for one volume: one model per budget, the volume read and analysed once.
+
+    Returns the volume's entry fields, its Truth and (N, full ratio, compact ratio) per budget.
+    """
     t0 = time.perf_counter()
     f, info = load_field(src["source"], src.get("read"))
     load_s = time.perf_counter() - t0
     truth = Truth(raw, f.vmin, f.vmax, f.mask)
     n_max = seed_limit(f.eligible, f.occupied)
-    entry.update(
-        {
-            "shape_xyz": list(f.shape_xyz),
-            "source_dtype": f.source_dtype,
-            "source_bytes": f.source_bytes,
-            "stride": info["stride"],
-            "value_range": [f.vmin, f.vmax],
-            "masked_voxels": info["masked_voxels"],
-            "n_max": n_max,
-            "load_seconds": load_s,
-        }
-    )
+    meta = {
+        "shape_xyz": list(f.shape_xyz),
+        "source_dtype": f.source_dtype,
+        "source_bytes": f.source_bytes,
+        "stride": info["stride"],
+        "value_range": [f.vmin, f.vmax],
+        "masked_voxels": info["masked_voxels"],
+        "n_max": n_max,
+        "load_seconds": load_s,
+    }
     sb = f.source_bytes
-    rng = f.vmax - f.vmin
-
-    # warpgauss: one model per budget, the volume read and analysed once
     refine = resolve_refine(None, args.preset, args.iterations, None)
     budgets = sorted({b for b in args.budgets if b <= n_max})
+    meta["warpgauss_budgets"] = budgets
     cache: dict = {}
-    wg_ratios = []
+    ratios = []
     for i, n in enumerate(budgets):
         opts = EncodeOptions(budget=n, seed=0, allocation=AllocationConfig(), refine=refine, self_test=i == 0)
         timer = StageRecorder()
@@ -256,7 +377,6 @@ def bench_volume(label, src, raw, args, dev, result, out):
                 **common,
             }
         )
-        wg_ratios.append((n, model.compression_ratio(False)))
         del dec
         with tempfile.TemporaryDirectory() as td:
             p = Path(td) / "m.wgs"
@@ -280,66 +400,78 @@ def bench_volume(label, src, raw, args, dev, result, out):
                 **common,
             }
         )
-        del dec
-        if "sz3" in args.codecs:
-            for target_name, target in (("full", model.compression_ratio(False)), ("compact", sb / nbytes)):
-                if target_name == "compact" and not args.match_compact:
-                    continue
-                eb, cb, d, te, tdec, steps, ok = sz3_matched(truth.codec_input, sb, target, rng, args.match_tol)
-                add(
-                    {
-                        "codec": "sz3-matched",
-                        "param": f"eb={eb / rng:.3g}R",
-                        "ratio": sb / cb,
-                        "bytes": cb,
-                        "psnr_db": truth.psnr(d),
-                        "encode_s": te,
-                        "decode_s": tdec,
-                        "abs_error_bound": eb,
-                        "matched_to": {"n": n, "format": target_name, "ratio": target, "within_tol": ok, "bisection_steps": steps},
-                    }
-                )
-        if "zfp" in args.codecs:
-            for target_name, target in (("full", model.compression_ratio(False)), ("compact", sb / nbytes)):
-                rate = 8.0 * sb / (f.n_voxels * target)
-                if rate < ZFP_MIN_RATE:  # zfpy 1.0.1 corrupts the heap (malloc abort) at 0.107 bits/value
-                    print(f"{label}: zfp rate {rate:.3g} < {ZFP_MIN_RATE} bits/value: not run", flush=True)
-                    continue
-                try:
-                    cb, d, te, tdec = zfp_run(truth.codec_input, rate=rate)
-                except Exception as e:  # noqa: BLE001 - a rate zfp refuses: recorded, not fatal
-                    print(f"{label}: zfp rate {rate:.4g} failed: {e}", flush=True)
-                    continue
-                add(
-                    {
-                        "codec": "zfp-rate-matched",
-                        "param": f"rate={rate:.3g}",
-                        "ratio": sb / cb,
-                        "bytes": cb,
-                        "psnr_db": truth.psnr(d),
-                        "encode_s": te,
-                        "decode_s": tdec,
-                        "rate_bits_per_value": rate,
-                        "matched_to": {"n": n, "format": target_name, "ratio": target},
-                    }
-                )
-        del model
-    entry["warpgauss_budgets"] = budgets
+        ratios.append((n, model.compression_ratio(False), sb / nbytes))
+        del dec, model
+    return meta, truth, ratios
 
-    # the reference codecs' own curves
-    data = truth.codec_input
+
+def codec_plan(args, meta: dict, ratios, files: dict) -> tuple[list[dict], list[dict]]:
+    """The reference-codec runs for one volume: (independent runs, SZ3 runs matched to warpgauss).
+
+    The matched SZ3 runs go second so that the SZ3 curve's (bound, ratio) pairs can bracket them.
+    """
+    sb, (vmin, vmax) = meta["source_bytes"], meta["value_range"]
+    rng = vmax - vmin
+    n_voxels = int(np.prod(meta["shape_xyz"]))
+    base = {"source_bytes": sb, "vmin": vmin, "vmax": vmax, **files}
+    first, matched = [], []
     if "sz3" in args.codecs:
-        for rel in SZ3_BOUNDS:
-            cb, d, te, tdec = sz3_run(data, rel * rng)
-            add({"codec": "sz3", "param": f"eb={rel:g}R", "ratio": sb / cb, "bytes": cb, "psnr_db": truth.psnr(d), "encode_s": te, "decode_s": tdec, "abs_error_bound": rel * rng})
+        first += [{**base, "kind": "sz3", "eb": rel * rng} for rel in args.sz3_bounds]
+        for n, full, compact in ratios:
+            for fmt, target in (("full", full), ("compact", compact)):
+                if fmt == "compact" and not args.match_compact:
+                    continue
+                matched.append(
+                    {**base, "kind": "sz3-matched", "target": target, "tol": args.match_tol,
+                     "matched_to": {"n": n, "format": fmt, "ratio": target}}
+                )
     if "zfp" in args.codecs:
-        for rate in ZFP_RATES:
-            cb, d, te, tdec = zfp_run(data, rate=rate)
-            add({"codec": "zfp-rate", "param": f"rate={rate:g}", "ratio": sb / cb, "bytes": cb, "psnr_db": truth.psnr(d), "encode_s": te, "decode_s": tdec, "rate_bits_per_value": rate})
-        for rel in ZFP_TOLERANCES:
-            cb, d, te, tdec = zfp_run(data, tolerance=rel * rng)
-            add({"codec": "zfp-acc", "param": f"tol={rel:g}R", "ratio": sb / cb, "bytes": cb, "psnr_db": truth.psnr(d), "encode_s": te, "decode_s": tdec, "tolerance": rel * rng})
-    return entry
+        for n, full, compact in ratios:
+            for fmt, target in (("full", full), ("compact", compact)):
+                rate = 8.0 * sb / (n_voxels * target)
+                if rate < ZFP_MIN_RATE:  # zfpy 1.0.1 corrupts the heap (malloc abort) at 0.107 bits/value
+                    print(f"zfp rate {rate:.3g} < {ZFP_MIN_RATE} bits/value (N={n}, {fmt}): not run", flush=True)
+                    continue
+                first.append({**base, "kind": "zfp-rate", "rate": rate, "matched_to": {"n": n, "format": fmt, "ratio": target}})
+        first += [{**base, "kind": "zfp-rate", "rate": r} for r in args.zfp_rates]
+        first += [{**base, "kind": "zfp-acc", "tol": rel * rng} for rel in args.zfp_tols]
+    return first, matched
+
+
+def run_codecs(plans: list[tuple[str, list[dict], list[dict]]], workers: int, add) -> None:
+    """Run every volume's codec plan, in ``workers`` processes (0: here, one after the other).
+
+    ``add(label, row)`` records a row. Each matched SZ3 run starts from the (bound, ratio) pairs of
+    its volume's SZ3 curve.
+    """
+    seen: dict[str, list] = {label: [] for label, _, _ in plans}
+
+    def done(label, row):
+        if row["codec"] == "sz3":
+            seen[label].append((row["abs_error_bound"], row["ratio"]))
+        add(label, row)
+
+    if workers <= 0:
+        for label, first, _ in plans:
+            for task in first:
+                done(label, codec_task(task))
+        for label, _, matched in plans:
+            for task in matched:
+                done(label, codec_task({**task, "seen": seen[label]}))
+        return
+    from concurrent.futures import as_completed
+
+    with _pool(workers) as pool:
+        futures = {pool.submit(codec_task, t): label for label, first, _ in plans for t in first}
+        for fut in as_completed(futures):
+            done(futures[fut], fut.result())
+        futures = {pool.submit(codec_task, {**t, "seen": seen[label]}): label for label, _, matched in plans for t in matched}
+        for fut in as_completed(futures):
+            done(futures[fut], fut.result())
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    return tuple(float(x) for x in text.split(",") if x)
 
 
 def main(argv=None) -> dict:
@@ -353,12 +485,30 @@ def main(argv=None) -> dict:
     ap.add_argument("--preset", default="fast", help="warpgauss refinement preset (fast: 300 x 3,072)")
     ap.add_argument("--iterations", type=int, default=None, help="override the preset's iterations (0: analytic)")
     ap.add_argument("--codecs", default="sz3,zfp", help="reference codecs to run (those not installed are skipped)")
-    ap.add_argument("--match-tol", type=float, default=0.02, help="relative ratio tolerance of the SZ3 bisection")
+    ap.add_argument("--match-tol", type=float, default=0.02, help="relative ratio tolerance of the SZ3 search")
     ap.add_argument("--match-compact", action="store_true", help="also match SZ3 to the compact ratios")
+    ap.add_argument("--sz3-bounds", type=_floats, default=SZ3_BOUNDS, help="SZ3 curve: error bounds x (max - min)")
+    ap.add_argument("--zfp-rates", type=_floats, default=ZFP_RATES, help="ZFP fixed-rate curve: bits per value")
+    ap.add_argument("--zfp-tols", type=_floats, default=ZFP_TOLERANCES, help="ZFP fixed-accuracy curve: tolerances x (max - min)")
+    ap.add_argument("--workers", type=int, default=0,
+                    help="processes for the SZ3/ZFP runs (0: in this process) and for --volume-dir generation; "
+                         "the codec runs start after every warpgauss row, so they never share the machine with one")
+    ap.add_argument("--volume-dir", type=Path, default=None,
+                    help="read the example fields from <dir>/<name>_<size>.npy, generating the missing ones first")
+    ap.add_argument("--generate-only", action="store_true", help="with --volume-dir: write the fields and stop")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="benchmarks/results/rd_cpu.json")
     args = ap.parse_args(argv)
     args.budgets = [int(b) for b in args.budgets.split(",") if b]
+    fields = [x for x in args.fields.split(",") if x]
+    gen_s = {}
+    if args.volume_dir is not None:
+        t0 = time.perf_counter()
+        gen_s = generate_examples(fields, args.size, args.volume_dir, args.workers)
+        print(f"generated {sorted(gen_s) or 'nothing'} at {args.size}^3 in {time.perf_counter() - t0:.1f} s "
+              f"({', '.join(f'{k} {v:.1f} s' for k, v in gen_s.items())})", flush=True)
+        if args.generate_only:
+            return {"generated": gen_s}
     versions = {"pysz": _available("pysz"), "zfpy": _available("zfpy")}
     wanted = [c for c in args.codecs.split(",") if c]
     args.codecs = [c for c in wanted if versions[{"sz3": "pysz", "zfp": "zfpy"}[c]]]
@@ -385,6 +535,7 @@ def main(argv=None) -> dict:
         "numpy_version": np.__version__,
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "warmup_seconds": warm,
+        "generation_seconds": gen_s,
         "settings": {
             "preset": args.preset,
             "iterations": refine.iterations,
@@ -392,14 +543,42 @@ def main(argv=None) -> dict:
             "budgets": args.budgets,
             "min_ratio": args.min_ratio,
             "match_tol": args.match_tol,
+            "codec_workers": args.workers,
+            "codec_timing": "single-threaded SZ3/ZFP calls" + (
+                f", {args.workers} at a time in separate processes (after all warpgauss rows)" if args.workers > 0 else ""),
             "psnr": "10 log10(1/MSE), full grid, normalised by the volume's finite min/max, masked voxels excluded; same function for every codec",
             "ratio": "source bytes (voxels x source dtype size) / compressed bytes; SZ3 and ZFP compress float32",
         },
         "volumes": {},
         "complete": False,
     }
-    for label, src, raw in volumes(args):
-        bench_volume(label, src, raw, args, dev, result, out)
+
+    def add(label, row):
+        result["volumes"][label]["rows"].append(row)
+        _print(label, row)
+        _write(result, out)
+
+    plans = []
+    with tempfile.TemporaryDirectory(prefix="bench_rd_") as work:
+        for k, (label, src, raw, path) in enumerate(volumes(args)):
+            result["volumes"][label] = {"rows": []}
+            meta, truth, ratios = bench_warpgauss(label, src, raw, args, dev, lambda row, lb=label: add(lb, row))
+            result["volumes"][label].update(meta)
+            _write(result, out)
+            if not args.codecs:
+                continue
+            files = {"raw": str(path) if path is not None else None, "valid": None}
+            if path is None:  # the workers map the volume from a file
+                files["raw"] = str(Path(work) / f"{k}.npy")
+                np.save(files["raw"], np.ascontiguousarray(raw))
+            if truth.valid is not None:
+                files["valid"] = str(Path(work) / f"{k}_valid.npy")
+                np.save(files["valid"], truth.valid)
+            plans.append((label, *codec_plan(args, meta, ratios, files)))
+            del truth, raw
+        t0 = time.perf_counter()
+        run_codecs(plans, args.workers, add)
+        result["codec_wall_seconds"] = time.perf_counter() - t0
     result["complete"] = True
     _write(result, out)
     print(f"\n{result['device_name']}, Warp {result['warp_version']}, pysz {versions['pysz']}, zfpy {versions['zfpy']} -> {out}")

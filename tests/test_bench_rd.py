@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -101,3 +102,57 @@ def test_plot_and_table(run, tmp_path):
     plot.main([str(out), "-o", str(png), "--table", str(md)])
     assert png.stat().st_size > 1000
     assert "vortex 16^3" in md.read_text()
+
+
+def _fake_sz3(calls):
+    """A codec whose ratio is a monotone staircase power law in the bound (like SZ3's)."""
+
+    def run(data, eb):
+        calls.append(eb)
+        ratio = 5.0 * (eb / 1e-4) ** 0.45 * (1.0 + 0.01 * math.sin(40 * math.log(eb)))
+        return int(round(4e6 / ratio)), data, 0.0, 0.0
+
+    return run
+
+
+@pytest.mark.parametrize("target", [3.0, 40.0, 200.0])
+def test_sz3_search_reaches_the_target_ratio_and_uses_the_curve(target):
+    bench = _load("bench_rd")
+    calls = []
+    eb, nbytes, _, _, _, steps, ok = bench.sz3_matched(None, 4e6, target, 1.0, 0.02, run=_fake_sz3(calls))
+    assert ok and abs(4e6 / nbytes / target - 1) <= 0.02 and steps == len(calls)
+    # seeded with a curve that brackets the target, it needs fewer runs than from scratch
+    fake = _fake_sz3([])
+    curve = [(e, 4e6 / fake(None, e)[0]) for e in (1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0)]
+    seeded = []
+    *_, steps2, ok2 = bench.sz3_matched(None, 4e6, target, 1.0, 0.02, seen=curve, run=_fake_sz3(seeded))
+    assert ok2 and steps2 == len(seeded) <= min(steps, 3) and steps <= 12
+
+
+def test_sz3_search_stops_when_the_target_is_out_of_reach():
+    bench = _load("bench_rd")
+    calls = []
+    *_, ok = bench.sz3_matched(None, 4e6, 1e9, 1.0, 0.02, run=_fake_sz3(calls))
+    assert not ok and len(calls) < 40 and max(calls) == pytest.approx(2.0)
+
+
+def test_codec_workers_and_volume_dir(tmp_path):
+    """--volume-dir writes the fields once and maps them; --workers gives the rows of the in-process run."""
+    pytest.importorskip("zfpy")
+    bench = _load("bench_rd")
+    common = ["--size", "16", "--fields", "vortex", "--real", "none", "--budgets", "60", "--iterations", "0",
+              "--min-ratio", "1", "--codecs", "zfp", "--zfp-rates", "1,4", "--zfp-tols", "0.01", "--device", "cpu"]
+    gen = bench.main(common + ["--volume-dir", str(tmp_path / "vol"), "--generate-only", "--out", str(tmp_path / "g.json")])
+    npy = tmp_path / "vol" / "vortex_16.npy"
+    assert set(gen["generated"]) == {"vortex"} and npy.is_file()
+    from warpgauss.synthetic import generate
+
+    np.testing.assert_array_equal(np.load(npy), generate("vortex", 16, seed=0))
+    a = bench.main(common + ["--out", str(tmp_path / "a.json")])
+    b = bench.main(common + ["--volume-dir", str(tmp_path / "vol"), "--workers", "2", "--out", str(tmp_path / "b.json")])
+
+    def rows(res):
+        return sorted((r["codec"], r["param"], r["bytes"], round(r["psnr_db"], 9)) for r in res["volumes"]["vortex 16^3"]["rows"])
+
+    assert rows(a) == rows(b)
+    assert {r[0] for r in rows(a)} == {"wg-full", "wg-compact", "zfp-rate", "zfp-acc", "zfp-rate-matched"}
