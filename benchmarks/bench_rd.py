@@ -92,10 +92,10 @@ class Truth:
         total, count = 0.0, 0
         for z0 in range(0, nz, step):
             z1 = min(nz, z0 + step)
-            r = recon[z0:z1].astype(np.float64)
-            if not normalised:
-                r = (r - self.vmin) / span
-            err = r - (self.raw[z0:z1].astype(np.float64) - self.vmin) / span
+            if normalised:
+                err = recon[z0:z1].astype(np.float64) - (self.raw[z0:z1].astype(np.float64) - self.vmin) / span
+            else:  # float32 differences of float32 values are exact or within an ulp of the error itself
+                err = np.subtract(recon[z0:z1], self.raw[z0:z1], dtype=np.float32).astype(np.float64) / span
             if self.valid is not None:
                 err = err[self.valid[z0:z1]]
             total += float(np.dot(err.ravel(), err.ravel()))
