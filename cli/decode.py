@@ -28,7 +28,8 @@ def decode(
     m = Model.load(model)
     grid = parse_shape(shape)
     with err_console.status(f"decoding {m.n} Gaussians", spinner="dots"):
-        data = m.decode(grid, device=device, normalised=normalised)
+        info: dict = {}
+        data = m.decode(grid, device=device, normalised=normalised, info=info)
     write_volume(
         output,
         data,
@@ -38,4 +39,6 @@ def decode(
         force=force,
     )
     nz, ny, nx = data.shape
-    out_console.print(f"wrote {output} ({nx}x{ny}x{nz} float32)")
+    share = info["bricks_evaluated_share"]
+    skipped = f"; {1 - share:.0%} of it (8^3 bricks no Gaussian reaches) written as 0 without evaluation" if share < 1.0 else ""
+    out_console.print(f"wrote {output} ({nx}x{ny}x{nz} float32){skipped}")

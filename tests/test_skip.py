@@ -75,3 +75,31 @@ def test_the_uniform_stratum_restriction_is_logged_only_when_it_applies():
         assert bool(hits) == logged
         if logged:
             assert 0.0 < hits[0]["uniform_samples_moved_share"] < 1.0
+
+
+def test_empty_bricks_of_the_full_grid_evaluation_are_logged_and_exact(cpu):
+    """Bubbles are sparse: the full-grid evaluation skips the bricks no Gaussian reaches, says so,
+    and its PSNR equals a plain numpy PSNR of an unskipped decode (the skipped voxels are exact)."""
+    from warpgauss.synthetic import generate
+
+    vol = generate("bubbles", 48, seed=2)
+    m = warpgauss.encode(vol, budget=150, iterations=3, samples=128, device="cpu", full_eval=True)
+    entry = next(s for s in m.report["skipped"] if s["what"].startswith("empty 8^3 bricks"))
+    share = m.field("cpu").active_fraction
+    assert 0.0 < share < 1.0 and entry["share_skipped"] == pytest.approx(1.0 - share)
+    assert entry["seconds_saved_estimate"] >= 0.0
+    assert m.report["evaluation"]["final"]["bricks_evaluated_share"] == pytest.approx(share)
+    # the model evaluated at every voxel centre, without the brick skip
+    nz, ny, nx = vol.shape
+    z, y, x = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    pts = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1).astype(np.float32)
+    every = m.field("cpu").evaluate(pts).astype(np.float64)
+    mse = np.mean((every - vol.reshape(-1).astype(np.float64)) ** 2)
+    assert m.report["psnr_db"] == pytest.approx(10 * np.log10(1 / mse), abs=1e-3)
+    info = {}
+    m.decode(device="cpu", normalised=True, info=info)
+    assert info["bricks_evaluated_share"] == pytest.approx(share)
+    # a dense field reaches every brick: nothing is skipped and nothing is logged
+    d = warpgauss.encode(**KW, iterations=3, full_eval=True)
+    assert d.report["evaluation"]["final"]["bricks_evaluated_share"] == 1.0
+    assert not any(s["what"].startswith("empty 8^3 bricks") for s in d.report["skipped"])

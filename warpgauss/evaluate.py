@@ -75,7 +75,9 @@ def evaluate_field(gf: GaussianField, f: Field, *, full: bool = False, progress=
             acc.add(slab, f.values[z0:z1], None if f.mask is None else f.mask[z0:z1])
             if progress is not None:
                 progress(z1, nz)
-        return acc.result("full grid")
+        res = acc.result("full grid")
+        res["bricks_evaluated_share"] = gf.active_fraction  # the rest no primitive reaches: written 0
+        return res
     idx = np.random.default_rng(EVAL_SEED).integers(0, f.n_voxels, EVAL_POINTS, dtype=np.int64)
     nz, ny, nx = f.values.shape
     pts = np.stack([idx % nx, (idx // nx) % ny, idx // (nx * ny)], axis=1).astype(np.float32)
