@@ -121,3 +121,30 @@ def test_a_refinement_that_loses_to_the_analytic_model_is_discarded():
     assert any(s["what"] == "refined model" for s in bad.report["skipped"])
     analytic = warpgauss.encode(vol, budget=300, iterations=0, device="cpu", seed=0)
     np.testing.assert_array_equal(bad.params, analytic.params)
+
+
+def test_large_budgets_get_more_samples_by_default_and_presets_keep_theirs(monkeypatch):
+    from warpgauss import optimize
+    from warpgauss.optimize import AUTO_BATCH_PRIMITIVES, PRESETS, RefineConfig
+    from warpgauss.pipeline import resolve_refine
+
+    cfg = RefineConfig()
+    assert cfg.for_budget(1_400_000).samples == 4 * 3072  # the measured quality setting at 1.4M
+    assert cfg.for_budget(AUTO_BATCH_PRIMITIVES).samples == 3072
+    assert cfg.for_budget(AUTO_BATCH_PRIMITIVES + 1).samples == 2 * 3072
+    assert cfg.for_budget(10**9).samples == optimize.AUTO_MAX_BATCHES * 3072
+    for name in PRESETS:  # a named preset is exactly its settings
+        assert resolve_refine(None, name, None, None).for_budget(1_400_000).samples == PRESETS[name]["samples"]
+    assert resolve_refine(None, None, None, 5000).for_budget(1_400_000).samples == 5000  # explicit samples stay
+    assert resolve_refine(None, None, 0, None).for_budget(1_400_000).samples == 3072  # nothing to refine
+
+    # the pipeline applies it (batch size lowered so a CPU test reaches it), records it in the
+    # header and the report, and a --ratio budget still fits its size
+    monkeypatch.setattr(optimize, "AUTO_BATCH_PRIMITIVES", 100)
+    vol = generate("vortex", 24, seed=0)
+    m = warpgauss.encode(vol, budget=250, iterations=2, device="cpu", evaluate=False, self_test=False)
+    assert m.report["refinement"]["samples"] == 3 * 3072 and m.header["encoding"]["samples"] == 3 * 3072
+    p = warpgauss.encode(vol, budget=250, iterations=2, device="cpu", evaluate=False, self_test=False, preset="paper")
+    assert p.report["refinement"]["samples"] == 3072 and p.header["encoding"]["samples"] == 3072
+    r = warpgauss.encode(vol, ratio=5, iterations=2, device="cpu", evaluate=False, self_test=False)
+    assert r.report["refinement"]["samples"] > 3072 and r.file_size(False) <= vol.nbytes / 5

@@ -184,7 +184,7 @@ def resolve_refine(
             raise WarpgaussError(
                 f"--samples must be between 1 and {MAX_SAMPLES:,} (about 100 bytes of buffers per sample), got {samples}"
             )
-        cfg = dataclasses.replace(cfg, samples=int(samples), budget_samples=False)  # the user's count stays
+        cfg = dataclasses.replace(cfg, samples=int(samples), budget_samples=False, auto_samples=False)  # the user's count stays
     cfg.validate()
     return cfg
 
@@ -252,6 +252,11 @@ def encode_field(
 
     header = _header_for(f, opts)
     n = resolve_budget(f, opts, header_size(header, 1 << 40, compact=opts.compact))
+    scaled = opts.refine.for_budget(n)
+    if scaled is not opts.refine:  # more samples for a large budget: the header says so
+        opts = dataclasses.replace(opts, refine=scaled)
+        header = _header_for(f, opts)
+        n = resolve_budget(f, opts, header_size(header, 1 << 40, compact=opts.compact))
 
     from ._warp import device_name, resolve_device, warp
 
@@ -625,9 +630,10 @@ def encode(
         seed: Encoding seed; same seed and device give the same model.
         device: Warp device; None picks CUDA when present, else CPU.
         iterations: Refinement iterations (default 1,500, the paper's; 0: analytic model only).
-        samples: Samples per iteration (default 3,072, the paper's).
-        preset: "paper" (1,500 x 3,072), "fast" (300 x 3,072, the paper's time-budget mode) or
-            "quality" (1,500 x 12,288); explicit ``iterations``/``samples`` override it.
+        samples: Samples per iteration (default 3,072, the paper's, times ceil(N / 350,000) for
+            large budgets: 12,288 at 1.4M; see :meth:`RefineConfig.for_budget`).
+        preset: "paper" (1,500 x 3,072 whatever N), "fast" (300 x 3,072, the paper's time-budget
+            mode) or "quality" (1,500 x 12,288); explicit ``iterations``/``samples`` override it.
         refine: Learning rates, loss weights and schedule (:class:`warpgauss.optimize.RefineConfig`).
         self_test: Run the binned-vs-dense self-test before refining.
         time_budget: Seconds refinement may take once its kernels are compiled (set-up, self-test and
