@@ -4,7 +4,10 @@ from trilinear interpolation and a partner point about a voxel away for the smoo
 
 When empty samples carry no loss (value-loss weight of empty samples 0, the paper's setting) the
 uniform 25 % are drawn among the occupied voxels instead of the whole grid: a sample where
-V <= 0.02 would add nothing to any loss term.
+V <= 0.02 would add nothing to any loss term. Otherwise they are drawn over the model's support:
+the 4^3 bricks that some primitive's 3^3 cell neighbourhood reaches (:func:`mark_support`, redone
+at every re-bin). The binned evaluation gives a point outside every such neighbourhood exactly 0
+and no gradient, so a sample there would only dilute the batch.
 """
 
 import warp as wp
@@ -61,6 +64,97 @@ def brick_counts(
     mid[bk, bj, bi] = nm
 
 
+MAX_SUPPORT_BRICKS = wp.constant(1 << 16)  # a primitive reaching more bricks marks the whole grid
+
+
+SUPPORT_MARGIN = wp.constant(2.0)  # voxels added to each 5-sigma half-extent (see mark_support)
+
+
+@wp.kernel
+def mark_support(
+    mu: wp.array(dtype=wp.vec3),  # [N] prepared centres (any order)
+    ext: wp.array(dtype=wp.vec3),  # [N] 5-sigma half-extents
+    marks: wp.array3d(dtype=int),  # [bz, by, bx] out (zeroed before): 1 where a box reaches
+    everything: wp.array(dtype=int),  # [1] out (zeroed before): set when the whole grid is support
+):
+    """Mark the 4^3 bricks holding a voxel whose jittered samples (+-0.5) can fall in a primitive's
+    5-sigma box widened by SUPPORT_MARGIN voxels: where it contributes now and, up to that much
+    growth or motion, until the next re-bin re-marks them."""
+    i = wp.tid()
+    c = mu[i]
+    e = ext[i]
+    if not wp.isfinite(c[0] + c[1] + c[2] + e[0] + e[1] + e[2]):
+        everything[0] = 1
+        return
+    b = float(BRICK)
+    lo = wp.vec3i(0, 0, 0)
+    hi = wp.vec3i(0, 0, 0)
+    nb = wp.vec3i(marks.shape[2], marks.shape[1], marks.shape[0])
+    for a in range(3):
+        h = e[a] + SUPPORT_MARGIN
+        v0 = wp.ceil(c[a] - h - 0.5)  # voxels whose [v - 0.5, v + 0.5] meets [c - h, c + h]
+        v1 = wp.floor(c[a] + h + 0.5)
+        lo[a] = wp.clamp(int(wp.floor(v0 / b)), 0, nb[a] - 1)
+        hi[a] = wp.clamp(int(wp.floor(v1 / b)), 0, nb[a] - 1)
+    if (hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1) > MAX_SUPPORT_BRICKS:
+        everything[0] = 1
+        return
+    for z in range(lo[2], hi[2] + 1):
+        for y in range(lo[1], hi[1] + 1):
+            for x in range(lo[0], hi[0] + 1):
+                marks[z, y, x] = 1
+
+
+@wp.kernel
+def support_counts(
+    marks: wp.array3d(dtype=int),  # [bz, by, bx] from mark_support
+    everything: wp.array(dtype=int),  # [1]
+    nz: int,
+    ny: int,
+    nx: int,
+    counts: wp.array3d(dtype=int),  # [bz, by, bx] out: voxels of each supported brick inside the grid
+):
+    bk, bj, bi = wp.tid()
+    n = int(0)
+    if marks[bk, bj, bi] != 0 or everything[0] != 0:
+        n = wp.min(BRICK, nz - bk * BRICK) * wp.min(BRICK, ny - bj * BRICK) * wp.min(BRICK, nx - bi * BRICK)
+    counts[bk, bj, bi] = n
+
+
+@wp.func
+def find_brick(cum: wp.array(dtype=int), r: int) -> wp.vec2i:
+    """(brick, rank within it) of rank r, for inclusive prefix sums ``cum`` of per-brick counts."""
+    lo = int(0)
+    hi = cum.shape[0] - 1
+    while lo < hi:  # first brick whose inclusive sum exceeds r
+        mid_ = (lo + hi) / 2
+        if cum[mid_] > r:
+            hi = mid_
+        else:
+            lo = mid_ + 1
+    if lo > 0:
+        r = r - cum[lo - 1]
+    return wp.vec2i(lo, r)
+
+
+@wp.func
+def support_voxel(nz: int, ny: int, nx: int, cum: wp.array(dtype=int), r: int) -> int:
+    """Linear index of the r-th supported voxel (bricks in order, voxels in z, y, x order)."""
+    br = find_brick(cum, r)
+    b = br[0]
+    nbx = (nx + BRICK - 1) / BRICK
+    nby = (ny + BRICK - 1) / BRICK
+    bi = b % nbx
+    bj = (b / nbx) % nby
+    bk = b / (nbx * nby)
+    hx = wp.min(BRICK, nx - bi * BRICK)
+    hy = wp.min(BRICK, ny - bj * BRICK)
+    k = bk * BRICK + br[1] / (hy * hx)
+    j = bj * BRICK + (br[1] / hx) % hy
+    i = bi * BRICK + br[1] % hx
+    return (k * ny + j) * nx + i
+
+
 @wp.func
 def stratum_voxel(
     vol: wp.array3d(dtype=float),
@@ -71,17 +165,9 @@ def stratum_voxel(
     r: int,  # 0 <= r < cum[B - 1]: rank of the wanted voxel in brick-then-scan order
 ) -> int:
     """Linear index of the r-th voxel of a stratum (bricks in order, voxels in z, y, x order)."""
-    lo = int(0)
-    hi = cum.shape[0] - 1
-    while lo < hi:  # first brick whose inclusive sum exceeds r
-        mid_ = (lo + hi) / 2
-        if cum[mid_] > r:
-            hi = mid_
-        else:
-            lo = mid_ + 1
-    b = lo
-    if b > 0:
-        r = r - cum[b - 1]
+    br = find_brick(cum, r)
+    b = br[0]
+    r = br[1]
     nbx = (vol.shape[2] + BRICK - 1) / BRICK
     nby = (vol.shape[1] + BRICK - 1) / BRICK
     bi = b % nbx
@@ -136,6 +222,8 @@ def draw_samples(
     m_mid: int,  # then this many from the mid stratum; the rest uniform over the grid
     occ_high: int,  # voxels in the high stratum (may be 0)
     occ_total: int,  # occupied voxels (high + mid); > 0: the uniform samples are drawn among them
+    support: wp.array(dtype=int),  # [B] inclusive prefix sums of support_counts
+    use_support: int,  # 1: the uniform samples are drawn over the support (when occ_total is 0)
     stream: wp.array(dtype=int),  # [1] RNG stream of this iteration
     partner_min: float,  # partner distance range in voxels
     partner_max: float,
@@ -161,6 +249,8 @@ def draw_samples(
             idx = stratum_voxel(vol, mask, has_mask, high, 0, rank)
         else:
             idx = stratum_voxel(vol, mask, has_mask, mid, 1, rank - occ_high)
+    elif use_support != 0 and support[support.shape[0] - 1] > 0:  # over the model's support
+        idx = support_voxel(vol.shape[0], ny, nx, support, wp.randi(state, 0, support[support.shape[0] - 1]))
     else:
         idx = wp.randi(state, 0, nx * ny * vol.shape[0])
     i = idx % nx

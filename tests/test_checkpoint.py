@@ -52,6 +52,24 @@ def test_ctrl_c_writes_a_valid_model_and_resume_gives_the_uninterrupted_model(tm
     assert not ckpt.exists()  # removed once the final model is written
 
 
+def test_resume_between_two_re_bins_keeps_the_uniform_stratum_support(tmp_path, cpu):
+    """The support the uniform samples are drawn from is marked at re-bins; a checkpoint taken
+    between two (iteration 25) carries it, so the resumed run is the uninterrupted one."""
+    run = {"example": "bubbles", "example_size": 40, "budget": 600, "iterations": 60, "samples": 512, "device": "cpu", "seed": 3}
+    ref = warpgauss.encode(**run, output=tmp_path / "ref.wgs")
+    assert 0.0 < ref.report["refinement"]["uniform_support_share"] < 1.0  # the restriction is in play
+    out = tmp_path / "run.wgs"
+
+    def progress(it, total, rec):
+        if it == 25:  # progress comes every 25 iterations; re-bins every 10
+            os.kill(os.getpid(), signal.SIGINT)
+
+    a = warpgauss.encode(**run, output=out, checkpoint_every=3600, on_progress=progress)
+    assert a.report["refinement"]["iterations_done"] == 25
+    b = warpgauss.encode(**run, output=out, resume=True)
+    assert b.params.tobytes() == ref.params.tobytes()
+
+
 def test_sigkill_mid_run_then_resume_from_the_last_periodic_checkpoint(tmp_path, cpu):
     ref = _reference(tmp_path)
     out = tmp_path / "killed.wgs"

@@ -429,7 +429,8 @@ def test_uniform_samples_avoid_empty_space_only_when_it_carries_no_loss(cpu, val
     occupied = f.values > 0.02
     assert 0.05 < occupied.mean() < 0.8
     w = LossWeights(value_empty=value_empty)
-    r = Refiner(DeviceVolume(f, cpu), _toy_params(f), RefineConfig(iterations=1, samples=4000, weights=w), 0, 0.3, 4.0)
+    cfg = RefineConfig(iterations=1, samples=4000, weights=w, uniform_support=False)  # support: the next test
+    r = Refiner(DeviceVolume(f, cpu), _toy_params(f), cfg, 0, 0.3, 4.0)
     assert r.uniform_occupied == (value_empty == 0.0)
     r.sample()
     m_high, m_mid, m_uni = r.strata
@@ -441,6 +442,48 @@ def test_uniform_samples_avoid_empty_space_only_when_it_carries_no_loss(cpu, val
         assert on.all()
     else:
         assert 0.5 * (1 - occupied.mean()) < 1 - on.mean() < 1.5 * (1 - occupied.mean())
+
+
+def test_uniform_samples_cover_the_model_support_and_nothing_else(device):
+    """With a value loss on empty samples the uniform stratum is drawn over the 4^3 bricks the
+    primitives' 5-sigma boxes (+2 voxels) reach: right after a re-bin every point any primitive
+    contributes to is inside, 9 steps later (the last before the next re-bin) all but a sliver,
+    and every uniform sample is inside."""
+    from warpgauss.allocate import AllocationConfig, allocate
+    from warpgauss.field import GaussianField
+    from warpgauss.profiling import StageRecorder
+    from warpgauss.synthetic import generate
+
+    f = normalise(generate("bubbles", 40, seed=3))
+    dv = DeviceVolume(f, device)
+    params, _ = allocate(dv, 800, 0, AllocationConfig(), StageRecorder())
+    r = Refiner(dv, params, RefineConfig(iterations=20, samples=4000, rebin_every=10), 0, 0.3, 4.0)
+    assert r.uniform_support and not r.uniform_occupied
+    nz, ny, nx = f.values.shape
+    rng = np.random.default_rng(0)
+    for steps in (0, 9):  # right after the re-bin, and 9 steps later (the last before the next one)
+        for _ in range(steps):
+            r.step()
+        marks, everything, _ = r._support_marks
+        assert int(everything.numpy()[0]) == 0
+        sup = np.repeat(np.repeat(np.repeat(marks.numpy() != 0, 4, 0), 4, 1), 4, 2)[:nz, :ny, :nx]
+        assert int(r._support.numpy()[-1]) == int(sup.sum()) and r.support_share() == pytest.approx(sup.mean())
+        assert 0.0 < sup.mean() < 0.75  # a sparse field: a good part of the grid is skipped
+        # points jittered within +-0.5 of every voxel centre, where the model reaches
+        z, y, x = np.nonzero(np.ones((nz, ny, nx), bool))
+        vox = np.stack([x, y, z], 1)
+        pts = (vox + rng.uniform(-0.5, 0.5, vox.shape)).astype(np.float32)
+        _, _, pairs = GaussianField(r.model_params(), f.shape_xyz, device=device).evaluate_full(pts)
+        reached = pairs > 0
+        inside = sup[z[reached], y[reached], x[reached]]
+        assert reached.any() and (inside.all() if steps == 0 else inside.mean() > 0.999)
+        r.sample()
+        m_high, m_mid, m_uni = r.strata
+        uni = r.points.numpy()[m_high + m_mid : r.m]
+        ijk = np.clip(np.rint(uni).astype(int), 0, np.array(f.shape_xyz) - 1)
+        assert m_uni > 500 and sup[ijk[:, 2], ijk[:, 1], ijk[:, 0]].all()
+        # and the draw covers the support: about uniformly over its bricks
+        assert len({tuple(b) for b in ijk // 4}) > 0.5 * min(m_uni, (marks.numpy() != 0).sum())
 
 
 def test_without_smoothness_the_partners_are_not_evaluated(device):

@@ -77,6 +77,24 @@ def test_the_uniform_stratum_restriction_is_logged_only_when_it_applies():
             assert 0.0 < hits[0]["uniform_samples_moved_share"] < 1.0
 
 
+def test_the_support_restriction_of_the_uniform_stratum_is_logged_when_it_applies():
+    """Default loss (empty samples carry a loss): on a sparse field the uniform stratum skips the
+    grid no Gaussian reaches and the report says how much; switched off, nothing is logged."""
+    from warpgauss.optimize import RefineConfig
+    from warpgauss.synthetic import generate
+
+    vol = generate("bubbles", 48, seed=2)
+    for on in (True, False):
+        m = warpgauss.encode(vol, budget=600, refine=RefineConfig(iterations=3, samples=256, uniform_support=on), device="cpu", evaluate=False)
+        hits = [s for s in m.report["skipped"] if s["what"] == "uniform samples outside the model's support"]
+        share = m.report["refinement"]["uniform_support_share"]
+        if on:
+            assert len(hits) == 1 and 0.0 < share < 1.0
+            assert 0.0 < hits[0]["share_skipped_at_start"] < 1.0
+        else:
+            assert not hits and share is None
+
+
 def test_empty_bricks_of_the_full_grid_evaluation_are_logged_and_exact(cpu):
     """Bubbles are sparse: the full-grid evaluation skips the bricks no Gaussian reaches, says so,
     and its PSNR equals a plain numpy PSNR of an unskipped decode (the skipped voxels are exact)."""

@@ -21,7 +21,7 @@ from ._fs import atomic_path
 from .errors import WarpgaussError
 
 FORMAT = "warpgauss-checkpoint"
-VERSION = 2  # 2: deferred-step reach
+VERSION = 3  # 2: deferred-step reach; 3: the uniform stratum's support bricks
 META = "__meta__"
 MAX_META_BYTES = 1 << 24
 ARRAYS = {  # name: (dtype, trailing shape) of every array a checkpoint must hold
@@ -36,6 +36,7 @@ ARRAYS = {  # name: (dtype, trailing shape) of every array a checkpoint must hol
     "cell_end": (np.int32, ()),
     "counts": (np.int32, ()),
     "reach": (np.float32, ()),
+    "support": (np.uint8, ()),  # support bricks of the uniform stratum as last marked (empty when unused)
 }
 
 
@@ -85,6 +86,6 @@ def load(path: str | os.PathLike) -> tuple[dict, dict]:
         a = arrays[name]
         if a.dtype != dtype or a.shape[1:] != tail:
             raise WarpgaussError(f"{bad} (array {name} has dtype {a.dtype} and shape {a.shape}); delete it")
-        if name not in ("cell_start", "cell_end", "counts") and a.shape[0] != n:
+        if name not in ("cell_start", "cell_end", "counts", "support") and a.shape[0] != n:
             raise WarpgaussError(f"{bad} (array {name} holds {a.shape[0]} entries, not {n}); delete it")
     return arrays, meta

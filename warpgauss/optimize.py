@@ -81,6 +81,9 @@ class RefineConfig:
         auto_samples: Raise ``samples`` for large budgets: one batch of ``samples`` per
             :data:`AUTO_BATCH_PRIMITIVES` primitives (see :meth:`for_budget`); off in the named
             presets and when samples were set explicitly.
+        uniform_support: Draw the uniform 25 % of the samples over the model's support (the 4^3
+            bricks some primitive's cell neighbourhood reaches, re-marked at every re-bin) rather
+            than the whole grid; outside it every sample scores exactly 0 with no gradient.
         budget_samples: In time-budget mode, spend time the schedule does not need on more
             samples per iteration (see :meth:`Refiner.run`); off when samples were set explicitly.
         budget_min_iterations: Iterations a time budget secures before it raises the samples.
@@ -116,6 +119,7 @@ class RefineConfig:
     split_cells: bool | None = None
     budget_samples: bool = True
     auto_samples: bool = True
+    uniform_support: bool = True
     budget_min_iterations: int = 1500
     target_psnr: float | None = None
     plateau_db: float | None = None
@@ -300,6 +304,17 @@ class Refiner:
         # with no value loss on empty samples, one where V <= 0.02 adds nothing to any term: draw
         # the uniform stratum among the occupied voxels instead of the whole grid
         self.uniform_occupied = config.weights.value_empty == 0 and self.n_high + self.n_mid > 0
+        # otherwise over the model's support (see kernels.sampling.mark_support)
+        self.uniform_support = config.uniform_support and not self.uniform_occupied
+        self._support = self._support_marks = None
+        if self.uniform_support:
+            b = int(ks.BRICK)
+            nz, ny, nx = dv.values.shape
+            bshape = (-(-nz // b), -(-ny // b), -(-nx // b))
+            self._support_marks = (wp.zeros(bshape, dtype=int, device=dev), wp.zeros(1, dtype=int, device=dev), wp.zeros(bshape, dtype=int, device=dev))
+            self._support = wp.zeros(int(np.prod(bshape)), dtype=int, device=dev)
+        else:
+            self._support = wp.zeros(1, dtype=int, device=dev)  # unused by the sampler
         # partners serve only the smoothness term: with its weight 0 they are not evaluated
         self._partners = config.weights.smooth > 0
         self.set_samples(config.samples)
@@ -438,7 +453,37 @@ class Refiner:
         self.reach.zero_()
         if not self._clean:
             self._zero_grads()
+        if self.uniform_support:
+            self._mark_support()
         self.rebins += 1
+
+    def _mark_support(self) -> None:
+        """Re-mark the support bricks the uniform stratum is drawn from (after a re-bin)."""
+        from .kernels import sampling as ks
+
+        wp, dev = self._wp, self.device
+        marks, everything, counts = self._support_marks
+        marks.zero_()
+        everything.zero_()
+        mu, ext = self._prep[0], self._prep[3]  # prepared at this re-bin (old slot order: any order will do)
+        wp.launch(ks.mark_support, dim=self.n, inputs=[mu, ext], outputs=[marks, everything], device=dev)
+        self._index_support()
+
+    def _index_support(self) -> None:
+        """Prefix sums of the supported voxels per brick, the index the sampler draws from."""
+        from .kernels import sampling as ks
+
+        marks, everything, counts = self._support_marks
+        nz, ny, nx = self.dv.values.shape
+        self._wp.launch(ks.support_counts, dim=marks.shape, inputs=[marks, everything, nz, ny, nx], outputs=[counts], device=self.device)
+        self._wp.utils.array_scan(counts.flatten(), self._support, inclusive=True)
+
+    def support_share(self) -> float | None:
+        """Share of the grid's voxels the uniform stratum is drawn from now (None: whole grid or
+        occupied voxels, see ``uniform_support``); reads back from the device."""
+        if not self.uniform_support:
+            return None
+        return float(self._support[-1:].numpy()[0]) / float(self.dv.values.size)
 
     def _replan(self, radius) -> bool:
         """Plan the levels for the current radii; returns whether the plan changed (then the cell
@@ -509,6 +554,8 @@ class Refiner:
                 m_mid,
                 self.n_high,
                 self.n_high + self.n_mid if self.uniform_occupied else 0,
+                self._support,
+                int(self.uniform_support),
                 self.stream,
                 float(pmin),
                 float(pmax),
@@ -847,6 +894,8 @@ class Refiner:
             "cell_end": p.cell_end.numpy(),
             "counts": self.counts.numpy(),
             "reach": self.reach.numpy(),
+            # the support as marked at the last re-bin, not as the current primitives would mark it
+            "support": (self._support_marks[0].numpy().reshape(-1) != 0).astype(np.uint8) if self.uniform_support else np.zeros(0, np.uint8),
         }
         scalars = {
             "n": self.n,
@@ -857,6 +906,7 @@ class Refiner:
             "contacts": self.contacts,
             "rebins": self.rebins,
             "split": self.split,
+            "support_everything": int(self._support_marks[1].numpy()[0]) if self.uniform_support else 0,
             "plan": {"sizes": list(self.plan.sizes), "dims": [list(d) for d in self.plan.dims], "offsets": list(self.plan.offsets), "total_cells": self.plan.total_cells},
         }
         return {k: np.ascontiguousarray(v) for k, v in arrays.items()}, scalars
@@ -880,6 +930,13 @@ class Refiner:
         radius = self._prep[4]  # scratch: the prepared primitives go straight into slot order
         wp.launch(kf.prepare_primitives, dim=self.n, inputs=[self.raw, 1], outputs=[p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w], device=dev)
         self._zero_grads()
+        if self.uniform_support:
+            marks, everything, _ = self._support_marks
+            if arrays["support"].size != marks.size:
+                raise WarpgaussError(f"checkpoint holds {arrays['support'].size} support bricks, this run has {marks.size}")
+            marks.assign(arrays["support"].reshape(marks.shape).astype(np.int32))
+            everything.fill_(int(scalars.get("support_everything", 0)))
+            self._index_support()
         if int(scalars["samples"]) != self.m:
             self.set_samples(int(scalars["samples"]))
         if int(scalars["iterations"]) != self.cfg.iterations:

@@ -321,6 +321,17 @@ def encode_field(
                         "uniform_samples_moved_share": 1.0 - occ / dv.field.values.size,
                     }
                 )
+            elif refiner.uniform_support:
+                share = refiner.support_share()
+                if share < 1.0:
+                    skipped.append(
+                        {
+                            "what": "uniform samples outside the model's support",
+                            "why": "no Gaussian's 5-sigma box (+2 voxels) reaches there: a sample would score 0 with no gradient; "
+                            "the uniform stratum is drawn over the 4^3 bricks the boxes reach, re-marked at every re-bin",
+                            "share_skipped_at_start": 1.0 - share,
+                        }
+                    )
             if not refiner.partners:
                 skipped.append(
                     {
@@ -377,6 +388,7 @@ def encode_field(
                 "cuda_graph": refiner.use_graph,
                 "cuda_graph_error": refiner.graph_error,
                 "strata_samples": dict(zip(("high", "mid", "uniform"), refiner.strata)),
+                "uniform_support_share": refiner.support_share(),
                 "loss_history": history,
             }
         )
