@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from .common import err_console, fail, handle_errors, human_bytes, out_console, parse_int_list, parse_shape, print_json
+from .common import err_console, fail, handle_errors, human_bytes, json_text, out_console, parse_int_list, parse_shape, print_json
 
 
 @handle_errors
@@ -123,7 +122,7 @@ def encode(
             status.stop()
     rep = model.report
     rep["report"] = str(rep_path)
-    atomic_write_bytes(rep_path, (json.dumps(rep, indent=2, sort_keys=True, default=str) + "\n").encode())
+    atomic_write_bytes(rep_path, json_text(rep).encode())
     if as_json:
         print_json(rep)
     elif not rep.get("interrupted"):
@@ -165,7 +164,7 @@ def _encode_ladder(text, input, out, example, size, seed, device, iterations, sa
     for m in models:
         rep = m.report
         rep["report"] = rep["output"] + ".report.json"
-        atomic_write_bytes(rep["report"], (json.dumps(rep, indent=2, sort_keys=True, default=str) + "\n").encode())
+        atomic_write_bytes(rep["report"], json_text(rep).encode())
         ev = rep["evaluation"]
         rows.append(
             {
@@ -202,7 +201,7 @@ def _stem(path: Path) -> str:
 def _stats_line(s: dict) -> str:
     return (
         f"structure: occupancy {100 * s['occupancy']:.1f} %, gradient top-10 % {100 * s['grad_top10']:.1f} %, "
-        f"S(1)/S(16) {s['s1_s16']:.3f}" + (" (sampled)" if s["sampled"] else "")
+        f"S(1)/S(16) {'n/a' if s['s1_s16'] is None else format(s['s1_s16'], '.3f')}" + (" (sampled)" if s["sampled"] else "")
     )
 
 

@@ -52,7 +52,7 @@ def stats(
     )
     out_console.print(
         f"occupancy {100 * res['occupancy']:.2f} %   gradient top-10 % {100 * res['grad_top10']:.1f} %   "
-        f"S(1)/S(16) {res['s1_s16']:.4f}   N_max {res['n_max']:,}" + ("   (statistics sampled)" if res["sampled"] else ""),
+        f"S(1)/S(16) {'n/a' if res['s1_s16'] is None else format(res['s1_s16'], '.4f')}   N_max {res['n_max']:,}" + ("   (statistics sampled)" if res["sampled"] else ""),
         soft_wrap=True,
     )
     from rich.table import Table

@@ -58,3 +58,29 @@ def test_stats_readings_tell_the_example_fields_apart(cpu):
 def test_stats_refuses_bad_budgets():
     res = CliRunner().invoke(app, ["stats", "--example", "vortex", "--size", "16", "--budgets", "0,5"])
     assert res.exit_code == 2 and "--budgets must be" in res.output
+
+
+def _strict(text: str):
+    """json.loads that refuses NaN and Infinity, as jq and other parsers do."""
+
+    def refuse(c):
+        raise ValueError(f"non-standard JSON constant {c}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_undefined_s1_s16_is_null_in_stats_and_the_encode_report(tmp_path, cpu):
+    """A 12^3 grid has no voxel pairs 16 apart: S(1)/S(16) is undefined and written as null, so
+    `stats --json` and the report file stay standard JSON."""
+    res = CliRunner().invoke(app, ["stats", "--example", "vortex", "--size", "12", "--device", "cpu", "--json"])
+    assert res.exit_code == 0, res.output
+    got = _strict(res.stdout)
+    assert got["s1_s16"] is None and got["s1"] > 0 and got["s16"] == 0
+    assert "no structure at 16 voxels" in got["reading"]
+    text = CliRunner().invoke(app, ["stats", "--example", "vortex", "--size", "12", "--device", "cpu"])
+    assert text.exit_code == 0 and "S(1)/S(16) n/a" in text.stdout
+    out = tmp_path / "m.wgs"
+    enc = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "12", "--budget", "20", "--iterations", "2", "-o", str(out), "--device", "cpu"])
+    assert enc.exit_code == 0, enc.output
+    rep = _strict((tmp_path / "m.wgs.report.json").read_text())
+    assert rep["structure"]["s1_s16"] is None

@@ -444,7 +444,7 @@ def structure_stats(dv: DeviceVolume, seed: int = 0) -> dict:
         "grad_top10": grad_top10,
         "s1": float(s1),
         "s16": float(s16),
-        "s1_s16": float(s1 / s16) if s16 > 0 else float("nan"),
+        "s1_s16": float(s1 / s16) if s16 > 0 else None,  # None: no structure at lag 16 (or a grid under 17 voxels)
         "sampled": not exact,
         "samples": int(idx.size),
     }

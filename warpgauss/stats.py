@@ -26,7 +26,7 @@ def reading(st: dict, n_max: int) -> str:
             "interface-concentrated gradient (the top 10 % of voxels carry "
             f"{100 * top:.0f} % of it): a budget that covers the interface gets most of the gain, more budget adds little"
         )
-    if s != s:  # NaN: no structure at lag 16 (constant or tiny field)
+    if s is None:  # no structure at lag 16 (constant or tiny field)
         parts.append("no structure at 16 voxels: a few Gaussians represent it")
     elif s <= 0.1:
         parts.append(f"smooth over 16 voxels (S(1)/S(16) = {s:.3f}): high PSNR already at high compression ratios")
