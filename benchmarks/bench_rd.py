@@ -438,13 +438,35 @@ def codec_plan(args, meta: dict, ratios, files: dict) -> tuple[list[dict], list[
     return first, matched
 
 
-def run_codecs(plans: list[tuple[str, list[dict], list[dict]]], workers: int, add) -> None:
+def task_key(x: dict) -> tuple:
+    """What a codec run is, the same for a planned task and the row it produced (``--resume``)."""
+    kind = x.get("kind") or {"zfp-rate-matched": "zfp-rate"}.get(x["codec"], x["codec"])
+    m = x.get("matched_to")
+    match = (int(m["n"]), m["format"]) if m else None
+    if kind == "sz3-matched":
+        return (kind, match)
+    names = {"sz3": ("eb", "abs_error_bound"), "zfp-rate": ("rate", "rate_bits_per_value"), "zfp-acc": ("tol", "tolerance")}[kind]
+    value = x[names[0]] if names[0] in x else x[names[1]]
+    return (kind, match, float(value))
+
+
+def _reused_ratios(entry: dict) -> list[tuple[int, float, float]] | None:
+    """(N, full ratio, compact ratio) of every budget of a previous run's volume entry, or None
+    when some budget's warpgauss rows are missing (then the volume is measured again)."""
+    rows = {(r["codec"], r.get("n")): r for r in entry.get("rows", ()) if r["codec"] in ("wg-full", "wg-compact")}
+    budgets = entry.get("warpgauss_budgets")
+    if not budgets or any(("wg-full", n) not in rows or ("wg-compact", n) not in rows for n in budgets):
+        return None
+    return [(n, rows[("wg-full", n)]["ratio"], rows[("wg-compact", n)]["ratio"]) for n in budgets]
+
+
+def run_codecs(plans: list[tuple[str, list[dict], list[dict]]], workers: int, add, seen: dict | None = None) -> None:
     """Run every volume's codec plan, in ``workers`` processes (0: here, one after the other).
 
     ``add(label, row)`` records a row. Each matched SZ3 run starts from the (bound, ratio) pairs of
-    its volume's SZ3 curve.
+    its volume's SZ3 curve (and those of ``seen[label]``, measured earlier).
     """
-    seen: dict[str, list] = {label: [] for label, _, _ in plans}
+    seen = {label: list((seen or {}).get(label, ())) for label, _, _ in plans}
 
     def done(label, row):
         if row["codec"] == "sz3":
@@ -496,6 +518,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--volume-dir", type=Path, default=None,
                     help="read the example fields from <dir>/<name>_<size>.npy, generating the missing ones first")
     ap.add_argument("--generate-only", action="store_true", help="with --volume-dir: write the fields and stop")
+    ap.add_argument("--resume", type=Path, default=None,
+                    help="a previous run's JSON: keep its rows, skip the warpgauss budgets it measured and run only the codec settings it lacks")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="benchmarks/results/rd_cpu.json")
     args = ap.parse_args(argv)
@@ -558,12 +582,29 @@ def main(argv=None) -> dict:
         _print(label, row)
         _write(result, out)
 
-    plans = []
+    prev = {}
+    if args.resume:
+        before = json.loads(Path(args.resume).read_text())
+        prev = before["volumes"]
+        result["resumed_from"] = str(args.resume)
+        # where the reused rows (the warpgauss ones at least) were measured; this run's fields say
+        # where the rows it adds were
+        result["previous_run"] = {k: before.get(k) for k in ("device", "device_name", "host", "cpu_count", "warp_version", "date", "command")}
+    plans, seen = [], {}
     with tempfile.TemporaryDirectory(prefix="bench_rd_") as work:
         for k, (label, src, raw, path) in enumerate(volumes(args)):
-            result["volumes"][label] = {"rows": []}
-            meta, truth, ratios = bench_warpgauss(label, src, raw, args, dev, lambda row, lb=label: add(lb, row))
-            result["volumes"][label].update(meta)
+            ratios = _reused_ratios(prev.get(label, {}))
+            if ratios is not None:  # its warpgauss rows are measured: keep them (and its codec rows)
+                result["volumes"][label] = json.loads(json.dumps(prev[label]))
+                meta = {k_: v for k_, v in prev[label].items() if k_ != "rows"}
+                valid = load_field(src["source"], src.get("read"))[0].mask if meta.get("masked_voxels") else None
+                print(f"{label}: warpgauss rows reused from {args.resume}", flush=True)
+            else:
+                result["volumes"][label] = {"rows": []}
+                meta, truth, ratios = bench_warpgauss(label, src, raw, args, dev, lambda row, lb=label: add(lb, row))
+                result["volumes"][label].update(meta)
+                valid = truth.valid
+                del truth
             _write(result, out)
             if not args.codecs:
                 continue
@@ -571,13 +612,17 @@ def main(argv=None) -> dict:
             if path is None:  # the workers map the volume from a file
                 files["raw"] = str(Path(work) / f"{k}.npy")
                 np.save(files["raw"], np.ascontiguousarray(raw))
-            if truth.valid is not None:
+            if valid is not None:
                 files["valid"] = str(Path(work) / f"{k}_valid.npy")
-                np.save(files["valid"], truth.valid)
-            plans.append((label, *codec_plan(args, meta, ratios, files)))
-            del truth, raw
+                np.save(files["valid"], valid)
+            rows = result["volumes"][label]["rows"]
+            done = {task_key(r) for r in rows if not r["codec"].startswith("wg")}
+            first, matched = codec_plan(args, meta, ratios, files)
+            plans.append((label, [t for t in first if task_key(t) not in done], [t for t in matched if task_key(t) not in done]))
+            seen[label] = [(r["abs_error_bound"], r["ratio"]) for r in rows if r["codec"] == "sz3"]
+            del raw
         t0 = time.perf_counter()
-        run_codecs(plans, args.workers, add)
+        run_codecs(plans, args.workers, add, seen)
         result["codec_wall_seconds"] = time.perf_counter() - t0
     result["complete"] = True
     _write(result, out)

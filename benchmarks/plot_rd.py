@@ -28,6 +28,13 @@ def _rows(entry, codec):
     return sorted((r for r in entry["rows"] if r["codec"] == codec), key=lambda r: r["ratio"])
 
 
+def _where(res: dict) -> str:
+    """The machine of a run; a resumed run names the one its reused rows came from too."""
+    here = f"{res['device_name']} ({res.get('cpu_count')} cores)"
+    prev = res.get("previous_run")
+    return here if not prev else f"{prev['device_name']} ({prev.get('cpu_count')} cores), rows added on {here}"
+
+
 def plot(results: list[dict], out: Path, max_psnr: float = 120.0) -> None:
     import matplotlib
 
@@ -56,7 +63,7 @@ def plot(results: list[dict], out: Path, max_psnr: float = 120.0) -> None:
     s = r0["settings"]
     fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8, frameon=False)
     fig.suptitle(
-        f"Rate-distortion, {r0['device_name']} ({r0.get('cpu_count')} cores), warpgauss {s['iterations']} iterations x "
+        f"Rate-distortion, {_where(r0)}, warpgauss {s['iterations']} iterations x "
         f"{s['samples']} samples, Warp {r0['warp_version']}, pysz {r0['codec_versions']['pysz']}, zfpy {r0['codec_versions']['zfpy']}",
         fontsize=9,
     )

@@ -156,3 +156,21 @@ def test_codec_workers_and_volume_dir(tmp_path):
 
     assert rows(a) == rows(b)
     assert {r[0] for r in rows(a)} == {"wg-full", "wg-compact", "zfp-rate", "zfp-acc", "zfp-rate-matched"}
+
+
+def test_resume_keeps_measured_rows_and_runs_only_what_is_missing(tmp_path):
+    pytest.importorskip("zfpy")
+    bench = _load("bench_rd")
+    common = ["--size", "16", "--fields", "vortex", "--real", "none", "--budgets", "60", "--iterations", "0",
+              "--min-ratio", "1", "--codecs", "zfp", "--zfp-tols", "0.01", "--device", "cpu"]
+    a = bench.main(common + ["--zfp-rates", "1", "--out", str(tmp_path / "a.json")])
+    first = a["volumes"]["vortex 16^3"]["rows"]
+    b = bench.main(common + ["--zfp-rates", "1,4", "--resume", str(tmp_path / "a.json"), "--out", str(tmp_path / "b.json")])
+    rows = b["volumes"]["vortex 16^3"]["rows"]
+    assert rows[: len(first)] == first  # kept as measured, warpgauss rows included
+    new = rows[len(first):]
+    assert [(r["codec"], r["rate_bits_per_value"]) for r in new] == [("zfp-rate", 4.0)]  # only the missing setting
+    assert b["resumed_from"] == str(tmp_path / "a.json") and b["complete"] and b["previous_run"]["date"] == a["date"]
+    # the key identifies a planned task and the row it gave
+    keys = {bench.task_key(r) for r in first if not r["codec"].startswith("wg")}
+    assert bench.task_key({"kind": "zfp-rate", "rate": 1.0}) in keys and bench.task_key(new[0]) not in keys
