@@ -5,8 +5,8 @@ from trilinear interpolation and a partner point about a voxel away for the smoo
 When empty samples carry no loss (value-loss weight of empty samples 0, the paper's setting) the
 uniform 25 % are drawn among the occupied voxels instead of the whole grid: a sample where
 V <= 0.02 would add nothing to any loss term. Otherwise they are drawn over the model's support:
-the 4^3 bricks that some primitive's 3^3 cell neighbourhood reaches (:func:`mark_support`, redone
-at every re-bin). The binned evaluation gives a point outside every such neighbourhood exactly 0
+the 4^3 bricks that some primitive's 5-sigma box, widened by SUPPORT_MARGIN voxels, reaches
+(:func:`mark_support`, redone at every re-bin). A point outside every 5-sigma box gets exactly 0
 and no gradient, so a sample there would only dilute the batch.
 """
 
@@ -138,20 +138,23 @@ def find_brick(cum: wp.array(dtype=int), r: int) -> wp.vec2i:
 
 
 @wp.func
+def brick_origin(b: int, ny: int, nx: int) -> wp.vec3i:
+    """(i, j, k) of the first voxel of brick b (bricks in z, y, x order over a grid ny x nx wide)."""
+    nbx = (nx + BRICK - 1) / BRICK
+    nby = (ny + BRICK - 1) / BRICK
+    return wp.vec3i((b % nbx) * BRICK, ((b / nbx) % nby) * BRICK, (b / (nbx * nby)) * BRICK)
+
+
+@wp.func
 def support_voxel(nz: int, ny: int, nx: int, cum: wp.array(dtype=int), r: int) -> int:
     """Linear index of the r-th supported voxel (bricks in order, voxels in z, y, x order)."""
     br = find_brick(cum, r)
-    b = br[0]
-    nbx = (nx + BRICK - 1) / BRICK
-    nby = (ny + BRICK - 1) / BRICK
-    bi = b % nbx
-    bj = (b / nbx) % nby
-    bk = b / (nbx * nby)
-    hx = wp.min(BRICK, nx - bi * BRICK)
-    hy = wp.min(BRICK, ny - bj * BRICK)
-    k = bk * BRICK + br[1] / (hy * hx)
-    j = bj * BRICK + (br[1] / hx) % hy
-    i = bi * BRICK + br[1] % hx
+    o = brick_origin(br[0], ny, nx)
+    hx = wp.min(BRICK, nx - o[0])
+    hy = wp.min(BRICK, ny - o[1])
+    k = o[2] + br[1] / (hy * hx)
+    j = o[1] + (br[1] / hx) % hy
+    i = o[0] + br[1] % hx
     return (k * ny + j) * nx + i
 
 
@@ -166,19 +169,14 @@ def stratum_voxel(
 ) -> int:
     """Linear index of the r-th voxel of a stratum (bricks in order, voxels in z, y, x order)."""
     br = find_brick(cum, r)
-    b = br[0]
     r = br[1]
-    nbx = (vol.shape[2] + BRICK - 1) / BRICK
-    nby = (vol.shape[1] + BRICK - 1) / BRICK
-    bi = b % nbx
-    bj = (b / nbx) % nby
-    bk = b / (nbx * nby)
+    o = brick_origin(br[0], vol.shape[1], vol.shape[2])
     for dk in range(BRICK):
         for dj in range(BRICK):
             for di in range(BRICK):
-                k = bk * BRICK + dk
-                j = bj * BRICK + dj
-                i = bi * BRICK + di
+                k = o[2] + dk
+                j = o[1] + dj
+                i = o[0] + di
                 if k < vol.shape[0] and j < vol.shape[1] and i < vol.shape[2]:
                     if stratum_of(vol, mask, has_mask, k, j, i) == stratum:
                         if r == 0:

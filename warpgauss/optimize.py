@@ -82,8 +82,9 @@ class RefineConfig:
             :data:`AUTO_BATCH_PRIMITIVES` primitives (see :meth:`for_budget`); off in the named
             presets and when samples were set explicitly.
         uniform_support: Draw the uniform 25 % of the samples over the model's support (the 4^3
-            bricks some primitive's cell neighbourhood reaches, re-marked at every re-bin) rather
-            than the whole grid; outside it every sample scores exactly 0 with no gradient.
+            bricks some primitive's 5-sigma box, widened by 2 voxels, reaches, re-marked at every
+            re-bin) rather than the whole grid; outside every 5-sigma box a sample scores exactly 0
+            with no gradient.
         budget_samples: In time-budget mode, spend time the schedule does not need on more
             samples per iteration (see :meth:`Refiner.run`); off when samples were set explicitly.
         budget_min_iterations: Iterations a time budget secures before it raises the samples.
@@ -306,11 +307,9 @@ class Refiner:
         self.uniform_occupied = config.weights.value_empty == 0 and self.n_high + self.n_mid > 0
         # otherwise over the model's support (see kernels.sampling.mark_support)
         self.uniform_support = config.uniform_support and not self.uniform_occupied
-        self._support = self._support_marks = None
+        self._support_marks = None
         if self.uniform_support:
-            b = int(ks.BRICK)
-            nz, ny, nx = dv.values.shape
-            bshape = (-(-nz // b), -(-ny // b), -(-nx // b))
+            bshape = self._bricks
             self._support_marks = (wp.zeros(bshape, dtype=int, device=dev), wp.zeros(1, dtype=int, device=dev), wp.zeros(bshape, dtype=int, device=dev))
             self._support = wp.zeros(int(np.prod(bshape)), dtype=int, device=dev)
         else:
@@ -381,7 +380,7 @@ class Refiner:
         wp, dv, dev = self._wp, self.dv, self.device
         nz, ny, nx = dv.values.shape
         b = ks.BRICK
-        bshape = (-(-nz // b), -(-ny // b), -(-nx // b))
+        self._bricks = bshape = (-(-nz // b), -(-ny // b), -(-nx // b))  # 4^3 bricks (the strata's and the support's)
         counts = [wp.empty(bshape, dtype=int, device=dev) for _ in range(2)]
         wp.launch(ks.brick_counts, dim=bshape, inputs=[dv.values, dv.mask, dv.has_mask], outputs=counts, device=dev)
         self.high, self.mid = (wp.empty(int(np.prod(bshape)), dtype=int, device=dev) for _ in range(2))
@@ -462,7 +461,7 @@ class Refiner:
         from .kernels import sampling as ks
 
         wp, dev = self._wp, self.device
-        marks, everything, counts = self._support_marks
+        marks, everything, _ = self._support_marks
         marks.zero_()
         everything.zero_()
         mu, ext = self._prep[0], self._prep[3]  # prepared at this re-bin (old slot order: any order will do)
