@@ -30,7 +30,7 @@ Derivation of the pair terms (d = p - mu, y = R^T d, m = sum_k y_k^2 / s_k^2, G 
 import warp as wp
 
 from .analysis import trilinear
-from .field import RHO0, BinnedPrimitives, level_cell, neighbour_cell, neighbour_range, sigmoid, truncated_kernel, vec12
+from .field import RHO0, BinnedPrimitives, level_cell, neighbour_range, sigmoid, truncated_kernel, vec12
 
 wp.set_module_options({"enable_backward": False})
 
@@ -81,6 +81,20 @@ def point_state(
 
 
 @wp.func
+def pair_terms(p: wp.vec3, st: wp.vec4, g: float, mu: wp.vec3, R: wp.mat33, inv: wp.vec3, a: float, w: float):
+    """One contributing pair's gradient terms: (k y/s^2, k y^2/s^2, -k d (y/s^2)^T, dL/da, dL/dw)
+    with k = dL/dG * G (see the module docstring); zero when the point carries no gradient."""
+    gv = st[0]
+    gr = st[1]
+    dv_dg = (a - st[3]) / st[2]
+    kk = w * (gv * dv_dg + gr) * g
+    d = p - mu
+    yl = wp.transpose(R) @ d
+    ys = wp.vec3(yl[0] * inv[0], yl[1] * inv[1], yl[2] * inv[2])
+    return kk * ys, kk * wp.vec3(yl[0] * ys[0], yl[1] * ys[1], yl[2] * ys[2]), -kk * wp.outer(d, ys), gv * w * g / st[2], g * (gv * dv_dg + gr)
+
+
+@wp.func
 def pair_grad(
     p: wp.vec3,
     j: int,
@@ -93,27 +107,18 @@ def pair_grad(
     d_w: wp.array(dtype=float),
 ) -> int:
     """Accumulate one pair's gradient into sorted slot j; returns 1 if the pair contributes."""
-    gv = st[0]
-    gr = st[1]
-    D = st[2]
-    vd = st[3]
     R = prims.rot[j]
     inv = prims.inv_s2[j]
     g = truncated_kernel(p, prims.mu[j], R, inv, prims.ext[j])
     if g <= 0.0:
         return 0
-    if gv != 0.0 or gr != 0.0:
-        w = prims.w[j]
-        dv_dg = (prims.a[j] - vd) / D
-        k = w * (gv * dv_dg + gr) * g  # dL/dG * G
-        d = p - prims.mu[j]
-        yl = wp.transpose(R) @ d
-        ys = wp.vec3(yl[0] * inv[0], yl[1] * inv[1], yl[2] * inv[2])
-        wp.atomic_add(d_mu, j, k * (R @ ys))
-        wp.atomic_add(d_ls, j, k * wp.vec3(yl[0] * ys[0], yl[1] * ys[1], yl[2] * ys[2]))
-        wp.atomic_add(d_rot, j, -k * wp.outer(d, ys))
-        wp.atomic_add(d_a, j, gv * w * g / D)
-        wp.atomic_add(d_w, j, g * (gv * dv_dg + gr))
+    if st[0] != 0.0 or st[1] != 0.0:
+        t_ky, t_ls, t_rot, t_a, t_w = pair_terms(p, st, g, prims.mu[j], R, inv, prims.a[j], prims.w[j])
+        wp.atomic_add(d_mu, j, R @ t_ky)
+        wp.atomic_add(d_ls, j, t_ls)
+        wp.atomic_add(d_rot, j, t_rot)
+        wp.atomic_add(d_a, j, t_a)
+        wp.atomic_add(d_w, j, t_w)
     return 1
 
 
@@ -164,80 +169,241 @@ def gather_point_state(
     state[k] = point_state(i, value, density, g_value, g_density)
 
 
+@wp.struct
+class PointGrid:
+    """The iteration's points binned on one cell grid per primitive level (see
+    :func:`warpgauss.optimize.plan_point_grids`), every (level, point) entry sorted by cell.
+
+    Cells are numbered x fastest within a level and the levels one after the other, so the
+    entries of a row of cells (fixed y and z, consecutive x) are one contiguous range of the
+    sorted entries: ``[start[first cell], start[last cell + 1])``.
+    """
+
+    size: wp.array(dtype=float)  # [L] cell edge of each level's point grid (voxels)
+    dims: wp.array(dtype=wp.vec3i)  # [L] cells per axis
+    offset: wp.array(dtype=int)  # [L] first cell id of each level
+    start: wp.array(dtype=int)  # [C + 1] first sorted entry of each cell; start[C] = entries
+
+
+@wp.func
+def slot_level(cid: int, level_offset: wp.array(dtype=int)) -> int:
+    """Level of the primitive cell ``cid`` (levels' cell ids are consecutive)."""
+    l = int(0)
+    for q in range(1, level_offset.shape[0]):
+        if level_offset[q] <= cid:
+            l = q
+    return l
+
+
+@wp.func
+def box_rows(mu: wp.vec3, e: wp.vec3, l: int, grid: PointGrid):
+    """The cells of level ``l``'s point grid that a primitive's 5-sigma box reaches: (first cell,
+    last cell) per axis. Every point the primitive contributes to lies in the box, so in one of
+    these cells (lookups clamp at the grid's faces, on both sides alike). The box is widened by a
+    relative 1e-6 so that float rounding of mu +- e never drops a point on its face.
+    """
+    size = grid.size[l]
+    dims = grid.dims[l]
+    lo = wp.vec3i(0, 0, 0)
+    hi = wp.vec3i(dims[0] - 1, dims[1] - 1, dims[2] - 1)
+    if wp.isfinite(mu[0] + mu[1] + mu[2] + e[0] + e[1] + e[2]):
+        pad = wp.vec3(
+            1.0e-6 * (wp.abs(mu[0]) + e[0]) + 1.0e-6,
+            1.0e-6 * (wp.abs(mu[1]) + e[1]) + 1.0e-6,
+            1.0e-6 * (wp.abs(mu[2]) + e[2]) + 1.0e-6,
+        )
+        lo = level_cell(mu - e - pad, size, dims)
+        hi = level_cell(mu + e + pad, size, dims)
+    return lo, hi
+
+
+@wp.func
+def row_range(grid: PointGrid, l: int, lo: wp.vec3i, hi: wp.vec3i, y: int, z: int) -> wp.vec2i:
+    """[start, end) of the sorted entries in cells lo.x..hi.x of row (y, z) on level l."""
+    dims = grid.dims[l]
+    first = grid.offset[l] + (z * dims[1] + y) * dims[0]
+    return wp.vec2i(grid.start[first + lo[0]], grid.start[first + hi[0] + 1])
+
+
 @wp.kernel
-def accumulate_prims(
+def dense_starts(
+    sorted_keys: wp.array(dtype=int),  # [>=K] cell id of each sorted entry, ascending
+    count: int,  # K entries; the launch has K + 1 threads
+    cells: int,  # C cells
+    start: wp.array(dtype=int),  # [C + 1] out: first entry of each cell (empty cells: the next one's)
+):
+    """Cell start table with empty cells filled, so that a run of cells is one range (each cell
+    is written by exactly one thread: the one whose entry is the first at or past it)."""
+    i = wp.tid()
+    prev = int(-1)
+    if i > 0:
+        prev = sorted_keys[i - 1]
+    cur = cells
+    if i < count:
+        cur = sorted_keys[i]
+    for c in range(prev + 1, cur + 1):
+        start[c] = i
+
+
+@wp.kernel
+def pair_work(
     slot_cell: wp.array(dtype=int),  # [N] cell id each sorted slot is binned in
     prims: BinnedPrimitives,
-    point_start: wp.array(dtype=int),  # [C] first sorted point entry of each cell
-    point_end: wp.array(dtype=int),  # [C] one past the last
+    grid: PointGrid,
+    work: wp.array(dtype=wp.int64),  # [N] out: candidate points of each slot (entries in its box rows)
+):
+    """Count the candidate points of each primitive: the entries of its box's rows (one thread each)."""
+    j = wp.tid()
+    l = slot_level(slot_cell[j], prims.level_offset)
+    lo, hi = box_rows(prims.mu[j], prims.ext[j], l, grid)
+    w = wp.int64(0)
+    for z in range(lo[2], hi[2] + 1):
+        for y in range(lo[1], hi[1] + 1):
+            r = row_range(grid, l, lo, hi, y, z)
+            w += wp.int64(r[1] - r[0])
+    work[j] = w
+
+
+@wp.kernel
+def pair_chunks(
+    work: wp.array(dtype=wp.int64),  # [N] from pair_work
+    work_cum: wp.array(dtype=wp.int64),  # [N] inclusive scan of work
+    capacity: int,  # chunks the partial buffers hold beyond one per primitive
+    min_chunk: int,  # candidates per chunk at least
+    chunks: wp.array(dtype=int),  # [N] out: chunks of each primitive
+    chunk_size: wp.array(dtype=int),  # [1] out: candidates per chunk this iteration
+):
+    """Split each primitive's candidates into chunks of K = max(min_chunk, total / capacity), so
+    that sum(chunks) <= N + capacity whatever the load (one thread per primitive)."""
+    j = wp.tid()
+    total = work_cum[work_cum.shape[0] - 1]
+    cap = wp.int64(capacity)
+    k = wp.max(wp.int64(min_chunk), (total + cap - wp.int64(1)) / cap)
+    chunks[j] = int((work[j] + k - wp.int64(1)) / k)
+    if j == 0:
+        chunk_size[0] = int(k)
+
+
+@wp.kernel
+def chunk_owner(
+    chunks: wp.array(dtype=int),  # [N]
+    chunk_cum: wp.array(dtype=int),  # [N] inclusive scan of chunks
+    owner: wp.array(dtype=int),  # [>= sum chunks] out: slot of each chunk
+):
+    """Record which slot each chunk belongs to (one thread per slot; chunks are consecutive)."""
+    j = wp.tid()
+    c = chunks[j]
+    base = chunk_cum[j] - c
+    for t in range(c):
+        owner[base + t] = j
+
+
+@wp.kernel
+def pair_grad_chunks(
+    owner: wp.array(dtype=int),  # [>=T] slot of each chunk
+    chunks: wp.array(dtype=int),  # [N] chunks of each slot
+    chunk_cum: wp.array(dtype=int),  # [N] inclusive scan of chunks (T = chunk_cum[N - 1])
+    slot_cell: wp.array(dtype=int),  # [N]
+    prims: BinnedPrimitives,
+    grid: PointGrid,
     pos: wp.array(dtype=wp.vec3),  # [K] sorted point positions (gather_point_state)
     state: wp.array(dtype=wp.vec4),  # [K] sorted point states
     order: wp.array(dtype=int),  # [>=K] point index of each sorted entry (for the pair count)
     count_pairs: int,  # 1: add each contributing pair to pairs[point] (tests, self-test)
     pairs: wp.array(dtype=int),  # [P] out (zeroed before when counting)
-    d_mu: wp.array(dtype=wp.vec3),  # [N] out (cell order, overwritten): dL/dmu
-    d_ls: wp.array(dtype=wp.vec3),  # [N] out: dL/dlog-sigma
-    d_rot: wp.array(dtype=wp.mat33),  # [N] out: dL/dR
-    d_a: wp.array(dtype=float),  # [N] out: dL/da
-    d_w: wp.array(dtype=float),  # [N] out: dL/dw (activated weight)
+    part_ky: wp.array(dtype=wp.vec3),  # [>=T] out: partial sum of k y/s^2 of each chunk
+    part_ls: wp.array(dtype=wp.vec3),  # [>=T] out: dL/dlog-sigma
+    part_rot: wp.array(dtype=wp.mat33),  # [>=T] out: dL/dR
+    part_aw: wp.array(dtype=wp.vec2),  # [>=T] out: (dL/da, dL/dw)
 ):
-    """Gather each primitive's gradient from the points around it (one thread per primitive).
+    """Partial gradients of one chunk of one primitive's candidate points (one thread per chunk).
 
-    The primitive-major form of :func:`accumulate_pairs`: a primitive binned in cell c of level l
-    is visited by exactly the points whose level-l cell has c among its 3^3 neighbours, i.e. the
-    points binned (on level l) in c's neighbours. Each thread sums its pairs in a fixed order and
-    stores the result once: no atomics, so reruns are bit-identical on every device, and the
-    threads of one cell read the same point ranges.
+    A primitive with C chunks gives its i-th candidate (counting along its box rows) to chunk
+    i mod C: every chunk walks the rows with stride C, so neighbouring threads of one primitive
+    read neighbouring points, and every chunk has the same load within one point, however the
+    points fall in the rows. Each partial is stored and :func:`reduce_chunks` adds them in chunk
+    order: no atomics, bit-identical reruns. Threads past the chunk count return at once.
     """
-    j = wp.tid()
-    cid = slot_cell[j]
-    l = int(0)
-    for q in range(1, prims.level_offset.shape[0]):
-        if prims.level_offset[q] <= cid:
-            l = q
-    dims = prims.level_dims[l]
-    off = prims.level_offset[l]
-    local = cid - off
-    c = wp.vec3i(local % dims[0], (local / dims[0]) % dims[1], local / (dims[0] * dims[1]))
+    t = wp.tid()
+    n = chunk_cum.shape[0]
+    if t >= chunk_cum[n - 1]:
+        return
+    j = owner[t]
+    nc = chunks[j]
+    c = t - (chunk_cum[j] - nc)
+    l = slot_level(slot_cell[j], prims.level_offset)
     mu = prims.mu[j]
     R = prims.rot[j]
     inv = prims.inv_s2[j]
     e = prims.ext[j]
     a = prims.a[j]
     w = prims.w[j]
-    s_ky = wp.vec3(0.0, 0.0, 0.0)  # sum k y/s^2: d_mu = R s_ky
+    lo, hi = box_rows(mu, e, l, grid)
+    s_ky = wp.vec3(0.0, 0.0, 0.0)
     s_ls = wp.vec3(0.0, 0.0, 0.0)
     s_rot = wp.mat33(0.0)
     s_a = float(0.0)
     s_w = float(0.0)
-    for nb in range(27):
-        nc = neighbour_cell(dims, c, nb)
-        if nc >= 0:
-            for k in range(point_start[off + nc], point_end[off + nc]):
+    acc = int(0)  # candidates in the rows before this one
+    for z in range(lo[2], hi[2] + 1):
+        for y in range(lo[1], hi[1] + 1):
+            r = row_range(grid, l, lo, hi, y, z)
+            first = ((c - acc) % nc + nc) % nc
+            for k in range(r[0] + first, r[1], nc):
                 p = pos[k]
                 g = truncated_kernel(p, mu, R, inv, e)
                 if g > 0.0:
                     if count_pairs != 0:
                         wp.atomic_add(pairs, order[k], 1)
                     st = state[k]
-                    gv = st[0]
-                    gr = st[1]
-                    if gv != 0.0 or gr != 0.0:
-                        dv_dg = (a - st[3]) / st[2]
-                        kk = w * (gv * dv_dg + gr) * g  # dL/dG * G
-                        d = p - mu
-                        yl = wp.transpose(R) @ d
-                        ys = wp.vec3(yl[0] * inv[0], yl[1] * inv[1], yl[2] * inv[2])
-                        s_ky += kk * ys
-                        s_ls += kk * wp.vec3(yl[0] * ys[0], yl[1] * ys[1], yl[2] * ys[2])
-                        s_rot -= kk * wp.outer(d, ys)
-                        s_a += gv * w * g / st[2]
-                        s_w += g * (gv * dv_dg + gr)
-    d_mu[j] = R @ s_ky
+                    if st[0] != 0.0 or st[1] != 0.0:
+                        t_ky, t_ls, t_rot, t_a, t_w = pair_terms(p, st, g, mu, R, inv, a, w)
+                        s_ky += t_ky
+                        s_ls += t_ls
+                        s_rot += t_rot
+                        s_a += t_a
+                        s_w += t_w
+            acc += r[1] - r[0]
+    part_ky[t] = s_ky
+    part_ls[t] = s_ls
+    part_rot[t] = s_rot
+    part_aw[t] = wp.vec2(s_a, s_w)
+
+
+@wp.kernel
+def reduce_chunks(
+    chunks: wp.array(dtype=int),  # [N]
+    chunk_cum: wp.array(dtype=int),  # [N]
+    prims: BinnedPrimitives,
+    part_ky: wp.array(dtype=wp.vec3),  # [>=T] from pair_grad_chunks
+    part_ls: wp.array(dtype=wp.vec3),
+    part_rot: wp.array(dtype=wp.mat33),
+    part_aw: wp.array(dtype=wp.vec2),
+    d_mu: wp.array(dtype=wp.vec3),  # [N] out (cell order, overwritten): dL/dmu
+    d_ls: wp.array(dtype=wp.vec3),  # [N] out: dL/dlog-sigma
+    d_rot: wp.array(dtype=wp.mat33),  # [N] out: dL/dR
+    d_a: wp.array(dtype=float),  # [N] out: dL/da
+    d_w: wp.array(dtype=float),  # [N] out: dL/dw (activated weight)
+):
+    """Sum each primitive's chunk partials in chunk order (one thread per primitive; a primitive
+    with no candidate point gets zeros)."""
+    j = wp.tid()
+    nc = chunks[j]
+    base = chunk_cum[j] - nc
+    s_ky = wp.vec3(0.0, 0.0, 0.0)
+    s_ls = wp.vec3(0.0, 0.0, 0.0)
+    s_rot = wp.mat33(0.0)
+    s_aw = wp.vec2(0.0, 0.0)
+    for t in range(base, base + nc):
+        s_ky += part_ky[t]
+        s_ls += part_ls[t]
+        s_rot += part_rot[t]
+        s_aw += part_aw[t]
+    d_mu[j] = prims.rot[j] @ s_ky
     d_ls[j] = s_ls
     d_rot[j] = s_rot
-    d_a[j] = s_a
-    d_w[j] = s_w
+    d_a[j] = s_aw[0]
+    d_w[j] = s_aw[1]
 
 
 @wp.kernel

@@ -488,7 +488,8 @@ def test_uniform_samples_cover_the_model_support_and_nothing_else(device):
 
 def test_without_smoothness_the_partners_are_not_evaluated(device):
     """Partners serve only the smoothness term: with its weight 0 an iteration evaluates the
-    samples alone, and the gradient is bit-identical to evaluating the partners too."""
+    samples alone, and the gradient equals evaluating the partners too (to float32 rounding: the
+    partners, which carry no gradient, still change how the pair pass splits its chunks)."""
     from warpgauss.allocate import AllocationConfig, allocate
     from warpgauss.profiling import StageRecorder
     from warpgauss.synthetic import generate
@@ -507,7 +508,7 @@ def test_without_smoothness_the_partners_are_not_evaluated(device):
         if not partners:
             assert r.pairs.numpy()[: r.m].sum() > 0 and not r.pairs.numpy()[r.m :].any()
         grads.append(r.gradient())
-    np.testing.assert_array_equal(grads[0], grads[1])
+    np.testing.assert_allclose(grads[0], grads[1], rtol=0, atol=1e-5 * np.abs(grads[1]).max())
 
 
 def _toy_params(f, n=20):

@@ -164,6 +164,11 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
             row["pairs_per_point"] = float(pairs.mean())
             row["point_sort_ms"] = timer.ms(lambda: r._sort_points(2 * m), cfg.repeat)
             row["backward_ms"] = timer.ms(r._backward, cfg.repeat)
+            stats = r.pair_pass_stats()
+            row["backward_candidates_per_pair"] = stats["candidates"] / max(2 * m * row["pairs_per_point"], 1.0)
+            row["backward_chunks"] = stats["chunks"]
+            row["backward_chunk_size"] = stats["chunk_size"]
+            row["point_cells"] = stats["point_cells"]
             if cfg.atomic_baseline:  # the point-major atomic scatter the primitive-major pass replaced
                 row["backward_atomic_ms"] = timer.ms(lambda: r._pairs(kb.accumulate_pairs, 2 * m), cfg.repeat)
                 r._zero_grads()

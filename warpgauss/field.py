@@ -82,6 +82,75 @@ def plan_bins(radius: np.ndarray, shape_xyz: tuple[int, int, int]) -> BinPlan:
     return BinPlan(tuple(sizes), tuple(dims), offsets, int(sum(counts)))
 
 
+POINT_GRID_DIVS = (1, 2, 4, 8, 16)  # a point grid's cell: the level's cell over one of these
+MAX_POINT_CELLS = 1 << 22  # cells of one level's point grid (16 MiB of int32 starts)
+ROW_COST = 16.0  # cost of visiting one row of point cells, in candidate-point tests (H100: 16 beat 1 and 4 by 3-6 % and 64 by 24 %, benchmarks/results/i17_rowcost_h100.json)
+
+
+@dataclass(frozen=True)
+class PointGridPlan:
+    """Cell grids the backward pass bins an iteration's points on, one per primitive level.
+
+    Attributes:
+        sizes: Cell edge of each level's point grid in voxels (the global level: one cell).
+        dims: Cells per axis (x, y, z) of each grid.
+        offsets: First cell id of each grid in the concatenated cell arrays.
+        total_cells: Number of cells over all grids.
+    """
+
+    sizes: tuple[float, ...]
+    dims: tuple[tuple[int, int, int], ...]
+    offsets: tuple[int, ...]
+    total_cells: int
+
+
+def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, int, int], occupied_voxels: int) -> PointGridPlan:
+    """Choose, per primitive level, the cell edge the backward pass bins points on.
+
+    A primitive of level ``l`` (half-extent e <= cell edge S) visits the rows of point cells its
+    5-sigma box reaches. Cells of S / d cost (2e / F + 1)^2 rows and about rho (2e + F)^3
+    candidate points (F = S / d, rho the points per voxel near primitives): fine cells waste
+    fewer candidates, coarse cells fewer rows. This picks the d of
+    :data:`POINT_GRID_DIVS` with the least ``ROW_COST`` x rows + candidates, taking e = 0.75 S
+    (the middle of a level's radius class). The choice changes the speed, never the pairs.
+
+    Args:
+        plan: The primitives' levels.
+        n_points: Points evaluated per iteration (samples and partners).
+        shape_xyz: Grid size in voxels.
+        occupied_voxels: Voxels above the occupancy threshold, where 75 % of the samples fall.
+    """
+    shape = np.asarray(shape_xyz, dtype=np.float64)
+    volume = float(np.prod(shape))
+    rho = 0.75 * n_points / max(float(occupied_voxels), 1.0) + 0.25 * n_points / volume
+    sizes: list[float] = []
+    dims: list[tuple[int, int, int]] = []
+    for s in plan.sizes:
+        if len(sizes) == len(plan.sizes) - 1:  # the global level: one cell
+            sizes.append(float(np.finfo(np.float32).max))
+            dims.append((1, 1, 1))
+            continue
+        e = 0.75 * s
+        best = None
+        for d in POINT_GRID_DIVS:
+            f = s / d
+            if d > 1 and f < MIN_CELL:
+                break
+            n = np.maximum(np.ceil(shape / f), 1)
+            if d > 1 and float(np.prod(n)) > MAX_POINT_CELLS:
+                break
+            reach = np.minimum(2 * e / f + 1, n)
+            span = np.minimum(2 * e + f, shape)
+            cost = ROW_COST * float(reach[1] * reach[2]) + rho * float(np.prod(span))
+            if best is None or cost < best[0]:
+                best = (cost, f, tuple(int(v) for v in n))
+        sizes.append(float(best[1]))
+        dims.append(best[2])
+    counts = [a * b * c for a, b, c in dims]
+    offsets = tuple(int(x) for x in np.concatenate([[0], np.cumsum(counts)[:-1]]))
+    return PointGridPlan(tuple(sizes), tuple(dims), offsets, int(sum(counts)))
+
+
 def set_plan(prims, plan: BinPlan, device: str, cell_start=None, cell_end=None) -> None:
     """Give a ``BinnedPrimitives`` the level arrays of ``plan`` and cell tables (zeroed, or given)."""
     wp = warp()

@@ -177,6 +177,15 @@ class RefineConfig:
                 raise WarpgaussError(f"loss weight {name} must be a finite number >= 0, got {v} (--w-{name.replace('_', '-')})")
 
 
+MIN_CHUNK = 128  # candidate points per chunk of the backward pass at least
+
+
+def chunk_capacity(n_points: int) -> int:
+    """Chunks the backward pass may use beyond one per primitive: enough for chunks of
+    :data:`MIN_CHUNK` at about 250 candidates per point, at most 2^21 (then chunks grow)."""
+    return max(1024, min(1 << 21, 2 * int(n_points)))
+
+
 PARTIAL_MAX_ENTRIES = 1 << 24  # (point, neighbour cell) partial sums of the split forward pass (192 MiB)
 
 # quality: measured on the H100 (benchmarks/results/quality_grid_h100.json, vortex and interface
@@ -297,7 +306,6 @@ class Refiner:
         self.reach = wp.zeros(n, dtype=float, device=dev)  # binning radius deferred steps ask for
         self.slot_cell = wp.zeros(n, dtype=int, device=dev)  # cell of each sorted slot (pair pass)
         self._pbuf: dict | None = None  # per-iteration point binning buffers (see _point_buffers)
-        self._sorted_count = 0  # points binned by the last _sort_points (0: stale)
         self._graph = None
         self._split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
         self.use_graph = wp.get_device(dev).is_cuda and config.graph
@@ -359,7 +367,6 @@ class Refiner:
         self.point_loss = wp.zeros(m, dtype=wp.vec3, device=dev)
         self.strata = stratum_counts(m, self.n_high, self.n_mid)
         self._pbuf = None
-        self._sorted_count = 0
         self._graph = None
 
     @property
@@ -564,20 +571,46 @@ class Refiner:
         )
 
     def _point_buffers(self) -> dict:
-        """Buffers that bin the 2 M points of an iteration on every level (allocated outside any
-        graph capture; the sort's scratch is reserved for the largest sort this refiner runs)."""
+        """Buffers that bin the points of an iteration on every level's point grid and split the
+        pair pass into chunks (allocated outside any graph capture; the sort's scratch is
+        reserved for the largest sort this refiner runs)."""
         if self._pbuf is None:
-            wp, dev = self._wp, self.device
+            from .field import plan_point_grids
+            from .kernels import backward as kb
+
+            wp, dev, n = self._wp, self.device, self.n
             levels, p2 = len(self.plan.sizes), self.n_points
             k = levels * p2
+            gp = plan_point_grids(self.plan, p2, self.dv.field.shape_xyz, self.n_high + self.n_mid)
+            grid = kb.PointGrid()
+            grid.size = wp.array(np.asarray(gp.sizes, np.float32), dtype=float, device=dev)
+            grid.dims = wp.array(np.asarray(gp.dims, np.int32), dtype=wp.vec3i, device=dev)
+            grid.offset = wp.array(np.asarray(gp.offsets, np.int32), dtype=int, device=dev)
+            grid.start = wp.zeros(gp.total_cells + 1, dtype=int, device=dev)
+            cap = chunk_capacity(p2)
             b = {
+                "grid_plan": gp,
+                "grid": grid,
                 "keys": wp.empty(2 * k, dtype=int, device=dev),
                 "order": wp.empty(2 * k, dtype=int, device=dev),
-                "start": wp.zeros(self.plan.total_cells, dtype=int, device=dev),
-                "end": wp.zeros(self.plan.total_cells, dtype=int, device=dev),
+                "fkeys": wp.empty(2 * p2, dtype=int, device=dev),
+                "forder": wp.empty(2 * p2, dtype=int, device=dev),
                 "pos": wp.empty(k, dtype=wp.vec3, device=dev),
                 "state": wp.empty(k, dtype=wp.vec4, device=dev),
                 "part": wp.empty((p2, 27 * levels), dtype=wp.vec3, device=dev) if self._use_partials() else None,
+                "capacity": cap,
+                "work": wp.empty(n, dtype=wp.int64, device=dev),
+                "work_cum": wp.empty(n, dtype=wp.int64, device=dev),
+                "chunks": wp.empty(n, dtype=int, device=dev),
+                "chunk_cum": wp.empty(n, dtype=int, device=dev),
+                "chunk_size": wp.zeros(1, dtype=int, device=dev),
+                "owner": wp.empty(n + cap, dtype=int, device=dev),
+                "parts": (
+                    wp.empty(n + cap, dtype=wp.vec3, device=dev),
+                    wp.empty(n + cap, dtype=wp.vec3, device=dev),
+                    wp.empty(n + cap, dtype=wp.mat33, device=dev),
+                    wp.empty(n + cap, dtype=wp.vec2, device=dev),
+                ),
             }
             # CUB keeps one scratch buffer per context and re-allocates it for a larger sort: sort
             # the largest count now, so that a captured graph never refers to a freed buffer
@@ -607,28 +640,38 @@ class Refiner:
         return 2 * self.m if self.partners else self.m
 
     def _sort_points(self, count: int) -> None:
-        """Bin the first ``count`` points on every level and sort them by cell (stable: the
-        order within a cell is the point index, so the pair pass sums in a fixed order)."""
+        """Bin the first ``count`` points on every level's point grid and sort them by cell
+        (stable: the order within a cell is the point index, so the pair pass sums in a fixed
+        order), with the dense cell start table."""
+        from .kernels import backward as kb
+        from .kernels import field as kf
+
+        wp, dev, b = self._wp, self.device, self._point_buffers()
+        grid, cells = b["grid"], b["grid_plan"].total_cells
+        k = len(self.plan.sizes) * count
+        wp.launch(kf.point_keys, dim=k, inputs=[self.points, count, grid.size, grid.dims, grid.offset], outputs=[b["keys"], b["order"]], device=dev)
+        wp.utils.radix_sort_pairs(b["keys"], b["order"], k, 0, max(1, (cells - 1).bit_length()))
+        wp.launch(kb.dense_starts, dim=k + 1, inputs=[b["keys"], k, cells], outputs=[grid.start], device=dev)
+
+    def _order_points(self, count: int) -> None:
+        """Sort the first ``count`` points by their cell on the primitives' first level (stable),
+        the order the forward pass visits them in: neighbouring threads then share a cell, and
+        so the same candidate ranges on every level (the levels' cells nest)."""
         from .kernels import field as kf
 
         wp, dev, p, b = self._wp, self.device, self.prims, self._point_buffers()
-        k = len(self.plan.sizes) * count
-        wp.launch(kf.point_keys, dim=k, inputs=[self.points, count, p.level_size, p.level_dims, p.level_offset], outputs=[b["keys"], b["order"]], device=dev)
-        wp.utils.radix_sort_pairs(b["keys"], b["order"], k, 0, max(1, (self.plan.total_cells - 1).bit_length()))
-        b["start"].zero_()
-        b["end"].zero_()
-        wp.launch(kf.cell_ranges, dim=k, inputs=[b["keys"], k], outputs=[b["start"], b["end"]], device=dev)
-        self._sorted_count = count
+        wp.launch(kf.point_keys, dim=count, inputs=[self.points, count, p.level_size, p.level_dims, p.level_offset], outputs=[b["fkeys"], b["forder"]], device=dev)
+        wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, max(1, (self.plan.total_cells - 1).bit_length()))
 
     def _forward(self) -> None:
-        """Sort the points by cell, evaluate V~ and rho at them, and the per-point loss gradients."""
+        """Order the points by cell, evaluate V~ and rho at them, and the per-point loss gradients."""
         from .kernels import backward as kb
         from .kernels import field as kf
 
         wp, dev, w, m2 = self._wp, self.device, self.cfg.weights, self.n_points
-        self._sort_points(m2)
+        self._order_points(m2)
         b = self._pbuf
-        order = b["order"]  # its first n_points entries: the points in level-0 cell order
+        order = b["forder"]
         if self._use_partials():
             wp.launch(kf.eval_points_partial, dim=b["part"].shape, inputs=[self.points, order, self.prims], outputs=[b["part"]], device=dev)
             wp.launch(kf.finish_partials, dim=m2, inputs=[order, b["part"]], outputs=[self.value, self.density, self.pairs], device=dev)
@@ -643,14 +686,20 @@ class Refiner:
         )
 
     def _backward(self, count: int | None = None, count_pairs: bool = False) -> None:
-        """Primitive-major pair pass over the first ``count`` points (all 2 M by default):
-        overwrites the pair-gradient buffers, no atomics (bit-identical reruns)."""
+        """Primitive-major pair pass over the first ``count`` points (all by default), balanced
+        by chunks: overwrites the pair-gradient buffers, no float atomics (bit-identical reruns).
+
+        Each primitive's candidate points are the point-grid rows its 5-sigma box reaches; they
+        are split into chunks of at least :data:`MIN_CHUNK` candidates (more when the load
+        exceeds the chunk capacity), one thread per chunk, and the chunks' partial gradients are
+        summed per primitive in chunk order. The cost follows the candidates, not the largest
+        primitive's point count.
+        """
         from .kernels import backward as kb
 
-        wp, dev, b = self._wp, self.device, self._point_buffers()
+        wp, dev, b, n = self._wp, self.device, self._point_buffers(), self.n
         count = self.n_points if count is None else int(count)
-        if self._sorted_count != count:
-            self._sort_points(count)
+        self._sort_points(count)
         k = len(self.plan.sizes) * count
         wp.launch(
             kb.gather_point_state,
@@ -661,14 +710,33 @@ class Refiner:
         )
         if count_pairs:
             self.back_pairs.zero_()
+        grid, cap = b["grid"], b["capacity"]
+        wp.launch(kb.pair_work, dim=n, inputs=[self.slot_cell, self.prims, grid], outputs=[b["work"]], device=dev)
+        wp.utils.array_scan(b["work"], b["work_cum"], inclusive=True)
+        wp.launch(kb.pair_chunks, dim=n, inputs=[b["work"], b["work_cum"], cap, MIN_CHUNK], outputs=[b["chunks"], b["chunk_size"]], device=dev)
+        wp.utils.array_scan(b["chunks"], b["chunk_cum"], inclusive=True)
+        wp.launch(kb.chunk_owner, dim=n, inputs=[b["chunks"], b["chunk_cum"]], outputs=[b["owner"]], device=dev)
         wp.launch(
-            kb.accumulate_prims,
-            dim=self.n,
-            inputs=[self.slot_cell, self.prims, b["start"], b["end"], b["pos"], b["state"], b["order"], int(count_pairs)],
-            outputs=[self.back_pairs, *self.pair_grads],
+            kb.pair_grad_chunks,
+            dim=n + cap,
+            inputs=[b["owner"], b["chunks"], b["chunk_cum"], self.slot_cell, self.prims, grid, b["pos"], b["state"], b["order"], int(count_pairs)],
+            outputs=[self.back_pairs, *b["parts"]],
             device=dev,
         )
+        wp.launch(kb.reduce_chunks, dim=n, inputs=[b["chunks"], b["chunk_cum"], self.prims, *b["parts"]], outputs=list(self.pair_grads), device=dev)
         self._clean = False
+
+    def pair_pass_stats(self) -> dict:
+        """The last backward pass's load (syncs): candidate points, chunks and chunk size, and
+        the point grids' cell edges."""
+        b = self._point_buffers()
+        return {
+            "candidates": int(b["work_cum"][self.n - 1 :].numpy()[0]),
+            "chunks": int(b["chunk_cum"][self.n - 1 :].numpy()[0]),
+            "chunk_size": int(b["chunk_size"].numpy()[0]),
+            "chunk_capacity": self.n + b["capacity"],
+            "point_cells": list(b["grid_plan"].sizes[:-1]),
+        }
 
     def _pairs(self, kernel, count: int) -> None:
         """A point-major pair kernel (atomics; the references of tests and the self-test)."""
@@ -759,7 +827,6 @@ class Refiner:
         """Draw this iteration's samples (without advancing)."""
         self._begin()
         self._draw()
-        self._sorted_count = 0
 
     def forward_backward(self) -> None:
         """Forward values, per-point gradients and the pair scatter at the current samples."""
