@@ -14,9 +14,12 @@ Training parameters per primitive: mu(3), log-sigma(3), unnormalised quaternion(
 logit (w = sigmoid). The point pass (:func:`point_grads`) turns the forward values into dL/dV~
 and dL/drho per point; the pair pass visits exactly the pairs the forward pass visited (same
 bins, same ``truncated_kernel``) and accumulates, per primitive in cell order, dL/dmu,
-dL/dlog-sigma, dL/dR (3x3), dL/da and dL/dw. Training uses :func:`accumulate_prims` (one thread
-per primitive gathering from the cell-sorted points, no atomics: bit-identical reruns);
-:func:`accumulate_pairs` (one thread per point scattering through atomics) is its reference.
+dL/dlog-sigma, dL/dR (3x3), dL/da and dL/dw. Training uses the balanced chunk pass
+(:func:`pair_work` counts each primitive's candidate points, the rows of a :class:`PointGrid`
+its 5-sigma box reaches; :func:`pair_chunks` and :func:`chunk_owner` split them into chunks;
+:func:`pair_grad_chunks` sums one chunk per thread; :func:`reduce_chunks` adds a primitive's
+chunks in order: no float atomics, bit-identical reruns); :func:`accumulate_pairs` (one thread
+per point scattering through atomics) is its reference.
 :func:`finish_grads` adds the per-primitive terms and chains R(q/|q|) and the sigmoid into the
 12 raw gradients.
 
@@ -270,16 +273,18 @@ def pair_chunks(
     work_cum: wp.array(dtype=wp.int64),  # [N] inclusive scan of work
     capacity: int,  # chunks the partial buffers hold beyond one per primitive
     min_chunk: int,  # candidates per chunk at least
+    max_chunks: int,  # chunks of one primitive at most (its reduction is one serial thread)
     chunks: wp.array(dtype=int),  # [N] out: chunks of each primitive
     chunk_size: wp.array(dtype=int),  # [1] out: candidates per chunk this iteration
 ):
     """Split each primitive's candidates into chunks of K = max(min_chunk, total / capacity), so
-    that sum(chunks) <= N + capacity whatever the load (one thread per primitive)."""
+    that sum(chunks) <= N + capacity whatever the load, and at most ``max_chunks`` per primitive
+    (larger chunks then; one thread per primitive)."""
     j = wp.tid()
     total = work_cum[work_cum.shape[0] - 1]
     cap = wp.int64(capacity)
     k = wp.max(wp.int64(min_chunk), (total + cap - wp.int64(1)) / cap)
-    chunks[j] = int((work[j] + k - wp.int64(1)) / k)
+    chunks[j] = int(wp.min((work[j] + k - wp.int64(1)) / k, wp.int64(max_chunks)))
     if j == 0:
         chunk_size[0] = int(k)
 

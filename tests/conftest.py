@@ -68,3 +68,17 @@ def random_params(
     p[:, 10] = rng.uniform(0.0, 1.0, n)
     p[:, 11] = rng.uniform(0.05, 1.0, n)
     return p
+
+
+def assert_matches_atomic_scatter(r, grads: list, pairs: np.ndarray) -> None:
+    """The refiner's pair gradients ``grads`` and pair counts ``pairs`` (from its own pass at the
+    current points) equal the point-major atomic scatter's: the same pairs, the same sums to
+    float32 rounding (another summation order)."""
+    from warpgauss.kernels import backward as kb
+
+    r.accumulate(kb.accumulate_pairs)
+    np.testing.assert_array_equal(pairs, r.back_pairs.numpy())
+    for x, y in zip(grads, (a.numpy() for a in r.pair_grads)):
+        scale = float(np.abs(y).max())
+        assert scale > 0
+        np.testing.assert_allclose(x, y, rtol=0, atol=2e-5 * scale)

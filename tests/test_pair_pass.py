@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import assert_matches_atomic_scatter
 
 from warpgauss.analysis import DeviceVolume, normalise
 from warpgauss.field import BinPlan, plan_bins, plan_point_grids
@@ -44,33 +45,34 @@ def _pair_pass(r):
     return [a.numpy().copy() for a in r.pair_grads], r.back_pairs.numpy().copy(), r.pair_pass_stats()
 
 
-@pytest.mark.parametrize("min_chunk,capacity", [(1, 1 << 20), (5, 1 << 20), (1, 7)], ids=["one-per-chunk", "five", "capacity-bound"])
-def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkeypatch, min_chunk, capacity):
-    """Chunks of 1, 5 or as many candidates as a tiny capacity forces: the same pairs, and the
-    gradients of the point-major atomic scatter (another summation order: rounding only)."""
+@pytest.mark.parametrize(
+    "min_chunk,capacity,max_chunks",
+    [(1, 1 << 20, 1 << 30), (5, 1 << 20, 1 << 30), (1, 7, 1 << 30), (1, 1 << 20, 3)],
+    ids=["one-per-chunk", "five", "capacity-bound", "three-per-primitive"],
+)
+def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkeypatch, min_chunk, capacity, max_chunks):
+    """Chunks of 1 or 5 candidates, as many as a tiny capacity forces, or at most 3 per
+    primitive: the same pairs, and the gradients of the point-major atomic scatter (another
+    summation order: rounding only)."""
     from warpgauss import optimize
-    from warpgauss.kernels import backward as kb
 
     monkeypatch.setattr(optimize, "MIN_CHUNK", min_chunk)
+    monkeypatch.setattr(optimize, "MAX_CHUNKS", max_chunks)
     monkeypatch.setattr(optimize, "chunk_capacity", lambda n_points: capacity)
     r = _refiner(device)
     mine, pairs, stats = _pair_pass(r)
     np.testing.assert_array_equal(pairs, r.pairs.numpy())
     assert pairs.sum() > 10 * r.m
-    assert stats["chunks"] <= r.n + capacity
-    if capacity > 1000:
+    assert stats["chunks"] <= min(r.n + capacity, r.n * max_chunks)
+    if max_chunks < 10:
+        assert stats["chunks"] > 2 * r.n  # most primitives use all three
+    elif capacity > 1000:
         assert stats["chunk_size"] == min_chunk
         assert stats["chunks"] >= stats["candidates"] // min_chunk > 5 * r.n  # really split
     else:
         assert stats["chunk_size"] >= stats["candidates"] / capacity
     assert stats["candidates"] >= pairs.sum()
-    r.accumulate(kb.accumulate_pairs)
-    ref = [a.numpy().copy() for a in r.pair_grads]
-    np.testing.assert_array_equal(pairs, r.back_pairs.numpy())
-    for x, y in zip(mine, ref):
-        scale = float(np.abs(y).max())
-        assert scale > 0
-        np.testing.assert_allclose(x, y, rtol=0, atol=2e-5 * scale)
+    assert_matches_atomic_scatter(r, mine, pairs)
 
 
 def test_chunked_pass_reruns_bit_identically(device, monkeypatch):

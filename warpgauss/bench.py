@@ -226,8 +226,9 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
         "rows": rows,
         "notes": [
             "stage times: CUDA events around repeat back-to-back calls (GPU time incl. launch gaps); CPU: wall clock",
-            "forward = point sort by cell + evaluation + per-point loss gradients; backward = primitive-major pair gather "
-            "(backward_atomic_ms: the point-major atomic scatter it replaced); "
+            "forward = point order by cell + evaluation + per-point loss gradients; backward = point-grid sort + balanced "
+            "chunk pass (backward_candidates_per_pair: candidate points visited per contributing pair; backward_atomic_ms: "
+            "the point-major atomic scatter); "
             "update = fused chain rule + sparse Adam + re-preparation (measured as backward+update minus backward)",
             "iteration = wall clock per Refiner.step, re-bins every 10 iterations included",
             "gpairs_per_s = contributing Gaussian-sample pairs (samples and partners) / (forward + backward time)",

@@ -87,25 +87,9 @@ MAX_POINT_CELLS = 1 << 22  # cells of one level's point grid (16 MiB of int32 st
 ROW_COST = 16.0  # cost of visiting one row of point cells, in candidate-point tests (H100: 16 beat 1 and 4 by 3-6 % and 64 by 24 %, benchmarks/results/i17_rowcost_h100.json)
 
 
-@dataclass(frozen=True)
-class PointGridPlan:
-    """Cell grids the backward pass bins an iteration's points on, one per primitive level.
-
-    Attributes:
-        sizes: Cell edge of each level's point grid in voxels (the global level: one cell).
-        dims: Cells per axis (x, y, z) of each grid.
-        offsets: First cell id of each grid in the concatenated cell arrays.
-        total_cells: Number of cells over all grids.
-    """
-
-    sizes: tuple[float, ...]
-    dims: tuple[tuple[int, int, int], ...]
-    offsets: tuple[int, ...]
-    total_cells: int
-
-
-def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, int, int], occupied_voxels: int) -> PointGridPlan:
-    """Choose, per primitive level, the cell edge the backward pass bins points on.
+def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, int, int], occupied_voxels: int) -> BinPlan:
+    """Choose, per primitive level, the cell grid the backward pass bins points on (a
+    :class:`BinPlan` of the same levels: the last is one global cell).
 
     A primitive of level ``l`` (half-extent e <= cell edge S) visits the rows of point cells its
     5-sigma box reaches. Cells of S / d cost (2e / F + 1)^2 rows and about rho (2e + F)^3
@@ -148,7 +132,7 @@ def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, int, in
         dims.append(best[2])
     counts = [a * b * c for a, b, c in dims]
     offsets = tuple(int(x) for x in np.concatenate([[0], np.cumsum(counts)[:-1]]))
-    return PointGridPlan(tuple(sizes), tuple(dims), offsets, int(sum(counts)))
+    return BinPlan(tuple(sizes), tuple(dims), offsets, int(sum(counts)))
 
 
 def set_plan(prims, plan: BinPlan, device: str, cell_start=None, cell_end=None) -> None:
