@@ -175,7 +175,7 @@ def gather_point_state(
 @wp.struct
 class PointGrid:
     """The iteration's points binned on one cell grid per primitive level (see
-    :func:`warpgauss.optimize.plan_point_grids`), every (level, point) entry sorted by cell.
+    :func:`warpgauss.field.plan_point_grids`), every (level, point) entry sorted by cell.
 
     Cells are numbered x fastest within a level and the levels one after the other, so the
     entries of a row of cells (fixed y and z, consecutive x) are one contiguous range of the

@@ -75,11 +75,26 @@ def plan_bins(radius: np.ndarray, shape_xyz: tuple[int, int, int]) -> BinPlan:
                 continue
             sizes.append(float(size))
             dims.append((int(d[0]), int(d[1]), int(d[2])))
-    sizes.append(float(np.finfo(np.float32).max))
-    dims.append((1, 1, 1))
+    return _with_global_level(sizes, dims)
+
+
+def _with_global_level(sizes: list[float], dims: list[tuple[int, int, int]]) -> BinPlan:
+    """The plan of these levels followed by the global level (one cell), with the cell offsets."""
+    sizes = [*sizes, float(np.finfo(np.float32).max)]
+    dims = [*dims, (1, 1, 1)]
     counts = [a * b * c for a, b, c in dims]
     offsets = tuple(int(x) for x in np.concatenate([[0], np.cumsum(counts)[:-1]]))
     return BinPlan(tuple(sizes), tuple(dims), offsets, int(sum(counts)))
+
+
+def plan_arrays(plan: BinPlan, device: str) -> tuple:
+    """(cell edge, cells per axis, first cell id) of each level of ``plan`` as Warp arrays."""
+    wp = warp()
+    return (
+        wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=device),
+        wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=device),
+        wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=device),
+    )
 
 
 POINT_GRID_DIVS = (1, 2, 4, 8, 16)  # a point grid's cell: the level's cell over one of these
@@ -109,11 +124,7 @@ def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, int, in
     rho = 0.75 * n_points / max(float(occupied_voxels), 1.0) + 0.25 * n_points / volume
     sizes: list[float] = []
     dims: list[tuple[int, int, int]] = []
-    for s in plan.sizes:
-        if len(sizes) == len(plan.sizes) - 1:  # the global level: one cell
-            sizes.append(float(np.finfo(np.float32).max))
-            dims.append((1, 1, 1))
-            continue
+    for s in plan.sizes[:-1]:  # the global level gets one cell below
         e = 0.75 * s
         best = None
         for d in POINT_GRID_DIVS:
@@ -130,17 +141,13 @@ def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, int, in
                 best = (cost, f, tuple(int(v) for v in n))
         sizes.append(float(best[1]))
         dims.append(best[2])
-    counts = [a * b * c for a, b, c in dims]
-    offsets = tuple(int(x) for x in np.concatenate([[0], np.cumsum(counts)[:-1]]))
-    return BinPlan(tuple(sizes), tuple(dims), offsets, int(sum(counts)))
+    return _with_global_level(sizes, dims)
 
 
 def set_plan(prims, plan: BinPlan, device: str, cell_start=None, cell_end=None) -> None:
     """Give a ``BinnedPrimitives`` the level arrays of ``plan`` and cell tables (zeroed, or given)."""
     wp = warp()
-    prims.level_size = wp.array(np.asarray(plan.sizes, np.float32), dtype=float, device=device)
-    prims.level_dims = wp.array(np.asarray(plan.dims, np.int32), dtype=wp.vec3i, device=device)
-    prims.level_offset = wp.array(np.asarray(plan.offsets, np.int32), dtype=int, device=device)
+    prims.level_size, prims.level_dims, prims.level_offset = plan_arrays(plan, device)
     for name, table in (("cell_start", cell_start), ("cell_end", cell_end)):
         arr = wp.zeros(plan.total_cells, dtype=int, device=device) if table is None else wp.array(table, dtype=int, device=device)
         setattr(prims, name, arr)

@@ -578,7 +578,7 @@ class Refiner:
         pair pass into chunks (allocated outside any graph capture; the sort's scratch is
         reserved for the largest sort this refiner runs)."""
         if self._pbuf is None:
-            from .field import plan_point_grids
+            from .field import plan_arrays, plan_point_grids
             from .kernels import backward as kb
 
             wp, dev, n = self._wp, self.device, self.n
@@ -586,9 +586,7 @@ class Refiner:
             k = levels * p2
             gp = plan_point_grids(self.plan, p2, self.dv.field.shape_xyz, self.n_high + self.n_mid)
             grid = kb.PointGrid()
-            grid.size = wp.array(np.asarray(gp.sizes, np.float32), dtype=float, device=dev)
-            grid.dims = wp.array(np.asarray(gp.dims, np.int32), dtype=wp.vec3i, device=dev)
-            grid.offset = wp.array(np.asarray(gp.offsets, np.int32), dtype=int, device=dev)
+            grid.size, grid.dims, grid.offset = plan_arrays(gp, dev)
             grid.start = wp.zeros(gp.total_cells + 1, dtype=int, device=dev)
             cap = chunk_capacity(p2)
             b = {
