@@ -1,13 +1,24 @@
-"""Decode only where the model can be non-zero: bricks that some primitive's 5-sigma box touches.
+"""Grid decode, brick by brick: each 8^3 brick of output voxels lists once the primitives whose
+5-sigma box reaches it, and its voxels stream through that list.
+
+A voxel of the binned evaluator (:func:`warpgauss.kernels.field.binned_sums`) walks 27 cells on
+every level, and the threads of one warp walk different cells; about six candidates are tested per
+contributing pair. A brick list holds only the primitives whose box meets the brick (for boxes
+a few bricks wide, 1.5-3 candidates per pair), every thread of a brick walks the same list (no
+divergence, each primitive read once per warp and broadcast), and each thread evaluates a column
+of 4 voxels per primitive read. The list keeps the binned order (level, cell in raster order,
+slot in the cell), and a voxel's contributing primitives are a subsequence of it in exactly the
+order :func:`binned_sums` visits them, so the decoded values are the evaluator's, bit for bit.
 
 V~ is exactly 0 at a point no primitive's truncated support reaches (numerator and density are
-both 0), so a grid decode may skip those points without changing a single value. For sparse
-fields (a few per cent occupied) most of the grid is such empty space.
+both 0): a brick with an empty list is written 0 without evaluation. :func:`mark_bricks` and
+:func:`eval_grid_blocked` remain for the share of bricks a decode evaluates and as the path for
+a slab whose lists would not fit (:data:`warpgauss.field.MAX_BRICK_LIST`).
 """
 
 import warp as wp
 
-from .field import RHO0, BinnedPrimitives, binned_sums
+from .field import RHO0, BinnedPrimitives, binned_sums, truncated_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -99,3 +110,135 @@ def eval_grid_blocked(
 def blocked_threads(h: int, ny: int, nx: int) -> int:
     """Launch size of :func:`eval_grid_blocked` for a (h, ny, nx) slab."""
     return -(-h // 8) * -(-ny // 8) * -(-nx // 8) * 512
+
+
+LIST_THREADS = wp.constant(128)  # threads per brick in eval_brick_lists: 8 x 8 x 2, each 4 voxels along z
+
+
+@wp.func
+def voxel_coord(i: int, scale: float) -> float:
+    """Model-grid coordinate of output voxel i's centre (the formula every grid evaluator uses)."""
+    return (float(i) + 0.5) * scale - 0.5
+
+
+@wp.func
+def cell_span(lo: float, hi: float, size: float, dim: int) -> wp.vec2i:
+    """Inclusive range of a level's cells (clamped like ``level_cell``) whose primitives can reach
+    [lo, hi]: a primitive of the level has radius <= size, so its (clamped) cell is that of a
+    centre within [lo - size, hi + size]; the margin covers rounding."""
+    if dim == 1:
+        return wp.vec2i(0, 0)
+    inv = 1.0 / size
+    m = 1.001 * size + 0.01
+    a = wp.clamp((lo - m + 0.5) * inv, -1.0, float(dim))
+    b = wp.clamp((hi + m + 0.5) * inv, -1.0, float(dim))
+    return wp.vec2i(wp.clamp(int(wp.floor(a)), 0, dim - 1), wp.clamp(int(wp.floor(b)), 0, dim - 1))
+
+
+@wp.func
+def box_meets(mu: wp.vec3, ext: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> bool:
+    """Whether the box mu +- ext may reach a point of [lo, hi] (widened for rounding; a box with a
+    non-finite bound is kept, the per-voxel test decides)."""
+    for a in range(3):
+        tol = 1.0e-5 * (wp.abs(mu[a]) + ext[a] + wp.abs(lo[a]) + wp.abs(hi[a])) + 1.0e-6
+        if mu[a] - ext[a] > hi[a] + tol or mu[a] + ext[a] < lo[a] - tol:
+            return False
+    return True
+
+
+@wp.func
+def brick_of(b: int, bricks: wp.vec3i) -> wp.vec3i:
+    """(bx, by, bz) of brick id b in a slab of ``bricks`` bricks per axis (x fastest)."""
+    return wp.vec3i(b % bricks[0], (b / bricks[0]) % bricks[1], b / (bricks[0] * bricks[1]))
+
+
+@wp.kernel
+def list_bricks(
+    z0: int,  # first output slice of this slab
+    scale: wp.vec3,  # model voxels per output voxel along x, y, z
+    size: wp.vec3i,  # output voxels of the slab (nx, ny, h)
+    bricks: wp.vec3i,  # bricks per axis of the slab
+    prims: BinnedPrimitives,
+    fill: int,  # 0: count each brick's primitives; 1: write them at their offsets
+    ends: wp.array(dtype=int),  # [B] inclusive prefix sum of counts (read when fill)
+    counts: wp.array(dtype=int),  # [B] out when counting, read when filling
+    items: wp.array(dtype=int),  # [total] out when filling: sorted slots, brick by brick
+):
+    """Count (fill=0), then list (fill=1), the primitives whose box meets each brick's voxel
+    centres, in binned order (one thread per brick; both passes walk identically)."""
+    b = wp.tid()
+    c = brick_of(b, bricks)
+    x0 = c[0] * BRICK_EDGE
+    y0 = c[1] * BRICK_EDGE
+    zb = c[2] * BRICK_EDGE
+    lo = wp.vec3(voxel_coord(x0, scale[0]), voxel_coord(y0, scale[1]), voxel_coord(zb + z0, scale[2]))
+    hi = wp.vec3(
+        voxel_coord(wp.min(x0 + BRICK_EDGE, size[0]) - 1, scale[0]),
+        voxel_coord(wp.min(y0 + BRICK_EDGE, size[1]) - 1, scale[1]),
+        voxel_coord(wp.min(zb + BRICK_EDGE, size[2]) - 1 + z0, scale[2]),
+    )
+    w = int(0)
+    if fill != 0:
+        w = ends[b] - counts[b]
+    n = int(0)
+    for l in range(prims.level_size.shape[0]):
+        s = prims.level_size[l]
+        d = prims.level_dims[l]
+        sx = cell_span(lo[0], hi[0], s, d[0])
+        sy = cell_span(lo[1], hi[1], s, d[1])
+        sz = cell_span(lo[2], hi[2], s, d[2])
+        for cz in range(sz[0], sz[1] + 1):
+            for cy in range(sy[0], sy[1] + 1):
+                row = prims.level_offset[l] + (cz * d[1] + cy) * d[0]
+                for cx in range(sx[0], sx[1] + 1):
+                    for j in range(prims.cell_start[row + cx], prims.cell_end[row + cx]):
+                        if box_meets(prims.mu[j], prims.ext[j], lo, hi):
+                            if fill != 0:
+                                items[w + n] = j
+                            n += 1
+    if fill == 0:
+        counts[b] = n
+
+
+@wp.kernel
+def eval_brick_lists(
+    z0: int,  # first output slice of this slab
+    scale: wp.vec3,  # model voxels per output voxel along x, y, z
+    bricks: wp.vec3i,  # bricks per axis of the slab
+    prims: BinnedPrimitives,
+    ends: wp.array(dtype=int),  # [B] inclusive prefix sum of counts
+    counts: wp.array(dtype=int),  # [B] primitives listed per brick
+    items: wp.array(dtype=int),  # sorted slots, brick by brick (list_bricks)
+    out: wp.array3d(dtype=float),  # [h, ny, nx] out
+):
+    """V~ of each voxel of a slab from its brick's list: LIST_THREADS threads a brick, a warp an
+    8 x 4 footprint, each thread a column of 4 voxels along z (one primitive read, four tests)."""
+    t = wp.tid()
+    c = brick_of(t / LIST_THREADS, bricks)
+    local = t % LIST_THREADS
+    i = c[0] * BRICK_EDGE + (local & 7)
+    j = c[1] * BRICK_EDGE + ((local >> 3) & 7)
+    k0 = c[2] * BRICK_EDGE + ((local >> 6) & 1) * 4
+    if i >= out.shape[2] or j >= out.shape[1] or k0 >= out.shape[0]:
+        return
+    px = voxel_coord(i, scale[0])
+    py = voxel_coord(j, scale[1])
+    num = wp.vec4(0.0)
+    den = wp.vec4(0.0)
+    b = t / LIST_THREADS
+    for u in range(ends[b] - counts[b], ends[b]):
+        s = items[u]
+        mu = prims.mu[s]
+        rot = prims.rot[s]
+        inv_s2 = prims.inv_s2[s]
+        ext = prims.ext[s]
+        w = prims.w[s]
+        wa = w * prims.a[s]
+        for q in range(4):
+            g = truncated_kernel(wp.vec3(px, py, voxel_coord(k0 + q + z0, scale[2])), mu, rot, inv_s2, ext)
+            if g > 0.0:
+                num[q] = num[q] + wa * g
+                den[q] = den[q] + w * g
+    for q in range(4):
+        if k0 + q < out.shape[0]:
+            out[k0 + q, j, i] = num[q] / wp.max(den[q], RHO0)

@@ -173,6 +173,35 @@ def cell_key(
     return level_offset[l] + (c[2] * dims[1] + c[1]) * dims[0] + c[0]
 
 
+RADIUS_CLASSES = wp.constant(160)  # power-of-two classes above the least radius (>= 1): all of float32
+
+
+@wp.kernel
+def radius_min(radius: wp.array(dtype=float), rmin: wp.array(dtype=float)):
+    """rmin[0] = least finite radius (rmin[0] set to +inf before; min is order-independent)."""
+    r = radius[wp.tid()]
+    if wp.isfinite(r):
+        wp.atomic_min(rmin, 0, r)
+
+
+@wp.kernel
+def radius_class_flags(
+    radius: wp.array(dtype=float),
+    rmin: wp.array(dtype=float),  # [1] from radius_min
+    min_cell: float,
+    flags: wp.array(dtype=int),  # [RADIUS_CLASSES] out (zeroed before): 1 where a class is occupied
+):
+    """Flag the power-of-two class of each finite radius as :func:`warpgauss.field.plan_bins`
+    computes it in float64: base = 2^floor(log2(max(rmin, min_cell))), class =
+    ceil(log2(max(r, base) / base) - 1e-9)."""
+    r = radius[wp.tid()]
+    if not wp.isfinite(r):
+        return
+    base = wp.pow(wp.float64(2.0), wp.floor(wp.log2(wp.max(wp.float64(rmin[0]), wp.float64(min_cell)))))
+    c = wp.ceil(wp.log2(wp.max(wp.float64(r), base) / base) - wp.float64(1.0e-9))
+    flags[wp.clamp(int(c), 0, RADIUS_CLASSES - 1)] = 1
+
+
 @wp.kernel
 def bin_keys(
     mu: wp.array(dtype=wp.vec3),  # [N]

@@ -64,9 +64,6 @@ def brick_counts(
     mid[bk, bj, bi] = nm
 
 
-MAX_SUPPORT_BRICKS = wp.constant(1 << 16)  # a primitive reaching more bricks marks the whole grid
-
-
 SUPPORT_MARGIN = wp.constant(2.0)  # voxels added to each 5-sigma half-extent (see mark_support)
 
 
@@ -74,12 +71,19 @@ SUPPORT_MARGIN = wp.constant(2.0)  # voxels added to each 5-sigma half-extent (s
 def mark_support(
     mu: wp.array(dtype=wp.vec3),  # [N] prepared centres (any order)
     ext: wp.array(dtype=wp.vec3),  # [N] 5-sigma half-extents
-    marks: wp.array3d(dtype=int),  # [bz, by, bx] out (zeroed before): 1 where a box reaches
+    marks: wp.array3d(dtype=int),  # [bz, by, bx] out (zeroed before): corner counts, see below
     everything: wp.array(dtype=int),  # [1] out (zeroed before): set when the whole grid is support
 ):
     """Mark the 4^3 bricks holding a voxel whose jittered samples (+-0.5) can fall in a primitive's
     5-sigma box widened by SUPPORT_MARGIN voxels: where it contributes now and, up to that much
-    growth or motion, until the next re-bin re-marks them."""
+    growth or motion, until the next re-bin re-marks them.
+
+    Each primitive adds +-1 at the 8 corners of its range of bricks (inclusion-exclusion; integer
+    atomics, so the result does not depend on their order); prefix sums along x, y and z
+    (:func:`prefix_sum_x` and friends) then give each brick the number of boxes that reach it. A
+    primitive costs 8 writes whatever its size (marking brick by brick cost 130 ms a re-bin for
+    1.4M primitives of about 16^3 bricks each on an H100).
+    """
     i = wp.tid()
     c = mu[i]
     e = ext[i]
@@ -92,17 +96,56 @@ def mark_support(
     nb = wp.vec3i(marks.shape[2], marks.shape[1], marks.shape[0])
     for a in range(3):
         h = e[a] + SUPPORT_MARGIN
-        v0 = wp.ceil(c[a] - h - 0.5)  # voxels whose [v - 0.5, v + 0.5] meets [c - h, c + h]
-        v1 = wp.floor(c[a] + h + 0.5)
+        v0 = wp.clamp(wp.ceil(c[a] - h - 0.5), -b, float(nb[a]) * b)  # voxels whose [v - 0.5, v + 0.5] meets [c - h, c + h]
+        v1 = wp.clamp(wp.floor(c[a] + h + 0.5), -b, float(nb[a]) * b)
         lo[a] = wp.clamp(int(wp.floor(v0 / b)), 0, nb[a] - 1)
         hi[a] = wp.clamp(int(wp.floor(v1 / b)), 0, nb[a] - 1)
-    if (hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1) > MAX_SUPPORT_BRICKS:
-        everything[0] = 1
-        return
-    for z in range(lo[2], hi[2] + 1):
-        for y in range(lo[1], hi[1] + 1):
-            for x in range(lo[0], hi[0] + 1):
-                marks[z, y, x] = 1
+    for corner in range(8):
+        x = lo[0]
+        y = lo[1]
+        z = lo[2]
+        sign = int(1)
+        if corner & 1:
+            x = hi[0] + 1
+            sign = -sign
+        if corner & 2:
+            y = hi[1] + 1
+            sign = -sign
+        if corner & 4:
+            z = hi[2] + 1
+            sign = -sign
+        if x < nb[0] and y < nb[1] and z < nb[2]:  # a corner past the grid's end changes no brick
+            wp.atomic_add(marks, z, y, x, sign)
+
+
+@wp.kernel
+def prefix_sum_x(marks: wp.array3d(dtype=int)):
+    """Running sum along x of every (z, y) row, in place (one thread per row)."""
+    k, j = wp.tid()
+    s = int(0)
+    for i in range(marks.shape[2]):
+        s += marks[k, j, i]
+        marks[k, j, i] = s
+
+
+@wp.kernel
+def prefix_sum_y(marks: wp.array3d(dtype=int)):
+    """Running sum along y of every (z, x) column, in place."""
+    k, i = wp.tid()
+    s = int(0)
+    for j in range(marks.shape[1]):
+        s += marks[k, j, i]
+        marks[k, j, i] = s
+
+
+@wp.kernel
+def prefix_sum_z(marks: wp.array3d(dtype=int)):
+    """Running sum along z of every (y, x) column, in place."""
+    j, i = wp.tid()
+    s = int(0)
+    for k in range(marks.shape[0]):
+        s += marks[k, j, i]
+        marks[k, j, i] = s
 
 
 @wp.kernel

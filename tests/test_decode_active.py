@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from warpgauss.field import GaussianField
 
@@ -44,24 +45,73 @@ def test_a_primitive_too_large_to_mark_makes_every_brick_active(device):
     assert np.all(np.isfinite(gf.decode((16, 16, 16))))
 
 
-def test_blocked_decode_equals_the_row_major_kernel_bit_for_bit(device):
-    """Decode runs 8^3 thread blocks (4x4x2 per warp) over slabs whose sides are not multiples of
-    8; every voxel must still be written once, with the row-major kernel's exact value."""
+@pytest.mark.parametrize("path", ["brick lists", "cell walk"])
+def test_decode_equals_the_row_major_kernel_bit_for_bit(device, path, monkeypatch):
+    """Decode lists the primitives of each 8^3 brick (or, for a slab whose lists would not fit,
+    walks the cells in 8^3 thread blocks) over slabs whose sides are not multiples of 8; every
+    voxel must still be written once, with the row-major kernel's exact value, also on resampled
+    grids and with primitives centred outside the grid."""
+    from warpgauss import field as wf
     from warpgauss._warp import warp
     from warpgauss.kernels import field as kf
 
     wp = warp()
+    if path == "cell walk":
+        monkeypatch.setattr(wf, "MAX_BRICK_LIST", 0)
     rng = np.random.default_rng(6)
     shape = (27, 13, 21)
-    gf = GaussianField(_sparse_params(rng, 80, shape), shape, device)
-    gf._active = (None, 1.0)  # no brick skip: the blocked layout alone
-    for out_shape in (shape, (9, 30, 5)):
+    p = _sparse_params(rng, 80, shape)
+    p[2, 3:6] = 2.5  # sigma 12 voxels: a level of its own
+    gf = GaussianField(p, shape, device)
+    gf._active = (None, 1.0)  # no brick skip in the cell walk: its blocked layout alone
+    for out_shape in (shape, (9, 30, 5), (40, 17, 33)):
         nx, ny, nz = out_shape
         scale = wp.vec3(*(shape[a] / out_shape[a] for a in range(3)))
         ref = wp.empty((nz, ny, nx), dtype=float, device=device)
         wp.launch(kf.eval_grid_binned, dim=(nz, ny, nx), inputs=[0, scale, gf.prims], outputs=[ref], device=device)
-        got = wp.full((nz, ny, nx), np.nan, dtype=float, device=device)
-        gf.decode_slab(got, 0, scale)
-        expect = ref.numpy()
-        assert np.count_nonzero(expect) > expect.size // 4
-        np.testing.assert_array_equal(got.numpy(), expect)
+        for z0 in (0, 3):  # a slab that starts at slice 0, and one further in
+            got = wp.full((nz - z0, ny, nx), np.nan, dtype=float, device=device)
+            gf.decode_slab(got, z0, scale)
+            expect = ref.numpy()[z0:]
+            assert np.count_nonzero(expect) > expect.size // 4
+            np.testing.assert_array_equal(got.numpy(), expect)
+
+
+def test_brick_lists_hold_exactly_the_primitives_whose_box_meets_the_brick(device):
+    """The list of a brick is the binned-order subsequence of primitives whose 5-sigma box meets
+    the brick's voxel centres (against a float64 numpy check; boxes touching only within the
+    rounding margin may be listed too)."""
+    from warpgauss._warp import warp
+    from warpgauss.kernels import decode as kd
+
+    wp = warp()
+    rng = np.random.default_rng(8)
+    shape = (30, 20, 17)
+    gf = GaussianField(_sparse_params(rng, 50, shape), shape, device)
+    nx, ny, nz = shape
+    e = int(kd.BRICK_EDGE)
+    bricks = wp.vec3i(-(-nx // e), -(-ny // e), -(-nz // e))
+    nb = int(np.prod(bricks))
+    counts = wp.zeros(nb, dtype=int, device=device)
+    ends = wp.zeros(nb, dtype=int, device=device)
+    items = wp.zeros(1, dtype=int, device=device)
+    common = [0, wp.vec3(1.0, 1.0, 1.0), wp.vec3i(nx, ny, nz), bricks, gf.prims]
+    wp.launch(kd.list_bricks, dim=nb, inputs=[*common, 0, ends, counts, items], device=device)
+    c = counts.numpy()
+    ends = wp.array(np.cumsum(c).astype(np.int32), dtype=int, device=device)
+    items = wp.full(int(c.sum()), -1, dtype=int, device=device)
+    wp.launch(kd.list_bricks, dim=nb, inputs=[*common, 1, ends, counts, items], device=device)
+    lists = np.split(items.numpy(), np.cumsum(c)[:-1])
+    mu = gf.prims.mu.numpy().astype(np.float64)
+    ext = gf.prims.ext.numpy().astype(np.float64)
+    listed_somewhere = 0
+    for b, got in enumerate(lists):
+        bx, by, bz = b % bricks[0], (b // bricks[0]) % bricks[1], b // (bricks[0] * bricks[1])
+        lo = np.array([bx, by, bz], np.float64) * e
+        hi = np.minimum(lo + e, shape) - 1
+        meets = np.all((mu - ext <= hi + 1e-3) & (mu + ext >= lo - 1e-3), axis=1)
+        surely = np.all((mu - ext < hi - 1e-3) & (mu + ext > lo + 1e-3), axis=1)
+        assert np.all(np.diff(got) > 0)  # binned order, no repeats
+        assert set(np.flatnonzero(surely)) <= set(got) <= set(np.flatnonzero(meets))
+        listed_somewhere += len(got)
+    assert 0 < listed_somewhere < nb * gf.n // 2  # the lists cull

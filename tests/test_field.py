@@ -106,3 +106,27 @@ def test_bin_plan_is_stable_while_radii_drift_within_their_octaves():
     b = plan_bins(r * rng.uniform(0.97, 1.03, r.size).clip(2.05 / r, 31.0 / r), (96, 80, 64))
     assert a == b
     assert math.log2(a.sizes[0]).is_integer()  # levels start at a power of two
+
+
+def test_device_plan_equals_the_numpy_plan(device):
+    """plan_bins_on_device finds the least radius and the occupied classes on the device and must
+    give plan_bins' plan: spread radii, exact powers of two, radii below MIN_CELL, non-finite
+    radii (ignored), a huge one (coarsened levels), and none finite at all."""
+    from warpgauss._warp import warp
+    from warpgauss.field import plan_bins_on_device
+
+    wp = warp()
+    rng = np.random.default_rng(3)
+    cases = [
+        rng.uniform(0.3, 40.0, 2000),
+        np.array([1.0, 2.0, 4.0, 8.0, 8.0, 16.0, 3.0]),
+        np.concatenate([rng.uniform(0.01, 0.9, 50), [np.nan, np.inf, -np.inf, 5.5]]),
+        np.array([2.5, 1.0e9, 7.0]),
+        np.array([np.nan, np.inf]),
+        2.0 ** rng.integers(-3, 9, 300) * rng.choice([1.0, 1.0 - 1e-7, 1.0 + 1e-7], 300),
+    ]
+    for shape in ((64, 64, 64), (300, 20, 9)):
+        for r in cases:
+            r = r.astype(np.float32)
+            got = plan_bins_on_device(wp.array(r, dtype=float, device=device), shape)
+            assert got == plan_bins(r, shape), (r[:8], shape)

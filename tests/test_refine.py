@@ -547,3 +547,36 @@ def test_time_budget_spends_spare_time_on_samples(cpu):
     t[0] = 0.0
     r.run(deadline=0.5, clock=clock, log_every=1000)
     assert r.m == 64 and r.iteration > 200
+
+
+def test_support_marks_count_the_boxes_reaching_each_brick(device):
+    """mark_support's corner counts plus the three prefix sums give every 4^3 brick the number of
+    widened 5-sigma boxes reaching it (numpy brute force), for boxes inside, across the edge of,
+    outside and far larger than the grid."""
+    from warpgauss._warp import warp
+    from warpgauss.kernels import sampling as ks
+
+    wp = warp()
+    rng = np.random.default_rng(11)
+    nb = (5, 7, 6)  # bricks along z, y, x
+    n = 40
+    mu = rng.uniform(-8.0, 34.0, (n, 3)).astype(np.float32)
+    ext = rng.uniform(0.2, 9.0, (n, 3)).astype(np.float32)
+    ext[0] = 1.0e6  # covers everything
+    mu[1] = [-30.0, 10.0, 10.0]  # wholly left of the grid: clamps to the first bricks along x
+    marks = wp.zeros(nb, dtype=int, device=device)
+    everything = wp.zeros(1, dtype=int, device=device)
+    wp.launch(ks.mark_support, dim=n, inputs=[wp.array(mu, dtype=wp.vec3, device=device), wp.array(ext, dtype=wp.vec3, device=device)], outputs=[marks, everything], device=device)
+    wp.launch(ks.prefix_sum_x, dim=(nb[0], nb[1]), inputs=[marks], device=device)
+    wp.launch(ks.prefix_sum_y, dim=(nb[0], nb[2]), inputs=[marks], device=device)
+    wp.launch(ks.prefix_sum_z, dim=(nb[1], nb[2]), inputs=[marks], device=device)
+    expect = np.zeros(nb, np.int64)
+    size = np.array(nb[::-1])  # x, y, z
+    for c, e in zip(mu.astype(np.float64), ext.astype(np.float64)):
+        h = e + float(ks.SUPPORT_MARGIN)
+        lo = np.clip(np.floor(np.ceil(c - h - 0.5) / 4), 0, size - 1).astype(int)
+        hi = np.clip(np.floor(np.floor(c + h + 0.5) / 4), 0, size - 1).astype(int)
+        expect[lo[2] : hi[2] + 1, lo[1] : hi[1] + 1, lo[0] : hi[0] + 1] += 1
+    assert int(everything.numpy()[0]) == 0
+    np.testing.assert_array_equal(marks.numpy(), expect)
+    assert expect.min() >= 1 and expect.max() > 2  # the huge box everywhere, overlaps elsewhere

@@ -200,7 +200,9 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
         if cfg.decode:
             gf = GaussianField(r.model_params(), f.shape_xyz, device=dev)
             entry["decode_ms"] = timer.ms(lambda: _decode_on_device(gf), 1, warmup=1)
-            entry["decode_rowmajor_ms"] = timer.ms(lambda: _decode_on_device(gf, blocked=False), 1, warmup=1)
+            entry["decode_walk_ms"] = timer.ms(lambda: _decode_on_device(gf, "walk"), 1, warmup=1)
+            entry["decode_rowmajor_ms"] = timer.ms(lambda: _decode_on_device(gf, "rowmajor"), 1, warmup=1)
+            entry["decode_slab_equal_to_rowmajor"] = _decode_agrees(gf)
             entry["decode_voxels"] = cfg.size**3
             entry["decode_gvoxels_per_s"] = cfg.size**3 / (entry["decode_ms"] * 1e-3) / 1e9
             del gf
@@ -236,9 +238,13 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
     }
 
 
-def _decode_on_device(gf, blocked: bool = True) -> None:
-    """Evaluate the whole model grid slab by slab into one device buffer (no host copy);
-    ``blocked=False``: the row-major launch (every voxel, no brick skip) as the baseline."""
+def _decode_on_device(gf, path: str = "lists") -> None:
+    """Evaluate the whole model grid slab by slab into one device buffer (no host copy).
+
+    ``path``: "lists" (what decode runs: per-brick primitive lists), "walk" (the binned cell walk in
+    8^3 thread blocks with brick skip, the decode before brick lists), "rowmajor" (the cell walk
+    over every voxel, one thread per voxel in row-major order).
+    """
     wp = warp()
     from .field import DECODE_SLAB_VOXELS
     from .kernels import field as kf
@@ -250,10 +256,30 @@ def _decode_on_device(gf, blocked: bool = True) -> None:
     for z0 in range(0, nz, slab):
         h = min(slab, nz - z0)
         view = buf if h == slab else wp.empty((h, ny, nx), dtype=float, device=gf.device)
-        if blocked:
+        if path == "lists":
             gf.decode_slab(view, z0, one)
+        elif path == "walk":
+            gf._decode_walk(view, z0, one)
         else:
             wp.launch(kf.eval_grid_binned, dim=(h, ny, nx), inputs=[z0, one, gf.prims], outputs=[view], device=gf.device)
+
+
+def _decode_agrees(gf) -> bool:
+    """Whether the middle slab of a decode equals the row-major kernel's, bit for bit."""
+    wp = warp()
+    from .field import DECODE_SLAB_VOXELS
+    from .kernels import field as kf
+
+    nx, ny, nz = gf.shape_xyz
+    h = max(1, min(nz, DECODE_SLAB_VOXELS // (nx * ny)))
+    z0 = max(0, nz // 2 - h // 2)
+    h = min(h, nz - z0)
+    one = wp.vec3(1.0, 1.0, 1.0)
+    a = wp.empty((h, ny, nx), dtype=float, device=gf.device)
+    b = wp.empty((h, ny, nx), dtype=float, device=gf.device)
+    gf.decode_slab(a, z0, one)
+    wp.launch(kf.eval_grid_binned, dim=(h, ny, nx), inputs=[z0, one, gf.prims], outputs=[b], device=gf.device)
+    return bool(np.array_equal(a.numpy(), b.numpy()))
 
 
 def _format_row(r: dict) -> str:
@@ -286,11 +312,11 @@ def format_table(result: dict) -> str:
             f"{r.get('backward_atomic_ms', float('nan')):.3f} | {r['update_ms']:.3f} | {r['iteration_ms']:.3f} | {r.get('iteration_nograph_ms', float('nan')):.3f} | "
             f"{r['pairs_per_point']:.1f} | {r['gpairs_per_s'] or 0:.2f} | {r.get('dense_over_binned', float('nan')):.1f} |"
         )
-    lines += ["", "| N | levels | bin ms | decode s | row-major decode s | Gvoxels/s |", "|---|---|---|---|---|---|"]
+    lines += ["", "| N | levels | bin ms | decode s | cell-walk decode s | row-major decode s | Gvoxels/s |", "|---|---|---|---|---|---|---|"]
     for e in result["per_n"]:
         lines.append(
             f"| {e['n']:,} | {e['levels']} | {e['bin_ms']:.3f} | {e.get('decode_ms', float('nan')) / 1e3:.3f} | "
-            f"{e.get('decode_rowmajor_ms', float('nan')) / 1e3:.3f} | "
+            f"{e.get('decode_walk_ms', float('nan')) / 1e3:.3f} | {e.get('decode_rowmajor_ms', float('nan')) / 1e3:.3f} | "
             f"{e.get('decode_gvoxels_per_s', float('nan')):.3f} |"
         )
     return "\n".join(lines)

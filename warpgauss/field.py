@@ -22,6 +22,7 @@ MIN_CELL = 1.0  # smallest cell edge in voxels: finer cells cost more cell visit
 MAX_LEVEL_CELLS = 1 << 24  # cells per level (64 MiB of int32 ranges at most); coarser beyond
 DECODE_SLAB_VOXELS = 1 << 24  # output voxels per decode launch (64 MiB of float32)
 EVAL_CHUNK_POINTS = 1 << 22  # points per evaluation launch
+MAX_BRICK_LIST = 1 << 27  # (brick, primitive) entries of one decode slab (512 MiB); more: the cell walk
 
 
 @dataclass(frozen=True)
@@ -47,7 +48,8 @@ def plan_bins(radius: np.ndarray, shape_xyz: tuple[int, int, int]) -> BinPlan:
     One level per occupied power-of-two radius class (classes start at a power of two), its cells
     as large as the largest radius of the class (so a point needs only the 3^3 neighbouring
     cells), coarsened where a level would exceed :data:`MAX_LEVEL_CELLS`. A final global level catches any primitive larger than planned,
-    so evaluation stays exact even with a stale plan.
+    so evaluation stays exact even with a stale plan. :func:`plan_bins_on_device` gives the same
+    plan from radii on a device (without reading them back).
 
     Args:
         radius: Per-primitive truncation radius in voxels (max half-extent of the 5-sigma box).
@@ -55,26 +57,52 @@ def plan_bins(radius: np.ndarray, shape_xyz: tuple[int, int, int]) -> BinPlan:
     """
     r = np.asarray(radius, dtype=np.float64)
     r = r[np.isfinite(r)]
+    if not r.size:
+        return _plan_from_classes(1.0, [], shape_xyz)
+    # a power of two: the plan then stays the same while radii drift within their octaves, so
+    # a refiner re-planning every 100 iterations keeps its tables and its captured graph
+    base = 2.0 ** math.floor(math.log2(max(float(r.min()), MIN_CELL)))
+    classes = np.unique(np.ceil(np.log2(np.maximum(r, base) / base) - 1e-9).astype(np.int64))
+    return _plan_from_classes(base, [int(c) for c in classes], shape_xyz)
+
+
+def plan_bins_on_device(radius, shape_xyz: tuple[int, int, int]) -> BinPlan:
+    """:func:`plan_bins` of a Warp array of radii: the least radius and the occupied classes are
+    found on its device (two launches, 260 bytes read back instead of 4 bytes a primitive; the
+    numpy plan of 1.4M radii took 40-80 ms of host time every re-plan)."""
+    wp = warp()
+    from .kernels import field as kf
+
+    dev = radius.device
+    n = int(radius.shape[0])
+    rmin = wp.full(1, np.inf, dtype=float, device=dev)
+    flags = wp.zeros(int(kf.RADIUS_CLASSES), dtype=int, device=dev)
+    wp.launch(kf.radius_min, dim=n, inputs=[radius, rmin], device=dev)
+    wp.launch(kf.radius_class_flags, dim=n, inputs=[radius, rmin, MIN_CELL], outputs=[flags], device=dev)
+    lo = float(rmin.numpy()[0])
+    if not math.isfinite(lo):
+        return _plan_from_classes(1.0, [], shape_xyz)
+    base = 2.0 ** math.floor(math.log2(max(lo, MIN_CELL)))
+    return _plan_from_classes(base, [int(c) for c in np.flatnonzero(flags.numpy())], shape_xyz)
+
+
+def _plan_from_classes(base: float, classes: list[int], shape_xyz: tuple[int, int, int]) -> BinPlan:
+    """The levels of occupied radius classes ``base`` x 2^c (ascending), then the global level."""
     shape = np.asarray(shape_xyz, dtype=np.float64)
     sizes: list[float] = []
     dims: list[tuple[int, int, int]] = []
-    if r.size:
-        # a power of two: the plan then stays the same while radii drift within their octaves, so
-        # a refiner re-planning every 100 iterations keeps its tables and its captured graph
-        base = 2.0 ** math.floor(math.log2(max(float(r.min()), MIN_CELL)))
-        classes = np.unique(np.ceil(np.log2(np.maximum(r, base) / base) - 1e-9).astype(np.int64))
-        for c in classes:
-            size = base * 2.0 ** int(c)
-            if sizes:
-                size = max(size, sizes[-1])
+    for c in classes:
+        size = base * 2.0 ** int(c)
+        if sizes:
+            size = max(size, sizes[-1])
+        d = np.maximum(np.ceil(shape / size), 1).astype(np.int64)
+        while int(np.prod(d)) > MAX_LEVEL_CELLS:
+            size *= 2.0
             d = np.maximum(np.ceil(shape / size), 1).astype(np.int64)
-            while int(np.prod(d)) > MAX_LEVEL_CELLS:
-                size *= 2.0
-                d = np.maximum(np.ceil(shape / size), 1).astype(np.int64)
-            if sizes and size == sizes[-1]:
-                continue
-            sizes.append(float(size))
-            dims.append((int(d[0]), int(d[1]), int(d[2])))
+        if sizes and size == sizes[-1]:
+            continue
+        sizes.append(float(size))
+        dims.append((int(d[0]), int(d[1]), int(d[2])))
     return _with_global_level(sizes, dims)
 
 
@@ -228,6 +256,7 @@ class GaussianField:
         p.w = wp.empty_like(self.w)
         self.plan: BinPlan | None = None
         self._active = None
+        self._decode_bufs: dict = {}  # int scratch of the brick-list decode, kept between slabs
         self.update(replan=True)
 
     def update(self, replan: bool = False) -> None:
@@ -249,7 +278,7 @@ class GaussianField:
         )
         prims = self.prims
         if replan or self.plan is None:
-            plan = plan_bins(self.radius.numpy(), self.shape_xyz)
+            plan = plan_bins_on_device(self.radius, self.shape_xyz)
             if plan != self.plan:
                 self.plan = plan
                 set_plan(prims, plan, dev)
@@ -314,7 +343,51 @@ class GaussianField:
             yield z0, view.numpy()
 
     def decode_slab(self, out, z0: int, scale) -> None:
-        """Evaluate one (h, ny, nx) device slab starting at output slice ``z0`` (no host copy)."""
+        """Evaluate one (h, ny, nx) device slab starting at output slice ``z0`` (no host copy).
+
+        Each 8^3 brick lists the primitives whose box meets it, then its voxels stream through
+        the list (:mod:`warpgauss.kernels.decode`); one read-back of the list's length per slab.
+        A slab whose lists would exceed :data:`MAX_BRICK_LIST` entries is evaluated by the cell
+        walk instead (same values).
+        """
+        from .kernels import decode as kd
+
+        wp, dev = self._wp, self.device
+        h, ny, nx = out.shape
+        e = int(kd.BRICK_EDGE)
+        bricks = wp.vec3i(-(-nx // e), -(-ny // e), -(-h // e))
+        nb = int(bricks[0]) * int(bricks[1]) * int(bricks[2])
+        size = wp.vec3i(nx, ny, h)
+        counts, ends = self._decode_scratch("counts", nb), self._decode_scratch("ends", nb)
+        items = self._decode_scratch("items", 1)
+        common = [z0, scale, size, bricks, self.prims]
+        wp.launch(kd.list_bricks, dim=nb, inputs=[*common, 0, ends, counts, items], device=dev)
+        wp.utils.array_scan(counts[:nb], ends[:nb], inclusive=True)
+        total = int(ends[nb - 1 : nb].numpy()[0])
+        if total > MAX_BRICK_LIST:
+            self._decode_walk(out, z0, scale)
+            return
+        items = self._decode_scratch("items", max(total, 1))
+        wp.launch(kd.list_bricks, dim=nb, inputs=[*common, 1, ends, counts, items], device=dev)
+        wp.launch(
+            kd.eval_brick_lists,
+            dim=nb * int(kd.LIST_THREADS),
+            inputs=[z0, scale, bricks, self.prims, ends, counts, items],
+            outputs=[out],
+            device=dev,
+        )
+
+    def _decode_scratch(self, name: str, n: int):
+        """A device int buffer of at least n entries kept between slabs (grown by half again)."""
+        bufs = self._decode_bufs
+        buf = bufs.get(name)
+        if buf is None or buf.shape[0] < n:
+            buf = self._wp.empty(max(n, 3 * (buf.shape[0] if buf is not None else 0) // 2), dtype=int, device=self.device)
+            bufs[name] = buf
+        return buf
+
+    def _decode_walk(self, out, z0: int, scale) -> None:
+        """Evaluate a slab by the binned cell walk, skipping bricks no primitive reaches."""
         from .kernels import decode as kd
 
         active = self.active_bricks()

@@ -476,6 +476,10 @@ class Refiner:
         everything.zero_()
         mu, ext = self._prep[0], self._prep[3]  # prepared at this re-bin (old slot order: any order will do)
         wp.launch(ks.mark_support, dim=self.n, inputs=[mu, ext], outputs=[marks, everything], device=dev)
+        bz, by, bx = marks.shape
+        wp.launch(ks.prefix_sum_x, dim=(bz, by), inputs=[marks], device=dev)
+        wp.launch(ks.prefix_sum_y, dim=(bz, bx), inputs=[marks], device=dev)
+        wp.launch(ks.prefix_sum_z, dim=(by, bx), inputs=[marks], device=dev)
         self._index_support()
 
     def _index_support(self) -> None:
@@ -497,9 +501,9 @@ class Refiner:
     def _replan(self, radius) -> bool:
         """Plan the levels for the current radii; returns whether the plan changed (then the cell
         tables, point buffers and captured graph are rebuilt)."""
-        from .field import plan_bins, set_plan
+        from .field import plan_bins_on_device, set_plan
 
-        plan = plan_bins(radius.numpy(), self.dv.field.shape_xyz)
+        plan = plan_bins_on_device(radius, self.dv.field.shape_xyz)
         if plan == self.plan:
             return False
         self.plan = plan

@@ -1,0 +1,67 @@
+"""Where a refinement iteration's time goes beyond the kernels: the re-bin's parts (CUDA events),
+per-step wall times over 200 steps (re-bins every 10, re-plans every 100), and a real run's
+ms/iteration (Refiner.run) against the bench's step median.
+
+    python3 benchmarks/i17/iter_prof.py SIZE N SAMPLES OUT.json
+"""
+import json
+import sys
+import time
+
+import numpy as np
+
+from warpgauss._warp import device_name, warp
+from warpgauss.analysis import DeviceVolume
+from warpgauss.bench import _Timer, bench_field, bench_primitives
+from warpgauss.field import sort_into_cells
+from warpgauss.kernels import field as kf
+from warpgauss.kernels import optim as ko
+from warpgauss.optimize import RefineConfig, Refiner
+
+wp = warp()
+dev = "cuda:0" if wp.get_cuda_device_count() else "cpu"
+size, n, m, out = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
+f = bench_field(size)
+dv = DeviceVolume(f, dev)
+r = Refiner(dv, bench_primitives(n, f.shape_xyz, 0.7, 0), RefineConfig(iterations=1500, samples=m), 0, 0.3, max(2.0, size / 16))
+T = _Timer(dev)
+for _ in range(20):
+    r.step()
+wp.synchronize()
+p = r.prims
+parts = {
+    "prepare+radius": lambda: (
+        wp.launch(kf.prepare_primitives, dim=r.n, inputs=[r.raw, 1], outputs=r._prep, device=dev),
+        wp.launch(ko.effective_radius, dim=r.n, inputs=[r._prep[4], r.reach], device=dev),
+    ),
+    "sort_into_cells": lambda: sort_into_cells(p, r._prep, r._keys, r._perm, dev),
+    "global_members (sync)": r._global_members,
+    "slot_cells": r._slot_cells,
+    "zero_grads": r._zero_grads,
+    "mark_support": r._mark_support if r.uniform_support else (lambda: None),
+    "rebin": r.rebin,
+    "rebin+replan": lambda: r.rebin(replan=True),
+}
+res = {"device_name": device_name(dev), "warp_version": wp.config.version, "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
+       "size": size, "n": n, "samples": m, "uniform_support": bool(r.uniform_support), "parts_ms": {}}
+for k, fn in parts.items():
+    res["parts_ms"][k] = T.ms(fn, 10)
+    res["parts_ms"][k + " wall"] = T.wall_ms(fn, 10)
+r.rebin(replan=True)
+each = T.each_ms(r.step, 200)
+res["step_ms_median"] = float(np.median(each))
+res["step_ms_mean_200"] = float(np.mean(each))
+res["step_ms_max"] = float(np.max(each))
+res["step_ms_top5"] = sorted(each)[-5:]
+r2 = Refiner(dv, bench_primitives(n, f.shape_xyz, 0.7, 0), RefineConfig(iterations=1500, samples=m), 0, 0.3, max(2.0, size / 16))
+wp.synchronize()
+t0 = time.perf_counter()
+info = r2.run()
+wp.synchronize()
+res["run_seconds"] = time.perf_counter() - t0
+res["run_iterations"] = r2.iteration
+res["run_ms_per_iteration"] = 1000 * res["run_seconds"] / max(r2.iteration, 1)
+res["run_over_step_median"] = res["run_ms_per_iteration"] / res["step_ms_median"]
+for k, v in res.items():
+    print(k, v)
+json.dump(res, open(out, "w"), indent=1)
