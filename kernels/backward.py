@@ -229,23 +229,29 @@ def row_range(grid: PointGrid, l: int, lo: wp.vec3i, hi: wp.vec3i, y: int, z: in
 
 
 @wp.kernel
-def dense_starts(
-    sorted_keys: wp.array(dtype=int),  # [>=K] cell id of each sorted entry, ascending
-    count: int,  # K entries; the launch has K + 1 threads
-    cells: int,  # C cells
-    start: wp.array(dtype=int),  # [C + 1] out: first entry of each cell (empty cells: the next one's)
+def count_keys(
+    sorted_keys: wp.array(dtype=int),  # [>=K] cell id of each entry, ascending
+    count: int,  # K entries (the launch has K threads)
+    counts: wp.array(dtype=int),  # [C + 1] out (zeroed before): entries of each cell
 ):
-    """Cell start table with empty cells filled, so that a run of cells is one range (each cell
-    is written by exactly one thread: the one whose entry is the first at or past it)."""
+    """Entries per cell: the last entry of each run of equal keys finds the run's first by a
+    binary search and writes the run's length (no atomics: thousands of entries of one cell would
+    queue on one address). Their exclusive prefix sum is the cell start table, empty cells holding
+    the next cell's start (:func:`warpgauss.field.cell_starts`)."""
     i = wp.tid()
-    prev = int(-1)
-    if i > 0:
-        prev = sorted_keys[i - 1]
-    cur = cells
-    if i < count:
-        cur = sorted_keys[i]
-    for c in range(prev + 1, cur + 1):
-        start[c] = i
+    key = sorted_keys[i]
+    if i + 1 < count:
+        if sorted_keys[i + 1] == key:
+            return
+    lo = int(0)
+    hi = i
+    while lo < hi:  # first entry of this key
+        mid = (lo + hi) / 2
+        if sorted_keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    counts[key] = i + 1 - lo
 
 
 @wp.kernel

@@ -24,17 +24,20 @@ def _refiner(device, n=300, samples=1024, seed=0):
     return Refiner(dv, params, rc, seed, cfg.scale_min, cfg.resolved_cap(f.shape_xyz))
 
 
-def test_dense_starts_equal_numpy_searchsorted(device):
-    """Every cell, empty ones at either end and between included, gets the first entry at or past it."""
+def test_cell_starts_equal_numpy_searchsorted(device):
+    """Every cell, empty ones at either end and between included, gets the first entry at or past
+    it, and the table ends with the entry count; only the first ``count`` keys count."""
     from warpgauss._warp import warp
-    from warpgauss.kernels import backward as kb
+    from warpgauss.field import cell_starts
 
     wp = warp()
     rng = np.random.default_rng(5)
-    for cells, count in ((40, 0), (40, 1), (50, 300), (7, 64)):
+    for cells, count in ((40, 0), (40, 1), (50, 300), (7, 64), (100000, 5)):
         keys = np.sort(rng.integers(3, max(cells - 4, 4), count)).astype(np.int32)
+        padded = np.concatenate([keys, [cells - 1] * 3]).astype(np.int32)  # entries past count: ignored
         start = wp.full(cells + 1, -7, dtype=int, device=device)  # poisoned: every cell must be written
-        wp.launch(kb.dense_starts, dim=count + 1, inputs=[wp.array(keys, dtype=int, device=device), count, cells], outputs=[start], device=device)
+        counts = wp.full(cells + 1, 9, dtype=int, device=device)  # stale counts: zeroed first
+        cell_starts(wp.array(padded, dtype=int, device=device), count, counts, start, device)
         ref = np.searchsorted(keys, np.arange(cells + 1), side="left")
         np.testing.assert_array_equal(start.numpy(), ref)
 

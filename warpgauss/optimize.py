@@ -592,10 +592,12 @@ class Refiner:
             grid = kb.PointGrid()
             grid.size, grid.dims, grid.offset = plan_arrays(gp, dev)
             grid.start = wp.zeros(gp.total_cells + 1, dtype=int, device=dev)
+            cell_counts = wp.zeros(gp.total_cells + 1, dtype=int, device=dev)
             cap = chunk_capacity(p2)
             b = {
                 "grid_plan": gp,
                 "grid": grid,
+                "cell_counts": cell_counts,
                 "keys": wp.empty(2 * k, dtype=int, device=dev),
                 "order": wp.empty(2 * k, dtype=int, device=dev),
                 "fkeys": wp.empty(2 * p2, dtype=int, device=dev),
@@ -648,7 +650,7 @@ class Refiner:
         """Bin the first ``count`` points on every level's point grid and sort them by cell
         (stable: the order within a cell is the point index, so the pair pass sums in a fixed
         order), with the dense cell start table."""
-        from .kernels import backward as kb
+        from .field import cell_starts
         from .kernels import field as kf
 
         wp, dev, b = self._wp, self.device, self._point_buffers()
@@ -656,7 +658,7 @@ class Refiner:
         k = len(self.plan.sizes) * count
         wp.launch(kf.point_keys, dim=k, inputs=[self.points, count, grid.size, grid.dims, grid.offset], outputs=[b["keys"], b["order"]], device=dev)
         wp.utils.radix_sort_pairs(b["keys"], b["order"], k, 0, max(1, (cells - 1).bit_length()))
-        wp.launch(kb.dense_starts, dim=k + 1, inputs=[b["keys"], k, cells], outputs=[grid.start], device=dev)
+        cell_starts(b["keys"], k, b["cell_counts"], grid.start, dev)
 
     def _order_points(self, count: int) -> None:
         """Sort the first ``count`` points by their cell on the primitives' first level (stable),
