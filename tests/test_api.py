@@ -83,6 +83,7 @@ def test_iterations_zero_is_the_analytic_model_and_presets_resolve(interface32):
     m = warpgauss.encode(interface32, budget=100, iterations=0, device=None, evaluate=False)
     assert any(s["what"] == "S2 refinement" for s in m.report["skipped"])
     from warpgauss.pipeline import resolve_refine
+    from warpgauss.refine import config
 
     assert (resolve_refine(None, "fast", None, None).iterations, resolve_refine(None, "fast", None, None).samples) == (300, 3072)
     assert resolve_refine(None, "quality", 10, None).iterations == 10  # explicit beats the preset
@@ -124,15 +125,15 @@ def test_a_refinement_that_loses_to_the_analytic_model_is_discarded():
 
 
 def test_large_budgets_get_more_samples_by_default_and_presets_keep_theirs(monkeypatch):
-    from warpgauss import optimize
     from warpgauss.optimize import AUTO_BATCH_PRIMITIVES, PRESETS, RefineConfig
     from warpgauss.pipeline import resolve_refine
+    from warpgauss.refine import config
 
     cfg = RefineConfig()
     assert cfg.for_budget(1_400_000).samples == 4 * 3072  # the measured quality setting at 1.4M
     assert cfg.for_budget(AUTO_BATCH_PRIMITIVES).samples == 3072
     assert cfg.for_budget(AUTO_BATCH_PRIMITIVES + 1).samples == 2 * 3072
-    assert cfg.for_budget(10**9).samples == optimize.AUTO_MAX_BATCHES * 3072
+    assert cfg.for_budget(10**9).samples == config.AUTO_MAX_BATCHES * 3072
     for name in PRESETS:  # a named preset is exactly its settings
         assert resolve_refine(None, name, None, None).for_budget(1_400_000).samples == PRESETS[name]["samples"]
     assert resolve_refine(None, None, None, 5000).for_budget(1_400_000).samples == 5000  # explicit samples stay
@@ -140,7 +141,7 @@ def test_large_budgets_get_more_samples_by_default_and_presets_keep_theirs(monke
 
     # the pipeline applies it (batch size lowered so a CPU test reaches it), records it in the
     # header and the report, and a --ratio budget still fits its size
-    monkeypatch.setattr(optimize, "AUTO_BATCH_PRIMITIVES", 100)
+    monkeypatch.setattr(config, "AUTO_BATCH_PRIMITIVES", 100)
     vol = generate("vortex", 24, seed=0)
     m = warpgauss.encode(vol, budget=250, iterations=2, device="cpu", evaluate=False, self_test=False)
     assert m.report["refinement"]["samples"] == 3 * 3072 and m.header["encoding"]["samples"] == 3 * 3072

@@ -57,11 +57,11 @@ def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkey
     """Chunks of 1 or 5 candidates, as many as a tiny capacity forces, or at most 3 per
     primitive: the same pairs, and the gradients of the point-major atomic scatter (another
     summation order: rounding only)."""
-    from warpgauss import optimize
+    from warpgauss.refine import passes
 
-    monkeypatch.setattr(optimize, "MIN_CHUNK", min_chunk)
-    monkeypatch.setattr(optimize, "MAX_CHUNKS", max_chunks)
-    monkeypatch.setattr(optimize, "chunk_capacity", lambda n_points: capacity)
+    monkeypatch.setattr(passes, "MIN_CHUNK", min_chunk)
+    monkeypatch.setattr(passes, "MAX_CHUNKS", max_chunks)
+    monkeypatch.setattr(passes, "chunk_capacity", lambda n_points: capacity)
     r = _refiner(device)
     mine, pairs, stats = _pair_pass(r)
     np.testing.assert_array_equal(pairs, r.pairs.numpy())
@@ -79,9 +79,9 @@ def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkey
 
 
 def test_chunked_pass_reruns_bit_identically(device, monkeypatch):
-    from warpgauss import optimize
+    from warpgauss.refine import passes
 
-    monkeypatch.setattr(optimize, "MIN_CHUNK", 3)
+    monkeypatch.setattr(passes, "MIN_CHUNK", 3)
     runs = []
     for _ in range(2):
         r = _refiner(device)

@@ -255,7 +255,7 @@ def test_a_primitive_outgrowing_the_levels_triggers_a_replan(cpu):
     raw[0, 3:6] = np.log(top)  # 5 sigma = 5x the largest planned cell
     r.raw.assign(raw)
     r.rebin(replan=False)
-    assert r._global_members() == 0
+    assert r.binner.global_members() == 0
     assert r.plan.sizes[-2] > top
     r.sample()
     r.forward_backward()
@@ -364,7 +364,7 @@ def test_bins_stay_exact_between_rebins_and_far_moves_are_deferred(cpu):
 
     r, f, _ = _toy(cpu, iterations=60)
     r.cfg = RefineConfig(iterations=60, samples=1024, lr=0.08, rebin_every=10_000, replan_every=10_000)
-    r._write_schedule()
+    r.write_schedule()
     for _ in range(60):
         r.step()
     assert r.rebins == 1  # only the initial binning
@@ -456,10 +456,10 @@ def test_uniform_samples_cover_the_model_support_and_nothing_else(device):
     for steps in (0, 9):  # right after the re-bin, and 9 steps later (the last before the next one)
         for _ in range(steps):
             r.step()
-        marks, everything, _ = r._support_marks
+        marks, everything, _ = r.sampler.marks
         assert int(everything.numpy()[0]) == 0
         sup = np.repeat(np.repeat(np.repeat(marks.numpy() != 0, 4, 0), 4, 1), 4, 2)[:nz, :ny, :nx]
-        assert int(r._support.numpy()[-1]) == int(sup.sum()) and r.support_share() == pytest.approx(sup.mean())
+        assert int(r.sampler.support.numpy()[-1]) == int(sup.sum()) and r.support_share() == pytest.approx(sup.mean())
         assert 0.0 < sup.mean() < 0.75  # a sparse field: a good part of the grid is skipped
         # points jittered within +-0.5 of every voxel centre, where the model reaches
         z, y, x = np.nonzero(np.ones((nz, ny, nx), bool))
@@ -567,9 +567,8 @@ def test_support_marks_count_the_boxes_reaching_each_brick(device):
     marks = wp.zeros(nb, dtype=int, device=device)
     everything = wp.zeros(1, dtype=int, device=device)
     wp.launch(ks.mark_support, dim=n, inputs=[wp.array(mu, dtype=wp.vec3, device=device), wp.array(ext, dtype=wp.vec3, device=device)], outputs=[marks, everything], device=device)
-    wp.launch(ks.prefix_sum_x, dim=(nb[0], nb[1]), inputs=[marks], device=device)
-    wp.launch(ks.prefix_sum_y, dim=(nb[0], nb[2]), inputs=[marks], device=device)
-    wp.launch(ks.prefix_sum_z, dim=(nb[1], nb[2]), inputs=[marks], device=device)
+    for axis, lines in ((0, (nb[1], nb[2])), (2, (nb[0], nb[1])), (1, (nb[0], nb[2]))):  # any order
+        wp.launch(ks.prefix_sum_axis, dim=lines, inputs=[marks, axis], device=device)
     expect = np.zeros(nb, np.int64)
     size = np.array(nb[::-1])  # x, y, z
     for c, e in zip(mu.astype(np.float64), ext.astype(np.float64)):

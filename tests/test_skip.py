@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import warpgauss
-from warpgauss import optimize
+from warpgauss import refine
 
 KW = {"example": "vortex", "example_size": 24, "budget": 300, "samples": 256, "device": "cpu", "seed": 1}
 
@@ -47,7 +47,7 @@ def test_plateau_stops_when_the_gain_over_the_window_is_small(cpu):
 
 
 def test_self_test_runs_once_per_process_and_device(cpu, monkeypatch):
-    monkeypatch.setattr(optimize, "SELF_TESTS", {})
+    monkeypatch.setattr(refine, "SELF_TESTS", {})
     import warpgauss.pipeline  # noqa: F401  (the pipeline imports the dict at call time)
 
     a = warpgauss.encode(**KW, iterations=5)

@@ -159,22 +159,22 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
             r.set_raw(raw0)  # every sample count sees the same primitives
             row = {"n": n, "samples": m}
             row["sample_ms"] = timer.ms(r.sample, cfg.repeat)
-            row["forward_ms"] = timer.ms(r._forward, cfg.repeat)
+            row["forward_ms"] = timer.ms(r.forward, cfg.repeat)
             pairs = r.pairs.numpy().astype(np.float64)
             row["pairs_per_point"] = float(pairs.mean())
-            row["point_sort_ms"] = timer.ms(lambda: r._sort_points(2 * m), cfg.repeat)
-            row["backward_ms"] = timer.ms(r._backward, cfg.repeat)
+            row["point_sort_ms"] = timer.ms(lambda: r.passes.sort_points(2 * m), cfg.repeat)
+            row["backward_ms"] = timer.ms(r.backward, cfg.repeat)
             stats = r.pair_pass_stats()
             row["backward_candidates_per_pair"] = stats["candidates"] / max(2 * m * row["pairs_per_point"], 1.0)
             row["backward_chunks"] = stats["chunks"]
             row["backward_chunk_size"] = stats["chunk_size"]
             row["point_cells"] = stats["point_cells"]
             if cfg.atomic_baseline:  # the point-major atomic scatter the primitive-major pass replaced
-                row["backward_atomic_ms"] = timer.ms(lambda: r._pairs(kb.accumulate_pairs, 2 * m), cfg.repeat)
-                r._zero_grads()
-            both = timer.ms(lambda: (r._backward(), r._update()), cfg.repeat)
+                row["backward_atomic_ms"] = timer.ms(lambda: r.passes.atomic_pairs(kb.accumulate_pairs, 2 * m), cfg.repeat)
+                r.state.zero_grads()
+            both = timer.ms(lambda: (r.backward(), r.update()), cfg.repeat)
             row["update_ms"] = max(both - row["backward_ms"], 0.0)
-            r._zero_grads()
+            r.state.zero_grads()
             fb = row["forward_ms"] + row["backward_ms"]
             row["gpairs_per_s"] = 2 * m * row["pairs_per_point"] / (fb * 1e-3) / 1e9 if fb > 0 else None
             row["iteration_ms"] = timer.wall_ms(r.step, cfg.repeat)
@@ -186,7 +186,7 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
                 row["iteration_nograph_ms"] = timer.wall_ms(r.step, cfg.repeat)
                 r.use_graph = True
             if cfg.dense_max_n and n <= cfg.dense_max_n and m == cfg.samples[0]:
-                r._forward()  # the values of the current primitives at the last samples
+                r.forward()  # the values of the current primitives at the last samples
                 p = r.prims
                 out = [wp.empty(2 * m, dtype=t, device=dev) for t in (float, float, int)]
                 dense = lambda: wp.launch(  # noqa: E731
@@ -228,6 +228,9 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
         "rows": rows,
         "notes": [
             "stage times: CUDA events around repeat back-to-back calls (GPU time incl. launch gaps); CPU: wall clock",
+            "stages and their units (warpgauss/refine/): sample = schedule.begin + Sampler.draw (draw.py); forward, "
+            "point_sort, backward = PairPasses (passes.py); update = Update (update.py); bin = Binner.rebin + support "
+            "marks (bins.py, draw.py)",
             "forward = point order by cell + evaluation + per-point loss gradients; backward = point-grid sort + balanced "
             "chunk pass (backward_candidates_per_pair: candidate points visited per contributing pair; backward_atomic_ms: "
             "the point-major atomic scatter); "

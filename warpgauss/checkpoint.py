@@ -2,7 +2,7 @@
 
 A checkpoint is an ``.npz`` archive (numpy arrays only: no pickle, loaded with
 ``allow_pickle=False``; zip CRCs catch damage) holding the slot-order training state of
-:meth:`warpgauss.optimize.Refiner.state` plus a JSON record: a fingerprint of the analytic model
+:meth:`warpgauss.refine.Refiner.state_arrays` plus a JSON record: a fingerprint of the analytic model
 and the options (so that a resume with another input or other settings is refused), the
 iteration reached, and the refinement seconds of each session so far.
 """

@@ -304,7 +304,7 @@ def encode_field(
             )
             refinement = {"iterations": 0, "stop": {"reason": "target PSNR reached by the analytic model", "iterations_skipped": opts.refine.iterations}}
     if opts.refine.iterations > 0 and not refinement.get("stop"):
-        from .optimize import SELF_TESTS, Refiner, load_kernels, self_test
+        from .refine import SELF_TESTS, Refiner, load_kernels, self_test
 
         cfg = opts.refine
         cap = opts.allocation.resolved_cap(f.shape_xyz)
@@ -531,7 +531,7 @@ class _Checkpoints:
         if self.path is None:
             return
         now = time.perf_counter()
-        arrays, scalars = refiner.state()
+        arrays, scalars = refiner.state_arrays()
         session = {"from_iteration": self.start_iteration, "to_iteration": refiner.iteration, "seconds": now - self.t0}
         meta = {
             "fingerprint": self.fingerprint,

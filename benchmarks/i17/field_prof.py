@@ -33,9 +33,9 @@ for _ in range(25):
 wp.synchronize()
 res["plan_sizes"] = [float(s) for s in r.plan.sizes]
 res["pair_pass"] = {k: (float(v) if not isinstance(v, (list, tuple)) else list(v)) for k, v in r.pair_pass_stats().items()}
-pb = r._point_buffers()
+pb = r.passes.buffers()
 res["point_grid_sizes"] = [float(s) for s in pb["grid_plan"].sizes]
-rad = r._prep[4].numpy()
+rad = r.binner.prep[4].numpy()
 res["radius_quantiles"] = [float(q) for q in np.quantile(rad[np.isfinite(rad)], [0, 0.5, 0.9, 0.99, 1.0])]
 steps = 10
 wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_MEMSET)

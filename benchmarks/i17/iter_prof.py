@@ -13,9 +13,6 @@ import numpy as np
 from warpgauss._warp import device_name, warp
 from warpgauss.analysis import DeviceVolume
 from warpgauss.bench import _Timer, bench_field, bench_primitives
-from warpgauss.field import sort_into_cells
-from warpgauss.kernels import field as kf
-from warpgauss.kernels import optim as ko
 from warpgauss.optimize import RefineConfig, Refiner
 
 wp = warp()
@@ -30,15 +27,12 @@ for _ in range(20):
 wp.synchronize()
 p = r.prims
 parts = {
-    "prepare+radius": lambda: (
-        wp.launch(kf.prepare_primitives, dim=r.n, inputs=[r.raw, 1], outputs=r._prep, device=dev),
-        wp.launch(ko.effective_radius, dim=r.n, inputs=[r._prep[4], r.reach], device=dev),
-    ),
-    "sort_into_cells": lambda: sort_into_cells(p, r._prep, r._keys, r._perm, dev),
-    "global_members (sync)": r._global_members,
-    "slot_cells": r._slot_cells,
-    "zero_grads": r._zero_grads,
-    "mark_support": r._mark_support if r.uniform_support else (lambda: None),
+    "prepare+radius": r.binner.prepare,
+    "sort_into_cells": r.binner.sort,
+    "global_members (sync)": r.binner.global_members,
+    "slot_cells": r.binner.slot_cells,
+    "zero_grads": r.state.zero_grads,
+    "mark_support": lambda: r.sampler.mark_support(r.binner.prep[0], r.binner.prep[3]),
     "rebin": r.rebin,
     "rebin+replan": lambda: r.rebin(replan=True),
 }

@@ -18,7 +18,7 @@ for _ in range(3):
     r.step()
 wp.synchronize()
 print("stats", r.pair_pass_stats(), flush=True)
-r.sample(); r._forward(); r._backward(); wp.synchronize()
+r.sample(); r.forward(); r.backward(); wp.synchronize()
 if len(sys.argv) > 4:
     gf = GaussianField(r.model_params(), f.shape_xyz, device=DEV)
     B._decode_on_device(gf)

@@ -1,0 +1,169 @@
+"""Refinement settings: the loss weights, the schedule and optimiser options, and the presets."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import asdict, dataclass, field
+
+from ..errors import WarpgaussError
+
+# quality: measured on the H100 (benchmarks/results/quality_grid_h100.json, vortex and interface
+# at 128^3 with 20,000 Gaussians, split-cell kernels): 1,500 x 12,288 gives +2.7 / +1.0 dB over
+# the paper configuration in 7.1 / 4.7 s of refinement (paper: 2.2 / 1.7 s); doubling the samples
+# again adds only 0.3-0.6 dB for twice the time, and doubling iterations instead gains the same.
+PRESETS = {  # exactly these settings: no sample count raised for large budgets
+    "paper": {"iterations": 1500, "samples": 3072, "auto_samples": False},
+    "fast": {"iterations": 300, "samples": 3072, "auto_samples": False},
+    "quality": {"iterations": 1500, "samples": 12288, "auto_samples": False},
+}
+AUTO_BATCH_PRIMITIVES = 350_000  # the default raises the samples by one batch per this many primitives
+AUTO_MAX_BATCHES = 16
+
+
+
+@dataclass
+class LossWeights:
+    """Weights of the loss terms (0 switches a term off).
+
+    Measured (vortex, interface, bubbles at 40^3 with 1,200 Gaussians, 200-600 iterations, PSNR of
+    the refined model): the density term costs 0.3-2.5 dB at 0.01 and more at 0.1, so it is kept
+    only as a weak regulariser (0.001) against runaway overlap; smoothness at 1.0 costs 1-2 dB
+    and off gains 0.2-0.5 dB, so it starts weak (0.01) and anneals to 0.0001; the anchor is
+    neutral at 0.001 and costs 0.7-3 dB at 0.1; ``value_empty`` 0 (the paper supervises occupied
+    samples only) loses 0.7 dB on the interface field, because full-field PSNR counts empty space,
+    so empty samples are fitted too (1). The anisotropy and cap terms are stiff penalties that act
+    only outside their bounds.
+    """
+
+    value_empty: float = 1.0
+    density: float = 0.001
+    smooth: float = 0.01
+    smooth_final: float = 0.0001
+    anchor: float = 0.001
+    aniso: float = 1.0
+    cap: float = 1.0
+
+
+@dataclass
+class RefineConfig:
+    """Refinement schedule and optimiser settings.
+
+    The base learning rate is the paper's 8e-3; each parameter group multiplies it and the rate
+    decays geometrically to ``lr_decay`` of its start by the last iteration. Measured against a
+    flat 8e-3 for every group (same fields as :class:`LossWeights`, 600 iterations): +3.7 dB
+    vortex, +1.6 dB interface, +2.2 dB bubbles.
+
+    Attributes:
+        iterations: Adam steps (paper: 1,500; the "fast" time-budget mode: 300).
+        samples: Samples per iteration (paper: 3,072), each with a smoothness partner.
+        lr: Base learning rate (paper: 8e-3).
+        lr_position, lr_scale, lr_rotation, lr_value, lr_weight: Per-group multipliers.
+        lr_decay: Learning rate at the last iteration relative to the first (geometric decay).
+        touch_ref: Sample-primitive contacts per primitive per iteration at and above which the
+            full rates apply; below, rates scale by sqrt(contacts / touch_ref) (0 disables).
+            When samples are few for N (3,072 samples for 1.4M primitives touch each one about
+            0.4 times an iteration) every touch is a one-sample gradient that Adam turns into a
+            full-size step. Measured on vortex 64^3 with 20,000 Gaussians and 128 samples (0.8
+            contacts): full rates 37.7 -> 38.1 dB, 1/8 rate 45.9 dB, 1/4 45.5 dB; with 2,048
+            samples (12.5 contacts) full rates reach 53.9 dB.
+        replan_every: Iterations between re-planning the bin levels from the current radii.
+        rebin_every: Iterations between re-sorting the primitives into their bin cells.
+        graph: Capture one iteration as a CUDA graph and replay it (CUDA devices only).
+        auto_samples: Raise ``samples`` for large budgets: one batch of ``samples`` per
+            :data:`AUTO_BATCH_PRIMITIVES` primitives (see :meth:`for_budget`); off in the named
+            presets and when samples were set explicitly.
+        uniform_support: Draw the uniform 25 % of the samples over the model's support (the 4^3
+            bricks some primitive's 5-sigma box, widened by 2 voxels, reaches, re-marked at every
+            re-bin) rather than the whole grid; outside every 5-sigma box a sample scores exactly 0
+            with no gradient.
+        budget_samples: In time-budget mode, spend time the schedule does not need on more
+            samples per iteration (see :meth:`Refiner.run`); off when samples were set explicitly.
+        budget_min_iterations: Iterations a time budget secures before it raises the samples.
+        target_psnr: Stop once the validation PSNR (see :meth:`Refiner.set_validation`),
+            checked every ``check_every`` iterations, reaches this many dB.
+        plateau_db: Stop once the validation PSNR gained less than this over the last
+            ``plateau_window`` iterations.
+        partner_distance: Range of the partner offset in voxels.
+        split_cells: Forward pass with one thread per (point, neighbour cell) instead of per
+            point, the partial sums stored and added in a fixed order; None picks it on CUDA
+            devices (one thread per sample leaves a GPU idle) and not on the CPU (where it only
+            adds work). Either way reruns are bit-identical. Above
+            :data:`PARTIAL_MAX_ENTRIES` partials the point-major pass is used.
+    """
+
+    iterations: int = 1500
+    samples: int = 3072
+    lr: float = 8e-3
+    lr_position: float = 7.5
+    lr_scale: float = 5.625
+    lr_rotation: float = 5.625
+    lr_value: float = 3.75
+    lr_weight: float = 3.75
+    lr_decay: float = 0.1
+    touch_ref: float = 12.0
+    beta1: float = 0.9
+    beta2: float = 0.999
+    eps: float = 1e-15
+    replan_every: int = 100
+    rebin_every: int = 10
+    graph: bool = True
+    partner_distance: tuple[float, float] = (0.5, 1.5)
+    split_cells: bool | None = None
+    budget_samples: bool = True
+    auto_samples: bool = True
+    uniform_support: bool = True
+    budget_min_iterations: int = 1500
+    target_psnr: float | None = None
+    plateau_db: float | None = None
+    check_every: int = 100
+    plateau_window: int = 300
+    weights: LossWeights = field(default_factory=LossWeights)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def for_budget(self, n: int) -> RefineConfig:
+        """The settings for ``n`` primitives: with ``auto_samples``, ``samples`` x ceil(n /
+        :data:`AUTO_BATCH_PRIMITIVES`) samples per iteration (at most :data:`AUTO_MAX_BATCHES` x).
+
+        Measured on an H100 with 1.4M Gaussians (``benchmarks/results/tradeoff_*_h100.json``):
+        1,500 x 3,072 samples touch each primitive about 0.25 times an iteration and score below
+        128,000 Gaussians on smooth fields (vortex 1024^3: 53.4 against 59.6 dB); 4x the samples
+        (12,288, what this rule gives at 1.4M) reach 60.1 dB, +1.8 to +8.9 dB on the four example
+        fields at 512^3 and 1024^3, for 1.5-2.0x the refinement time.
+        """
+        if not self.auto_samples or self.iterations == 0:
+            return self
+        k = min(AUTO_MAX_BATCHES, max(1, -(-int(n) // AUTO_BATCH_PRIMITIVES)))
+        return self if k == 1 else dataclasses.replace(self, samples=self.samples * k)
+
+    def validate(self) -> None:
+        """Refuse settings that would diverge or fail late, naming the option."""
+
+        def finite(x) -> bool:
+            return isinstance(x, (int, float)) and math.isfinite(x)
+
+        positive = ("lr", "lr_position", "lr_scale", "lr_rotation", "lr_value", "lr_weight", "lr_decay", "eps")
+        for name in positive:
+            v = getattr(self, name)
+            if not (finite(v) and v > 0):
+                raise WarpgaussError(f"{name} must be a positive finite number, got {v}")
+        for name in ("beta1", "beta2"):
+            v = getattr(self, name)
+            if not (finite(v) and 0 <= v < 1):
+                raise WarpgaussError(f"{name} must be in [0, 1), got {v}")
+        for name in ("touch_ref",):
+            v = getattr(self, name)
+            if not (finite(v) and v >= 0):
+                raise WarpgaussError(f"{name} must be >= 0, got {v}")
+        for name in ("replan_every", "rebin_every", "check_every", "plateau_window", "budget_min_iterations"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                raise WarpgaussError(f"{name} must be a positive integer, got {v}")
+        lo, hi = self.partner_distance
+        if not (finite(lo) and finite(hi) and 0 <= lo <= hi):
+            raise WarpgaussError(f"partner_distance must be 0 <= min <= max, got {self.partner_distance}")
+        for name, v in asdict(self.weights).items():
+            if not (finite(v) and v >= 0):
+                raise WarpgaussError(f"loss weight {name} must be a finite number >= 0, got {v} (--w-{name.replace('_', '-')})")

@@ -1,0 +1,144 @@
+"""Stage "draw": the iteration's training samples (SPEC section 3) and their per-sample buffers.
+
+35 % from V > 0.4, 40 % from occupied mid-range voxels, 25 % uniform, each jittered off-grid, with
+a partner point for the smoothness term (:func:`warpgauss.kernels.sampling.draw_samples`). The
+strata are indexed once (prefix sums of per-brick counts); the uniform stratum's support (the
+bricks some primitive reaches) is re-marked after every re-bin.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._warp import warp
+from ..analysis import DeviceVolume
+
+STRATA = (0.35, 0.40, 0.25)  # high (V > 0.4), occupied mid-range, uniform (SPEC section 3)
+
+
+def stratum_counts(m: int, n_high: int, n_mid: int) -> tuple[int, int, int]:
+    """Samples per stratum (high, mid, uniform): 35/40/25, an empty stratum's share going to the rest."""
+    shares = [STRATA[0] if n_high else 0.0, STRATA[1] if n_mid else 0.0, STRATA[2]]
+    total = sum(shares)
+    m_high = int(round(m * shares[0] / total))
+    m_mid = int(round(m * shares[1] / total))
+    return m_high, m_mid, m - m_high - m_mid
+
+
+class Sampler:
+    """Draws ``m`` samples (and partners) per iteration into :attr:`points` and the targets.
+
+    Args:
+        dv: The normalised field on the device.
+        uniform_support: Draw the uniform stratum over the primitives' support (see
+            :class:`warpgauss.refine.config.RefineConfig`), unless ``value_empty`` is 0.
+        value_empty: Value-loss weight of empty samples: at 0 the uniform stratum is drawn among
+            the occupied voxels (an empty sample would add nothing to any loss term).
+        partner_distance: Range of the partner offset in voxels.
+    """
+
+    def __init__(self, dv: DeviceVolume, uniform_support: bool, value_empty: float, partner_distance: tuple[float, float]):
+        self._wp = wp = warp()
+        self.dv, self.device = dv, dv.device
+        self.partner_distance = partner_distance
+        self._build_strata()
+        self.uniform_occupied = value_empty == 0 and self.n_high + self.n_mid > 0
+        self.uniform_support = uniform_support and not self.uniform_occupied
+        dev = self.device
+        if self.uniform_support:
+            shape = self.bricks
+            # (coverage counts per brick, "everything" flag, supported voxels per brick)
+            self.marks = (wp.zeros(shape, dtype=int, device=dev), wp.zeros(1, dtype=int, device=dev), wp.zeros(shape, dtype=int, device=dev))
+            self.support = wp.zeros(int(np.prod(shape)), dtype=int, device=dev)
+        else:
+            self.marks = None
+            self.support = wp.zeros(1, dtype=int, device=dev)  # unused by the sampler
+        self.m = 0
+
+    def _build_strata(self) -> None:
+        """Prefix sums of per-brick stratum counts: the index the sampler draws stratum voxels from."""
+        from ..kernels import sampling as ks
+
+        wp, dv, dev = self._wp, self.dv, self.device
+        nz, ny, nx = dv.values.shape
+        b = ks.BRICK
+        self.bricks = shape = (-(-nz // b), -(-ny // b), -(-nx // b))  # 4^3 bricks (the strata's and the support's)
+        counts = [wp.empty(shape, dtype=int, device=dev) for _ in range(2)]
+        wp.launch(ks.brick_counts, dim=shape, inputs=[dv.values, dv.mask, dv.has_mask], outputs=counts, device=dev)
+        self.high, self.mid = (wp.empty(int(np.prod(shape)), dtype=int, device=dev) for _ in range(2))
+        for c, cum in zip(counts, (self.high, self.mid)):
+            wp.utils.array_scan(c.flatten(), cum, inclusive=True)
+        last = int(np.prod(shape)) - 1
+        self.n_high, self.n_mid = (int(cum[last:].numpy()[0]) for cum in (self.high, self.mid))
+
+    def resize(self, m: int) -> None:
+        """(Re)allocate the buffers for ``m`` samples (points holds 2 m: samples, then partners)."""
+        wp, dev = self._wp, self.device
+        self.m = m
+        self.points = wp.zeros(2 * m, dtype=wp.vec3, device=dev)
+        self.target, self.weight, self.occupied = (wp.zeros(m, dtype=float, device=dev) for _ in range(3))
+        self.strata = stratum_counts(m, self.n_high, self.n_mid)
+
+    def draw(self, stream) -> None:
+        """Draw this iteration's samples from the RNG stream id in ``stream`` (a device int)."""
+        from ..kernels import sampling as ks
+
+        wp, dv = self._wp, self.dv
+        m_high, m_mid, _ = self.strata
+        pmin, pmax = self.partner_distance
+        wp.launch(
+            ks.draw_samples,
+            dim=self.m,
+            inputs=[
+                dv.values,
+                dv.mask,
+                dv.has_mask,
+                self.high,
+                self.mid,
+                max(self.n_high, 1),
+                max(self.n_mid, 1),
+                m_high,
+                m_mid,
+                self.n_high,
+                self.n_high + self.n_mid if self.uniform_occupied else 0,
+                self.support,
+                int(self.uniform_support),
+                stream,
+                float(pmin),
+                float(pmax),
+            ],
+            outputs=[self.points, self.target, self.weight, self.occupied],
+            device=self.device,
+        )
+
+    def mark_support(self, mu, ext) -> None:
+        """Re-mark the support bricks from prepared centres and half-extents (any order)."""
+        from ..kernels import sampling as ks
+
+        if not self.uniform_support:
+            return
+        wp, dev = self._wp, self.device
+        marks, everything, _ = self.marks
+        marks.zero_()
+        everything.zero_()
+        wp.launch(ks.mark_support, dim=mu.shape[0], inputs=[mu, ext], outputs=[marks, everything], device=dev)
+        bz, by, bx = marks.shape
+        for axis, lines in ((2, (bz, by)), (1, (bz, bx)), (0, (by, bx))):  # x, y, z: the order does not matter
+            wp.launch(ks.prefix_sum_axis, dim=lines, inputs=[marks, axis], device=dev)
+        self.index_support()
+
+    def index_support(self) -> None:
+        """Prefix sums of the supported voxels per brick, the index the sampler draws from."""
+        from ..kernels import sampling as ks
+
+        marks, everything, counts = self.marks
+        nz, ny, nx = self.dv.values.shape
+        self._wp.launch(ks.support_counts, dim=marks.shape, inputs=[marks, everything, nz, ny, nx], outputs=[counts], device=self.device)
+        self._wp.utils.array_scan(counts.flatten(), self.support, inclusive=True)
+
+    def support_share(self) -> float | None:
+        """Share of the grid's voxels the uniform stratum is drawn from now (None: whole grid or
+        occupied voxels); reads back from the device."""
+        if not self.uniform_support:
+            return None
+        return float(self.support[-1:].numpy()[0]) / float(self.dv.values.size)

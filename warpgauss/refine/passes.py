@@ -1,0 +1,234 @@
+"""Stages "forward" and "backward": the pair passes between the iteration's points and the primitives.
+
+Forward: the points, ordered by their cell on the primitives' first level, are evaluated through
+the binned primitives (V~, rho, contributing pairs), and the loss gives per-point gradients.
+Backward: the points are binned on one grid per primitive level; every primitive visits the rows
+of point cells its 5-sigma box reaches, split into chunks of at least :data:`MIN_CHUNK`
+candidates, one thread per chunk, and the chunks' partials are summed per primitive in a fixed
+order. No float atomics: reruns are bit-identical.
+"""
+
+from __future__ import annotations
+
+from .._warp import warp
+from .draw import Sampler
+from .state import Primitives
+
+MIN_CHUNK = 128  # candidate points per chunk of the backward pass at least
+# chunks of one primitive at most: its partials are summed by one thread, serially (H100, N 2,000
+# x 307,200 samples: about 600 chunks each took 1.6 ms to sum, a quarter of the pass)
+MAX_CHUNKS = 128
+PARTIAL_MAX_ENTRIES = 1 << 24  # (point, neighbour cell) partial sums of the split forward pass (192 MiB)
+
+
+def chunk_capacity(n_points: int) -> int:
+    """Chunks the backward pass may use beyond one per primitive: enough for chunks of
+    :data:`MIN_CHUNK` at about 250 candidates per point, at most 2^21 (then chunks grow)."""
+    return max(1024, min(1 << 21, 2 * int(n_points)))
+
+
+class PairPasses:
+    """Forward and backward pair passes over a sampler's points and a primitive state.
+
+    Args:
+        state: The primitives (slot order, binned).
+        sampler: Where the points, targets and sample weights come from.
+        shape_xyz: The model grid.
+        split: Forward with one thread per (point, neighbour cell), partials summed in a fixed order.
+        partners: Evaluate the partner points too (the smoothness term needs them).
+    """
+
+    def __init__(self, state: Primitives, sampler: Sampler, shape_xyz: tuple[int, int, int], split: bool, partners: bool):
+        self._wp = warp()
+        self.state, self.sampler, self.shape_xyz = state, sampler, shape_xyz
+        self.device = state.device
+        self.split, self.partners = bool(split), bool(partners)
+        self._buf: dict | None = None
+
+    @property
+    def m(self) -> int:
+        return self.sampler.m
+
+    @property
+    def n_points(self) -> int:
+        """Points evaluated per iteration: the samples and, for the smoothness term, their partners."""
+        return 2 * self.m if self.partners else self.m
+
+    def resize(self) -> None:
+        """(Re)allocate the per-point buffers for the sampler's sample count."""
+        wp, dev, m = self._wp, self.device, self.m
+        self.value, self.density, self.g_value, self.g_density = (wp.zeros(2 * m, dtype=float, device=dev) for _ in range(4))
+        self.pairs = wp.zeros(2 * m, dtype=int, device=dev)
+        self.back_pairs = wp.zeros(2 * m, dtype=int, device=dev)
+        self.point_loss = wp.zeros(m, dtype=wp.vec3, device=dev)
+        self._buf = None
+
+    def invalidate(self) -> None:
+        """Drop the buffers sized by the plan, the point count or the pass kind (re-made on use)."""
+        self._buf = None
+
+    def use_partials(self) -> bool:
+        return self.split and self.n_points * 27 * len(self.state.plan.sizes) <= PARTIAL_MAX_ENTRIES
+
+    def buffers(self) -> dict:
+        """Buffers that bin the points of an iteration on every level's point grid and split the
+        pair pass into chunks (allocated outside any graph capture; the sort's scratch is
+        reserved for the largest sort this pass runs)."""
+        if self._buf is None:
+            from ..field import plan_arrays, plan_point_grids
+            from ..kernels import backward as kb
+
+            wp, dev, n, plan = self._wp, self.device, self.state.n, self.state.plan
+            levels, p2 = len(plan.sizes), self.n_points
+            k = levels * p2
+            gp = plan_point_grids(plan, p2, self.shape_xyz, self.sampler.n_high + self.sampler.n_mid)
+            grid = kb.PointGrid()
+            grid.size, grid.dims, grid.offset = plan_arrays(gp, dev)
+            grid.start = wp.zeros(gp.total_cells + 1, dtype=int, device=dev)
+            cap = chunk_capacity(p2)
+            b = {
+                "grid_plan": gp,
+                "grid": grid,
+                "cell_counts": wp.zeros(gp.total_cells + 1, dtype=int, device=dev),
+                "keys": wp.empty(2 * k, dtype=int, device=dev),
+                "order": wp.empty(2 * k, dtype=int, device=dev),
+                "fkeys": wp.empty(2 * p2, dtype=int, device=dev),
+                "forder": wp.empty(2 * p2, dtype=int, device=dev),
+                "pos": wp.empty(k, dtype=wp.vec3, device=dev),
+                "state": wp.empty(k, dtype=wp.vec4, device=dev),
+                "part": wp.empty((p2, 27 * levels), dtype=wp.vec3, device=dev) if self.use_partials() else None,
+                "capacity": cap,
+                "work": wp.empty(n, dtype=wp.int64, device=dev),
+                "work_cum": wp.empty(n, dtype=wp.int64, device=dev),
+                "chunks": wp.empty(n, dtype=int, device=dev),
+                "chunk_cum": wp.empty(n, dtype=int, device=dev),
+                "chunk_size": wp.zeros(1, dtype=int, device=dev),
+                "owner": wp.empty(n + cap, dtype=int, device=dev),
+                "parts": (
+                    wp.empty(n + cap, dtype=wp.vec3, device=dev),
+                    wp.empty(n + cap, dtype=wp.vec3, device=dev),
+                    wp.empty(n + cap, dtype=wp.mat33, device=dev),
+                    wp.empty(n + cap, dtype=wp.vec2, device=dev),
+                ),
+            }
+            # CUB keeps one scratch buffer per context and re-allocates it for a larger sort: sort
+            # the largest count now, so that a captured graph never refers to a freed buffer
+            big = max(k, n)
+            scratch = [wp.zeros(2 * big, dtype=int, device=dev) for _ in range(2)]
+            wp.utils.radix_sort_pairs(scratch[0], scratch[1], big)
+            self._buf = b
+        return self._buf
+
+    def sort_points(self, count: int) -> None:
+        """Bin the first ``count`` points on every level's point grid and sort them by cell
+        (stable: the order within a cell is the point index, so the pair pass sums in a fixed
+        order), with the dense cell start table."""
+        from ..field import cell_starts
+        from ..kernels import field as kf
+
+        wp, dev, b = self._wp, self.device, self.buffers()
+        grid, cells = b["grid"], b["grid_plan"].total_cells
+        k = len(self.state.plan.sizes) * count
+        wp.launch(kf.point_keys, dim=k, inputs=[self.sampler.points, count, grid.size, grid.dims, grid.offset], outputs=[b["keys"], b["order"]], device=dev)
+        wp.utils.radix_sort_pairs(b["keys"], b["order"], k, 0, max(1, (cells - 1).bit_length()))
+        cell_starts(b["keys"], k, b["cell_counts"], grid.start, dev)
+
+    def order_points(self, count: int) -> None:
+        """Sort the first ``count`` points by their cell on the primitives' first level (stable),
+        the order the forward pass visits them in: neighbouring threads then share a cell, and
+        so the same candidate ranges on every level (the levels' cells nest)."""
+        from ..kernels import field as kf
+
+        wp, dev, p, b = self._wp, self.device, self.state.prims, self.buffers()
+        wp.launch(kf.point_keys, dim=count, inputs=[self.sampler.points, count, p.level_size, p.level_dims, p.level_offset], outputs=[b["fkeys"], b["forder"]], device=dev)
+        wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, max(1, (self.state.plan.total_cells - 1).bit_length()))
+
+    def forward(self, value_empty: float, density_weight: float, now) -> None:
+        """Order the points by cell, evaluate V~ and rho at them, and the per-point loss gradients
+        (``now``: the device's per-iteration scalars, see :class:`.schedule.Schedule`)."""
+        from ..kernels import backward as kb
+        from ..kernels import field as kf
+
+        wp, dev, m2, s = self._wp, self.device, self.n_points, self.sampler
+        self.order_points(m2)
+        b = self._buf
+        order = b["forder"]
+        prims = self.state.prims
+        if self.use_partials():
+            wp.launch(kf.eval_points_partial, dim=b["part"].shape, inputs=[s.points, order, prims], outputs=[b["part"]], device=dev)
+            wp.launch(kf.finish_partials, dim=m2, inputs=[order, b["part"]], outputs=[self.value, self.density, self.pairs], device=dev)
+        else:
+            wp.launch(kf.eval_points_ordered, dim=m2, inputs=[s.points, order, prims], outputs=[self.value, self.density, self.pairs], device=dev)
+        wp.launch(
+            kb.point_grads,
+            dim=self.m,
+            inputs=[self.value, self.density, s.target, s.weight, s.occupied, self.m, value_empty, density_weight, now],
+            outputs=[self.g_value, self.g_density, self.point_loss],
+            device=dev,
+        )
+
+    def backward(self, count: int | None = None, count_pairs: bool = False) -> None:
+        """Primitive-major pair pass over the first ``count`` points (all by default), balanced
+        by chunks: overwrites the pair-gradient buffers, no float atomics (bit-identical reruns).
+
+        Each primitive's candidate points are the point-grid rows its 5-sigma box reaches; they
+        are split into chunks of at least :data:`MIN_CHUNK` candidates (more when the load
+        exceeds the chunk capacity), one thread per chunk, and the chunks' partial gradients are
+        summed per primitive in chunk order. The cost follows the candidates, not the largest
+        primitive's point count.
+        """
+        from ..kernels import backward as kb
+
+        wp, dev, b, st = self._wp, self.device, self.buffers(), self.state
+        n = st.n
+        count = self.n_points if count is None else int(count)
+        self.sort_points(count)
+        k = len(st.plan.sizes) * count
+        wp.launch(
+            kb.gather_point_state,
+            dim=k,
+            inputs=[b["order"], self.sampler.points, self.value, self.density, self.g_value, self.g_density],
+            outputs=[b["pos"], b["state"]],
+            device=dev,
+        )
+        if count_pairs:
+            self.back_pairs.zero_()
+        grid, cap = b["grid"], b["capacity"]
+        wp.launch(kb.pair_work, dim=n, inputs=[st.slot_cell, st.prims, grid], outputs=[b["work"]], device=dev)
+        wp.utils.array_scan(b["work"], b["work_cum"], inclusive=True)
+        wp.launch(kb.pair_chunks, dim=n, inputs=[b["work"], b["work_cum"], cap, MIN_CHUNK, MAX_CHUNKS], outputs=[b["chunks"], b["chunk_size"]], device=dev)
+        wp.utils.array_scan(b["chunks"], b["chunk_cum"], inclusive=True)
+        wp.launch(kb.chunk_owner, dim=n, inputs=[b["chunks"], b["chunk_cum"]], outputs=[b["owner"]], device=dev)
+        wp.launch(
+            kb.pair_grad_chunks,
+            dim=n + cap,
+            inputs=[b["owner"], b["chunks"], b["chunk_cum"], st.slot_cell, st.prims, grid, b["pos"], b["state"], b["order"], int(count_pairs)],
+            outputs=[self.back_pairs, *b["parts"]],
+            device=dev,
+        )
+        wp.launch(kb.reduce_chunks, dim=n, inputs=[b["chunks"], b["chunk_cum"], st.prims, *b["parts"]], outputs=list(st.pair_grads), device=dev)
+        st.clean = False
+
+    def atomic_pairs(self, kernel, count: int) -> None:
+        """A point-major pair kernel (float atomics; the references of tests and the self-test)."""
+        st = self.state
+        self._wp.launch(
+            kernel,
+            dim=count,
+            inputs=[self.sampler.points, self.value, self.density, self.g_value, self.g_density, st.prims],
+            outputs=[*st.pair_grads, self.back_pairs],
+            device=self.device,
+        )
+        st.clean = False
+
+    def stats(self) -> dict:
+        """The last backward pass's load (syncs): candidate points, chunks and chunk size, and
+        the point grids' cell edges."""
+        b, n = self.buffers(), self.state.n
+        return {
+            "candidates": int(b["work_cum"][n - 1 :].numpy()[0]),
+            "chunks": int(b["chunk_cum"][n - 1 :].numpy()[0]),
+            "chunk_size": int(b["chunk_size"].numpy()[0]),
+            "chunk_capacity": n + b["capacity"],
+            "point_cells": list(b["grid_plan"].sizes[:-1]),
+        }

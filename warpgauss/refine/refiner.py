@@ -1,0 +1,472 @@
+"""The refiner: N primitives under refinement, one iteration as a sequence of stage units.
+
+| stage | unit | module |
+|---|---|---|
+| schedule | :class:`.schedule.Schedule` (per-iteration scalars), :class:`.schedule.BudgetPlan`, :class:`.stop.StopRule` | ``schedule.py``, ``stop.py`` |
+| draw | :class:`.draw.Sampler` | ``draw.py`` |
+| forward, backward | :class:`.passes.PairPasses` | ``passes.py`` |
+| update | :class:`.update.Update` | ``update.py`` |
+| re-bin | :class:`.bins.Binner` | ``bins.py`` |
+
+The units share one :class:`.state.Primitives` (the training state in slot order); this module
+only sequences them, captures one iteration as a CUDA graph, and keeps checkpoints and reports.
+``warpgauss bench kernels`` times each stage alone through :meth:`Refiner.sample`,
+:meth:`Refiner.forward`, :meth:`Refiner.backward`, :meth:`Refiner.update` and :meth:`Refiner.rebin`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+
+from .._warp import warp
+from ..analysis import DeviceVolume
+from ..errors import WarpgaussError
+from .bins import Binner
+from .config import RefineConfig
+from .draw import Sampler
+from .passes import PairPasses
+from .schedule import MAX_BUDGET_ITERATIONS, BudgetPlan, Schedule, smooth_weight
+from .state import Primitives
+from .stop import VALIDATION_POINTS, StopRule
+from .update import Update
+
+SELF_TESTS: dict[str, dict] = {}  # device -> passed self-test result: once per process and device
+
+
+def load_kernels(device: str) -> None:
+    """Compile (or load from the cache) every kernel module refinement uses, so that no time
+    budget pays for it."""
+    from ..kernels import backward as kb
+    from ..kernels import field as kf
+    from ..kernels import optim as ko
+    from ..kernels import sampling as ks
+
+    wp = warp()
+    for module in (kf, ko, kb, ks):
+        wp.load_module(module, device=device)
+
+
+class Refiner:
+    """N primitives under refinement on one device.
+
+    The training state (raw parameters, Adam moments, prepared primitives) lives in *slot order*,
+    sorted by bin cell. Every ``rebin_every`` iterations it is re-sorted (and every
+    ``replan_every`` the cell levels re-planned); in between, an iteration only touches the
+    primitives its samples reach, updating them in place, and a step that would carry a primitive
+    out of reach of its cell waits for the next re-bin (see
+    :class:`warpgauss.kernels.optim.SlotBounds`), so evaluation stays exact. Per-iteration
+    scalars (learning-rate factor, smoothness weight, bias corrections, RNG stream) are read on
+    the device from a precomputed schedule, so that on CUDA one iteration is captured once as a
+    graph and replayed.
+
+    Args:
+        dv: The normalised field on the device.
+        params: (N, 12) model parameters (weight in slot 11), e.g. the analytic allocation.
+        config: Schedule, learning rates, loss weights.
+        seed: Seed of the sampler; same seed and device give the same result.
+        scale_min, scale_cap: Scale range of the cap term (sigma in voxels).
+    """
+
+    def __init__(self, dv: DeviceVolume, params: np.ndarray, config: RefineConfig, seed: int, scale_min: float, scale_cap: float):
+        wp = self._wp = warp()
+        load_kernels(dv.device)
+        self.dv, self.cfg, self.seed = dv, config, seed
+        dev = self.device = dv.device
+        if config.samples < 1 or config.iterations < 0:
+            raise WarpgaussError("--samples must be >= 1 and --iterations >= 0")
+        self.state = Primitives(params, dev, scale_min, scale_cap)
+        self.n = self.state.n
+        self.binner = Binner(self.state, dv.field.shape_xyz)
+        self.sampler = Sampler(dv, config.uniform_support, config.weights.value_empty, config.partner_distance)
+        split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
+        # partners serve only the smoothness term: with its weight 0 they are not evaluated
+        self.passes = PairPasses(self.state, self.sampler, dv.field.shape_xyz, split, config.weights.smooth > 0)
+        self.updater = Update(self.state, dv, config)
+        self.schedule = Schedule(dev, seed)
+        self.stops = StopRule(dev)
+        self._graph = None
+        self.use_graph = wp.get_device(dev).is_cuda and config.graph
+        self.set_samples(config.samples)
+        self.write_schedule(max(config.iterations, 1))
+        self.iteration = 0
+        self.touch_scale = 1.0  # learning-rate factor from the contact density (see touch_ref)
+        self.contacts = None
+        self.stop_requested = False
+        self.interrupted = False
+        self.graph_error = None
+        self.budget = None
+        self.rebin(replan=True)
+
+    # -- views of the units' state (tests, reports, the pipeline) ----------------------------
+
+    prims = property(lambda self: self.state.prims)
+    plan = property(lambda self: self.state.plan)
+    raw = property(lambda self: self.state.raw)
+    pair_grads = property(lambda self: self.state.pair_grads)
+    rebins = property(lambda self: self.binner.rebins)
+    m = property(lambda self: self.sampler.m)
+    strata = property(lambda self: self.sampler.strata)
+    n_high = property(lambda self: self.sampler.n_high)
+    n_mid = property(lambda self: self.sampler.n_mid)
+    high = property(lambda self: self.sampler.high)
+    mid = property(lambda self: self.sampler.mid)
+    uniform_occupied = property(lambda self: self.sampler.uniform_occupied)
+    uniform_support = property(lambda self: self.sampler.uniform_support)
+    points = property(lambda self: self.sampler.points)
+    target = property(lambda self: self.sampler.target)
+    weight = property(lambda self: self.sampler.weight)
+    occupied = property(lambda self: self.sampler.occupied)
+    value = property(lambda self: self.passes.value)
+    density = property(lambda self: self.passes.density)
+    pairs = property(lambda self: self.passes.pairs)
+    back_pairs = property(lambda self: self.passes.back_pairs)
+    point_loss = property(lambda self: self.passes.point_loss)
+    n_points = property(lambda self: self.passes.n_points)
+    checks = property(lambda self: self.stops.checks)
+    stop_reason = property(lambda self: self.stops.reason)
+
+    @property
+    def split(self) -> bool:
+        """Split-cell forward (one thread per point and neighbour cell) rather than point-major."""
+        return self.passes.split
+
+    @split.setter
+    def split(self, value: bool) -> None:
+        self.passes.split = bool(value)
+        self.passes.invalidate()  # the partial-sum buffer exists only for the split pass
+        self._graph = None
+
+    @property
+    def partners(self) -> bool:
+        """Whether an iteration evaluates the partner points (the smoothness term needs them)."""
+        return self.passes.partners
+
+    @partners.setter
+    def partners(self, value: bool) -> None:
+        self.passes.partners = bool(value)
+        self.passes.invalidate()
+        self._graph = None
+
+    # -- configuration -----------------------------------------------------------------------
+
+    def set_samples(self, m: int) -> None:
+        """(Re)allocate the per-sample buffers for ``m`` samples per iteration."""
+        if m < 1:
+            raise WarpgaussError("--samples must be >= 1")
+        m = int(m)
+        if self.cfg.samples != m:
+            self.cfg = dataclasses.replace(self.cfg, samples=m)
+        self.sampler.resize(m)
+        self.passes.resize()
+        self._graph = None
+
+    def smooth_weight(self, it):
+        """Smoothness weight annealed geometrically from strong to weak over the run."""
+        return smooth_weight(self.cfg, it)
+
+    def write_schedule(self, capacity: int | None = None) -> None:
+        """Per-iteration (lr factor, smoothness weight, bc1, bc2) and RNG streams, on the device."""
+        if self.schedule.write(self.cfg, capacity):
+            self._graph = None
+
+    def set_raw(self, raw: np.ndarray) -> None:
+        """Replace the training parameters ((N, 12), primitive order) and reset Adam (tests)."""
+        s = self.state
+        s.raw.assign(np.ascontiguousarray(raw, np.float32))
+        s.ids.assign(np.arange(self.n, dtype=np.int32))
+        s.m1.zero_()
+        s.m2.zero_()
+        self.rebin(replan=True)
+
+    # -- the stages --------------------------------------------------------------------------
+
+    def rebin(self, replan: bool = False) -> None:
+        """Sort the training state into cell order (re-planning the levels with ``replan``), then
+        re-mark the sampler's support."""
+        if self.binner.rebin(replan):
+            self.passes.invalidate()  # point grids and chunk buffers follow the plan
+            self._graph = None
+        if not self.state.clean:
+            self.state.zero_grads()
+        self.sampler.mark_support(self.binner.prep[0], self.binner.prep[3])
+
+    def sample(self) -> None:
+        """Draw this iteration's samples (without advancing)."""
+        self.schedule.begin()
+        self.sampler.draw(self.schedule.stream)
+
+    def forward(self) -> None:
+        """V~ and rho at the points, and the per-point loss gradients."""
+        w = self.cfg.weights
+        self.passes.forward(w.value_empty, w.density, self.schedule.now)
+
+    def backward(self) -> None:
+        """The pair pass: per-primitive gradients from the per-point ones."""
+        self.passes.backward()
+
+    def update(self) -> None:
+        """Chain rule, regularisers and one Adam step."""
+        self.updater.step(self.schedule.now)
+
+    def _iteration_launches(self) -> None:
+        self.sample()
+        self.forward()
+        self.backward()
+        self.update()
+        self.schedule.end()
+
+    def step(self) -> None:
+        """One iteration: (re-bin,) sample, forward, backward, fused chain rule + Adam + re-prepare."""
+        wp, cfg, it = self._wp, self.cfg, self.iteration
+        replan = it % max(cfg.replan_every, 1) == 0
+        if it > 0 and (replan or it % max(cfg.rebin_every, 1) == 0):
+            self.rebin(replan=replan)
+        if not self.state.clean:
+            self.state.zero_grads()
+        if self.use_graph and self._graph is None:
+            self.passes.buffers()  # allocations and sort scratch before the capture
+            try:
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                    self._iteration_launches()
+                self._graph = capture.graph
+            except Exception as e:  # noqa: BLE001 - a driver without graph support: plain launches
+                self.use_graph = False
+                self.graph_error = f"{type(e).__name__}: {e}"
+        if self.use_graph:
+            wp.capture_launch(self._graph)
+        else:
+            self._iteration_launches()
+        self.state.clean = True  # refine_update zeroed every slot it read
+        if replan and cfg.touch_ref > 0:  # re-estimate the contact density with the bins
+            self.contacts = float(self.pairs.numpy()[: self.m].astype(np.float64).sum()) / self.n
+            self.touch_scale = min(1.0, math.sqrt(self.contacts / cfg.touch_ref))
+            self.schedule.touch.fill_(self.touch_scale)
+        self.iteration += 1
+
+    # -- pieces for tests and the self-test -------------------------------------------------
+
+    def forward_backward(self) -> None:
+        """Forward values, per-point gradients and the pair scatter at the current samples."""
+        self.schedule.begin()
+        self.forward()
+        self.accumulate()
+
+    def accumulate(self, kernel=None, count: int | None = None) -> None:
+        """Gradients of the first ``count`` points (all by default), with the pairs counted.
+
+        Args:
+            kernel: A point-major pair kernel (the dense reference in the self-test); None for
+                the refiner's own primitive-major pass.
+            count: Points to gather from, the first ``count`` of the buffers.
+        """
+        self.state.zero_grads()
+        self.back_pairs.zero_()
+        if kernel is None:
+            self.passes.backward(count, count_pairs=True)
+        else:
+            self.passes.atomic_pairs(kernel, self.n_points if count is None else count)
+
+    def pair_pass_stats(self) -> dict:
+        """The last backward pass's load (syncs), see :meth:`.passes.PairPasses.stats`."""
+        return self.passes.stats()
+
+    def gradient(self) -> np.ndarray:
+        """(N, 12) gradient of the loss w.r.t. the raw parameters, primitive order (after
+        :meth:`forward_backward`)."""
+        self.updater.finish_grads()
+        return self.state.to_primitive_order(self.state.grad)
+
+    def raw_params(self) -> np.ndarray:
+        """(N, 12) training parameters in primitive order."""
+        return self.state.to_primitive_order(self.state.raw)
+
+    def model_params(self) -> np.ndarray:
+        """Current primitives as model parameters (unit quaternion, weight in (0, 1)), primitive order."""
+        return self.state.model_params()
+
+    # -- validation (target PSNR, plateau) ---------------------------------------------------
+
+    def set_validation(self, f, points: int = VALIDATION_POINTS) -> None:
+        """Fix the voxel centres whose PSNR decides the target and plateau stops (see :class:`.stop.StopRule`)."""
+        self.stops.set_validation(f, points)
+
+    def validation_psnr(self) -> float:
+        """PSNR of the current primitives at the validation voxels (syncs)."""
+        return self.stops.psnr(self.prims)
+
+    def support_share(self) -> float | None:
+        """Share of the grid's voxels the uniform stratum is drawn from now (see :class:`.draw.Sampler`)."""
+        return self.sampler.support_share()
+
+    # -- checkpoints -------------------------------------------------------------------------
+
+    def state_arrays(self) -> tuple[dict, dict]:
+        """Everything the next iterations depend on, between two steps: (arrays, scalars).
+
+        Arrays are in slot order with the bins as they stand (cells, slot bounds), so that
+        :meth:`restore` continues bit-identically on the same device; the prepared primitives
+        are not stored, since they are a function of the raw parameters.
+        """
+        s, b, p, smp = self.state, self.state.bounds, self.state.prims, self.sampler
+        arrays = {
+            "raw": s.raw.numpy(),
+            "m1": s.m1.numpy(),
+            "m2": s.m2.numpy(),
+            "ids": s.ids.numpy(),
+            "bounds_lo": b.lo.numpy(),
+            "bounds_hi": b.hi.numpy(),
+            "bounds_cell": b.cell.numpy(),
+            "cell_start": p.cell_start.numpy(),
+            "cell_end": p.cell_end.numpy(),
+            "counts": s.counts.numpy(),
+            "reach": s.reach.numpy(),
+            # the support as marked at the last re-bin, not as the current primitives would mark it
+            "support": (smp.marks[0].numpy().reshape(-1) != 0).astype(np.uint8) if smp.uniform_support else np.zeros(0, np.uint8),
+        }
+        plan = s.plan
+        scalars = {
+            "n": self.n,
+            "iteration": self.iteration,
+            "iterations": self.cfg.iterations,
+            "samples": self.m,
+            "touch_scale": self.touch_scale,
+            "contacts": self.contacts,
+            "rebins": self.rebins,
+            "split": self.split,
+            "support_everything": int(smp.marks[1].numpy()[0]) if smp.uniform_support else 0,
+            "plan": {"sizes": list(plan.sizes), "dims": [list(d) for d in plan.dims], "offsets": list(plan.offsets), "total_cells": plan.total_cells},
+        }
+        return {k: np.ascontiguousarray(v) for k, v in arrays.items()}, scalars
+
+    def restore(self, arrays: dict, scalars: dict) -> None:
+        """Continue from :meth:`state_arrays` (same primitives count; shapes checked by the caller)."""
+        from ..field import BinPlan, set_plan
+        from ..kernels import field as kf
+
+        wp, dev, s = self._wp, self.device, self.state
+        p, b = s.prims, s.bounds
+        if int(scalars["n"]) != self.n:
+            raise WarpgaussError(f"checkpoint holds {scalars['n']} primitives, this run has {self.n}")
+        pl = scalars["plan"]
+        plan = BinPlan(tuple(float(x) for x in pl["sizes"]), tuple(tuple(int(v) for v in d) for d in pl["dims"]), tuple(int(x) for x in pl["offsets"]), int(pl["total_cells"]))
+        s.plan = plan
+        set_plan(p, plan, dev, arrays["cell_start"], arrays["cell_end"])
+        self.binner.slot_cells()
+        self.passes.invalidate()
+        for dst, key in ((s.raw, "raw"), (s.m1, "m1"), (s.m2, "m2"), (s.ids, "ids"), (b.lo, "bounds_lo"), (b.hi, "bounds_hi"), (b.cell, "bounds_cell"), (s.counts, "counts"), (s.reach, "reach")):
+            dst.assign(arrays[key])
+        radius = self.binner.prep[4]  # scratch: the prepared primitives go straight into slot order
+        wp.launch(kf.prepare_primitives, dim=self.n, inputs=[s.raw, 1], outputs=[p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w], device=dev)
+        s.zero_grads()
+        smp = self.sampler
+        if smp.uniform_support:
+            marks, everything, _ = smp.marks
+            if arrays["support"].size != marks.size:
+                raise WarpgaussError(f"checkpoint holds {arrays['support'].size} support bricks, this run has {marks.size}")
+            marks.assign(arrays["support"].reshape(marks.shape).astype(np.int32))
+            everything.fill_(int(scalars.get("support_everything", 0)))
+            smp.index_support()
+        if int(scalars["samples"]) != self.m:
+            self.set_samples(int(scalars["samples"]))
+        if int(scalars["iterations"]) != self.cfg.iterations:
+            self.cfg = dataclasses.replace(self.cfg, iterations=int(scalars["iterations"]))
+            self.write_schedule()
+        self.split = bool(scalars["split"])
+        self.iteration = int(scalars["iteration"])
+        self.schedule.set_iteration(self.iteration)
+        self.touch_scale = float(scalars["touch_scale"])
+        self.schedule.touch.fill_(self.touch_scale)
+        self.contacts = scalars["contacts"]
+        self.binner.rebins = int(scalars["rebins"])
+        self._graph = None
+
+    # -- reports -----------------------------------------------------------------------------
+
+    def losses(self) -> dict:
+        """Loss terms of the last iteration and a running PSNR estimate over its samples (syncs)."""
+        if self.state.clean:
+            self.updater.finish_grads()  # per-primitive terms of the current parameters (pair buffers are zero)
+        pl = self.point_loss.numpy().astype(np.float64).sum(0)
+        rl = self.state.reg_loss.numpy().astype(np.float64).sum(0)
+        v = self.value.numpy()[: self.m].astype(np.float64)
+        t = self.target.numpy().astype(np.float64)
+        om = self.weight.numpy().astype(np.float64)
+        mse = float(np.sum(om * (v - t) ** 2) / max(om.sum(), 1.0))
+        terms = {"value": pl[0], "density": pl[1], "smooth": pl[2], "anchor": rl[0], "aniso": rl[1], "cap": rl[2]}
+        terms = {k: float(x) for k, x in terms.items()}
+        terms["total"] = float(sum(terms.values()))
+        terms["sample_psnr_db"] = float(10 * np.log10(1 / max(mse, 1e-20)))
+        return terms
+
+    def skipped_steps(self) -> int:
+        """Primitive updates skipped because their gradient or result was not finite, so far."""
+        return int(self.state.counts.numpy()[0])
+
+    def deferred_steps(self) -> int:
+        """Primitive updates deferred to the next re-bin (they would have left their cell's reach)."""
+        return int(self.state.counts.numpy()[1])
+
+    # -- the run -----------------------------------------------------------------------------
+
+    def run(self, progress=None, log_every: int = 25, deadline: float | None = None, clock=time.perf_counter, after_step=None) -> list[dict]:
+        """Run the iterations; ``progress(it, total, losses)`` every ``log_every`` iterations.
+
+        Args:
+            progress: Optional callback.
+            log_every: Iterations between loss records.
+            deadline: A ``clock()`` time by which refinement must have ended (time-budget mode).
+                The first :data:`BUDGET_PROBE` iterations measure the cost of one; with
+                ``budget_samples`` the next :data:`BUDGET_PROBE` run at 4x the samples, which
+                gives the cost as fixed + per-sample parts, and the samples are set to the
+                largest of :data:`BUDGET_SAMPLE_STEPS` x the configured count that still leaves
+                ``budget_min_iterations`` (more samples per iteration gain as much as more
+                iterations past that, and are what a large N needs to touch every primitive).
+                The schedule (learning-rate decay, smoothness anneal) is then resized to the
+                iterations that fit, and no iteration starts that is expected to end past the
+                deadline. The primitives are valid after every step, so stopping anywhere leaves a
+                valid model.
+            clock: Time source (seconds); the device is synchronised before each reading.
+            after_step: Optional callback(refiner) after every step (checkpoints). Setting
+                :attr:`stop_requested` (e.g. from a SIGINT handler) ends the run between two
+                steps, with :attr:`interrupted` set.
+
+        Returns:
+            The logged loss records.
+        """
+        history: list[dict] = []
+        it = 0  # steps taken by this call (a resumed run starts past 0)
+        self.budget = None
+        self.interrupted = False
+        if deadline is not None:
+            self.write_schedule(MAX_BUDGET_ITERATIONS)  # room for any resize, before capture
+            plan = BudgetPlan(self, deadline, clock)
+            self.budget = plan.report
+        while self.iteration < self.cfg.iterations:
+            if self.stop_requested:  # set from a signal handler: stop between two steps
+                self.interrupted = True
+                break
+            if deadline is not None and not plan.before_step(it):
+                break
+            self.step()
+            it += 1
+            done = self.iteration
+            if done % log_every == 0 or done == self.cfg.iterations:
+                rec = {"iteration": done, **self.losses()}
+                history.append(rec)
+                if progress is not None:
+                    progress(done, self.cfg.iterations, rec)
+            if after_step is not None:
+                after_step(self)
+            if self.stops.check(self.cfg, self.iteration, self.prims):
+                break
+        if deadline is not None:
+            plan.finish(it)
+        return history
+
+    def _now(self, clock) -> float:
+        self._wp.synchronize_device(self.device)
+        return clock()
