@@ -7,6 +7,8 @@ Layout (little-endian, SPEC section 6)::
                         H = 20 + L is a multiple of HEADER_BLOCK (or exactly an explicit header size)
     payload             N x 12 float32 ("float32", 48 bytes per primitive)
                         or N x 3 uint32 ("compact96", 12 bytes per primitive)
+                        or a Zstandard frame of quantised columns ("coded", its length in the
+                        header's payload description; see :mod:`warpgauss.coded`)
 
 A full-precision file is therefore exactly ``48 N + H`` bytes, and ``H`` is known before the
 parameters exist (:func:`header_size` reserves room for the fields written last), so a budget can
@@ -83,7 +85,7 @@ PARAM_NAMES: tuple[str, ...] = (
     "w",
 )
 
-ENCODINGS = {"float32": 48, "compact96": 12}
+ENCODINGS = {"float32": 48, "compact96": 12, "coded": None}  # bytes per primitive; None: variable
 
 # compact96 bit allocation (sums to 96); stored in the header's "quant" so the file describes itself
 COMPACT_BITS: dict[str, int] = {"mu": 13, "log_s": 7, "q_index": 2, "q": 6, "a": 8, "w": 8}
@@ -125,7 +127,7 @@ def _header_bytes(header: dict, n: int, payload_info: dict) -> bytes:
         ) from None
 
 
-def _payload_info(encoding: str, sha256: str, quant: dict | None) -> dict:
+def _payload_info(encoding: str, sha256: str, quant: dict | None, payload_bytes: int | None = None) -> dict:
     info = {
         "encoding": encoding,
         "bytes_per_primitive": ENCODINGS[encoding],
@@ -134,7 +136,18 @@ def _payload_info(encoding: str, sha256: str, quant: dict | None) -> dict:
     }
     if quant is not None:
         info["quant"] = quant
+    if ENCODINGS[encoding] is None:
+        info["payload_bytes"] = int(payload_bytes)
     return info
+
+
+def _coded_placeholder() -> dict:
+    """A coded payload description with every number at its widest (for header sizes)."""
+    from .coded import _COLUMNS, _DELTA, CODED_BITS, ZSTD_LEVEL
+
+    big = -(1 << 52)
+    cols = [{"name": c, "coding": "delta" if c in _DELTA else "offset", "offset": big, "bytes": 8} for c in _COLUMNS]
+    return {"bits": {k: 24 for k in CODED_BITS}, "columns": cols, "raw_bytes": _N_PLACEHOLDER, "compressor": f"zstd-{ZSTD_LEVEL}"}
 
 
 def _quant_dict(mu_lo, mu_hi, s_lo, s_hi, a_lo, a_hi, w_lo, w_hi) -> dict:
@@ -155,7 +168,7 @@ def _round_up(nbytes: int, block: int) -> int:
     return -(-nbytes // block) * block
 
 
-def header_size(header: dict, n: int, *, compact: bool = False) -> int:
+def header_size(header: dict, n: int, *, compact: bool = False, encoding: str | None = None) -> int:
     """Bytes ``H`` that the prefix plus the JSON area of a file with this header will take.
 
     Independent of the parameters' values and of ``n`` (the owned fields are measured at their
@@ -167,19 +180,28 @@ def header_size(header: dict, n: int, *, compact: bool = False) -> int:
         header: The caller's header dict (``"n"`` and ``"payload"`` are ignored and replaced).
         n: Number of primitives (only validated).
         compact: Size for the ``compact96`` payload (its header holds the quantisation ranges).
+        encoding: "float32", "compact96" or "coded" (overrides ``compact``).
 
     Returns:
         ``H``, a multiple of :data:`HEADER_BLOCK`.
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
         raise WarpgaussError(f"the primitive count must be a non-negative integer, got {n!r}")
-    return _reserved_size(header, compact)
+    return _reserved_size(header, _encoding(compact, encoding))
 
 
-def _reserved_size(header: dict, compact: bool) -> int:
+def _encoding(compact: bool, encoding: str | None) -> str:
+    if encoding is None:
+        return "compact96" if compact else "float32"
+    if encoding not in ENCODINGS:
+        raise WarpgaussError(f"unknown model format {encoding!r}; use one of {', '.join(ENCODINGS)}")
+    return encoding
+
+
+def _reserved_size(header: dict, encoding: str) -> int:
     x = _FLOAT_PLACEHOLDER
-    quant = _quant_dict([x] * 3, [x] * 3, x, x, x, x, x, x) if compact else None
-    info = _payload_info("compact96" if compact else "float32", _SHA_PLACEHOLDER, quant)
+    quant = {"compact96": lambda: _quant_dict([x] * 3, [x] * 3, x, x, x, x, x, x), "coded": _coded_placeholder}.get(encoding, lambda: None)()
+    info = _payload_info(encoding, _SHA_PLACEHOLDER, quant, _N_PLACEHOLDER)
     body = _header_bytes(header, _N_PLACEHOLDER, info)
     return _round_up(PREFIX_SIZE + len(body), HEADER_BLOCK)
 
@@ -389,6 +411,7 @@ def write_wgs(
     header: dict,
     *,
     compact: bool = False,
+    encoding: str | None = None,
     header_size: int | None = None,
     force: bool = False,
 ) -> int:
@@ -400,26 +423,41 @@ def write_wgs(
         header: The caller's header (grid, values, source, encoding, ...); ``"n"`` and
             ``"payload"`` are set here.
         compact: Store the ``compact96`` payload (12 bytes per primitive) instead of float32.
+        encoding: "float32", "compact96" or "coded" (overrides ``compact``). A coded file stores
+            the primitives in its own order (:func:`warpgauss.coded.coded_order`); read it back,
+            or use :func:`warpgauss.coded.project_coded` and that order, for the stored model.
         header_size: Exact ``H`` (prefix + JSON area) to pad to; default: the smallest multiple of
             :data:`HEADER_BLOCK` that fits, which equals :func:`header_size` of this header.
         force: Replace an existing file.
 
     Returns:
-        The file size in bytes: ``48 N + H`` (or ``12 N + H`` compact).
+        The file size in bytes: ``48 N + H`` (``12 N + H`` compact, payload + H coded).
     """
     dest = check_writable(path, force=force)
+    encoding = _encoding(compact, encoding)
+    data = wgs_bytes(params, header, encoding=encoding, header_size=header_size)
+    atomic_write_bytes(dest, data)
+    return len(data)
+
+
+def wgs_bytes(params: np.ndarray, header: dict, *, encoding: str = "float32", header_size: int | None = None) -> bytes:
+    """The bytes :func:`write_wgs` writes (for sizes and in-memory round trips)."""
     p = _validated_params(params)
     n = p.shape[0]
-    if compact:
+    encoding = _encoding(False, encoding)
+    if encoding == "compact96":
         payload, quant = encode_compact(p)
-        encoding = "compact96"
+    elif encoding == "coded":
+        from .coded import encode_coded
+
+        payload, quant, _ = encode_coded(p)
     else:
-        payload, quant, encoding = p.astype("<f4", copy=False).tobytes(), None, "float32"
-    body = _header_bytes(header, n, _payload_info(encoding, hashlib.sha256(payload).hexdigest(), quant))
+        payload, quant = p.astype("<f4", copy=False).tobytes(), None
+    body = _header_bytes(header, n, _payload_info(encoding, hashlib.sha256(payload).hexdigest(), quant, len(payload)))
     need = PREFIX_SIZE + len(body)
     if header_size is None:
         # _reserved_size() measures the owned fields at their widest, so it is never below need
-        H = max(_round_up(need, HEADER_BLOCK), _reserved_size(header, compact))
+        H = max(_round_up(need, HEADER_BLOCK), _reserved_size(header, encoding))
     else:
         if isinstance(header_size, bool) or not isinstance(header_size, (int, np.integer)):
             raise WarpgaussError(f"header_size must be an integer number of bytes, got {header_size!r}")
@@ -433,9 +471,7 @@ def write_wgs(
         raise WarpgaussError(f"header of {H} bytes is too large for the format (max 4 GiB); shrink the header")
     area = body + b" " * (H - need)
     prefix = _PREFIX.pack(MAGIC, FORMAT_VERSION, len(area), zlib.crc32(area))
-    data = b"".join([prefix, area, payload])
-    atomic_write_bytes(dest, data)
-    return len(data)
+    return b"".join([prefix, area, payload])
 
 
 def read_wgs(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
@@ -505,28 +541,41 @@ def read_wgs(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
         if info["bytes_per_primitive"] != bpp or isinstance(info["bytes_per_primitive"], bool):
             raise bad(f"payload encoding {enc} has {bpp} bytes per primitive, the header says "
                       f"{info['bytes_per_primitive']!r}; the file is damaged")
+        if bpp is None:
+            total = info.get("payload_bytes")
+            if isinstance(total, bool) or not isinstance(total, int) or total < 0:
+                raise bad(f"the header's payload_bytes {total!r} is not a non-negative integer; the file is damaged")
+        else:
+            total = n * bpp
         if info["layout"] != list(PARAM_NAMES):
             raise bad(f"unsupported parameter layout {info['layout']!r}; expected {list(PARAM_NAMES)}")
         sha = info["sha256"]
         if not isinstance(sha, str) or len(sha) != 64:
             raise bad("the header's payload sha256 is not a 64-digit hex string; the file is damaged")
-        if enc == "compact96" and "quant" not in info:
-            raise bad("the header lacks the compact96 quantisation ranges ('quant'); the file is damaged")
-        expected = PREFIX_SIZE + hlen + n * bpp
+        if enc in ("compact96", "coded") and "quant" not in info:
+            what = "ranges" if enc == "compact96" else "description"
+            raise bad(f"the header lacks the {enc} quantisation {what} ('quant'); the file is damaged")
+        expected = PREFIX_SIZE + hlen + total
         if size != expected:
             kind = "truncated" if size < expected else f"{size - expected} trailing bytes"
+            what = f"{n} x {bpp}" if bpp is not None else f"{total}-byte coded"
             raise bad(f"file size {size} != expected {expected} (prefix {PREFIX_SIZE} + header {hlen} + "
-                      f"{n} x {bpp} payload): {kind}; the file is damaged")
+                      f"{what} payload): {kind}; the file is damaged")
         if n < 1:
             raise bad("the model holds no primitives (n = 0); a model needs at least one, re-encode it")
-        payload = f.read(n * bpp)
-        if len(payload) != n * bpp:
+        payload = f.read(total)
+        if len(payload) != total:
             raise bad("the file changed while being read; try again")
     if hashlib.sha256(payload).hexdigest() != sha:
         raise bad("payload checksum mismatch: the file is damaged; restore it or re-encode")
-    if enc == "compact96":
+    if enc in ("compact96", "coded"):
         try:
-            params = decode_compact(payload, n, info["quant"])
+            if enc == "compact96":
+                params = decode_compact(payload, n, info["quant"])
+            else:
+                from .coded import decode_coded
+
+                params = decode_coded(payload, n, info["quant"])
         except WarpgaussError as e:
             raise bad(str(e)) from None
     else:

@@ -1,0 +1,51 @@
+"""Bytes per primitive and PSNR loss of the coded format against the full-precision model.
+
+For each (model, source volume) pair: full-grid PSNR of the model as stored in float32, then of
+the same model through the coded quantiser at several bit allocations, with the coded payload's
+bytes per primitive (payload only, and with the header). Writes JSON.
+
+    python3 benchmarks/i18/coded_loss.py OUT.json MODEL.wgs:VOLUME [...]
+"""
+import datetime as dt
+import json
+import sys
+
+import numpy as np
+
+import warpgauss
+from warpgauss import coded
+from warpgauss.model import Model
+from warpgauss.wgs import wgs_bytes
+
+VARIANTS = {
+    "default": dict(coded.CODED_BITS),
+    "mu2": {**coded.CODED_BITS, "mu": 2},
+    "mu4": {**coded.CODED_BITS, "mu": 4},
+    "s3": {**coded.CODED_BITS, "log_s": 3},
+    "s5": {**coded.CODED_BITS, "log_s": 5},
+    "q5": {**coded.CODED_BITS, "q": 5},
+    "q7": {**coded.CODED_BITS, "q": 7},
+    "a7": {**coded.CODED_BITS, "a": 7},
+    "w6": {**coded.CODED_BITS, "w": 6},
+    "lean": {"mu": 2, "log_s": 3, "q": 5, "a": 7, "w": 6},
+}
+out, pairs = sys.argv[1], sys.argv[2:]
+rows = []
+for pair in pairs:
+    path, vol = pair.split(":", 1)
+    m = Model.load(path)
+    base = warpgauss.psnr(m, vol, full=True, device="cpu")
+    row = {"model": path, "volume": vol, "n": m.n, "psnr_full_precision_db": base, "variants": {}}
+    print(f"{path}: N {m.n}, full precision {base:.3f} dB", flush=True)
+    for name, bits in VARIANTS.items():
+        payload, quant, order = coded.encode_coded(m.params, bits)
+        q = coded.decode_coded(payload, m.n, quant)
+        mq = Model(q, m.header)
+        p = warpgauss.psnr(mq, vol, full=True, device="cpu")
+        total = len(wgs_bytes(m.params, m.header, encoding="coded")) if name == "default" else None
+        row["variants"][name] = {"bits": bits, "payload_bytes_per_primitive": len(payload) / m.n, "psnr_db": p, "loss_db": base - p,
+                                 "raw_bytes_per_primitive": quant["raw_bytes"] / m.n, "file_bytes": total}
+        print(f"  {name:8s} {len(payload) / m.n:6.2f} B/prim  {p:7.3f} dB  loss {base - p:6.3f}" + (f"  file {total}" if total else ""), flush=True)
+    rows.append(row)
+json.dump({"benchmark": "coded format: bytes per primitive and PSNR loss (full grid) against float32",
+           "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"), "rows": rows}, open(out, "w"), indent=1)

@@ -1,0 +1,149 @@
+"""The coded payload: quantiser error bounds, Morton storage order, exact file round trips,
+determinism, and strict refusal of damaged or crafted payloads."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zstandard
+from test_wgs import _craft, _valid_header, make_header, realistic_params
+
+from warpgauss import coded
+from warpgauss.errors import WarpgaussError
+from warpgauss.wgs import header_size, read_wgs, wgs_bytes, write_wgs
+
+
+def _rot(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices of (n, 4) quaternions (x, y, z, w), float64."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    x, y, z, w = q.T
+    return np.stack(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    ).transpose(2, 0, 1)
+
+
+@pytest.mark.parametrize("bits", [coded.CODED_BITS, {"mu": 0, "log_s": 2, "q": 3, "a": 4, "w": 2}, {"mu": 8, "log_s": 8, "q": 10, "a": 12, "w": 12}])
+def test_quantiser_errors_stay_within_half_a_step(bits):
+    rng = np.random.default_rng(1)
+    p = realistic_params(rng, 3000)
+    p[:5, 6:10] = [[0, 0, 0, 1], [0, 0, 0, -1], [1, 0, 0, 0], [0.5, 0.5, 0.5, 0.5], [0, 0, 0, 0]]  # axis-aligned, sign, zero
+    q = coded.project_coded(p, bits).astype(np.float64)
+    p64 = p.astype(np.float64)
+    tol = 1e-6
+    assert np.abs(q[:, 0:3] - p64[:, 0:3]).max() <= 2.0 ** -(bits["mu"] + 1) * (1 + tol) + 1e-4
+    assert np.abs(q[:, 3:6] - p64[:, 3:6]).max() <= 2.0 ** -(bits["log_s"] + 1) * (1 + tol) + 1e-6
+    assert np.abs(q[:, 10] - p64[:, 10]).max() <= 2.0 ** -(bits["a"] + 1) * (1 + tol) + 1e-6
+    w_err = np.abs(q[:, 11] - p64[:, 11])
+    assert np.all((w_err <= 2.0 ** -(bits["w"] + 1) * (1 + tol) + 1e-6) | (q[:, 11] == 2.0 ** -bits["w"]))  # or lifted to the least code
+    assert np.all(q[:, 11] > 0)
+    assert np.allclose(np.linalg.norm(q[:, 6:10], axis=1), 1.0, atol=1e-6)
+    # rotation error: each smaller component within half a level, so the matrices stay close
+    levels = 2 ** bits["q"] - 2
+    step = np.sqrt(2.0) / levels
+    r = np.abs(_rot(q[5:, 6:10]) - _rot(p64[5:, 6:10])).max()
+    assert r <= 6 * step + 1e-6
+    np.testing.assert_allclose(_rot(q[:3, 6:10]), _rot(p64[:3, 6:10]), atol=1e-6)  # axis-aligned orientations survive exactly
+    np.testing.assert_array_equal(q[4, 6:10], [0, 0, 0, 1])  # a zero quaternion reads as the identity
+
+
+def test_file_round_trip_is_the_projected_model_in_morton_order(tmp_path):
+    rng = np.random.default_rng(2)
+    p = realistic_params(rng, 2500)
+    path = tmp_path / "m.wgs"
+    size = write_wgs(path, p, make_header(), encoding="coded")
+    got, hdr = read_wgs(path)
+    _, _, order = coded.encode_coded(p)
+    np.testing.assert_array_equal(got, coded.project_coded(p)[order])
+    assert size == path.stat().st_size == header_size(make_header(), len(p), encoding="coded") + hdr["payload"]["payload_bytes"]
+    assert hdr["payload"]["encoding"] == "coded" and hdr["payload"]["bytes_per_primitive"] is None
+    assert size < 12 * len(p) + header_size(make_header(), len(p), compact=True)  # smaller than compact96
+    # stored along a Morton curve: consecutive primitives are near each other
+    step = np.linalg.norm(np.diff(got[:, 0:3], axis=0), axis=1)
+    shuffled = np.linalg.norm(np.diff(p[:, 0:3], axis=0), axis=1)
+    assert np.median(step) < 0.25 * np.median(shuffled)
+    # the projection is idempotent: a decoded model saved again is the same file (nothing drifts,
+    # and a model refined on the grid is stored exactly)
+    again = tmp_path / "again.wgs"
+    write_wgs(again, got, hdr, encoding="coded")
+    assert again.read_bytes() == path.read_bytes()
+    np.testing.assert_array_equal(coded.project_coded(got), got)
+
+
+def test_coding_is_deterministic_and_independent_of_input_order():
+    rng = np.random.default_rng(3)
+    p = realistic_params(rng, 800)
+    a = wgs_bytes(p, make_header(), encoding="coded")
+    b = wgs_bytes(p[rng.permutation(len(p))], make_header(), encoding="coded")
+    assert a == b
+
+
+def test_a_single_primitive_and_huge_values():
+    p = realistic_params(np.random.default_rng(4), 1)
+    payload, quant, order = coded.encode_coded(p)
+    np.testing.assert_array_equal(coded.decode_coded(payload, 1, quant), coded.project_coded(p))
+    p[0, 0] = 1e30
+    with pytest.raises(WarpgaussError, match="too large for the coded format"):
+        coded.encode_coded(p)
+
+
+def _coded_file(tmp_path, name, p, payload, quant):
+    header, _ = _valid_header(p, payload, encoding="coded", bytes_per_primitive=None, payload_bytes=len(payload), quant=quant)
+    _craft(tmp_path / name, header, payload)
+    return tmp_path / name
+
+
+@pytest.mark.parametrize(
+    "mutate, match",
+    [
+        (lambda q: {**q, "bits": {**q["bits"], "q": 1}}, "bit depth 'q'"),
+        (lambda q: {k: v for k, v in q.items() if k != "bits"}, "bit depths"),
+        (lambda q: {**q, "raw_bytes": q["raw_bytes"] + 1}, "raw bytes"),
+        (lambda q: {**q, "columns": q["columns"][:-1]}, "column list"),
+        (lambda q: {**q, "columns": [{**q["columns"][0], "bytes": 9}, *q["columns"][1:]]}, "width"),
+        (lambda q: {**q, "columns": [{**q["columns"][0], "coding": "offset"}, *q["columns"][1:]]}, "belongs"),
+        (lambda q: {**q, "columns": [{**q["columns"][0], "offset": 2**60}, *q["columns"][1:]]}, "2\\^52"),
+        (lambda q: {**q, "columns": [{**q["columns"][0], "offset": "0"}, *q["columns"][1:]]}, "offset"),
+    ],
+)
+def test_crafted_coded_description_rejected(tmp_path, mutate, match):
+    p = realistic_params(np.random.default_rng(5), 40)
+    payload, quant, _ = coded.encode_coded(p)
+    with pytest.raises(WarpgaussError, match=match):
+        read_wgs(_coded_file(tmp_path, "bad.wgs", p, payload, mutate(quant)))
+    read_wgs(_coded_file(tmp_path, "ok.wgs", p, payload, quant))  # the unmutated file reads
+
+
+def test_crafted_coded_payloads_rejected(tmp_path):
+    p = realistic_params(np.random.default_rng(6), 40)
+    payload, quant, _ = coded.encode_coded(p)
+    raw = quant["raw_bytes"]
+    z = zstandard.ZstdCompressor(level=3)
+    cases = [
+        (z.compress(b"\0" * (raw * 1000)), "frame holds"),  # a bomb: declares far more than the columns
+        (z.compress(b"\0" * (raw - 1)), "frame holds"),
+        (b"not a zstd frame at all", "does not decompress"),
+        (zstandard.ZstdCompressor(write_content_size=False).compress(b"\0" * raw), "frame holds"),
+    ]
+    # codes outside their ranges: a rotation index of 7 in an otherwise valid payload
+    blob = bytearray(zstandard.ZstdDecompressor().decompress(payload))
+    at = sum(c["bytes"] for c in quant["columns"][:6]) * len(p)
+    blob[at] = 7 - quant["columns"][6]["offset"]
+    cases.append((z.compress(bytes(blob)), "rotations hold codes outside"))
+    for bad, match in cases:
+        with pytest.raises(WarpgaussError, match=match):
+            read_wgs(_coded_file(tmp_path, "bad.wgs", p, bad, quant))
+
+
+def test_flipped_payload_byte_is_caught(tmp_path):
+    p = realistic_params(np.random.default_rng(7), 200)
+    path = tmp_path / "m.wgs"
+    write_wgs(path, p, make_header(), encoding="coded")
+    data = bytearray(path.read_bytes())
+    data[-10] ^= 0x40
+    path.write_bytes(bytes(data))
+    with pytest.raises(WarpgaussError, match="payload checksum mismatch"):
+        read_wgs(path)

@@ -1,0 +1,268 @@
+"""The ``coded`` payload of a ``.wgs`` file: quantised primitives, ordered along a Morton curve,
+columns delta- or offset-coded, byte planes compressed with Zstandard.
+
+Quantisation (absolute grids, so a primitive's stored value depends on nothing but itself, which
+lets refinement project onto the same grid during its last iterations, see
+:func:`project_coded`)::
+
+    centre      mu  -> round(mu * 2^b_mu)             (b_mu fractional bits of a voxel)
+    log-scale   s   -> round(s * 2^b_s)
+    rotation    q   -> smallest three: index of the largest |component| (made positive) and the
+                       other three on 2^b_q - 1 levels over [-1/sqrt2, 1/sqrt2] (0 exact)
+    value       a   -> round(a * 2^b_a)
+    weight      w   -> max(round(w * 2^b_w), 1)        (a weight never quantises to 0)
+
+The primitives are sorted by the Morton code of their centre codes (ties by every other code), so
+neighbours along the file are neighbours in space: the centre columns are stored as differences
+from the previous primitive (zigzag), every other column as its offset from the column's minimum.
+Each column takes the fewest whole bytes its values need; the columns' byte planes (all lowest
+bytes first) are concatenated and compressed with Zstandard at level 19. Zstandard rather than a
+range coder of our own: a well-kept, fast, bounded-memory library with a frame checksum, and the
+byte planes leave it the redundancy a model-based coder would find (measured in
+``benchmarks/results``; see the README's format section).
+
+Decoding checks every declared width, offset and length against the header before it allocates,
+decompresses into at most the declared size, and rejects codes outside their ranges; no pickle.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .errors import WarpgaussError
+
+CODED_BITS: dict[str, int] = {"mu": 3, "log_s": 4, "q": 6, "a": 8, "w": 7}
+ZSTD_LEVEL = 19
+_Q_RANGE = 1.0 / math.sqrt(2.0)
+_COLUMNS = ("mu_x", "mu_y", "mu_z", "log_sx", "log_sy", "log_sz", "q_index", "q_0", "q_1", "q_2", "a", "w")
+_DELTA = ("mu_x", "mu_y", "mu_z")
+_MAX_CODE = 1 << 52  # |code| bound: every code and difference is exact in float64 and int64
+
+
+def _zstd():
+    try:
+        import zstandard
+    except ImportError:  # pragma: no cover - a dependency of the package
+        raise WarpgaussError("the coded model format needs the 'zstandard' package: pip install zstandard") from None
+    return zstandard
+
+
+def _check_bits(bits) -> dict[str, int]:
+    if not isinstance(bits, dict) or set(bits) != set(CODED_BITS):
+        raise WarpgaussError(f"coded bit depths must name {sorted(CODED_BITS)}, got {bits!r}")
+    out = {}
+    for k, v in bits.items():
+        hi = 16 if k == "q" else 24
+        if isinstance(v, bool) or not isinstance(v, int) or not (2 if k == "q" else 0) <= v <= hi:
+            raise WarpgaussError(f"coded bit depth '{k}' must be an integer in [{2 if k == 'q' else 0}, {hi}], got {v!r}")
+        out[k] = int(v)
+    return out
+
+
+def _q_levels(b: int) -> int:
+    return (1 << b) - 2  # intervals: 2^b - 1 levels, odd, so 0 is a level
+
+
+def quantise(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarray:
+    """(N, 12) integer codes (int64) of ``params`` on the coded grids (columns as :data:`_COLUMNS`)."""
+    b = _check_bits(dict(CODED_BITS if bits is None else bits))
+    p = np.asarray(params, np.float64)
+    n = p.shape[0]
+    codes = np.empty((n, 12), np.int64)
+
+    def grid(x, k):
+        c = np.rint(x * float(1 << k))
+        if np.any(np.abs(c) > _MAX_CODE):
+            raise WarpgaussError("a parameter is too large for the coded format (|value| x 2^bits > 2^52); use --format full")
+        return c.astype(np.int64)
+
+    codes[:, 0:3] = grid(p[:, 0:3], b["mu"])
+    codes[:, 3:6] = grid(p[:, 3:6], b["log_s"])
+    q = p[:, 6:10]
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 0.0, 1.0]))
+    qi = np.argmax(np.abs(q), axis=1)
+    rows = np.arange(n)
+    q = q * np.where(q[rows, qi] < 0, -1.0, 1.0)[:, None]  # q and -q are the same rotation
+    keep = np.ones((n, 4), bool)
+    keep[rows, qi] = False
+    small = q[keep].reshape(n, 3)
+    lev = _q_levels(b["q"])
+    codes[:, 6] = qi
+    sc = np.clip(np.rint((small + _Q_RANGE) / (2 * _Q_RANGE) * lev), 0, lev).astype(np.int64)
+    # the implied component must stay strictly the largest after rounding, else a decoded model
+    # would code to another index (and drift by a step when saved again): near ties, move the
+    # largest small component one level towards 0 until it is
+    mid = lev // 2
+    for _ in range(4 * lev):
+        sv = sc * (2 * _Q_RANGE / lev) - _Q_RANGE
+        largest = np.sqrt(np.maximum(0.0, 1.0 - np.sum(sv * sv, axis=1)))
+        bad = np.abs(sv).max(axis=1) >= largest * (1.0 - 1e-9)
+        if not bad.any():
+            break
+        rows_bad = np.flatnonzero(bad)
+        k = np.argmax(np.abs(sv[rows_bad]), axis=1)
+        sc[rows_bad, k] -= np.sign(sc[rows_bad, k] - mid)
+    codes[:, 7:10] = sc
+    codes[:, 10] = grid(p[:, 10], b["a"])
+    codes[:, 11] = np.maximum(grid(p[:, 11], b["w"]), 1)
+    return codes
+
+
+def dequantise(codes: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarray:
+    """(N, 12) float32 parameters of integer codes (unit quaternions)."""
+    b = _check_bits(dict(CODED_BITS if bits is None else bits))
+    c = np.asarray(codes, np.int64)
+    n = c.shape[0]
+    out = np.empty((n, 12), np.float64)
+    out[:, 0:3] = c[:, 0:3] / float(1 << b["mu"])
+    out[:, 3:6] = c[:, 3:6] / float(1 << b["log_s"])
+    lev = _q_levels(b["q"])
+    small = c[:, 7:10] * (2 * _Q_RANGE / lev) - _Q_RANGE
+    largest = np.sqrt(np.maximum(0.0, 1.0 - np.sum(small * small, axis=1)))
+    qi = c[:, 6].astype(np.intp)
+    rows = np.arange(n)
+    keep = np.ones((n, 4), bool)
+    keep[rows, qi] = False
+    q = np.empty((n, 4), np.float64)
+    q[keep] = small.reshape(-1)
+    q[rows, qi] = largest
+    q /= np.linalg.norm(q, axis=1, keepdims=True)  # never zero: largest = 1 when the rest are 0
+    out[:, 6:10] = q
+    out[:, 10] = c[:, 10] / float(1 << b["a"])
+    out[:, 11] = c[:, 11] / float(1 << b["w"])
+    return out.astype(np.float32)
+
+
+def project_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarray:
+    """``params`` as the coded format stores them (same order): what a decoder will read back."""
+    return dequantise(quantise(params, bits), bits)
+
+
+def _part1by2(v: np.ndarray) -> np.ndarray:
+    """Spread the low 21 bits of v to every third bit (Morton interleave of one axis)."""
+    v = v.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F), (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+    return v
+
+
+def coded_order(codes: np.ndarray) -> np.ndarray:
+    """The storage order: by Morton code of the centre codes (offset to 0), ties by every code; a
+    centre range wider than 2^21 codes on an axis falls back to z, y, x order."""
+    mu = codes[:, 0:3] - codes[:, 0:3].min(0)
+    keys = [codes[:, k] for k in range(11, 2, -1)]  # least significant first for lexsort
+    if int(mu.max(initial=0)) < (1 << 21):
+        m = _part1by2(mu[:, 0]) | (_part1by2(mu[:, 1]) << np.uint64(1)) | (_part1by2(mu[:, 2]) << np.uint64(2))
+        return np.lexsort([*keys, mu[:, 0], mu[:, 1], mu[:, 2], m])
+    return np.lexsort([*keys, mu[:, 0], mu[:, 1], mu[:, 2]])
+
+
+def _width(max_value: int) -> int:
+    return max(1, (int(max_value).bit_length() + 7) // 8)
+
+
+def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tuple[bytes, dict, np.ndarray]:
+    """Code (N, 12) finite parameters.
+
+    Returns:
+        ``(payload, quant, order)``: the compressed bytes, the JSON-ready description the decoder
+        needs (bit depths, per-column coding, offset and byte width, raw size), and the
+        permutation of ``params`` rows the file stores them in.
+    """
+    b = _check_bits(dict(CODED_BITS if bits is None else bits))
+    codes = quantise(params, b)
+    order = coded_order(codes)
+    codes = codes[order]
+    columns, planes, raw = [], [], 0
+    for k, name in enumerate(_COLUMNS):
+        col = codes[:, k]
+        if name in _DELTA:
+            first = int(col[0])
+            d = np.diff(col, prepend=col[:1])  # first difference 0; the first value is the offset
+            v = ((d << 1) ^ (d >> 63)).astype(np.uint64)  # zigzag
+            spec = {"name": name, "coding": "delta", "offset": first}
+        else:
+            lo = int(col.min())
+            v = (col - lo).astype(np.uint64)
+            spec = {"name": name, "coding": "offset", "offset": lo}
+        w = _width(int(v.max()))
+        spec["bytes"] = w
+        columns.append(spec)
+        planes.append(v.astype("<u8").view(np.uint8).reshape(-1, 8)[:, :w].T.copy())  # (w, n) planes
+        raw += w * len(v)
+    blob = b"".join(p.tobytes() for p in planes)
+    payload = _zstd().ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(blob)
+    quant = {"bits": b, "columns": columns, "raw_bytes": raw, "compressor": f"zstd-{ZSTD_LEVEL}"}
+    return payload, quant, order
+
+
+def _number(spec: dict, key: str) -> int:
+    v = spec.get(key)
+    if isinstance(v, bool) or not isinstance(v, int) or abs(v) > _MAX_CODE:
+        raise WarpgaussError(f"coded column field '{key}' must be an integer of at most 2^52, got {v!r}; the file is damaged")
+    return v
+
+
+def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
+    """(n, 12) float32 parameters of a ``coded`` payload (in the file's order)."""
+    if not isinstance(quant, dict):
+        raise WarpgaussError("the coded payload description ('quant') is missing; the file is damaged")
+    try:
+        b = _check_bits(quant.get("bits"))
+    except WarpgaussError as e:
+        raise WarpgaussError(f"{e}; the file is damaged or was written by another warpgauss version") from None
+    cols = quant.get("columns")
+    if not isinstance(cols, list) or len(cols) != len(_COLUMNS) or not all(isinstance(c, dict) for c in cols):
+        raise WarpgaussError("the coded column list is malformed; the file is damaged")
+    widths = []
+    for spec, name in zip(cols, _COLUMNS):
+        coding = "delta" if name in _DELTA else "offset"
+        if spec.get("name") != name or spec.get("coding") != coding:
+            raise WarpgaussError(f"coded column {spec.get('name')!r} ({spec.get('coding')!r}) where {name} ({coding}) belongs; the file is damaged")
+        w = spec.get("bytes")
+        if isinstance(w, bool) or not isinstance(w, int) or not 1 <= w <= 8:
+            raise WarpgaussError(f"coded column {name} width {w!r} is not 1..8 bytes; the file is damaged")
+        widths.append(w)
+    raw = sum(widths) * n
+    if quant.get("raw_bytes") != raw:
+        raise WarpgaussError(f"coded payload declares {quant.get('raw_bytes')!r} raw bytes, its columns make {raw}; the file is damaged")
+    zstd = _zstd()
+    try:
+        params = zstd.get_frame_parameters(payload)
+        if params.content_size != raw:
+            raise WarpgaussError(f"coded payload frame holds {params.content_size} bytes, expected {raw}; the file is damaged")
+        blob = zstd.ZstdDecompressor().decompress(payload, max_output_size=raw)
+    except zstd.ZstdError as e:
+        raise WarpgaussError(f"coded payload does not decompress ({e}); the file is damaged") from None
+    if len(blob) != raw:
+        raise WarpgaussError(f"coded payload decompresses to {len(blob)} bytes, expected {raw}; the file is damaged")
+    codes = np.empty((n, 12), np.int64)
+    at = 0
+    for k, (spec, w) in enumerate(zip(cols, widths)):
+        planes = np.frombuffer(blob, np.uint8, count=w * n, offset=at).reshape(w, n)
+        at += w * n
+        full = np.zeros((n, 8), np.uint8)
+        full[:, :w] = planes.T
+        v = full.view("<u8").reshape(n)
+        off = _number(spec, "offset")
+        if _COLUMNS[k] in _DELTA:
+            if np.any(v > np.uint64(2 * _MAX_CODE)):
+                raise WarpgaussError(f"coded column {_COLUMNS[k]} holds a difference beyond 2^52; the file is damaged")
+            d = (v >> np.uint64(1)).astype(np.int64) ^ -(v & np.uint64(1)).astype(np.int64)
+            col = off + np.cumsum(d)
+        else:
+            if np.any(v > np.uint64(_MAX_CODE)):
+                raise WarpgaussError(f"coded column {_COLUMNS[k]} holds a code beyond 2^52; the file is damaged")
+            col = off + v.astype(np.int64)
+        if np.any(np.abs(col) > _MAX_CODE):
+            raise WarpgaussError(f"coded column {_COLUMNS[k]} decodes beyond 2^52; the file is damaged")
+        codes[:, k] = col
+    lev = _q_levels(b["q"])
+    if np.any((codes[:, 6] < 0) | (codes[:, 6] > 3)) or np.any((codes[:, 7:10] < 0) | (codes[:, 7:10] > lev)):
+        raise WarpgaussError("coded rotations hold codes outside their range; the file is damaged")
+    if np.any(codes[:, 11] < 1):
+        raise WarpgaussError("coded weights hold codes below 1; the file is damaged")
+    return dequantise(codes, b)
