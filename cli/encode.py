@@ -22,6 +22,10 @@ def encode(
     seed: Annotated[int, typer.Option(help="Seed: same seed and device give the same model")] = 0,
     device: Annotated[str | None, typer.Option(help="Warp device: cpu, cuda, cuda:N (default: CUDA if present)")] = None,
     compact: Annotated[bool, typer.Option("--compact", help="Write the compact 12-byte/primitive format")] = False,
+    fmt: Annotated[
+        str | None,
+        typer.Option("--format", help="File format: float32 (48 B/primitive), compact96 (12 B), or coded (quantised + Zstandard, about 7-9 B; refinement ends on its grids)"),
+    ] = None,
     iterations: Annotated[int | None, typer.Option(help="Refinement iterations (default 1500; 0: analytic model only)")] = None,
     samples: Annotated[int | None, typer.Option(help="Samples per iteration (default 3072, x ceil(N / 350000) for large budgets)")] = None,
     preset: Annotated[str | None, typer.Option(help="paper (1500 x 3072 whatever N), fast (300 x 3072) or quality (1500 x 12288)")] = None,
@@ -72,6 +76,8 @@ def encode(
     if ladder is not None:
         if budget is not None or ratio is not None or resume or time_budget is not None or save_analytic is not None:
             fail("--ladder gives the budgets: it does not combine with --budget, --ratio, --time-budget, --resume or --save-analytic")
+        if fmt is not None and fmt != ("compact96" if compact else "float32"):
+            fail("--ladder writes float32 or --compact models; --format coded needs one budget at a time for now")
         _encode_ladder(
             ladder, input, out, example, size, seed, device, iterations, samples, preset, RefineConfig(lr=lr, weights=weights),
             not no_self_test, compact, ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
@@ -106,6 +112,7 @@ def encode(
             target_psnr=target_psnr,
             plateau_db=plateau,
             compact=compact,
+            format=fmt,
             example=example,
             example_size=size,
             read=ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
@@ -212,8 +219,8 @@ def _print_summary(rep: dict) -> None:
     ev = rep["evaluation"].get("final")
     out_console.print(
         f"[bold]{rep['input']['name']}[/] {'x'.join(map(str, rep['input']['shape_xyz']))} -> "
-        f"{b['n']} Gaussians, {human_bytes(b['bytes'])} ({b['bytes']} B), compression {b['compression_ratio']:.2f}x "
-        f"on {rep['device_name']}"
+        f"{b['n']} Gaussians, {human_bytes(b['bytes'])} ({b['bytes']} B, {b['format']}, {b['bytes_per_primitive']:.2f} B/Gaussian), "
+        f"compression {b['compression_ratio']:.2f}x on {rep['device_name']}"
     )
     an = rep["evaluation"].get("analytic")
     if an and ev and an is not ev and rep["refinement"].get("iterations"):

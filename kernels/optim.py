@@ -322,3 +322,86 @@ def ids_from_slots(src: wp.array(dtype=vec12), ids: wp.array(dtype=int), out: wp
     """out[ids[j]] = src[j]: slot order back to primitive order."""
     j = wp.tid()
     out[ids[j]] = src[j]
+
+
+@wp.func
+def on_grid(x: float, bits: int) -> float:
+    """x rounded to the nearest multiple of 2^-bits (the coded format's absolute grids)."""
+    s = float(1 << bits)
+    return wp.round(x * s) / s
+
+
+@wp.kernel
+def project_coded(
+    raw: wp.array(dtype=vec12),  # [N] training parameters, in place
+    b_mu: int,
+    b_s: int,
+    b_q: int,
+    b_a: int,
+    b_w: int,
+):
+    """Move each primitive onto the coded format's grids (:mod:`warpgauss.coded`): centres,
+    log-scales and values to multiples of 2^-bits, the weight to a multiple of 2^-b_w in
+    [2^-b_w, 1 - 2^-b_w] (as a logit), the rotation to its smallest-three levels with the
+    implied component strictly the largest. Refinement runs its last iterations on these grids
+    (quantisation-aware), so the stored model is the one it optimised."""
+    i = wp.tid()
+    p = raw[i]
+    for k in range(3):
+        p[k] = on_grid(p[k], b_mu)
+        p[3 + k] = on_grid(p[3 + k], b_s)
+    p[10] = on_grid(p[10], b_a)
+    sw = float(1 << b_w)
+    w = 1.0 / (1.0 + wp.exp(-p[11]))
+    wq = wp.clamp(wp.round(w * sw), 1.0, sw - 1.0) / sw
+    p[11] = wp.log(wq / (1.0 - wq))
+    q = wp.vec4(p[6], p[7], p[8], p[9])
+    n = wp.length(q)
+    if n > 1.0e-20 and wp.isfinite(n):
+        q = q / n
+    else:
+        q = wp.vec4(0.0, 0.0, 0.0, 1.0)
+    big = int(0)
+    for k in range(1, 4):
+        if wp.abs(q[k]) > wp.abs(q[big]):
+            big = k
+    if q[big] < 0.0:
+        q = -q
+    r = 0.7071067811865476  # 1 / sqrt 2
+    lev = float((1 << b_q) - 2)
+    c = wp.vec4(0.0)
+    for k in range(4):
+        if k != big:
+            c[k] = wp.clamp(wp.round((q[k] + r) / (2.0 * r) * lev), 0.0, lev)
+    mid = float((1 << b_q) / 2 - 1)
+    for _ in range(64):  # the implied component must stay strictly the largest
+        s2 = float(0.0)
+        top = int(-1)
+        for k in range(4):
+            if k != big:
+                v = c[k] * (2.0 * r / lev) - r
+                s2 += v * v
+                if top < 0:
+                    top = k
+                elif wp.abs(c[k] - mid) > wp.abs(c[top] - mid):
+                    top = k
+        largest = wp.sqrt(wp.max(0.0, 1.0 - s2))
+        vt = wp.abs(c[top] * (2.0 * r / lev) - r)
+        if vt < largest * (1.0 - 1.0e-6):
+            break
+        if c[top] > mid:
+            c[top] = c[top] - 1.0
+        else:
+            c[top] = c[top] + 1.0
+    s2 = float(0.0)
+    for k in range(4):
+        if k != big:
+            q[k] = c[k] * (2.0 * r / lev) - r
+            s2 += q[k] * q[k]
+    q[big] = wp.sqrt(wp.max(0.0, 1.0 - s2))
+    q = q / wp.length(q)
+    p[6] = q[0]
+    p[7] = q[1]
+    p[8] = q[2]
+    p[9] = q[3]
+    raw[i] = p

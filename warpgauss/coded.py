@@ -180,29 +180,27 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tupl
     for k, name in enumerate(_COLUMNS):
         col = codes[:, k]
         if name in _DELTA:
-            first = int(col[0])
+            off = int(col[0])
             d = np.diff(col, prepend=col[:1])  # first difference 0; the first value is the offset
             v = ((d << 1) ^ (d >> 63)).astype(np.uint64)  # zigzag
-            spec = {"name": name, "coding": "delta", "offset": first}
         else:
-            lo = int(col.min())
-            v = (col - lo).astype(np.uint64)
-            spec = {"name": name, "coding": "offset", "offset": lo}
+            off = int(col.min())
+            v = (col - off).astype(np.uint64)
         w = _width(int(v.max()))
-        spec["bytes"] = w
-        columns.append(spec)
+        columns.append([off, w])
         planes.append(v.astype("<u8").view(np.uint8).reshape(-1, 8)[:, :w].T.copy())  # (w, n) planes
         raw += w * len(v)
     blob = b"".join(p.tobytes() for p in planes)
     payload = _zstd().ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(blob)
-    quant = {"bits": b, "columns": columns, "raw_bytes": raw, "compressor": f"zstd-{ZSTD_LEVEL}"}
+    # columns: [offset, bytes] in _COLUMNS order (centres delta-coded from the offset, the rest
+    # offset-coded), kept terse: at high compression ratios the header is part of the budget
+    quant = {"bits": b, "columns": columns, "raw_bytes": raw}
     return payload, quant, order
 
 
-def _number(spec: dict, key: str) -> int:
-    v = spec.get(key)
+def _offset(name: str, v) -> int:
     if isinstance(v, bool) or not isinstance(v, int) or abs(v) > _MAX_CODE:
-        raise WarpgaussError(f"coded column field '{key}' must be an integer of at most 2^52, got {v!r}; the file is damaged")
+        raise WarpgaussError(f"coded column {name} offset must be an integer of at most 2^52, got {v!r}; the file is damaged")
     return v
 
 
@@ -215,17 +213,14 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
     except WarpgaussError as e:
         raise WarpgaussError(f"{e}; the file is damaged or was written by another warpgauss version") from None
     cols = quant.get("columns")
-    if not isinstance(cols, list) or len(cols) != len(_COLUMNS) or not all(isinstance(c, dict) for c in cols):
-        raise WarpgaussError("the coded column list is malformed; the file is damaged")
-    widths = []
-    for spec, name in zip(cols, _COLUMNS):
-        coding = "delta" if name in _DELTA else "offset"
-        if spec.get("name") != name or spec.get("coding") != coding:
-            raise WarpgaussError(f"coded column {spec.get('name')!r} ({spec.get('coding')!r}) where {name} ({coding}) belongs; the file is damaged")
-        w = spec.get("bytes")
+    if not isinstance(cols, list) or len(cols) != len(_COLUMNS) or not all(isinstance(c, list) and len(c) == 2 for c in cols):
+        raise WarpgaussError(f"the coded column list must hold {len(_COLUMNS)} [offset, bytes] pairs; the file is damaged")
+    widths, offsets = [], []
+    for (off, w), name in zip(cols, _COLUMNS):
         if isinstance(w, bool) or not isinstance(w, int) or not 1 <= w <= 8:
             raise WarpgaussError(f"coded column {name} width {w!r} is not 1..8 bytes; the file is damaged")
         widths.append(w)
+        offsets.append(_offset(name, off))
     raw = sum(widths) * n
     if quant.get("raw_bytes") != raw:
         raise WarpgaussError(f"coded payload declares {quant.get('raw_bytes')!r} raw bytes, its columns make {raw}; the file is damaged")
@@ -241,13 +236,12 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
         raise WarpgaussError(f"coded payload decompresses to {len(blob)} bytes, expected {raw}; the file is damaged")
     codes = np.empty((n, 12), np.int64)
     at = 0
-    for k, (spec, w) in enumerate(zip(cols, widths)):
+    for k, (off, w) in enumerate(zip(offsets, widths)):
         planes = np.frombuffer(blob, np.uint8, count=w * n, offset=at).reshape(w, n)
         at += w * n
         full = np.zeros((n, 8), np.uint8)
         full[:, :w] = planes.T
         v = full.view("<u8").reshape(n)
-        off = _number(spec, "offset")
         if _COLUMNS[k] in _DELTA:
             if np.any(v > np.uint64(2 * _MAX_CODE)):
                 raise WarpgaussError(f"coded column {_COLUMNS[k]} holds a difference beyond 2^52; the file is damaged")

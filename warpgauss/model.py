@@ -193,22 +193,40 @@ class Model:
     def source_bytes(self) -> int:
         return int(self.header["source"]["bytes"])
 
-    def file_size(self, compact: bool = False) -> int:
-        """Exact bytes of this model's file: 48 N + H (full precision) or 12 N + H (compact)."""
-        from .wgs import header_size
+    def file_size(self, compact: bool = False, *, encoding: str | None = None) -> int:
+        """Exact bytes of this model's file: 48 N + H (full precision), 12 N + H (compact) or
+        the coded payload + H (``encoding="coded"``: the payload is coded to measure it)."""
+        from .wgs import _encoding, header_size, wgs_bytes
 
-        bpp = 12 if compact else 48
-        return bpp * self.n + header_size(self.header, self.n, compact=compact)
+        enc = _encoding(compact, encoding)
+        if enc == "coded":
+            return len(wgs_bytes(self.params, self.header, encoding="coded"))
+        bpp = 12 if enc == "compact96" else 48
+        return bpp * self.n + header_size(self.header, self.n, encoding=enc)
 
-    def compression_ratio(self, compact: bool = False) -> float:
-        return self.source_bytes / self.file_size(compact)
+    def compression_ratio(self, compact: bool = False, *, encoding: str | None = None) -> float:
+        return self.source_bytes / self.file_size(compact, encoding=encoding)
+
+    def stored(self, encoding: str) -> Model:
+        """This model as a file of ``encoding`` would hand it back on reading (for "coded": on the
+        coded grids, in the file's Morton order; float32 and compact96: unchanged, since the
+        encoder evaluates those before quantisation)."""
+        if encoding != "coded":
+            return self
+        from .coded import encode_coded, project_coded
+
+        _, _, order = encode_coded(self.params)
+        m = Model(project_coded(self.params)[order], self.header)
+        m.report = getattr(self, "report", None)
+        return m
 
     # -- file I/O --------------------------------------------------------------------------
-    def save(self, path: str | os.PathLike, *, compact: bool = False, force: bool = False) -> int:
-        """Write the model atomically; returns the file size in bytes."""
+    def save(self, path: str | os.PathLike, *, compact: bool = False, encoding: str | None = None, force: bool = False) -> int:
+        """Write the model atomically (``encoding``: "float32", "compact96" or "coded"; overrides
+        ``compact``); returns the file size in bytes."""
         from .wgs import write_wgs
 
-        return write_wgs(path, self.params, self.header, compact=compact, force=force)
+        return write_wgs(path, self.params, self.header, compact=compact, encoding=encoding, force=force)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Model:

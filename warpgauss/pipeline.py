@@ -73,6 +73,7 @@ class EncodeOptions:
     checkpoint: str | os.PathLike | None = None
     checkpoint_every: float = 60.0
     resume: bool = False
+    format: str | None = None  # "float32", "compact96" or "coded"; None: compact96 if compact else float32
 
 
 def _available_memory() -> int | None:
@@ -153,11 +154,26 @@ def load_field(
     return f, info
 
 
+CODED_BPP_SIZING = 12  # bytes per primitive --ratio assumes for the coded format (its bound in practice; rate control: issue #18 part 2)
+
+
+def encoding_of(opts: EncodeOptions) -> str:
+    """The file format of an encoding: ``format``, else compact96 with ``compact``, else float32."""
+    from .wgs import _encoding
+
+    return _encoding(opts.compact, opts.format)
+
+
+def sizing_bpp(encoding: str) -> int:
+    """Bytes per primitive a --ratio budget is sized with."""
+    return {"float32": 48, "compact96": 12}.get(encoding, CODED_BPP_SIZING)
+
+
 def resolve_budget(f: Field, opts: EncodeOptions, header_bytes: int) -> int:
     """N from --budget or --ratio (SPEC section 4), validated against the seed limit."""
     if opts.budget is not None and opts.ratio is not None:
         raise WarpgaussError("give either --budget or --ratio, not both")
-    bpp = 12 if opts.compact else 48
+    bpp = sizing_bpp(encoding_of(opts))
     if opts.budget is not None:
         n = int(opts.budget)
     else:
@@ -250,13 +266,18 @@ def encode_field(
     """
     from .wgs import header_size
 
+    enc = encoding_of(opts)
+    if enc == "coded" and opts.refine.quantise is None:  # refine on the grids the file stores
+        from .coded import CODED_BITS
+
+        opts = dataclasses.replace(opts, refine=dataclasses.replace(opts.refine, quantise=dict(CODED_BITS)))
     header = _header_for(f, opts)
-    n = resolve_budget(f, opts, header_size(header, 1 << 40, compact=opts.compact))
+    n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
     scaled = opts.refine.for_budget(n)
     if scaled is not opts.refine:  # more samples for a large budget: the header says so
         opts = dataclasses.replace(opts, refine=scaled)
         header = _header_for(f, opts)
-        n = resolve_budget(f, opts, header_size(header, 1 << 40, compact=opts.compact))
+        n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
 
     from ._warp import device_name, resolve_device, warp
 
@@ -284,9 +305,9 @@ def encode_field(
     params, facts = allocate(dv, n, opts.seed, opts.allocation, timer)
 
     with timer.stage("S1x", "analytic model"):
-        analytic = Model(params, header)
+        analytic = Model(params, header).stored(enc)
         if analytic_output is not None:
-            analytic.save(analytic_output, compact=opts.compact, force=force)
+            analytic.save(analytic_output, encoding=enc, force=force)
     model = analytic
     refinement: dict = {"iterations": 0}
     early_eval = None
@@ -366,7 +387,7 @@ def encode_field(
             seconds = time.perf_counter() - t0
             if refiner.interrupted:
                 ckpt.save(refiner)
-            model = Model(refiner.model_params(), header)
+            model = Model(refiner.model_params(), header).stored(enc)
         sessions = ckpt.sessions + [{"from_iteration": ckpt.start_iteration, "to_iteration": refiner.iteration, "seconds": seconds}]
         total = sum(x["seconds"] for x in sessions)
         refinement.update(
@@ -446,7 +467,7 @@ def encode_field(
     elif not refinement.get("interrupted"):
         skipped.append({"what": "EV evaluation", "why": "disabled by the caller"})
 
-    bpp = 12 if opts.compact else 48
+    size = model.file_size(encoding=enc)
     model.report = {
         "warpgauss_version": __version__,
         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -460,10 +481,10 @@ def encode_field(
             "requested_budget": opts.budget,
             "requested_ratio": opts.ratio if opts.budget is None else None,
             "n_max": seed_limit(f.eligible, f.occupied),
-            "format": "compact96" if opts.compact else "float32",
-            "bytes": model.file_size(opts.compact),
-            "bytes_per_primitive": bpp,
-            "compression_ratio": model.compression_ratio(opts.compact),
+            "format": enc,
+            "bytes": size,
+            "bytes_per_primitive": {"float32": 48, "compact96": 12}.get(enc) or (size - header_size(header, n, encoding=enc)) / n,
+            "compression_ratio": model.source_bytes / size,
             "full_precision_bytes": model.file_size(False),
             "compact_bytes": model.file_size(True),
         },
@@ -620,6 +641,7 @@ def encode(
     target_psnr: float | None = None,
     plateau_db: float | None = None,
     compact: bool = False,
+    format: str | None = None,
     example: str | None = None,
     example_size: int | tuple[int, int, int] = 64,
     read: ReadOptions | None = None,
@@ -663,6 +685,9 @@ def encode(
         plateau_db: Stop refinement once that validation PSNR gained less than this (dB) over
             the last 300 iterations.
         compact: Size the budget (and the report) for the compact 12-byte format.
+        format: The file format: "float32" (48 B/primitive), "compact96" (12 B) or "coded"
+            (quantised and entropy-coded, about 7-9 B; refinement ends on its grids, and the
+            returned model is the stored one). Overrides ``compact``.
         example: Built-in example volume name instead of ``source``.
         example_size: Size of the example volume.
         read: Reader options (shape, dtype, endian, dataset, variable, stride, fill value).
@@ -711,7 +736,9 @@ def encode(
         checkpoint=checkpoint,
         checkpoint_every=checkpoint_every,
         resume=resume,
+        format=format,
     )
+    encoding_of(opts)  # an unknown format is refused before any work
     timer = StageRecorder(on_stage=on_stage)
     with timer.stage("P", "load and normalise"):
         f, info = load_field(source, read, example=example, example_size=example_size)
@@ -730,7 +757,7 @@ def encode(
     )
     if output is not None:
         with timer.stage("S3", "export"):
-            model.save(output, compact=compact, force=True if resume else force)
+            model.save(output, encoding=encoding_of(opts), force=True if resume else force)
         model.report["output"] = str(Path(output))
     if checkpoint is not None and not model.report.get("interrupted") and Path(checkpoint).is_file():
         Path(checkpoint).unlink()  # the run finished: its model replaces the checkpoint

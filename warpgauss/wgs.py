@@ -143,11 +143,9 @@ def _payload_info(encoding: str, sha256: str, quant: dict | None, payload_bytes:
 
 def _coded_placeholder() -> dict:
     """A coded payload description with every number at its widest (for header sizes)."""
-    from .coded import _COLUMNS, _DELTA, CODED_BITS, ZSTD_LEVEL
+    from .coded import _COLUMNS, CODED_BITS
 
-    big = -(1 << 52)
-    cols = [{"name": c, "coding": "delta" if c in _DELTA else "offset", "offset": big, "bytes": 8} for c in _COLUMNS]
-    return {"bits": {k: 24 for k in CODED_BITS}, "columns": cols, "raw_bytes": _N_PLACEHOLDER, "compressor": f"zstd-{ZSTD_LEVEL}"}
+    return {"bits": {k: 24 for k in CODED_BITS}, "columns": [[-(1 << 52), 8]] * len(_COLUMNS), "raw_bytes": _N_PLACEHOLDER}
 
 
 def _quant_dict(mu_lo, mu_hi, s_lo, s_hi, a_lo, a_hi, w_lo, w_hi) -> dict:
@@ -174,7 +172,8 @@ def header_size(header: dict, n: int, *, compact: bool = False, encoding: str | 
     Independent of the parameters' values and of ``n`` (the owned fields are measured at their
     widest: a 20-digit N, a 64-hex-digit SHA-256 and, for compact, the widest float repr for every
     quantisation range), so it can be computed before the budget is known; :func:`write_wgs`
-    then writes exactly this many header bytes.
+    then writes exactly this many header bytes (for "coded", at most this many: its header is
+    not padded to a block).
 
     Args:
         header: The caller's header dict (``"n"`` and ``"payload"`` are ignored and replaced).
@@ -203,6 +202,8 @@ def _reserved_size(header: dict, encoding: str) -> int:
     quant = {"compact96": lambda: _quant_dict([x] * 3, [x] * 3, x, x, x, x, x, x), "coded": _coded_placeholder}.get(encoding, lambda: None)()
     info = _payload_info(encoding, _SHA_PLACEHOLDER, quant, _N_PLACEHOLDER)
     body = _header_bytes(header, _N_PLACEHOLDER, info)
+    if ENCODINGS[encoding] is None:  # a variable payload: no block padding (the header is part of the budget)
+        return PREFIX_SIZE + len(body)
     return _round_up(PREFIX_SIZE + len(body), HEADER_BLOCK)
 
 
@@ -455,7 +456,9 @@ def wgs_bytes(params: np.ndarray, header: dict, *, encoding: str = "float32", he
         payload, quant = p.astype("<f4", copy=False).tobytes(), None
     body = _header_bytes(header, n, _payload_info(encoding, hashlib.sha256(payload).hexdigest(), quant, len(payload)))
     need = PREFIX_SIZE + len(body)
-    if header_size is None:
+    if header_size is None and ENCODINGS[encoding] is None:
+        H = need  # coded: the exact header, no padding (at most header_size(), its widest)
+    elif header_size is None:
         # _reserved_size() measures the owned fields at their widest, so it is never below need
         H = max(_round_up(need, HEADER_BLOCK), _reserved_size(header, encoding))
     else:

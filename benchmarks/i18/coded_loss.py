@@ -28,7 +28,17 @@ VARIANTS = {
     "a7": {**coded.CODED_BITS, "a": 7},
     "w6": {**coded.CODED_BITS, "w": 6},
     "lean": {"mu": 2, "log_s": 3, "q": 5, "a": 7, "w": 6},
+    "lean_s4": {"mu": 2, "log_s": 4, "q": 5, "a": 7, "w": 6},
+    "lean_mu1": {"mu": 1, "log_s": 3, "q": 5, "a": 7, "w": 6},
+    "lean_q4": {"mu": 2, "log_s": 3, "q": 4, "a": 7, "w": 6},
+    "lean_a6w5": {"mu": 2, "log_s": 3, "q": 5, "a": 6, "w": 5},
+    "lean_mu1_a6w5": {"mu": 1, "log_s": 3, "q": 5, "a": 6, "w": 5},
+    "s4_a6w5": {"mu": 2, "log_s": 4, "q": 5, "a": 6, "w": 5},
 }
+if len(sys.argv) > 2 and sys.argv[1] == "--only":
+    keep = sys.argv[2].split(",")
+    VARIANTS = {k: v for k, v in VARIANTS.items() if k in keep}
+    sys.argv[1:3] = []
 out, pairs = sys.argv[1], sys.argv[2:]
 rows = []
 for pair in pairs:

@@ -90,6 +90,12 @@ class RefineConfig:
             devices (one thread per sample leaves a GPU idle) and not on the CPU (where it only
             adds work). Either way reruns are bit-identical. Above
             :data:`PARTIAL_MAX_ENTRIES` partials the point-major pass is used.
+        quantise: Bit depths of the coded format (:data:`warpgauss.coded.CODED_BITS`) to refine
+            towards, or None. From ``quantise_from`` x ``iterations`` on, every re-bin first
+            moves each primitive onto the format's grids, and the run ends with one more such
+            projection, so the stored model is the one the last iterations optimised
+            (quantisation-aware refinement).
+        quantise_from: Share of the iterations after which the projections start.
     """
 
     iterations: int = 1500
@@ -118,6 +124,8 @@ class RefineConfig:
     plateau_db: float | None = None
     check_every: int = 100
     plateau_window: int = 300
+    quantise: dict | None = None
+    quantise_from: float = 0.8
     weights: LossWeights = field(default_factory=LossWeights)
 
     def to_dict(self) -> dict:
@@ -161,6 +169,12 @@ class RefineConfig:
             v = getattr(self, name)
             if not (isinstance(v, int) and v >= 1):
                 raise WarpgaussError(f"{name} must be a positive integer, got {v}")
+        if not (finite(self.quantise_from) and 0 <= self.quantise_from <= 1):
+            raise WarpgaussError(f"quantise_from must be in [0, 1], got {self.quantise_from}")
+        if self.quantise is not None:
+            from ..coded import _check_bits
+
+            _check_bits(self.quantise)
         lo, hi = self.partner_distance
         if not (finite(lo) and finite(hi) and 0 <= lo <= hi):
             raise WarpgaussError(f"partner_distance must be 0 <= min <= max, got {self.partner_distance}")

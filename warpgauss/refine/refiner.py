@@ -224,6 +224,8 @@ class Refiner:
         wp, cfg, it = self._wp, self.cfg, self.iteration
         replan = it % max(cfg.replan_every, 1) == 0
         if it > 0 and (replan or it % max(cfg.rebin_every, 1) == 0):
+            if self.quantising(it):
+                self._project()
             self.rebin(replan=replan)
         if not self.state.clean:
             self.state.zero_grads()
@@ -246,6 +248,25 @@ class Refiner:
             self.touch_scale = min(1.0, math.sqrt(self.contacts / cfg.touch_ref))
             self.schedule.touch.fill_(self.touch_scale)
         self.iteration += 1
+
+    def quantising(self, it: int | None = None) -> bool:
+        """Whether iteration ``it`` (default: the next) refines on the coded grids."""
+        cfg = self.cfg
+        it = self.iteration if it is None else it
+        return cfg.quantise is not None and it >= int(cfg.quantise_from * cfg.iterations)
+
+    def _project(self) -> None:
+        from ..kernels import optim as ko
+
+        b = self.cfg.quantise
+        self._wp.launch(ko.project_coded, dim=self.n, inputs=[self.state.raw, b["mu"], b["log_s"], b["q"], b["a"], b["w"]], device=self.device)
+
+    def project(self) -> None:
+        """Move every primitive onto the coded grids of ``config.quantise`` now, and re-bin."""
+        if self.cfg.quantise is None:
+            raise WarpgaussError("no coded bit depths to project onto (RefineConfig.quantise is None)")
+        self._project()
+        self.rebin()
 
     # -- pieces for tests and the self-test -------------------------------------------------
 
@@ -465,6 +486,8 @@ class Refiner:
                 break
         if deadline is not None:
             plan.finish(it)
+        if self.cfg.quantise is not None:
+            self.project()  # the model ends on the grids it is stored on
         return history
 
     def _now(self, clock) -> float:
