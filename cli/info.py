@@ -26,7 +26,8 @@ def info(
         "file": str(model),
         "n": m.n,
         "bytes": size,
-        "header_bytes": size - m.n * int(payload.get("bytes_per_primitive", 48)),
+        "header_bytes": size - (payload["payload_bytes"] if payload.get("bytes_per_primitive") is None else m.n * int(payload["bytes_per_primitive"])),
+        "bytes_per_primitive": (payload["payload_bytes"] / m.n) if payload.get("bytes_per_primitive") is None else payload["bytes_per_primitive"],
         "format": payload.get("encoding"),
         "compression_ratio": m.source_bytes / size,
         "source_bytes": m.source_bytes,
@@ -37,7 +38,7 @@ def info(
         return
     g, v, src = h["grid"], h["values"], h["source"]
     lines = [
-        f"[bold]{model}[/]: {m.n} Gaussians, {payload.get('encoding')} payload, {size} bytes ({human_bytes(size)})",
+        f"[bold]{model}[/]: {m.n} Gaussians, {payload.get('encoding')} payload ({summary['bytes_per_primitive']:.2f} B/Gaussian), {size} bytes ({human_bytes(size)})",
         f"compression ratio {summary['compression_ratio']:.2f}x against {src['bytes']} source bytes "
         f"({src['dtype']}, {src['itemsize']} B/voxel)",
         f"grid {'x'.join(map(str, g['shape_xyz']))} (x,y,z), spacing {g['spacing']}, origin {g['origin']}",

@@ -199,6 +199,99 @@ def end_iteration(counter: wp.array(dtype=int)):
     counter[0] = counter[0] + 1
 
 
+@wp.func
+def on_grid(x: float, bits: int) -> float:
+    """x rounded to the nearest multiple of 2^-bits (the coded format's absolute grids)."""
+    s = float(1 << bits)
+    return wp.round(x * s) / s
+
+
+@wp.struct
+class QuantGrid:
+    """Bit depths of the coded format's grids (:mod:`warpgauss.coded`); on = 0: no projection."""
+
+    on: int
+    mu: int
+    s: int
+    q: int
+    a: int
+    w: int
+
+
+@wp.func
+def project_one(p: vec12, g: QuantGrid) -> vec12:
+    """One primitive's training parameters on the coded format's grids: centres, log-scales and
+    values to multiples of 2^-bits, the weight to a multiple of 2^-w in [2^-w, 1 - 2^-w] (as a
+    logit), the rotation to its smallest-three levels with the implied component strictly the
+    largest (as :func:`warpgauss.coded.quantise` codes it)."""
+    for k in range(3):
+        p[k] = on_grid(p[k], g.mu)
+        p[3 + k] = on_grid(p[3 + k], g.s)
+    p[10] = on_grid(p[10], g.a)
+    sw = float(1 << g.w)
+    w = 1.0 / (1.0 + wp.exp(-p[11]))
+    wq = wp.clamp(wp.round(w * sw), 1.0, sw - 1.0) / sw
+    p[11] = wp.log(wq / (1.0 - wq))
+    q = wp.vec4(p[6], p[7], p[8], p[9])
+    n = wp.length(q)
+    if n > 1.0e-20 and wp.isfinite(n):
+        q = q / n
+    else:
+        q = wp.vec4(0.0, 0.0, 0.0, 1.0)
+    big = int(0)
+    for k in range(1, 4):
+        if wp.abs(q[k]) > wp.abs(q[big]):
+            big = k
+    if q[big] < 0.0:
+        q = -q
+    r = 0.7071067811865476  # 1 / sqrt 2
+    lev = float((1 << g.q) - 2)
+    c = wp.vec4(0.0)
+    for k in range(4):
+        if k != big:
+            c[k] = wp.clamp(wp.round((q[k] + r) / (2.0 * r) * lev), 0.0, lev)
+    mid = float((1 << g.q) / 2 - 1)
+    for _ in range(64):  # the implied component must stay strictly the largest
+        s2 = float(0.0)
+        top = int(-1)
+        for k in range(4):
+            if k != big:
+                v = c[k] * (2.0 * r / lev) - r
+                s2 += v * v
+                if top < 0:
+                    top = k
+                elif wp.abs(c[k] - mid) > wp.abs(c[top] - mid):
+                    top = k
+        largest = wp.sqrt(wp.max(0.0, 1.0 - s2))
+        vt = wp.abs(c[top] * (2.0 * r / lev) - r)
+        if vt < largest * (1.0 - 1.0e-6):
+            break
+        if c[top] > mid:
+            c[top] = c[top] - 1.0
+        else:
+            c[top] = c[top] + 1.0
+    s2 = float(0.0)
+    for k in range(4):
+        if k != big:
+            q[k] = c[k] * (2.0 * r / lev) - r
+            s2 += q[k] * q[k]
+    q[big] = wp.sqrt(wp.max(0.0, 1.0 - s2))
+    q = q / wp.length(q)
+    p[6] = q[0]
+    p[7] = q[1]
+    p[8] = q[2]
+    p[9] = q[3]
+    return p
+
+
+@wp.func
+def evaluated(p: vec12, g: QuantGrid) -> vec12:
+    """The parameters evaluation sees: on the coded grids while quantisation-aware, else p."""
+    if g.on != 0:
+        return project_one(p, g)
+    return p
+
+
 @wp.kernel
 def refine_update(
     raw: wp.array(dtype=vec12),  # [N] training parameters, slot order (updated)
@@ -225,6 +318,7 @@ def refine_update(
     log_hi: float,
     bounds: SlotBounds,
     prims: BinnedPrimitives,  # prepared primitives, slot order (updated)
+    quant: QuantGrid,  # on: evaluation sees the parameters on the coded grids (straight-through)
     counts: wp.array(dtype=int),  # [2] out: (non-finite steps skipped, updates deferred to the next re-bin)
     reach: wp.array(dtype=float),  # [N] out: binning radius a deferred slot needs at the next re-bin
 ):
@@ -240,7 +334,7 @@ def refine_update(
     if not touched(j, d_mu, d_a, d_w):
         return
     g, reg = raw_gradient(
-        raw[j], d_mu[j], d_ls[j], d_rot[j], d_a[j], d_w[j], vol, l_anchor, l_aniso, l_cap, log_aniso, log_cap, log_min,
+        evaluated(raw[j], quant), d_mu[j], d_ls[j], d_rot[j], d_a[j], d_w[j], vol, l_anchor, l_aniso, l_cap, log_aniso, log_cap, log_min,
         1.0 / float(raw.shape[0]),
     )
     d_mu[j] = wp.vec3()
@@ -256,14 +350,15 @@ def refine_update(
     if not (all_finite(p) and all_finite(a) and all_finite(b)):
         wp.atomic_add(counts, 0, 1)  # a non-finite step (rate, bias correction) never lands
         return
-    R, inv, e, wt = prepare_one(p, 1)
-    mu = wp.vec3(p[0], p[1], p[2])
+    pe = evaluated(p, quant)  # straight-through: the step lands on p, evaluation reads pe
+    R, inv, e, wt = prepare_one(pe, 1)
+    mu = wp.vec3(pe[0], pe[1], pe[2])
     if not fits_slot(mu, e, bounds.lo[j], bounds.hi[j], bounds.cell[j]):
         # the next re-bin gives this slot a level whose cells cover the step it wanted
-        old = raw[j]
+        old = prims.mu[j]  # where evaluation has the primitive now
         need = float(0.0)
         for k in range(3):
-            need = wp.max(need, e[k] + wp.abs(p[k] - old[k]))
+            need = wp.max(need, e[k] + wp.abs(mu[k] - old[k]))
         reach[j] = REACH_SLACK * need
         wp.atomic_add(counts, 1, 1)
         return
@@ -274,7 +369,7 @@ def refine_update(
     prims.rot[j] = R
     prims.inv_s2[j] = inv
     prims.ext[j] = e
-    prims.a[j] = p[10]
+    prims.a[j] = pe[10]
     prims.w[j] = wt
 
 
@@ -324,84 +419,15 @@ def ids_from_slots(src: wp.array(dtype=vec12), ids: wp.array(dtype=int), out: wp
     out[ids[j]] = src[j]
 
 
-@wp.func
-def on_grid(x: float, bits: int) -> float:
-    """x rounded to the nearest multiple of 2^-bits (the coded format's absolute grids)."""
-    s = float(1 << bits)
-    return wp.round(x * s) / s
+@wp.kernel
+def project_coded(raw: wp.array(dtype=vec12), g: QuantGrid):
+    """Move training parameters onto the coded grids in place (the end of a quantisation-aware run)."""
+    i = wp.tid()
+    raw[i] = project_one(raw[i], g)
 
 
 @wp.kernel
-def project_coded(
-    raw: wp.array(dtype=vec12),  # [N] training parameters, in place
-    b_mu: int,
-    b_s: int,
-    b_q: int,
-    b_a: int,
-    b_w: int,
-):
-    """Move each primitive onto the coded format's grids (:mod:`warpgauss.coded`): centres,
-    log-scales and values to multiples of 2^-bits, the weight to a multiple of 2^-b_w in
-    [2^-b_w, 1 - 2^-b_w] (as a logit), the rotation to its smallest-three levels with the
-    implied component strictly the largest. Refinement runs its last iterations on these grids
-    (quantisation-aware), so the stored model is the one it optimised."""
+def project_copy(raw: wp.array(dtype=vec12), g: QuantGrid, out: wp.array(dtype=vec12)):
+    """out = the parameters evaluation sees (see :func:`evaluated`)."""
     i = wp.tid()
-    p = raw[i]
-    for k in range(3):
-        p[k] = on_grid(p[k], b_mu)
-        p[3 + k] = on_grid(p[3 + k], b_s)
-    p[10] = on_grid(p[10], b_a)
-    sw = float(1 << b_w)
-    w = 1.0 / (1.0 + wp.exp(-p[11]))
-    wq = wp.clamp(wp.round(w * sw), 1.0, sw - 1.0) / sw
-    p[11] = wp.log(wq / (1.0 - wq))
-    q = wp.vec4(p[6], p[7], p[8], p[9])
-    n = wp.length(q)
-    if n > 1.0e-20 and wp.isfinite(n):
-        q = q / n
-    else:
-        q = wp.vec4(0.0, 0.0, 0.0, 1.0)
-    big = int(0)
-    for k in range(1, 4):
-        if wp.abs(q[k]) > wp.abs(q[big]):
-            big = k
-    if q[big] < 0.0:
-        q = -q
-    r = 0.7071067811865476  # 1 / sqrt 2
-    lev = float((1 << b_q) - 2)
-    c = wp.vec4(0.0)
-    for k in range(4):
-        if k != big:
-            c[k] = wp.clamp(wp.round((q[k] + r) / (2.0 * r) * lev), 0.0, lev)
-    mid = float((1 << b_q) / 2 - 1)
-    for _ in range(64):  # the implied component must stay strictly the largest
-        s2 = float(0.0)
-        top = int(-1)
-        for k in range(4):
-            if k != big:
-                v = c[k] * (2.0 * r / lev) - r
-                s2 += v * v
-                if top < 0:
-                    top = k
-                elif wp.abs(c[k] - mid) > wp.abs(c[top] - mid):
-                    top = k
-        largest = wp.sqrt(wp.max(0.0, 1.0 - s2))
-        vt = wp.abs(c[top] * (2.0 * r / lev) - r)
-        if vt < largest * (1.0 - 1.0e-6):
-            break
-        if c[top] > mid:
-            c[top] = c[top] - 1.0
-        else:
-            c[top] = c[top] + 1.0
-    s2 = float(0.0)
-    for k in range(4):
-        if k != big:
-            q[k] = c[k] * (2.0 * r / lev) - r
-            s2 += q[k] * q[k]
-    q[big] = wp.sqrt(wp.max(0.0, 1.0 - s2))
-    q = q / wp.length(q)
-    p[6] = q[0]
-    p[7] = q[1]
-    p[8] = q[2]
-    p[9] = q[3]
-    raw[i] = p
+    out[i] = evaluated(raw[i], g)

@@ -136,3 +136,24 @@ def test_resume_refuses_other_options_and_damaged_checkpoints(tmp_path, cpu):
     ckpt.unlink()
     res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "24", "-o", str(out), "--resume", "--device", "cpu"])
     assert res.exit_code == 2 and "no checkpoint at" in res.output
+
+
+def test_resume_inside_the_quantisation_aware_phase_gives_the_uninterrupted_coded_model(tmp_path, cpu):
+    """format="coded" with quantisation-aware refinement from 80 % (iterations 96-120 here): a
+    run stopped at 100 and resumed writes the file an uninterrupted run writes, byte for byte."""
+    from warpgauss.refine import RefineConfig
+
+    RUN = {**globals()["RUN"], "refine": RefineConfig(quantise_from=0.8)}
+    ref = warpgauss.encode(**RUN, format="coded", output=tmp_path / "ref.wgs")
+    out = tmp_path / "run.wgs"
+
+    def progress(it, total, rec):
+        if it == 100:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    a = warpgauss.encode(**RUN, format="coded", output=out, checkpoint_every=3600, on_progress=progress)
+    assert a.report["interrupted"] and a.report["refinement"]["iterations_done"] == 100
+    b = warpgauss.encode(**RUN, format="coded", output=out, resume=True)
+    assert not b.report["interrupted"]
+    assert out.read_bytes() == (tmp_path / "ref.wgs").read_bytes()
+    assert b.params.tobytes() == ref.params.tobytes()

@@ -168,7 +168,9 @@ def test_device_projection_lands_on_the_coded_grids(device):
     model = wp.array(p, dtype=kf.vec12, device=device)
     raw = wp.empty_like(model)
     wp.launch(ko.to_raw, dim=len(p), inputs=[model], outputs=[raw], device=device)
-    wp.launch(ko.project_coded, dim=len(p), inputs=[raw, b["mu"], b["log_s"], b["q"], b["a"], b["w"]], device=device)
+    g = ko.QuantGrid()
+    g.on, g.mu, g.s, g.q, g.a, g.w = 1, b["mu"], b["log_s"], b["q"], b["a"], b["w"]
+    wp.launch(ko.project_coded, dim=len(p), inputs=[raw, g], device=device)
     out = wp.empty_like(model)
     wp.launch(ko.to_model, dim=len(p), inputs=[raw], outputs=[out], device=device)
     got = out.numpy()

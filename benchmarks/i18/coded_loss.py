@@ -19,6 +19,7 @@ from warpgauss.wgs import wgs_bytes
 
 VARIANTS = {
     "default": dict(coded.CODED_BITS),
+    "first_draft": {"mu": 3, "log_s": 4, "q": 6, "a": 8, "w": 7},
     "mu2": {**coded.CODED_BITS, "mu": 2},
     "mu4": {**coded.CODED_BITS, "mu": 4},
     "s3": {**coded.CODED_BITS, "log_s": 3},
@@ -34,6 +35,10 @@ VARIANTS = {
     "lean_a6w5": {"mu": 2, "log_s": 3, "q": 5, "a": 6, "w": 5},
     "lean_mu1_a6w5": {"mu": 1, "log_s": 3, "q": 5, "a": 6, "w": 5},
     "s4_a6w5": {"mu": 2, "log_s": 4, "q": 5, "a": 6, "w": 5},
+    "a6": {**coded.CODED_BITS, "a": 6},
+    "w5": {**coded.CODED_BITS, "w": 5},
+    "mu2_s4_q6_a7_w5": {"mu": 2, "log_s": 4, "q": 6, "a": 7, "w": 5},
+    "mu2_s4_q5_a7_w5": {"mu": 2, "log_s": 4, "q": 5, "a": 7, "w": 5},
 }
 if len(sys.argv) > 2 and sys.argv[1] == "--only":
     keep = sys.argv[2].split(",")

@@ -14,9 +14,10 @@ from .state import Primitives
 class Binner:
     """Re-bins a :class:`Primitives` on its device (scratch for the old slot order kept here)."""
 
-    def __init__(self, state: Primitives, shape_xyz: tuple[int, int, int]):
+    def __init__(self, state: Primitives, shape_xyz: tuple[int, int, int], quant):
         self._wp = wp = warp()
         self.state, self.shape_xyz = state, shape_xyz
+        self.quant = quant  # kernels.optim.QuantGrid: on = evaluation reads the parameters on the coded grids
         s, dev, n = state, state.device, state.n
         self._raw_b = wp.empty_like(s.raw)
         self._m1_b = wp.empty_like(s.m1)
@@ -29,13 +30,17 @@ class Binner:
         self.rebins = 0
 
     def prepare(self) -> None:
-        """Prepare the primitives in the current slot order into :attr:`prep`, radii widened by the
-        reach deferred steps ask for."""
+        """Prepare the primitives in the current slot order into :attr:`prep` (on the coded grids
+        while quantisation-aware), radii widened by the reach deferred steps ask for."""
         from ..kernels import field as kf
         from ..kernels import optim as ko
 
         s, wp = self.state, self._wp
-        wp.launch(kf.prepare_primitives, dim=s.n, inputs=[s.raw, 1], outputs=self.prep, device=s.device)
+        src = s.raw
+        if self.quant.on:  # straight-through: evaluation reads the projection, the step lands on raw
+            wp.launch(ko.project_copy, dim=s.n, inputs=[s.raw, self.quant], outputs=[self._raw_b], device=s.device)
+            src = self._raw_b
+        wp.launch(kf.prepare_primitives, dim=s.n, inputs=[src, 1], outputs=self.prep, device=s.device)
         wp.launch(ko.effective_radius, dim=s.n, inputs=[self.prep[4], s.reach], device=s.device)
 
     def sort(self) -> None:

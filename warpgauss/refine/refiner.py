@@ -37,6 +37,17 @@ from .update import Update
 SELF_TESTS: dict[str, dict] = {}  # device -> passed self-test result: once per process and device
 
 
+def _quant_grid(bits: dict | None):
+    """A :class:`warpgauss.kernels.optim.QuantGrid` of coded bit depths (off; all 0 for None)."""
+    from ..kernels import optim as ko
+
+    g = ko.QuantGrid()
+    b = bits or {}
+    g.on = 0
+    g.mu, g.s, g.q, g.a, g.w = (int(b.get(k, 0)) for k in ("mu", "log_s", "q", "a", "w"))
+    return g
+
+
 def load_kernels(device: str) -> None:
     """Compile (or load from the cache) every kernel module refinement uses, so that no time
     budget pays for it."""
@@ -80,12 +91,13 @@ class Refiner:
             raise WarpgaussError("--samples must be >= 1 and --iterations >= 0")
         self.state = Primitives(params, dev, scale_min, scale_cap)
         self.n = self.state.n
-        self.binner = Binner(self.state, dv.field.shape_xyz)
+        self.quant = _quant_grid(config.quantise)
+        self.binner = Binner(self.state, dv.field.shape_xyz, self.quant)
         self.sampler = Sampler(dv, config.uniform_support, config.weights.value_empty, config.partner_distance)
         split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
         # partners serve only the smoothness term: with its weight 0 they are not evaluated
         self.passes = PairPasses(self.state, self.sampler, dv.field.shape_xyz, split, config.weights.smooth > 0)
-        self.updater = Update(self.state, dv, config)
+        self.updater = Update(self.state, dv, config, self.quant)
         self.schedule = Schedule(dev, seed)
         self.stops = StopRule(dev)
         self._graph = None
@@ -224,9 +236,11 @@ class Refiner:
         wp, cfg, it = self._wp, self.cfg, self.iteration
         replan = it % max(cfg.replan_every, 1) == 0
         if it > 0 and (replan or it % max(cfg.rebin_every, 1) == 0):
-            if self.quantising(it):
-                self._project()
             self.rebin(replan=replan)
+        if self.quantising(it) and not self.quant.on:  # from here on, evaluate on the coded grids
+            self.quant.on = 1
+            self._graph = None  # the update kernel's arguments changed
+            self.rebin()
         if not self.state.clean:
             self.state.zero_grads()
         if self.use_graph and self._graph is None:
@@ -255,17 +269,16 @@ class Refiner:
         it = self.iteration if it is None else it
         return cfg.quantise is not None and it >= int(cfg.quantise_from * cfg.iterations)
 
-    def _project(self) -> None:
+    def project(self) -> None:
+        """Move every primitive onto the coded grids of ``config.quantise`` now (the parameters
+        become what evaluation has read since the quantisation-aware phase began), and re-bin."""
         from ..kernels import optim as ko
 
-        b = self.cfg.quantise
-        self._wp.launch(ko.project_coded, dim=self.n, inputs=[self.state.raw, b["mu"], b["log_s"], b["q"], b["a"], b["w"]], device=self.device)
-
-    def project(self) -> None:
-        """Move every primitive onto the coded grids of ``config.quantise`` now, and re-bin."""
         if self.cfg.quantise is None:
             raise WarpgaussError("no coded bit depths to project onto (RefineConfig.quantise is None)")
-        self._project()
+        g = _quant_grid(self.cfg.quantise)
+        g.on = 1
+        self._wp.launch(ko.project_coded, dim=self.n, inputs=[self.state.raw, g], device=self.device)
         self.rebin()
 
     # -- pieces for tests and the self-test -------------------------------------------------
@@ -367,6 +380,7 @@ class Refiner:
         """Continue from :meth:`state_arrays` (same primitives count; shapes checked by the caller)."""
         from ..field import BinPlan, set_plan
         from ..kernels import field as kf
+        from ..kernels import optim as ko
 
         wp, dev, s = self._wp, self.device, self.state
         p, b = s.prims, s.bounds
@@ -380,8 +394,13 @@ class Refiner:
         self.passes.invalidate()
         for dst, key in ((s.raw, "raw"), (s.m1, "m1"), (s.m2, "m2"), (s.ids, "ids"), (b.lo, "bounds_lo"), (b.hi, "bounds_hi"), (b.cell, "bounds_cell"), (s.counts, "counts"), (s.reach, "reach")):
             dst.assign(arrays[key])
+        self.quant.on = int(self.quantising(int(scalars["iteration"])))
+        src = s.raw
+        if self.quant.on:  # evaluation reads the parameters on the coded grids
+            src = wp.empty_like(s.raw)
+            wp.launch(ko.project_copy, dim=self.n, inputs=[s.raw, self.quant], outputs=[src], device=dev)
         radius = self.binner.prep[4]  # scratch: the prepared primitives go straight into slot order
-        wp.launch(kf.prepare_primitives, dim=self.n, inputs=[s.raw, 1], outputs=[p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w], device=dev)
+        wp.launch(kf.prepare_primitives, dim=self.n, inputs=[src, 1], outputs=[p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w], device=dev)
         s.zero_grads()
         smp = self.sampler
         if smp.uniform_support:
@@ -486,8 +505,8 @@ class Refiner:
                 break
         if deadline is not None:
             plan.finish(it)
-        if self.cfg.quantise is not None:
-            self.project()  # the model ends on the grids it is stored on
+        if self.cfg.quantise is not None and not self.interrupted:
+            self.project()  # the model ends on the grids it is stored on (a checkpoint keeps the run's state)
         return history
 
     def _now(self, clock) -> float:

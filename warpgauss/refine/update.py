@@ -18,11 +18,12 @@ from .state import Primitives
 class Update:
     """Applies the pair gradients of an iteration to a :class:`Primitives` (see module docstring)."""
 
-    def __init__(self, state: Primitives, dv: DeviceVolume, config: RefineConfig):
+    def __init__(self, state: Primitives, dv: DeviceVolume, config: RefineConfig, quant):
         from ..kernels import field as kf
 
         self._wp = warp()
         self.state, self.dv, self.cfg = state, dv, config
+        self.quant = quant  # kernels.optim.QuantGrid shared with the re-bin: on = straight-through on the coded grids
         c = config
         self.lr = kf.vec12(
             *([c.lr * c.lr_position] * 3),
@@ -61,6 +62,7 @@ class Update:
                 s.log_cap + math.log(4.0),
                 s.bounds,
                 s.prims,
+                self.quant,
             ],
             outputs=[s.counts, s.reach],
             device=s.device,
