@@ -19,6 +19,7 @@ def encode(
     budget: Annotated[int | None, typer.Option("--budget", "-n", help="Number of Gaussians N (exact)")] = None,
     ladder: Annotated[str | None, typer.Option(help="Several budgets, e.g. 2000,20000,200000: one read and analysis, one model each (OUTPUT with .nN before the suffix)")] = None,
     ratio: Annotated[float | None, typer.Option(help="Target compression ratio (N from SPEC section 4); default 20")] = None,
+    file_bytes: Annotated[int | None, typer.Option("--bytes", help="File size budget in bytes (header included), instead of --budget or --ratio")] = None,
     seed: Annotated[int, typer.Option(help="Seed: same seed and device give the same model")] = 0,
     device: Annotated[str | None, typer.Option(help="Warp device: cpu, cuda, cuda:N (default: CUDA if present)")] = None,
     compact: Annotated[bool, typer.Option("--compact", help="Write the compact 12-byte/primitive format")] = False,
@@ -74,8 +75,8 @@ def encode(
 
     weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
     if ladder is not None:
-        if budget is not None or ratio is not None or resume or time_budget is not None or save_analytic is not None:
-            fail("--ladder gives the budgets: it does not combine with --budget, --ratio, --time-budget, --resume or --save-analytic")
+        if budget is not None or ratio is not None or file_bytes is not None or resume or time_budget is not None or save_analytic is not None:
+            fail("--ladder gives the budgets: it does not combine with --budget, --ratio, --bytes, --time-budget, --resume or --save-analytic")
         if fmt is not None and fmt != ("compact96" if compact else "float32"):
             fail("--ladder writes float32 or --compact models; --format coded needs one budget at a time for now")
         _encode_ladder(
@@ -98,6 +99,7 @@ def encode(
             input,
             budget=budget,
             ratio=ratio,
+            file_bytes=file_bytes,
             seed=seed,
             device=device,
             iterations=iterations,

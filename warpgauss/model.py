@@ -174,6 +174,7 @@ class Model:
         self.params = params
         self.header = header
         self.report: dict | None = None  # filled by warpgauss.encode
+        self.coded_bits: dict | None = None  # bit depths a coded save uses (None: the format's default)
 
     # -- description -----------------------------------------------------------------------
     @property
@@ -200,7 +201,7 @@ class Model:
 
         enc = _encoding(compact, encoding)
         if enc == "coded":
-            return len(wgs_bytes(self.params, self.header, encoding="coded"))
+            return len(wgs_bytes(self.params, self.header, encoding="coded", bits=self.coded_bits))
         bpp = 12 if enc == "compact96" else 48
         return bpp * self.n + header_size(self.header, self.n, encoding=enc)
 
@@ -215,10 +216,23 @@ class Model:
             return self
         from .coded import encode_coded, project_coded
 
-        _, _, order = encode_coded(self.params)
-        m = Model(project_coded(self.params)[order], self.header)
-        m.report = getattr(self, "report", None)
+        _, _, order = encode_coded(self.params, self.coded_bits)
+        m = Model(project_coded(self.params, self.coded_bits)[order], self.header)
+        m.report, m.coded_bits = self.report, self.coded_bits
         return m
+
+    def fit_bytes(self, total_bytes: int) -> tuple[Model, dict]:
+        """This model coded to fit ``total_bytes`` (header included): see :func:`warpgauss.coded.fit_bytes`."""
+        from .coded import fit_bytes
+        from .wgs import wgs_bytes
+
+        def size_of(params, bits) -> int:
+            return len(wgs_bytes(params, self.header, encoding="coded", bits=bits))
+
+        stored, bits, info = fit_bytes(self.params, total_bytes, self.coded_bits, size_of)
+        m = Model(stored, self.header)
+        m.report, m.coded_bits = self.report, bits
+        return m, {**info, "bits": bits}
 
     # -- file I/O --------------------------------------------------------------------------
     def save(self, path: str | os.PathLike, *, compact: bool = False, encoding: str | None = None, force: bool = False) -> int:
@@ -226,7 +240,7 @@ class Model:
         ``compact``); returns the file size in bytes."""
         from .wgs import write_wgs
 
-        return write_wgs(path, self.params, self.header, compact=compact, encoding=encoding, force=force)
+        return write_wgs(path, self.params, self.header, compact=compact, encoding=encoding, force=force, bits=self.coded_bits)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Model:

@@ -74,6 +74,7 @@ class EncodeOptions:
     checkpoint_every: float = 60.0
     resume: bool = False
     format: str | None = None  # "float32", "compact96" or "coded"; None: compact96 if compact else float32
+    bytes: int | None = None  # file size budget (header included), instead of budget or ratio
 
 
 def _available_memory() -> int | None:
@@ -154,7 +155,14 @@ def load_field(
     return f, info
 
 
-CODED_BPP_SIZING = 12  # bytes per primitive --ratio assumes for the coded format (its bound in practice; rate control: issue #18 part 2)
+CODED_BPP_SIZING = 12  # bytes per primitive a coded file needs at most in practice (the "no room" check)
+CODED_BPP_FLOOR = 4  # and at least: bounds N before its coded size is measured
+# coded bytes per primitive of a refined model over its analytic allocation's: 1.19 / 1.22 / 1.22 /
+# 1.34 on mni_icbm152 / inia19 / mean_reg2mean / nAChR water (benchmarks/results/i18_coded_cpu.json).
+# N is sized a little below the median, so that a file rather comes out a few per cent over its
+# budget, which pruning the least important primitives trims to within a primitive of it, than
+# under it, which nothing after refinement can fill (coded.fit_bytes)
+CODED_REFINE_GROWTH = 1.15
 
 
 def encoding_of(opts: EncodeOptions) -> str:
@@ -169,17 +177,64 @@ def sizing_bpp(encoding: str) -> int:
     return {"float32": 48, "compact96": 12}.get(encoding, CODED_BPP_SIZING)
 
 
-def resolve_budget(f: Field, opts: EncodeOptions, header_bytes: int) -> int:
-    """N from --budget or --ratio (SPEC section 4), validated against the seed limit."""
-    if opts.budget is not None and opts.ratio is not None:
-        raise WarpgaussError("give either --budget or --ratio, not both")
-    bpp = sizing_bpp(encoding_of(opts))
+def target_bytes(f: Field, opts: EncodeOptions) -> int | None:
+    """The file size budget of --bytes or --ratio (floor(S_src / R)); None with --budget."""
+    given = [k for k, v in (("--budget", opts.budget), ("--ratio", opts.ratio), ("--bytes", opts.bytes)) if v is not None]
+    if len(given) > 1:
+        raise WarpgaussError(f"give one of --budget, --ratio and --bytes, not {' and '.join(given)}")
     if opts.budget is not None:
+        return None
+    if opts.bytes is not None:
+        if isinstance(opts.bytes, bool) or not isinstance(opts.bytes, (int, np.integer)) or opts.bytes < 1:
+            raise WarpgaussError(f"--bytes must be a positive whole number of bytes, got {opts.bytes!r}")
+        return int(opts.bytes)
+    ratio = opts.ratio or DEFAULT_RATIO
+    if not ratio > 0:
+        raise WarpgaussError(f"--ratio must be positive, got {ratio}")
+    return int(f.source_bytes // ratio)
+
+
+def resolve_budget(f: Field, opts: EncodeOptions, header_bytes: int) -> int:
+    """N from --budget, --ratio or --bytes (SPEC section 4), validated against the seed limit:
+    floor((bytes - H) / bytes per primitive), for the coded format an upper bound that
+    :func:`coded_budget` refines once the volume is analysed."""
+    bpp = sizing_bpp(encoding_of(opts))
+    total = target_bytes(f, opts)
+    if total is None:
         n = int(opts.budget)
     else:
-        n = budget_from_ratio(f.source_bytes, opts.ratio or DEFAULT_RATIO, header_bytes, bpp)
+        n = int((total - header_bytes) // bpp)
+        if n < 1:
+            raise WarpgaussError(
+                f"a budget of {total} bytes leaves no room for a single primitive ({header_bytes} header bytes, "
+                f"{bpp} per primitive); the largest possible ratio is {f.source_bytes / (header_bytes + bpp):.4g}"
+            )
+    if encoding_of(opts) == "coded" and total is not None:
+        # a bound: the coded N is measured once the volume is analysed (coded_budget), at most N_max
+        n_max = seed_limit(f.eligible, f.occupied)
+        n = max(1, min(n_max, int((total - header_bytes) // CODED_BPP_FLOOR)))
+        check_budget(f, n, header_bytes, bpp)
+        return n
     check_budget(f, n, header_bytes, bpp)
     return n
+
+
+def coded_budget(dv, f: Field, opts: EncodeOptions, total: int, header_bytes: int, n_bound: int) -> tuple[int, dict]:
+    """N for a coded file of ``total`` bytes: a pilot allocation's coded size per primitive, times
+    the growth refinement brings (:data:`CODED_REFINE_GROWTH`; 1 without refinement)."""
+    from .coded import encode_coded
+    from .wgs import wgs_bytes
+
+    pilot = max(1, min(n_bound, (total - header_bytes) // 8))
+    params, _ = allocate(dv, pilot, opts.seed, opts.allocation, StageRecorder())
+    payload = len(encode_coded(params)[0])
+    bpp = payload / pilot
+    # the pilot's own header (the reserved bound is a few hundred bytes wider: at small budgets
+    # that is a good share of the payload)
+    header = len(wgs_bytes(params, _header_for(f, opts), encoding="coded")) - payload + 32
+    growth = CODED_REFINE_GROWTH if opts.refine.iterations > 0 else 1.0
+    n = max(1, min(n_bound, int((total - header) // (bpp * growth))))
+    return n, {"pilot_n": pilot, "pilot_bytes_per_primitive": bpp, "header_bytes": header, "refine_growth": growth, "n": n}
 
 
 def resolve_refine(
@@ -206,6 +261,13 @@ def resolve_refine(
 
 
 def _header_for(f: Field, opts: EncodeOptions) -> dict:
+    header = _base_header(f, opts)
+    if encoding_of(opts) == "coded":  # every byte counts: the default LUT is regenerated from its colormap and opacity
+        header["transfer_function"] = {k: v for k, v in header["transfer_function"].items() if k != "lut_rgba8"}
+    return header
+
+
+def _base_header(f: Field, opts: EncodeOptions) -> dict:
     encoding = {
         "method": "fixed-budget anisotropic Gaussians: analytic allocation + refinement",
         "iterations": opts.refine.iterations,
@@ -267,10 +329,7 @@ def encode_field(
     from .wgs import header_size
 
     enc = encoding_of(opts)
-    if enc == "coded" and opts.refine.quantise is None:  # refine on the grids the file stores
-        from .coded import CODED_BITS
-
-        opts = dataclasses.replace(opts, refine=dataclasses.replace(opts.refine, quantise=dict(CODED_BITS)))
+    budget_bytes = target_bytes(f, opts)  # the file size budget, or None for an explicit N
     header = _header_for(f, opts)
     n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
     scaled = opts.refine.for_budget(n)
@@ -302,13 +361,27 @@ def encode_field(
     if on_stats is not None:
         on_stats(stats)
 
+    sizing = None
+    if enc == "coded" and budget_bytes is not None:
+        with timer.stage("S1p", "coded size pilot"):
+            n, sizing = coded_budget(dv, f, opts, budget_bytes, header_size(header, n, encoding=enc), n)
+            if opts.refine.for_budget(n) is not opts.refine:  # keep the samples the header records
+                sizing["samples_note"] = "samples chosen for the bound on N"
+
+    def stored(m: Model) -> tuple[Model, dict | None]:
+        """The model as the file will hold it (coded: fitted to the byte budget)."""
+        if enc == "coded" and budget_bytes is not None:
+            return m.fit_bytes(budget_bytes)
+        return m.stored(enc), None
+
     params, facts = allocate(dv, n, opts.seed, opts.allocation, timer)
 
     with timer.stage("S1x", "analytic model"):
-        analytic = Model(params, header).stored(enc)
+        analytic, analytic_fit = stored(Model(params, header))
         if analytic_output is not None:
             analytic.save(analytic_output, encoding=enc, force=force)
     model = analytic
+    refined_fit = None
     refinement: dict = {"iterations": 0}
     early_eval = None
     if opts.refine.iterations > 0 and opts.refine.target_psnr is not None and evaluate:
@@ -387,7 +460,7 @@ def encode_field(
             seconds = time.perf_counter() - t0
             if refiner.interrupted:
                 ckpt.save(refiner)
-            model = Model(refiner.model_params(), header).stored(enc)
+            model, refined_fit = stored(Model(refiner.model_params(), header))
         sessions = ckpt.sessions + [{"from_iteration": ckpt.start_iteration, "to_iteration": refiner.iteration, "seconds": seconds}]
         total = sum(x["seconds"] for x in sessions)
         refinement.update(
@@ -468,6 +541,7 @@ def encode_field(
         skipped.append({"what": "EV evaluation", "why": "disabled by the caller"})
 
     size = model.file_size(encoding=enc)
+    fit = analytic_fit if model is analytic else refined_fit
     model.report = {
         "warpgauss_version": __version__,
         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -477,9 +551,13 @@ def encode_field(
         "host": platform.node(),
         "input": input_info or {"name": f.name, "shape_xyz": list(f.shape_xyz)},
         "budget": {
-            "n": n,
+            "n": model.n,
             "requested_budget": opts.budget,
-            "requested_ratio": opts.ratio if opts.budget is None else None,
+            "requested_ratio": opts.ratio if opts.budget is None and opts.bytes is None else None,
+            "requested_bytes": budget_bytes,
+            "budget_used": None if budget_bytes is None else size / budget_bytes,
+            "coded_sizing": sizing,
+            "coded_fit": fit,
             "n_max": seed_limit(f.eligible, f.occupied),
             "format": enc,
             "bytes": size,
@@ -627,6 +705,7 @@ def encode(
     *,
     budget: int | None = None,
     ratio: float | None = None,
+    file_bytes: int | None = None,
     seed: int = 0,
     device: str | None = None,
     iterations: int | None = None,
@@ -660,7 +739,11 @@ def encode(
     Args:
         source: File path or 3D numpy array (nz, ny, nx); None with ``example``.
         budget: Number of primitives N (exact); or give ``ratio``.
-        ratio: Target compression ratio; N = floor((S_src / R - H) / 48) (12 with ``compact``).
+        ratio: Target compression ratio: the file holds at most floor(S_src / R) bytes; N =
+            floor((S_src / R - H) / 48) (12 with ``compact``; measured for ``format="coded"``).
+        file_bytes: The file size budget in bytes instead (header included). A coded file is
+            never larger and uses at least 95 % of it where bit depths allow (see
+            :func:`warpgauss.coded.fit_bytes`; the report's ``budget`` says what was done).
         seed: Encoding seed; same seed and device give the same model.
         device: Warp device; None picks CUDA when present, else CPU.
         iterations: Refinement iterations (default 1,500, the paper's; 0: analytic model only).
@@ -737,6 +820,7 @@ def encode(
         checkpoint_every=checkpoint_every,
         resume=resume,
         format=format,
+        bytes=file_bytes,
     )
     encoding_of(opts)  # an unknown format is refused before any work
     timer = StageRecorder(on_stage=on_stage)

@@ -415,6 +415,7 @@ def write_wgs(
     encoding: str | None = None,
     header_size: int | None = None,
     force: bool = False,
+    bits: dict | None = None,
 ) -> int:
     """Write a ``.wgs`` file atomically (nothing partial is ever left at ``path``).
 
@@ -424,6 +425,7 @@ def write_wgs(
         header: The caller's header (grid, values, source, encoding, ...); ``"n"`` and
             ``"payload"`` are set here.
         compact: Store the ``compact96`` payload (12 bytes per primitive) instead of float32.
+        bits: Coded bit depths (default :data:`warpgauss.coded.CODED_BITS`).
         encoding: "float32", "compact96" or "coded" (overrides ``compact``). A coded file stores
             the primitives in its own order (:func:`warpgauss.coded.coded_order`); read it back,
             or use :func:`warpgauss.coded.project_coded` and that order, for the stored model.
@@ -436,13 +438,14 @@ def write_wgs(
     """
     dest = check_writable(path, force=force)
     encoding = _encoding(compact, encoding)
-    data = wgs_bytes(params, header, encoding=encoding, header_size=header_size)
+    data = wgs_bytes(params, header, encoding=encoding, header_size=header_size, bits=bits)
     atomic_write_bytes(dest, data)
     return len(data)
 
 
-def wgs_bytes(params: np.ndarray, header: dict, *, encoding: str = "float32", header_size: int | None = None) -> bytes:
-    """The bytes :func:`write_wgs` writes (for sizes and in-memory round trips)."""
+def wgs_bytes(params: np.ndarray, header: dict, *, encoding: str = "float32", header_size: int | None = None, bits: dict | None = None) -> bytes:
+    """The bytes :func:`write_wgs` writes (for sizes and in-memory round trips); ``bits``: the
+    coded bit depths (default :data:`warpgauss.coded.CODED_BITS`)."""
     p = _validated_params(params)
     n = p.shape[0]
     encoding = _encoding(False, encoding)
@@ -451,7 +454,7 @@ def wgs_bytes(params: np.ndarray, header: dict, *, encoding: str = "float32", he
     elif encoding == "coded":
         from .coded import encode_coded
 
-        payload, quant, _ = encode_coded(p)
+        payload, quant, _ = encode_coded(p, bits)
     else:
         payload, quant = p.astype("<f4", copy=False).tobytes(), None
     body = _header_bytes(header, n, _payload_info(encoding, hashlib.sha256(payload).hexdigest(), quant, len(payload)))

@@ -1,0 +1,81 @@
+"""Byte budgets that hold: --ratio and --bytes fix the file size before refinement; the written
+file is never larger and, for the coded format, uses at least 95 % of it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import warpgauss
+from warpgauss.errors import WarpgaussError
+from warpgauss.synthetic import generate
+
+FAST = dict(iterations=25, samples=512, self_test=False, evaluate=False)
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"  # the real volumes, where the clone has them
+
+
+@pytest.mark.parametrize("field", ["bubbles", "vortex", "interface", "turbulence"])
+def test_coded_files_fill_their_byte_budget_without_exceeding_it(tmp_path, cpu, field):
+    vol = generate(field, 32, seed=2)
+    source = vol.size * vol.itemsize
+    for budget in (4000, 7000, 16000):
+        out = tmp_path / f"{field}_{budget}.wgs"
+        m = warpgauss.encode(vol, file_bytes=budget, device=cpu, format="coded", output=out, **FAST)
+        size = out.stat().st_size
+        assert 0.95 * budget <= size <= budget, (field, budget, size, m.report["budget"])
+        b = m.report["budget"]
+        assert b["bytes"] == size and b["requested_bytes"] == budget and b["n"] == m.n
+        assert b["budget_used"] == pytest.approx(size / budget)
+        assert warpgauss.Model.load(out).params.tobytes() == m.params.tobytes()  # the returned model is the file's
+    r = warpgauss.encode(vol, ratio=20, device=cpu, format="coded", output=tmp_path / "r.wgs", **FAST)
+    size = (tmp_path / "r.wgs").stat().st_size
+    assert 0.95 * (source // 20) <= size <= source // 20
+
+
+@pytest.mark.skipif(not (DATA / "nAChR_M2_water.plt").exists(), reason="../shared/data not beside this clone")
+def test_a_real_volume_at_several_ratios(tmp_path, cpu):
+    path = DATA / "nAChR_M2_water.plt"
+    source = 46 * 46 * 78 * 4
+    for ratio in (30, 100, 300):
+        out = tmp_path / f"w{ratio}.wgs"
+        m = warpgauss.encode(path, ratio=ratio, device=cpu, format="coded", output=out, **FAST)
+        size = out.stat().st_size
+        assert 0.95 * (source // ratio) <= size <= source // ratio, (ratio, size, m.report["budget"])
+
+
+@pytest.mark.parametrize("fmt, bpp", [("float32", 48), ("compact96", 12)])
+def test_fixed_formats_take_the_most_primitives_that_fit_the_bytes(tmp_path, cpu, fmt, bpp):
+    vol = generate("vortex", 24, seed=0)
+    out = tmp_path / "m.wgs"
+    m = warpgauss.encode(vol, file_bytes=20000, device=cpu, format=fmt, output=out, **FAST)
+    size = out.stat().st_size
+    assert size <= 20000 < size + bpp  # one more primitive would not fit
+
+
+def test_bad_byte_budgets_are_refused(cpu):
+    vol = generate("vortex", 24, seed=0)
+    with pytest.raises(WarpgaussError, match="one of --budget, --ratio and --bytes"):
+        warpgauss.encode(vol, budget=100, file_bytes=5000, device=cpu, **FAST)
+    with pytest.raises(WarpgaussError, match="--bytes must be a positive"):
+        warpgauss.encode(vol, file_bytes=0, device=cpu, **FAST)
+    with pytest.raises(WarpgaussError, match="no room for a single primitive"):
+        warpgauss.encode(vol, file_bytes=500, device=cpu, format="coded", **FAST)
+
+
+def test_fit_bytes_shrinks_prunes_and_grows():
+    """Against the payload alone: a budget far below the model's size drops bits then prunes the
+    least important primitives; one far above adds bits; both land within the budget."""
+    from test_wgs import realistic_params
+
+    from warpgauss import coded
+
+    p = realistic_params(np.random.default_rng(9), 3000)
+    full = len(coded.encode_coded(p)[0])
+    small, bits, info = coded.fit_bytes(p, int(full * 0.6))
+    assert info["bytes"] <= int(full * 0.6) and info["pruned"] > 0 and any(s.endswith("-1") for s in info["steps"])
+    assert sum(bits.values()) < sum(coded.CODED_BITS.values()) and len(small) == 3000 - info["pruned"]
+    big, bits, info = coded.fit_bytes(p, int(full * 1.3))
+    assert info["bytes"] <= int(full * 1.3) and info["pruned"] == 0 and sum(bits.values()) > sum(coded.CODED_BITS.values())
+    np.testing.assert_array_equal(big, coded.project_coded(p, bits)[coded.encode_coded(p, bits)[2]])
