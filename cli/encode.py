@@ -25,7 +25,7 @@ def encode(
     compact: Annotated[bool, typer.Option("--compact", help="Write the compact 12-byte/primitive format")] = False,
     fmt: Annotated[
         str | None,
-        typer.Option("--format", help="File format: float32 (48 B/primitive), compact96 (12 B), or coded (quantised + Zstandard, about 7-9 B; refinement ends on its grids)"),
+        typer.Option("--format", help="File format: coded (default: quantised + Zstandard, about 7.5-8.2 B/Gaussian, --ratio/--bytes budgets filled to within a Gaussian), full (float32, 48 B) or compact (12 B)"),
     ] = None,
     iterations: Annotated[int | None, typer.Option(help="Refinement iterations (default 1500; 0: analytic model only)")] = None,
     samples: Annotated[int | None, typer.Option(help="Samples per iteration (default 3072, x ceil(N / 350000) for large budgets)")] = None,
@@ -77,8 +77,8 @@ def encode(
     if ladder is not None:
         if budget is not None or ratio is not None or file_bytes is not None or resume or time_budget is not None or save_analytic is not None:
             fail("--ladder gives the budgets: it does not combine with --budget, --ratio, --bytes, --time-budget, --resume or --save-analytic")
-        if fmt is not None and fmt != ("compact96" if compact else "float32"):
-            fail("--ladder writes float32 or --compact models; --format coded needs one budget at a time for now")
+        if fmt is not None and {"full": "float32", "compact": "compact96"}.get(fmt, fmt) != ("compact96" if compact else "float32"):
+            fail("--ladder writes full-precision (48 B) or --compact models; the coded format needs one budget at a time for now")
         _encode_ladder(
             ladder, input, out, example, size, seed, device, iterations, samples, preset, RefineConfig(lr=lr, weights=weights),
             not no_self_test, compact, ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),

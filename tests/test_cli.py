@@ -48,7 +48,7 @@ def test_example_encode_info_decode_eval_journey(vortex_raw, tmp_path):
     model = tmp_path / "vortex.wgs"
     analytic = tmp_path / "analytic.wgs"
     r = cli(
-        "encode", vortex_raw, "--budget", "300", "-o", model, "--device", "cpu", "--iterations", "40",
+        "encode", vortex_raw, "--budget", "300", "-o", model, "--device", "cpu", "--iterations", "40", "--format", "full",
         "--samples", "512", "--save-analytic", analytic,
     )
     assert r.exit_code == 0, r.output
@@ -90,7 +90,7 @@ def test_example_encode_info_decode_eval_journey(vortex_raw, tmp_path):
 
 def test_ratio_gives_the_spec_budget(vortex_raw, tmp_path):
     model = tmp_path / "r.wgs"
-    r = cli("encode", vortex_raw, "--ratio", "5", "-o", model, "--device", "cpu", "--json", "--iterations", "0")
+    r = cli("encode", vortex_raw, "--ratio", "5", "-o", model, "--device", "cpu", "--json", "--iterations", "0", "--format", "full")
     assert r.exit_code == 0, r.output
     rep = json.loads(r.stdout)
     expected = int(np.floor((24**3 * 4 / 5 - 4096) / 48))
@@ -162,7 +162,7 @@ def test_infeasible_budget_is_refused_before_warp_starts(tmp_path):
 
 def test_encode_builtin_example_writes_model_and_report(tmp_path):
     r = cli(
-        "encode", "--example", "bubbles", "--size", "32", "--budget", "200", "--device", "cpu", "--iterations", "0",
+        "encode", "--example", "bubbles", "--size", "32", "--budget", "200", "--device", "cpu", "--iterations", "0", "--format", "full",
         cwd=tmp_path,
     )
     assert r.exit_code == 0, r.output

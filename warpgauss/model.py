@@ -175,6 +175,7 @@ class Model:
         self.header = header
         self.report: dict | None = None  # filled by warpgauss.encode
         self.coded_bits: dict | None = None  # bit depths a coded save uses (None: the format's default)
+        self.format: str | None = None  # the format it was encoded for or read from (save's default)
 
     # -- description -----------------------------------------------------------------------
     @property
@@ -218,7 +219,7 @@ class Model:
 
         _, _, order = encode_coded(self.params, self.coded_bits)
         m = Model(project_coded(self.params, self.coded_bits)[order], self.header)
-        m.report, m.coded_bits = self.report, self.coded_bits
+        m.report, m.coded_bits, m.format = self.report, self.coded_bits, "coded"
         return m
 
     def fit_bytes(self, total_bytes: int) -> tuple[Model, dict]:
@@ -231,15 +232,18 @@ class Model:
 
         stored, bits, info = fit_bytes(self.params, total_bytes, self.coded_bits, size_of)
         m = Model(stored, self.header)
-        m.report, m.coded_bits = self.report, bits
+        m.report, m.coded_bits, m.format = self.report, bits, "coded"
         return m, {**info, "bits": bits}
 
     # -- file I/O --------------------------------------------------------------------------
     def save(self, path: str | os.PathLike, *, compact: bool = False, encoding: str | None = None, force: bool = False) -> int:
         """Write the model atomically (``encoding``: "float32", "compact96" or "coded"; overrides
-        ``compact``); returns the file size in bytes."""
+        ``compact``; neither: the format it was encoded for or read from, else float32); returns
+        the file size in bytes."""
         from .wgs import write_wgs
 
+        if encoding is None and not compact:
+            encoding = self.format or "float32"
         return write_wgs(path, self.params, self.header, compact=compact, encoding=encoding, force=force, bits=self.coded_bits)
 
     @classmethod
@@ -257,7 +261,11 @@ class Model:
         problem = _header_problem(header)
         if problem is not None:
             raise WarpgaussError(f"{p}: the header's {problem}; the file is damaged or was not written by warpgauss")
-        return cls(params, header)
+        m = cls(params, header)
+        m.format = header["payload"]["encoding"]
+        if m.format == "coded":
+            m.coded_bits = dict(header["payload"]["quant"]["bits"])  # saved again, it codes to the same bytes
+        return m
 
     # -- evaluation ------------------------------------------------------------------------
     def field(self, device: str | None = None):

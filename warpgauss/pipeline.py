@@ -165,11 +165,19 @@ CODED_BPP_FLOOR = 4  # and at least: bounds N before its coded size is measured
 CODED_REFINE_GROWTH = 1.15
 
 
+DEFAULT_FORMAT = "coded"
+FORMAT_ALIASES = {"full": "float32", "compact": "compact96"}
+
+
 def encoding_of(opts: EncodeOptions) -> str:
-    """The file format of an encoding: ``format``, else compact96 with ``compact``, else float32."""
+    """The file format of an encoding: ``format`` ("full" = float32, "compact" = compact96), else
+    compact96 with ``compact``, else :data:`DEFAULT_FORMAT`."""
     from .wgs import _encoding
 
-    return _encoding(opts.compact, opts.format)
+    if opts.format is None and not opts.compact:
+        return DEFAULT_FORMAT
+    fmt = FORMAT_ALIASES.get(opts.format, opts.format) if opts.format is not None else None
+    return _encoding(opts.compact, fmt)
 
 
 def sizing_bpp(encoding: str) -> int:
@@ -372,7 +380,9 @@ def encode_field(
         """The model as the file will hold it (coded: fitted to the byte budget)."""
         if enc == "coded" and budget_bytes is not None:
             return m.fit_bytes(budget_bytes)
-        return m.stored(enc), None
+        m = m.stored(enc)
+        m.format = enc
+        return m, None
 
     params, facts = allocate(dv, n, opts.seed, opts.allocation, timer)
 
@@ -768,9 +778,9 @@ def encode(
         plateau_db: Stop refinement once that validation PSNR gained less than this (dB) over
             the last 300 iterations.
         compact: Size the budget (and the report) for the compact 12-byte format.
-        format: The file format: "float32" (48 B/primitive), "compact96" (12 B) or "coded"
-            (quantised and entropy-coded, about 7-9 B; refinement ends on its grids, and the
-            returned model is the stored one). Overrides ``compact``.
+        format: The file format: "coded" (the default: quantised and entropy-coded, about
+            7.5-8.2 B/primitive on real volumes; the returned model is the stored one), "float32"
+            (alias "full", 48 B) or "compact96" (alias "compact", 12 B). Overrides ``compact``.
         example: Built-in example volume name instead of ``source``.
         example_size: Size of the example volume.
         read: Reader options (shape, dtype, endian, dataset, variable, stride, fill value).

@@ -276,7 +276,7 @@ def test_nan_and_inf_voxels_are_masked():
     rng = np.random.default_rng(3)
     bad = rng.random(v.shape) < 0.15
     v[bad] = rng.choice(np.array([np.nan, np.inf, -np.inf], np.float32), int(bad.sum()))
-    analytic = encode(v, 30, iterations=0)
+    analytic = encode(v, 30, iterations=0, format="full")  # unquantised centres: the seeds themselves
     assert_valid_model(analytic, 30, v.shape)
     _check_mask_respected(analytic, ~bad)
     assert (~bad[_seed_voxels(analytic.params, v.shape)]).all()
