@@ -232,12 +232,8 @@ def project_one(p: vec12, g: QuantGrid) -> vec12:
     w = 1.0 / (1.0 + wp.exp(-p[11]))
     wq = wp.clamp(wp.round(w * sw), 1.0, sw - 1.0) / sw
     p[11] = wp.log(wq / (1.0 - wq))
-    q = wp.vec4(p[6], p[7], p[8], p[9])
-    n = wp.length(q)
-    if n > 1.0e-20 and wp.isfinite(n):
-        q = q / n
-    else:
-        q = wp.vec4(0.0, 0.0, 0.0, 1.0)
+    uq = safe_unit_quat(p[6], p[7], p[8], p[9])
+    q = wp.vec4(uq[0], uq[1], uq[2], uq[3])
     big = int(0)
     for k in range(1, 4):
         if wp.abs(q[k]) > wp.abs(q[big]):

@@ -340,6 +340,7 @@ def encode_field(
     budget_bytes = target_bytes(f, opts)  # the file size budget, or None for an explicit N
     header = _header_for(f, opts)
     n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
+    base_refine = opts.refine
     scaled = opts.refine.for_budget(n)
     if scaled is not opts.refine:  # more samples for a large budget: the header says so
         opts = dataclasses.replace(opts, refine=scaled)
@@ -373,8 +374,9 @@ def encode_field(
     if enc == "coded" and budget_bytes is not None:
         with timer.stage("S1p", "coded size pilot"):
             n, sizing = coded_budget(dv, f, opts, budget_bytes, header_size(header, n, encoding=enc), n)
-            if opts.refine.for_budget(n) is not opts.refine:  # keep the samples the header records
-                sizing["samples_note"] = "samples chosen for the bound on N"
+            if base_refine.for_budget(n) != opts.refine:  # the samples follow the measured N, not its bound
+                opts = dataclasses.replace(opts, refine=base_refine.for_budget(n))
+                header = _header_for(f, opts)
 
     def stored(m: Model) -> tuple[Model, dict | None]:
         """The model as the file will hold it (coded: fitted to the byte budget)."""
