@@ -77,11 +77,9 @@ def encode(
     if ladder is not None:
         if budget is not None or ratio is not None or file_bytes is not None or resume or time_budget is not None or save_analytic is not None:
             fail("--ladder gives the budgets: it does not combine with --budget, --ratio, --bytes, --time-budget, --resume or --save-analytic")
-        if fmt is not None and {"full": "float32", "compact": "compact96"}.get(fmt, fmt) != ("compact96" if compact else "float32"):
-            fail("--ladder writes full-precision (48 B) or --compact models; the coded format needs one budget at a time for now")
         _encode_ladder(
             ladder, input, out, example, size, seed, device, iterations, samples, preset, RefineConfig(lr=lr, weights=weights),
-            not no_self_test, compact, ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
+            not no_self_test, compact, fmt, ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
             full_eval, as_json, force,
         )
         return
@@ -148,7 +146,7 @@ def encode(
         raise typer.Exit(130)
 
 
-def _encode_ladder(text, input, out, example, size, seed, device, iterations, samples, preset, refine, self_test, compact, read, full_eval, as_json, force) -> None:
+def _encode_ladder(text, input, out, example, size, seed, device, iterations, samples, preset, refine, self_test, compact, fmt, read, full_eval, as_json, force) -> None:
     import warpgauss
     from warpgauss._fs import atomic_write_bytes, check_writable
 
@@ -162,7 +160,7 @@ def _encode_ladder(text, input, out, example, size, seed, device, iterations, sa
     try:
         models = warpgauss.encode_ladder(
             input, budgets=budgets, output_pattern=pattern, force=force, seed=seed, device=device, iterations=iterations,
-            samples=samples, preset=preset, refine=refine, self_test=self_test, compact=compact, example=example,
+            samples=samples, preset=preset, refine=refine, self_test=self_test, compact=compact, format=fmt, example=example,
             example_size=size, read=read, full_eval=full_eval,
             on_stage=None if status is None else lambda name, title: status.update(f"[bold]{name}[/] {title}"),
         )

@@ -245,6 +245,12 @@ def coded_budget(dv, f: Field, opts: EncodeOptions, total: int, header_bytes: in
     return n, {"pilot_n": pilot, "pilot_bytes_per_primitive": bpp, "header_bytes": header, "refine_growth": growth, "n": n}
 
 
+def _coded_payload(model: Model) -> int:
+    from .coded import encode_coded
+
+    return len(encode_coded(model.params, model.coded_bits)[0])
+
+
 def resolve_refine(
     refine: RefineConfig | None, preset: str | None, iterations: int | None, samples: int | None
 ) -> RefineConfig:
@@ -573,7 +579,7 @@ def encode_field(
             "n_max": seed_limit(f.eligible, f.occupied),
             "format": enc,
             "bytes": size,
-            "bytes_per_primitive": {"float32": 48, "compact96": 12}.get(enc) or (size - header_size(header, n, encoding=enc)) / n,
+            "bytes_per_primitive": {"float32": 48, "compact96": 12}.get(enc) or _coded_payload(model) / model.n,
             "compression_ratio": model.source_bytes / size,
             "full_precision_bytes": model.file_size(False),
             "compact_bytes": model.file_size(True),
@@ -875,6 +881,7 @@ def encode_ladder(
     refine: RefineConfig | None = None,
     self_test: bool = True,
     compact: bool = False,
+    format: str | None = None,
     example: str | None = None,
     example_size: int | tuple[int, int, int] = 64,
     read: ReadOptions | None = None,
@@ -913,16 +920,16 @@ def encode_ladder(
     load_seconds = first.seconds("P")
     from .wgs import header_size
 
-    bpp = 12 if compact else 48
-    probe = EncodeOptions(budget=ladder[-1], seed=seed, compact=compact, refine=refine)
-    check_budget(f, ladder[-1], header_size(_header_for(f, probe), 1 << 40, compact=compact), bpp)
+    probe = EncodeOptions(budget=ladder[-1], seed=seed, compact=compact, refine=refine, format=format)
+    enc = encoding_of(probe)
+    check_budget(f, ladder[-1], header_size(_header_for(f, probe), 1 << 40, encoding=enc), sizing_bpp(enc))
     cache: dict = {}
     models = []
     for i, (n, path) in enumerate(zip(ladder, paths)):
         timer = first if i == 0 else StageRecorder(on_stage=on_stage)
         opts = EncodeOptions(
             n, None, seed, compact, allocation or AllocationConfig(), stride=(read or ReadOptions()).stride,
-            refine=refine, self_test=self_test and i == 0,
+            refine=refine, self_test=self_test and i == 0, format=format,
         )
         model = encode_field(
             f, opts, device=device, timer=timer, input_info=info, evaluate=evaluate, full_eval=full_eval, on_progress=on_progress, cache=cache
@@ -933,7 +940,7 @@ def encode_ladder(
                 model.report["skipped"].append({"what": "self-test", "why": "run once for the ladder, with the first budget"})
         if path is not None:
             with timer.stage("S3", "export"):
-                model.save(path, compact=compact, force=force)
+                model.save(path, encoding=enc, force=force)
             model.report["output"] = str(path)
         finish_report(model, timer)
         model.report["ladder"] = {"budgets": ladder, "position": i, "shared": ["P", "S1a"] if i else []}
