@@ -25,7 +25,7 @@ def encode(
     compact: Annotated[bool, typer.Option("--compact", help="Write the compact 12-byte/primitive format")] = False,
     fmt: Annotated[
         str | None,
-        typer.Option("--format", help="File format: coded (default: quantised + Zstandard, about 7.5-8.2 B/Gaussian, --ratio/--bytes budgets filled to within a Gaussian), full (float32, 48 B) or compact (12 B)"),
+        typer.Option("--format", help="File format: coded (default: quantised + Zstandard, about 7.5-8.2 B/Gaussian, --ratio/--bytes budgets never exceeded, 99-100 % used), full (float32, 48 B) or compact (12 B)"),
     ] = None,
     iterations: Annotated[int | None, typer.Option(help="Refinement iterations (default 1500; 0: analytic model only)")] = None,
     samples: Annotated[int | None, typer.Option(help="Samples per iteration (default 3072, x ceil(N / 350000) for large budgets)")] = None,

@@ -318,15 +318,32 @@ def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = Non
             break  # every depth at its least: pruning does the rest
         cur = size(p, b)
     pruned = 0
-    while cur > budget and len(p) > 1:
-        per = cur / len(p)
-        k = min(len(p) - 1, max(1, int(np.ceil((cur - budget) / per))))
-        keep = np.sort(np.argsort(-importance(p), kind="stable")[: len(p) - k])
-        p = p[keep]
-        pruned += k
-        cur = size(p, b)
     if cur > budget:
-        raise WarpgaussError(f"no coded model of one primitive fits {budget} bytes; give a larger byte budget")
+        rank = np.argsort(-importance(p), kind="stable")  # most important first
+
+        def kept(k: int) -> np.ndarray:
+            return p[np.sort(rank[: len(p) - k])]
+
+        lo, hi = 0, None  # lo prunes too few (over budget); hi the fewest found that fit
+        k = 0
+        while hi is None:  # step out by the estimated excess until it fits
+            per = cur / (len(p) - k)
+            k = min(len(p) - 1, k + max(1, int(np.ceil((cur - budget) / per))))
+            cur = size(kept(k), b)
+            if cur <= budget:
+                hi = k
+            elif k == len(p) - 1:
+                raise WarpgaussError(f"no coded model of one primitive fits {budget} bytes; give a larger byte budget")
+            else:
+                lo = k
+        while hi - lo > 1:  # then the fewest pruned that fit, to within one primitive
+            mid = (lo + hi) // 2
+            if size(kept(mid), b) <= budget:
+                hi = mid
+            else:
+                lo = mid
+        p, pruned = kept(hi), hi
+        cur = size(p, b)
     grown = True
     while grown:
         grown = False
