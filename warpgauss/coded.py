@@ -272,6 +272,9 @@ GROW_ORDER = ("q", "log_s", "a", "mu", "w")
 _MIN_BITS = {"mu": 0, "log_s": 1, "q": 3, "a": 3, "w": 2}
 _MAX_BITS = {"mu": 8, "log_s": 8, "q": 10, "a": 12, "w": 10}
 PRUNE_SHARE = 0.03  # an excess up to this share of the budget is pruned, beyond it bits are dropped first
+# above this many primitives one coding takes seconds (Zstandard 19 codes ~5 MB/s of planes): the
+# prune count is then the first estimate that fits (about 1 % under the budget), not searched
+SEARCH_MAX_N = 200_000
 
 
 def importance(params: np.ndarray) -> np.ndarray:
@@ -336,7 +339,7 @@ def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = Non
                 raise WarpgaussError(f"no coded model of one primitive fits {budget} bytes; give a larger byte budget")
             else:
                 lo = k
-        while hi - lo > 1:  # then the fewest pruned that fit, to within one primitive
+        while hi - lo > 1 and len(p) <= SEARCH_MAX_N:  # then the fewest pruned that fit, to within one primitive
             mid = (lo + hi) // 2
             if size(kept(mid), b) <= budget:
                 hi = mid
