@@ -400,6 +400,7 @@ def encode_field(
             analytic.save(analytic_output, encoding=enc, force=force)
     model = analytic
     refined_fit = None
+    coded_bits_note = None
     refinement: dict = {"iterations": 0}
     early_eval = None
     if opts.refine.iterations > 0 and opts.refine.target_psnr is not None and evaluate:
@@ -478,7 +479,13 @@ def encode_field(
             seconds = time.perf_counter() - t0
             if refiner.interrupted:
                 ckpt.save(refiner)
-            model, refined_fit = stored(Model(refiner.model_params(), header))
+            refined = Model(refiner.model_params(), header)
+            if enc == "coded" and history:  # finer grids for a more accurate model
+                from .coded import bits_for_psnr
+
+                refined.coded_bits, extra = bits_for_psnr(history[-1].get("sample_psnr_db"))
+                coded_bits_note = {"sample_psnr_db": history[-1].get("sample_psnr_db"), "bits_added": extra, "bits": refined.coded_bits}
+            model, refined_fit = stored(refined)
         sessions = ckpt.sessions + [{"from_iteration": ckpt.start_iteration, "to_iteration": refiner.iteration, "seconds": seconds}]
         total = sum(x["seconds"] for x in sessions)
         refinement.update(
@@ -576,6 +583,7 @@ def encode_field(
             "budget_used": None if budget_bytes is None else size / budget_bytes,
             "coded_sizing": sizing,
             "coded_fit": fit,
+            "coded_bits_from_accuracy": coded_bits_note if model is not analytic else None,
             "n_max": seed_limit(f.eligible, f.occupied),
             "format": enc,
             "bytes": size,
