@@ -245,6 +245,25 @@ def coded_budget(dv, f: Field, opts: EncodeOptions, total: int, header_bytes: in
     return n, {"pilot_n": pilot, "pilot_bytes_per_primitive": bpp, "header_bytes": header, "refine_growth": growth, "n": n}
 
 
+def _coded_choice(sizing: dict | None, fit: dict | None, note: dict | None) -> str | None:
+    """One sentence on how a coded file met its budget: primitives against precision."""
+    if sizing is None and note is None:
+        return None
+    parts = []
+    if sizing is not None:
+        parts.append(
+            f"N {sizing['n']:,} from a pilot of {sizing['pilot_n']:,} at {sizing['pilot_bytes_per_primitive']:.2f} B x "
+            f"{sizing['refine_growth']:.2f} (refined models code larger); the default grids, since each of their bits "
+            "costs less PSNR than the Gaussians its bytes would buy (benchmarks/results/i18_coded_cpu.json)"
+        )
+    if note is not None and note["bits_added"]:
+        parts.append(f"{note['bits_added']} bit(s) more on every attribute for a {note['sample_psnr_db']:.1f} dB model")
+    if fit is not None:
+        did = ", ".join(fit["steps"]) or "no depth changed"
+        parts.append(f"rate control: {did}; {fit['pruned']:,} least important Gaussians pruned")
+    return "; ".join(parts)
+
+
 def _coded_payload(model: Model) -> int:
     from .coded import encode_coded
 
@@ -584,6 +603,7 @@ def encode_field(
             "coded_sizing": sizing,
             "coded_fit": fit,
             "coded_bits_from_accuracy": coded_bits_note if model is not analytic else None,
+            "coded_choice": _coded_choice(sizing, fit, coded_bits_note if model is not analytic else None),
             "n_max": seed_limit(f.eligible, f.occupied),
             "format": enc,
             "bytes": size,
