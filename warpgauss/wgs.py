@@ -193,7 +193,7 @@ def _encoding(compact: bool, encoding: str | None) -> str:
     if encoding is None:
         return "compact96" if compact else "float32"
     if encoding not in ENCODINGS:
-        raise WarpgaussError(f"unknown model format {encoding!r}; use one of {', '.join(ENCODINGS)}")
+        raise WarpgaussError(f"unknown model format {encoding!r}; use coded, full (float32) or compact (compact96)")
     return encoding
 
 
