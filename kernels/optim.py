@@ -17,14 +17,19 @@ LOGIT_BOUND = wp.constant(12.0)  # |weight logit| <= 12: w in [6e-6, 1 - 6e-6]
 
 
 @wp.func
-def unit_quaternion(p: vec12) -> vec12:
-    """p with its quaternion (slots 6-9) normalised, or the identity if it collapsed to zero."""
-    q = safe_unit_quat(p[6], p[7], p[8], p[9])
+def with_quaternion(p: vec12, q: wp.quat) -> vec12:
+    """p with q (x, y, z, w) in its quaternion slots 6-9."""
     p[6] = q[0]
     p[7] = q[1]
     p[8] = q[2]
     p[9] = q[3]
     return p
+
+
+@wp.func
+def unit_quaternion(p: vec12) -> vec12:
+    """p with its quaternion (slots 6-9) normalised, or the identity if it collapsed to zero."""
+    return with_quaternion(p, safe_unit_quat(p[6], p[7], p[8], p[9]))
 
 
 @wp.func
@@ -273,11 +278,7 @@ def project_one(p: vec12, g: QuantGrid) -> vec12:
             s2 += q[k] * q[k]
     q[big] = wp.sqrt(wp.max(0.0, 1.0 - s2))
     q = q / wp.length(q)
-    p[6] = q[0]
-    p[7] = q[1]
-    p[8] = q[2]
-    p[9] = q[3]
-    return p
+    return with_quaternion(p, wp.quat(q[0], q[1], q[2], q[3]))
 
 
 @wp.func
