@@ -221,6 +221,7 @@ class QuantGrid:
     q: int
     a: int
     w: int
+    geometry_only: int  # 1: leave a and w as they are (refitted after the geometry is fixed)
 
 
 @wp.func
@@ -232,11 +233,12 @@ def project_one(p: vec12, g: QuantGrid) -> vec12:
     for k in range(3):
         p[k] = on_grid(p[k], g.mu)
         p[3 + k] = on_grid(p[3 + k], g.s)
-    p[10] = on_grid(p[10], g.a)
-    sw = float(1 << g.w)
-    w = 1.0 / (1.0 + wp.exp(-p[11]))
-    wq = wp.clamp(wp.round(w * sw), 1.0, sw - 1.0) / sw
-    p[11] = wp.log(wq / (1.0 - wq))
+    if g.geometry_only == 0:
+        p[10] = on_grid(p[10], g.a)
+        sw = float(1 << g.w)
+        w = 1.0 / (1.0 + wp.exp(-p[11]))
+        wq = wp.clamp(wp.round(w * sw), 1.0, sw - 1.0) / sw
+        p[11] = wp.log(wq / (1.0 - wq))
     uq = safe_unit_quat(p[6], p[7], p[8], p[9])
     q = wp.vec4(uq[0], uq[1], uq[2], uq[3])
     big = int(0)

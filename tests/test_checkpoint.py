@@ -138,12 +138,14 @@ def test_resume_refuses_other_options_and_damaged_checkpoints(tmp_path, cpu):
     assert res.exit_code == 2 and "no checkpoint at" in res.output
 
 
-def test_resume_inside_the_quantisation_aware_phase_gives_the_uninterrupted_coded_model(tmp_path, cpu):
+@pytest.mark.parametrize("mode", ["straight-through", "refit"])
+def test_resume_inside_the_quantisation_aware_phase_gives_the_uninterrupted_coded_model(tmp_path, cpu, mode):
     """format="coded" with quantisation-aware refinement from 80 % (iterations 96-120 here): a
     run stopped at 100 and resumed writes the file an uninterrupted run writes, byte for byte."""
+    from warpgauss.coded import CODED_BITS
     from warpgauss.refine import RefineConfig
 
-    RUN = {**globals()["RUN"], "refine": RefineConfig(quantise_from=0.8)}
+    RUN = {**globals()["RUN"], "refine": RefineConfig(quantise=dict(CODED_BITS), quantise_from=0.8, quantise_mode=mode)}
     ref = warpgauss.encode(**RUN, format="coded", output=tmp_path / "ref.wgs")
     out = tmp_path / "run.wgs"
 

@@ -221,3 +221,33 @@ def test_more_accurate_models_get_finer_grids(tmp_path, cpu):
     note = m.report["budget"]["coded_bits_from_accuracy"]
     assert note["bits"] == coded.bits_for_psnr(note["sample_psnr_db"])[0]
     assert read_wgs(tmp_path / "v.wgs")[1]["payload"]["quant"]["bits"] == note["bits"]
+
+
+def test_refit_fixes_the_geometry_on_its_grids_and_refits_values(cpu):
+    """quantise_mode="refit": from quantise_from on, centres, scales and rotations sit on the coded
+    grids and no longer move, while a and w keep training; the run ends with everything on the
+    grids, the same on a rerun."""
+    from warpgauss.analysis import DeviceVolume, normalise
+    from warpgauss.refine import RefineConfig, Refiner
+    from warpgauss.synthetic import generate
+
+    f = normalise(generate("vortex", 20, seed=0))
+    dv = DeviceVolume(f, cpu)
+    p = realistic_params(np.random.default_rng(10), 150, box=20.0)
+    cfg = RefineConfig(iterations=40, samples=512, quantise=dict(coded.CODED_BITS), quantise_from=0.5, quantise_mode="refit")
+    r = Refiner(dv, p, cfg, 0, 0.3, 4.0)
+    for _ in range(21):
+        r.step()
+    mid = r.model_params()
+    np.testing.assert_allclose(coded.project_coded(mid)[:, :10], mid[:, :10], atol=2e-6)  # geometry on the grids
+    for _ in range(19):
+        r.step()
+    late = r.model_params()
+    np.testing.assert_allclose(late[:, :10], mid[:, :10], atol=1e-6)  # and fixed there (to rounding)
+    assert np.abs(late[:, 10:] - mid[:, 10:]).max() > 0  # while a and w train
+    r.run()  # nothing left to run: ends with the projection
+    end = r.model_params()
+    np.testing.assert_allclose(coded.project_coded(end), end, atol=2e-6)
+    r2 = Refiner(dv, p, cfg, 0, 0.3, 4.0)
+    r2.run()
+    assert r2.model_params().tobytes() == end.tobytes()

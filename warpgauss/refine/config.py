@@ -95,6 +95,9 @@ class RefineConfig:
             grids (so the model evaluated and returned is the one stored); from
             ``quantise_from`` x ``iterations`` on, evaluation reads the parameters on those
             grids while Adam steps the unquantised ones (straight-through).
+        quantise_mode: "straight-through" (see ``quantise``) or "refit": at ``quantise_from``
+            the centres, scales and rotations move onto their grids and stay, and the remaining
+            iterations refit a and w to them.
         quantise_from: Share of the iterations after which refinement is quantisation-aware.
             1.0 (the default) projects once, after the last iteration: measured on two head
             MRIs (600 iterations, CPU, ``benchmarks/results/i18_coded_cpu.json``), refining the
@@ -131,6 +134,7 @@ class RefineConfig:
     plateau_window: int = 300
     quantise: dict | None = None
     quantise_from: float = 1.0
+    quantise_mode: str = "straight-through"
     weights: LossWeights = field(default_factory=LossWeights)
 
     def to_dict(self) -> dict:
@@ -176,6 +180,8 @@ class RefineConfig:
                 raise WarpgaussError(f"{name} must be a positive integer, got {v}")
         if not (finite(self.quantise_from) and 0 <= self.quantise_from <= 1):
             raise WarpgaussError(f"quantise_from must be in [0, 1], got {self.quantise_from}")
+        if self.quantise_mode not in ("straight-through", "refit"):
+            raise WarpgaussError(f"quantise_mode must be straight-through or refit, got {self.quantise_mode!r}")
         if self.quantise is not None:
             from ..coded import _check_bits
 

@@ -44,6 +44,7 @@ def _quant_grid(bits: dict | None):
     g = ko.QuantGrid()
     b = bits or {}
     g.on = 0
+    g.geometry_only = 0
     g.mu, g.s, g.q, g.a, g.w = (int(b.get(k, 0)) for k in ("mu", "log_s", "q", "a", "w"))
     return g
 
@@ -101,6 +102,7 @@ class Refiner:
         self.schedule = Schedule(dev, seed)
         self.stops = StopRule(dev)
         self._graph = None
+        self._geometry_fixed = False
         self.use_graph = wp.get_device(dev).is_cuda and config.graph
         self.set_samples(config.samples)
         self.write_schedule(max(config.iterations, 1))
@@ -237,10 +239,13 @@ class Refiner:
         replan = it % max(cfg.replan_every, 1) == 0
         if it > 0 and (replan or it % max(cfg.rebin_every, 1) == 0):
             self.rebin(replan=replan)
-        if self.quantising(it) and not self.quant.on:  # from here on, evaluate on the coded grids
-            self.quant.on = 1
-            self._graph = None  # the update kernel's arguments changed
-            self.rebin()
+        if self.quantising(it) and not self.quant.on and not self._geometry_fixed:
+            if cfg.quantise_mode == "refit":  # fix the geometry on its grids, refit a and w to it
+                self._fix_geometry()
+            else:  # from here on, evaluate on the coded grids (straight-through)
+                self.quant.on = 1
+                self._graph = None  # the update kernel's arguments changed
+                self.rebin()
         if not self.state.clean:
             self.state.zero_grads()
         if self.use_graph and self._graph is None:
@@ -268,6 +273,20 @@ class Refiner:
         cfg = self.cfg
         it = self.iteration if it is None else it
         return cfg.quantise is not None and it >= int(cfg.quantise_from * cfg.iterations)
+
+    def _fix_geometry(self) -> None:
+        """Move centres, scales and rotations onto the coded grids and stop stepping them."""
+        from ..kernels import field as kf
+        from ..kernels import optim as ko
+
+        g = _quant_grid(self.cfg.quantise)
+        g.on, g.geometry_only = 1, 1
+        self._wp.launch(ko.project_coded, dim=self.n, inputs=[self.state.raw, g], device=self.device)
+        lr = self.updater.lr
+        self.updater.lr = kf.vec12(*([0.0] * 10), lr[10], lr[11])
+        self._geometry_fixed = True
+        self._graph = None
+        self.rebin()
 
     def project(self) -> None:
         """Move every primitive onto the coded grids of ``config.quantise`` now (the parameters
@@ -394,7 +413,15 @@ class Refiner:
         self.passes.invalidate()
         for dst, key in ((s.raw, "raw"), (s.m1, "m1"), (s.m2, "m2"), (s.ids, "ids"), (b.lo, "bounds_lo"), (b.hi, "bounds_hi"), (b.cell, "bounds_cell"), (s.counts, "counts"), (s.reach, "reach")):
             dst.assign(arrays[key])
-        self.quant.on = int(self.quantising(int(scalars["iteration"])))
+        it = int(scalars["iteration"])
+        refit = self.cfg.quantise_mode == "refit"
+        self.quant.on = int(self.quantising(it) and not refit)
+        if refit and self.quantising(it) and it > int(self.cfg.quantise_from * self.cfg.iterations):
+            from ..kernels import field as kf  # the geometry was fixed before the checkpoint
+
+            lr = self.updater.lr
+            self.updater.lr = kf.vec12(*([0.0] * 10), lr[10], lr[11])
+            self._geometry_fixed = True
         src = s.raw
         if self.quant.on:  # evaluation reads the parameters on the coded grids
             src = wp.empty_like(s.raw)
