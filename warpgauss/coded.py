@@ -17,9 +17,10 @@ neighbours along the file are neighbours in space: the centre columns are stored
 from the previous primitive (zigzag), every other column as its offset from the column's minimum.
 Each column takes the fewest whole bytes its values need; the columns' byte planes (all lowest
 bytes first) are concatenated and compressed with Zstandard at level 19. Zstandard rather than a
-range coder of our own: a well-kept, fast, bounded-memory library with a frame checksum, and the
-byte planes leave it the redundancy a model-based coder would find (measured in
-``benchmarks/results``; see the README's format section).
+range coder of our own: a well-kept, fast, bounded-memory library with a frame checksum and a
+declared content size; an adaptive model-based coder might save a few per cent more (not
+measured). Level 19 codes 5 % smaller than level 3 and 0.3 % larger than level 22 (a 25,000-
+Gaussian model).
 
 Decoding checks every declared width, offset and length against the header before it allocates,
 decompresses into at most the declared size, and rejects codes outside their ranges; no pickle.
