@@ -149,6 +149,12 @@ def project_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> np.
     return dequantise(quantise(params, bits), bits)
 
 
+def as_stored(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarray:
+    """``params`` exactly as a coded file of them reads back: projected, in the file's order."""
+    codes = quantise(params, bits)
+    return dequantise(codes[coded_order(codes)], bits)
+
+
 def _part1by2(v: np.ndarray) -> np.ndarray:
     """Spread the low 21 bits of v to every third bit (Morton interleave of one axis)."""
     v = v.astype(np.uint64) & np.uint64(0x1FFFFF)
@@ -363,9 +369,7 @@ def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = Non
                 if t <= budget:
                     b, cur, grown = trial, t, True
                     steps.append(f"{k}+1")
-    _, _, order = encode_coded(p, b)
-    stored = dequantise(quantise(p, b), b)[order]
-    return stored, b, {"steps": steps, "pruned": pruned, "bytes": cur}
+    return as_stored(p, b), b, {"steps": steps, "pruned": pruned, "bytes": cur}
 
 
 def bits_for_psnr(psnr_db: float | None) -> tuple[dict[str, int], int]:

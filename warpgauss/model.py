@@ -198,13 +198,18 @@ class Model:
     def file_size(self, compact: bool = False, *, encoding: str | None = None) -> int:
         """Exact bytes of this model's file: 48 N + H (full precision), 12 N + H (compact) or
         the coded payload + H (``encoding="coded"``: the payload is coded to measure it)."""
-        from .wgs import _encoding, header_size, wgs_bytes
+        return self.file_sizes(compact, encoding=encoding)[0]
+
+    def file_sizes(self, compact: bool = False, *, encoding: str | None = None) -> tuple[int, int]:
+        """(file bytes, payload bytes) of this model's file (see :meth:`file_size`)."""
+        from .wgs import ENCODINGS, _encoding, header_size, payload_size, wgs_bytes
 
         enc = _encoding(compact, encoding)
-        if enc == "coded":
-            return len(wgs_bytes(self.params, self.header, encoding="coded", bits=self.coded_bits))
-        bpp = 12 if enc == "compact96" else 48
-        return bpp * self.n + header_size(self.header, self.n, encoding=enc)
+        if ENCODINGS[enc] is None:
+            data = wgs_bytes(self.params, self.header, encoding=enc, bits=self.coded_bits)
+            return len(data), payload_size(data)
+        payload = ENCODINGS[enc] * self.n
+        return payload + header_size(self.header, self.n, encoding=enc), payload
 
     def compression_ratio(self, compact: bool = False, *, encoding: str | None = None) -> float:
         return self.source_bytes / self.file_size(compact, encoding=encoding)
@@ -215,10 +220,9 @@ class Model:
         encoder evaluates those before quantisation)."""
         if encoding != "coded":
             return self
-        from .coded import encode_coded, project_coded
+        from .coded import as_stored
 
-        _, _, order = encode_coded(self.params, self.coded_bits)
-        m = Model(project_coded(self.params, self.coded_bits)[order], self.header)
+        m = Model(as_stored(self.params, self.coded_bits), self.header)
         m.report, m.coded_bits, m.format = self.report, self.coded_bits, "coded"
         return m
 

@@ -182,7 +182,9 @@ def encoding_of(opts: EncodeOptions) -> str:
 
 def sizing_bpp(encoding: str) -> int:
     """Bytes per primitive a --ratio budget is sized with."""
-    return {"float32": 48, "compact96": 12}.get(encoding, CODED_BPP_SIZING)
+    from .wgs import ENCODINGS
+
+    return ENCODINGS[encoding] or CODED_BPP_SIZING
 
 
 def target_bytes(f: Field, opts: EncodeOptions) -> int | None:
@@ -262,12 +264,6 @@ def _coded_choice(sizing: dict | None, fit: dict | None, note: dict | None) -> s
         did = ", ".join(fit["steps"]) or "no depth changed"
         parts.append(f"rate control: {did}; {fit['pruned']:,} least important Gaussians pruned")
     return "; ".join(parts)
-
-
-def _coded_payload(model: Model) -> int:
-    from .coded import encode_coded
-
-    return len(encode_coded(model.params, model.coded_bits)[0])
 
 
 def resolve_refine(
@@ -584,7 +580,7 @@ def encode_field(
     elif not refinement.get("interrupted"):
         skipped.append({"what": "EV evaluation", "why": "disabled by the caller"})
 
-    size = model.file_size(encoding=enc)
+    size, payload = model.file_sizes(encoding=enc)  # one coding of a coded model gives both
     fit = analytic_fit if model is analytic else refined_fit
     model.report = {
         "warpgauss_version": __version__,
@@ -607,7 +603,7 @@ def encode_field(
             "n_max": seed_limit(f.eligible, f.occupied),
             "format": enc,
             "bytes": size,
-            "bytes_per_primitive": {"float32": 48, "compact96": 12}.get(enc) or _coded_payload(model) / model.n,
+            "bytes_per_primitive": payload / model.n,
             "compression_ratio": model.source_bytes / size,
             "full_precision_bytes": model.file_size(False),
             "compact_bytes": model.file_size(True),

@@ -443,6 +443,12 @@ def write_wgs(
     return len(data)
 
 
+def payload_size(data: bytes) -> int:
+    """Payload bytes of a whole file's bytes (what follows the prefix and the header)."""
+    _, _, hlen, _ = _PREFIX.unpack_from(data)
+    return len(data) - PREFIX_SIZE - hlen
+
+
 def wgs_bytes(params: np.ndarray, header: dict, *, encoding: str = "float32", header_size: int | None = None, bits: dict | None = None) -> bytes:
     """The bytes :func:`write_wgs` writes (for sizes and in-memory round trips); ``bits``: the
     coded bit depths (default :data:`warpgauss.coded.CODED_BITS`)."""
