@@ -348,12 +348,16 @@ def budget_from_ratio(source_bytes: int, ratio: float, header_bytes: int, bytes_
     """N = floor((S_src / R - H) / bytes per primitive) (SPEC section 4)."""
     if not ratio > 0:
         raise WarpgaussError(f"--ratio must be positive, got {ratio}")
-    n = int(np.floor((source_bytes / ratio - header_bytes) / bytes_per_primitive))
+    return budget_from_bytes(source_bytes / ratio, source_bytes, header_bytes, bytes_per_primitive)
+
+
+def budget_from_bytes(total_bytes: float, source_bytes: int, header_bytes: int, bytes_per_primitive: int) -> int:
+    """N = floor((B - H) / bytes per primitive) for a file of B bytes; refused when none fits."""
+    n = int(np.floor((total_bytes - header_bytes) / bytes_per_primitive))
     if n < 1:
-        best = source_bytes / (header_bytes + bytes_per_primitive)
         raise WarpgaussError(
-            f"--ratio {ratio:g} leaves no room for a single primitive ({source_bytes} source bytes, "
-            f"{header_bytes} header bytes); the largest possible ratio is {best:.4g}"
+            f"a budget of {total_bytes:.0f} bytes leaves no room for a single primitive ({header_bytes} header bytes, "
+            f"{bytes_per_primitive} per primitive); the largest possible ratio is {source_bytes / (header_bytes + bytes_per_primitive):.4g}"
         )
     return n
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from . import __version__
 from .allocate import AllocationConfig, allocate
-from .analysis import Field, budget_from_ratio, check_budget, normalise, seed_limit
+from .analysis import Field, budget_from_bytes, check_budget, normalise, seed_limit
 from .errors import WarpgaussError
 from .model import Model, make_header
 from .optimize import PRESETS, RefineConfig
@@ -213,12 +213,7 @@ def resolve_budget(f: Field, opts: EncodeOptions, header_bytes: int) -> int:
     if total is None:
         n = int(opts.budget)
     else:
-        n = int((total - header_bytes) // bpp)
-        if n < 1:
-            raise WarpgaussError(
-                f"a budget of {total} bytes leaves no room for a single primitive ({header_bytes} header bytes, "
-                f"{bpp} per primitive); the largest possible ratio is {f.source_bytes / (header_bytes + bpp):.4g}"
-            )
+        n = budget_from_bytes(total, f.source_bytes, header_bytes, bpp)
     if encoding_of(opts) == "coded" and total is not None:
         # a bound: the coded N is measured once the volume is analysed (coded_budget), at most N_max
         n_max = seed_limit(f.eligible, f.occupied)
