@@ -69,6 +69,36 @@ def _check_bits(bits) -> dict[str, int]:
     return out
 
 
+def smallest_three(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(index of the largest |component|, the other three) of (n, 4) quaternions, normalised
+    (zero: the identity) and signed so that the largest is positive (q and -q are one rotation).
+    The other three then lie in [-1/sqrt2, 1/sqrt2]."""
+    q = np.asarray(q, np.float64)
+    n = q.shape[0]
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 0.0, 1.0]))
+    qi = np.argmax(np.abs(q), axis=1)
+    rows = np.arange(n)
+    q = q * np.where(q[rows, qi] < 0, -1.0, 1.0)[:, None]
+    keep = np.ones((n, 4), bool)
+    keep[rows, qi] = False
+    return qi, q[keep].reshape(n, 3)
+
+
+def from_smallest_three(qi: np.ndarray, small: np.ndarray) -> np.ndarray:
+    """Unit quaternions (n, 4) from :func:`smallest_three`'s index and (dequantised) three."""
+    n = small.shape[0]
+    qi = np.asarray(qi, np.intp)
+    largest = np.sqrt(np.maximum(0.0, 1.0 - np.sum(small * small, axis=1)))
+    rows = np.arange(n)
+    keep = np.ones((n, 4), bool)
+    keep[rows, qi] = False
+    q = np.empty((n, 4), np.float64)
+    q[keep] = small.reshape(-1)
+    q[rows, qi] = largest
+    return q / np.linalg.norm(q, axis=1, keepdims=True)  # never zero: largest = 1 when the rest are 0
+
+
 def _q_levels(b: int) -> int:
     return (1 << b) - 2  # intervals: 2^b - 1 levels, odd, so 0 is a level
 
@@ -88,15 +118,7 @@ def quantise(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarr
 
     codes[:, 0:3] = grid(p[:, 0:3], b["mu"])
     codes[:, 3:6] = grid(p[:, 3:6], b["log_s"])
-    q = p[:, 6:10]
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 0.0, 1.0]))
-    qi = np.argmax(np.abs(q), axis=1)
-    rows = np.arange(n)
-    q = q * np.where(q[rows, qi] < 0, -1.0, 1.0)[:, None]  # q and -q are the same rotation
-    keep = np.ones((n, 4), bool)
-    keep[rows, qi] = False
-    small = q[keep].reshape(n, 3)
+    qi, small = smallest_three(p[:, 6:10])
     lev = _q_levels(b["q"])
     codes[:, 6] = qi
     sc = np.clip(np.rint((small + _Q_RANGE) / (2 * _Q_RANGE) * lev), 0, lev).astype(np.int64)
@@ -128,17 +150,7 @@ def dequantise(codes: np.ndarray, bits: dict[str, int] | None = None) -> np.ndar
     out[:, 0:3] = c[:, 0:3] / float(1 << b["mu"])
     out[:, 3:6] = c[:, 3:6] / float(1 << b["log_s"])
     lev = _q_levels(b["q"])
-    small = c[:, 7:10] * (2 * _Q_RANGE / lev) - _Q_RANGE
-    largest = np.sqrt(np.maximum(0.0, 1.0 - np.sum(small * small, axis=1)))
-    qi = c[:, 6].astype(np.intp)
-    rows = np.arange(n)
-    keep = np.ones((n, 4), bool)
-    keep[rows, qi] = False
-    q = np.empty((n, 4), np.float64)
-    q[keep] = small.reshape(-1)
-    q[rows, qi] = largest
-    q /= np.linalg.norm(q, axis=1, keepdims=True)  # never zero: largest = 1 when the rest are 0
-    out[:, 6:10] = q
+    out[:, 6:10] = from_smallest_three(c[:, 6], c[:, 7:10] * (2 * _Q_RANGE / lev) - _Q_RANGE)
     out[:, 10] = c[:, 10] / float(1 << b["a"])
     out[:, 11] = c[:, 11] / float(1 << b["w"])
     return out.astype(np.float32)

@@ -62,6 +62,7 @@ from pathlib import Path
 import numpy as np
 
 from ._fs import atomic_write_bytes, check_writable
+from .coded import _Q_RANGE, from_smallest_three, smallest_three  # the three smaller components lie in +-1/sqrt2
 from .errors import WarpgaussError
 
 MAGIC = b"WGAUSS\x00\x01"
@@ -89,7 +90,6 @@ ENCODINGS = {"float32": 48, "compact96": 12, "coded": None}  # bytes per primiti
 
 # compact96 bit allocation (sums to 96); stored in the header's "quant" so the file describes itself
 COMPACT_BITS: dict[str, int] = {"mu": 13, "log_s": 7, "q_index": 2, "q": 6, "a": 8, "w": 8}
-_Q_RANGE = 1.0 / math.sqrt(2.0)  # the three smaller components of a unit quaternion lie in +-1/sqrt2
 # the widest repr of a float64 (sign, 17 digits, point, e-308): reserves room for any quant value
 _FLOAT_PLACEHOLDER = -2.2250738585072014e-308
 _N_PLACEHOLDER = 10**19  # wider than any N this format can hold on disk
@@ -295,14 +295,7 @@ def encode_compact(params: np.ndarray) -> tuple[bytes, dict]:
     a_lo, a_hi = p[:, 10].min(), p[:, 10].max()
     w_lo, w_hi = p[:, 11].min(), p[:, 11].max()
 
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 0.0, 1.0]))
-    qi = np.argmax(np.abs(q), axis=1)
-    rows = np.arange(q.shape[0])
-    q = q * np.where(q[rows, qi] < 0, -1.0, 1.0)[:, None]  # q and -q are the same rotation
-    keep = np.ones((q.shape[0], 4), bool)
-    keep[rows, qi] = False
-    small = q[keep].reshape(-1, 3)
+    qi, small = smallest_three(q)
 
     codes = np.concatenate(
         [
@@ -363,17 +356,7 @@ def decode_compact(payload: bytes, n: int, quant: dict) -> np.ndarray:
     out = np.empty((n, 12), np.float64)
     out[:, 0:3] = _dequantise(c[:, 0:3], mu_lo, mu_hi, b["mu"])
     out[:, 3:6] = _dequantise(c[:, 3:6], s_lo, s_hi, b["log_s"])
-    qi = c[:, 6].astype(np.intp)
-    small = _dequantise(c[:, 7:10], -_Q_RANGE, _Q_RANGE, b["q"], centred=True)
-    largest = np.sqrt(np.maximum(0.0, 1.0 - np.sum(small * small, axis=1)))
-    q = np.empty((n, 4), np.float64)
-    rows = np.arange(n)
-    keep = np.ones((n, 4), bool)
-    keep[rows, qi] = False
-    q[keep] = small.reshape(-1)
-    q[rows, qi] = largest
-    q /= np.linalg.norm(q, axis=1, keepdims=True)  # never zero: largest = 1 when the rest are 0
-    out[:, 6:10] = q
+    out[:, 6:10] = from_smallest_three(c[:, 6], _dequantise(c[:, 7:10], -_Q_RANGE, _Q_RANGE, b["q"], centred=True))
     out[:, 10] = _dequantise(c[:, 10], a_lo, a_hi, b["a"])
     out[:, 11] = _dequantise(c[:, 11], w_lo, w_hi, b["w"])
     return out.astype(np.float32)
