@@ -32,6 +32,15 @@ class Binner:
     def prepare(self) -> None:
         """Prepare the primitives in the current slot order into :attr:`prep` (on the coded grids
         while quantisation-aware), radii widened by the reach deferred steps ask for."""
+        from ..kernels import optim as ko
+
+        s = self.state
+        self.prepare_into(self.prep)
+        self._wp.launch(ko.effective_radius, dim=s.n, inputs=[self.prep[4], s.reach], device=s.device)
+
+    def prepare_into(self, outputs) -> None:
+        """Prepare the primitives in the current slot order into ``outputs`` (mu, rot, inv_s2,
+        ext, radius, a, w), from the parameters on the coded grids while straight-through."""
         from ..kernels import field as kf
         from ..kernels import optim as ko
 
@@ -40,8 +49,7 @@ class Binner:
         if self.quant.on:  # straight-through: evaluation reads the projection, the step lands on raw
             wp.launch(ko.project_copy, dim=s.n, inputs=[s.raw, self.quant], outputs=[self._raw_b], device=s.device)
             src = self._raw_b
-        wp.launch(kf.prepare_primitives, dim=s.n, inputs=[src, 1], outputs=self.prep, device=s.device)
-        wp.launch(ko.effective_radius, dim=s.n, inputs=[self.prep[4], s.reach], device=s.device)
+        wp.launch(kf.prepare_primitives, dim=s.n, inputs=[src, 1], outputs=outputs, device=s.device)
 
     def sort(self) -> None:
         """Sort the prepared primitives into the plan's cells (into ``state.prims``)."""

@@ -276,17 +276,22 @@ class Refiner:
 
     def _fix_geometry(self) -> None:
         """Move centres, scales and rotations onto the coded grids and stop stepping them."""
-        from ..kernels import field as kf
         from ..kernels import optim as ko
 
         g = _quant_grid(self.cfg.quantise)
         g.on, g.geometry_only = 1, 1
         self._wp.launch(ko.project_coded, dim=self.n, inputs=[self.state.raw, g], device=self.device)
+        self._freeze_geometry()
+        self.rebin()
+
+    def _freeze_geometry(self) -> None:
+        """Stop stepping centres, scales and rotations (their rates to 0; a and w keep theirs)."""
+        from ..kernels import field as kf
+
         lr = self.updater.lr
         self.updater.lr = kf.vec12(*([0.0] * 10), lr[10], lr[11])
         self._geometry_fixed = True
-        self._graph = None
-        self.rebin()
+        self._graph = None  # the update kernel's arguments changed
 
     def project(self) -> None:
         """Move every primitive onto the coded grids of ``config.quantise`` now (the parameters
@@ -398,10 +403,8 @@ class Refiner:
     def restore(self, arrays: dict, scalars: dict) -> None:
         """Continue from :meth:`state_arrays` (same primitives count; shapes checked by the caller)."""
         from ..field import BinPlan, set_plan
-        from ..kernels import field as kf
-        from ..kernels import optim as ko
 
-        wp, dev, s = self._wp, self.device, self.state
+        dev, s = self.device, self.state
         p, b = s.prims, s.bounds
         if int(scalars["n"]) != self.n:
             raise WarpgaussError(f"checkpoint holds {scalars['n']} primitives, this run has {self.n}")
@@ -417,17 +420,9 @@ class Refiner:
         refit = self.cfg.quantise_mode == "refit"
         self.quant.on = int(self.quantising(it) and not refit)
         if refit and self.quantising(it) and it > int(self.cfg.quantise_from * self.cfg.iterations):
-            from ..kernels import field as kf  # the geometry was fixed before the checkpoint
-
-            lr = self.updater.lr
-            self.updater.lr = kf.vec12(*([0.0] * 10), lr[10], lr[11])
-            self._geometry_fixed = True
-        src = s.raw
-        if self.quant.on:  # evaluation reads the parameters on the coded grids
-            src = wp.empty_like(s.raw)
-            wp.launch(ko.project_copy, dim=self.n, inputs=[s.raw, self.quant], outputs=[src], device=dev)
+            self._freeze_geometry()  # the geometry was fixed before the checkpoint
         radius = self.binner.prep[4]  # scratch: the prepared primitives go straight into slot order
-        wp.launch(kf.prepare_primitives, dim=self.n, inputs=[src, 1], outputs=[p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w], device=dev)
+        self.binner.prepare_into([p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w])
         s.zero_grads()
         smp = self.sampler
         if smp.uniform_support:
