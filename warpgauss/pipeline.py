@@ -224,22 +224,22 @@ def resolve_budget(f: Field, opts: EncodeOptions, header_bytes: int) -> int:
     return n
 
 
-def coded_budget(dv, f: Field, opts: EncodeOptions, total: int, header_bytes: int, n_bound: int) -> tuple[int, dict]:
+def coded_budget(dv, opts: EncodeOptions, header: dict, total: int, n_bound: int) -> tuple[int, dict]:
     """N for a coded file of ``total`` bytes: a pilot allocation's coded size per primitive, times
     the growth refinement brings (:data:`CODED_REFINE_GROWTH`; 1 without refinement)."""
-    from .coded import encode_coded
-    from .wgs import wgs_bytes
+    from .wgs import header_size, payload_size, wgs_bytes
 
-    pilot = max(1, min(n_bound, (total - header_bytes) // 8))
+    pilot = max(1, min(n_bound, (total - header_size(header, n_bound, encoding="coded")) // 8))
     params, _ = allocate(dv, pilot, opts.seed, opts.allocation, StageRecorder())
-    payload = len(encode_coded(params)[0])
+    data = wgs_bytes(params, header, encoding="coded")
+    payload = payload_size(data)
     bpp = payload / pilot
     # the pilot's own header (the reserved bound is a few hundred bytes wider: at small budgets
     # that is a good share of the payload)
-    header = len(wgs_bytes(params, _header_for(f, opts), encoding="coded")) - payload + 32
+    head = len(data) - payload + 32
     growth = CODED_REFINE_GROWTH if opts.refine.iterations > 0 else 1.0
-    n = max(1, min(n_bound, int((total - header) // (bpp * growth))))
-    return n, {"pilot_n": pilot, "pilot_bytes_per_primitive": bpp, "header_bytes": header, "refine_growth": growth, "n": n}
+    n = max(1, min(n_bound, int((total - head) // (bpp * growth))))
+    return n, {"pilot_n": pilot, "pilot_bytes_per_primitive": bpp, "header_bytes": head, "refine_growth": growth, "n": n}
 
 
 def _coded_choice(sizing: dict | None, fit: dict | None, note: dict | None) -> str | None:
@@ -389,7 +389,7 @@ def encode_field(
     sizing = None
     if enc == "coded" and budget_bytes is not None:
         with timer.stage("S1p", "coded size pilot"):
-            n, sizing = coded_budget(dv, f, opts, budget_bytes, header_size(header, n, encoding=enc), n)
+            n, sizing = coded_budget(dv, opts, header, budget_bytes, n)
             if base_refine.for_budget(n) != opts.refine:  # the samples follow the measured N, not its bound
                 opts = dataclasses.replace(opts, refine=base_refine.for_budget(n))
                 header = _header_for(f, opts)
