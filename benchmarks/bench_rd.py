@@ -1,7 +1,32 @@
-"""Rate-distortion benchmark (issue #8 part 3): warpgauss against SZ3 and ZFP.
+"""Rate-distortion benchmark (issue #8 part 3, issue #18 part 4): warpgauss against SZ3, ZFP, SPERR.
 
-For each volume (the built-in example fields generated at ``--size``, and the real volumes in
-``../shared/data`` when present) this measures PSNR against compression ratio, plus encode and
+Two modes. With ``--ratios`` (issue #18 part 4, "rate-distortion, honestly") every codec is run at
+the same FIXED compression ratios:
+
+- ``wg``: warpgauss with the library's defaults, what ``warpgauss encode VOLUME --ratio R`` does
+  (coded format, default refinement, sampled EV; no preset unless ``--preset`` is given; no
+  refinement checkpoints, which the CLI writes every 60 s): one encode per ratio, nothing shared
+  between them but the loaded field (S1a runs in every encode). The refiner's self-test runs once
+  per process, in the warm-up encode, so no row includes it (``self_test_s`` 0). The model is
+  saved to a temporary ``.wgs``; the achieved ratio uses that file's size, and PSNR the full-grid
+  decode of the reloaded file. encode_s: the encode call plus the save (reading the volume
+  excluded; ``stages`` and ``save_s`` split it); decode_s: load + full-grid decode;
+- ``sz3-matched``: the absolute bound searched until the ratio is within ``--match-tol`` of R;
+- ``zfp-rate-matched``: fixed rate 8 x itemsize / R bits per value (the ratio is against the
+  SOURCE dtype), corrected from the measured bytes (partial blocks, header) until within the
+  tolerance; a ratio whose rate is below ``--zfp-min-rate`` (0.25: at 9 bits per 4^3 block or
+  fewer zfp codes only the block exponents, at fewer than 9 zfpy 1.0.1 aborts) is listed under the
+  volume's ``unreachable`` instead;
+- ``sperr``: SPERR (PyPI ``numcodecs-wasm-sperr``), ``Sperr(mode="bpp", bpp=8 x itemsize / R)``
+  on the float32 field normalised by min/max, the bpp corrected from the measured encoded bytes
+  (the container header) until the ratio is within the tolerance.
+
+TTHRESH is left out: its wasm decoder overflows on volumes of this size. ``--codecs none`` runs
+warpgauss only (a GPU host without the codecs), ``--no-warpgauss`` the reference codecs only.
+
+The ladder mode (no ``--ratios``) matches the codecs to warpgauss budgets instead. For each
+volume (the built-in example fields generated at ``--size``, and the real volumes in
+``../shared/data`` when present) it measures PSNR against compression ratio, plus encode and
 decode seconds, for:
 
 - ``wg-full``: warpgauss, full-precision file (48 N + H bytes), one model per budget of a ladder
@@ -32,11 +57,22 @@ the host with them):
 
     python benchmarks/bench_rd.py --size 128 --budgets 1000,4000,16000 --preset fast \\
         --real nAChR_M2_water.plt,1jzv.ccp4 --out benchmarks/results/rd_cpu_128.json
+
+Fixed ratios, the codecs on the CPU and warpgauss on the GPU (``plot_rd.py`` merges the two):
+
+    python benchmarks/bench_rd.py --no-warpgauss --ratios 10,30,100,300,1000 --fields vortex,interface \\
+        --size 512 --volume-dir /tmp/vol512 --real mean_reg2mean.nii.gz,mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz,inia19-t1-brain.nii.gz \\
+        --max-voxels 100000000 --codecs sz3,zfp,sperr --workers 2 --out benchmarks/results/i18_rd_codecs_cpu.json
+
+    python benchmarks/bench_rd.py --device cuda:0 --codecs none --ratios 10,30,100,300,1000 --fields vortex,interface \\
+        --size 512 --volume-dir /tmp/vol --real mean_reg2mean.nii.gz,mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz,inia19-t1-brain.nii.gz \\
+        --max-voxels 100000000 --out i18_rd_wg_h100.json
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as dt
 import json
 import math
@@ -44,6 +80,7 @@ import os
 import platform
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -52,15 +89,17 @@ import warpgauss
 from warpgauss._warp import device_name, resolve_device, warp
 from warpgauss.allocate import AllocationConfig
 from warpgauss.analysis import seed_limit
+from warpgauss.errors import WarpgaussError
 from warpgauss.model import Model
-from warpgauss.pipeline import EncodeOptions, ReadOptions, encode_field, load_field, resolve_refine
+from warpgauss.pipeline import EncodeOptions, ReadOptions, encode_field, encoding_of, load_field, resolve_refine
 from warpgauss.profiling import StageRecorder
 from warpgauss.synthetic import EXAMPLES, generate
 
 DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data"
 SZ3_BOUNDS = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 1e-4)  # x (max - min)
 ZFP_RATES = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)  # bits per value
-ZFP_MIN_RATE = 0.25  # the lowest fixed rate run (see bench_volume)
+ZFP_MIN_RATE = 0.25  # the lowest fixed rate run: at 9 bits per 4^3 block (0.14) zfp codes only the block exponents,
+# at 0.1875 the maximum error still exceeds the range, and below 9 bits zfpy 1.0.1 aborts (malloc: invalid size)
 ZFP_TOLERANCES = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 1e-4)  # x (max - min)
 
 
@@ -132,6 +171,66 @@ def zfp_run(data: np.ndarray, **mode):
     dec = zfpy.decompress_numpy(comp)
     t2 = time.perf_counter()
     return len(comp), dec.reshape(data.shape), t1 - t0, t2 - t1
+
+
+def _sperr_class():
+    """``numcodecs_wasm_sperr.Sperr``. numcodecs (0.16.6) parses zfpy's version as integers when
+    it is first imported, which fails on zfpy 1.0.1.post0 (and a failed import leaves numcodecs
+    half-initialised): the import runs with zfpy's ".postN" hidden from it."""
+    import importlib.metadata as md
+    import re
+
+    real = md.version
+    md.version = lambda name: re.sub(r"\.post\d+$", "", real(name)) if name == "zfpy" else real(name)
+    try:
+        from numcodecs_wasm_sperr import Sperr
+    finally:
+        md.version = real
+    return Sperr
+
+
+def sperr_run(data: np.ndarray, bpp: float):
+    """SPERR at ``bpp`` bits per value: (encoded bytes, decoded array, encode s, decode s)."""
+    codec = _sperr_class()(mode="bpp", bpp=float(bpp))
+    t0 = time.perf_counter()
+    comp = np.asarray(codec.encode(data))
+    t1 = time.perf_counter()
+    dec = np.asarray(codec.decode(comp))
+    t2 = time.perf_counter()
+    return int(comp.nbytes), dec.reshape(data.shape), t1 - t0, t2 - t1
+
+
+def rate_matched(data, source_bytes, target, tol, rate, run, min_rate=0.0, max_steps=6):
+    """Search a fixed-rate codec's rate (bits per value) until its ratio is within ``tol`` of
+    ``target``, from ``rate`` (the nominal 8 x itemsize / target).
+
+    The bytes are close to proportional to the rate (plus a header, and for ZFP the padding of
+    partial 4^3 blocks, which it codes whole), so each step scales the rate by the wanted over
+    the measured bytes. ZFP's rate is rounded to whole bits per block: the search stops when a
+    rate gives bytes already measured, and keeps the closest. A rate below ``min_rate`` is not run.
+
+    Returns (rate, nbytes, decoded, enc_s, dec_s, runs, reached), or None when even the first
+    rate is below ``min_rate``.
+    """
+    want = source_bytes / target
+    best, measured, runs = None, set(), 0
+    for _ in range(max_steps):
+        if rate < min_rate:
+            break
+        nbytes, dec, te, td = run(data, rate)
+        runs += 1
+        ratio = source_bytes / nbytes
+        if best is None or abs(math.log(ratio / target)) < abs(math.log(best[1] / target)):
+            best = (rate, ratio, nbytes, dec, te, td)
+        dec = None
+        if abs(ratio / target - 1.0) <= tol or nbytes in measured:
+            break
+        measured.add(nbytes)
+        rate = rate * want / nbytes
+    if best is None:
+        return None
+    rate, ratio, nbytes, dec, te, td = best
+    return rate, nbytes, dec, te, td, runs, abs(ratio / target - 1.0) <= tol
 
 
 def sz3_matched(data, source_bytes, target, rng, tol, max_steps=40, seen=(), run=sz3_run):
@@ -214,6 +313,27 @@ def codec_task(task: dict) -> dict:
     elif kind == "zfp-acc":
         cb, d, te, tdec = zfp_run(data, tolerance=task["tol"])
         row = {"codec": "zfp-acc", "param": f"tol={task['tol'] / rng:.3g}R", "tolerance": task["tol"]}
+    elif kind in ("zfp-matched", "sperr"):  # fixed rate, searched to a target ratio
+        normalised = kind == "sperr"
+        if normalised:  # SPERR compresses the field normalised by min/max: scored as such
+            data = np.subtract(data, np.float32(task["vmin"]), dtype=np.float32)
+            data *= np.float32(1.0 / rng)
+            truth.codec_input = None
+        run = sperr_run if normalised else (lambda x, r: zfp_run(x, rate=r))
+        found = rate_matched(data, sb, task["target"], task["tol"], task["rate"], run, min_rate=task.get("min_rate", 0.0))
+        if found is None:
+            raise ValueError(f"{kind}: rate {task['rate']} below the minimum {task.get('min_rate')}")
+        rate, cb, d, te, tdec, steps, ok = found
+        del data
+        row = {
+            "codec": "sperr" if normalised else "zfp-rate-matched",
+            "param": f"{'bpp' if normalised else 'rate'}={rate:.4g}",
+            "rate_bits_per_value": rate,
+            "nominal_rate": task["rate"],
+            "matched_to": {**task["matched_to"], "within_tol": ok, "search_steps": steps},
+        }
+        row.update({"ratio": sb / cb, "bytes": cb, "psnr_db": truth.psnr(d, normalised=normalised), "encode_s": te, "decode_s": tdec})
+        return row
     else:
         raise ValueError(f"unknown codec task {kind!r}")
     row.update({"ratio": sb / cb, "bytes": cb, "psnr_db": truth.psnr(d), "encode_s": te, "decode_s": tdec})
@@ -253,8 +373,52 @@ def generate_examples(names: list[str], size: int, volume_dir: Path, workers: in
         return dict(pool.map(_generate_one, jobs))
 
 
+@dataclass
+class _ReadVolume(ReadOptions):
+    """ReadOptions that give a volume already read (at stride 1) instead of reading its file:
+    ``load_field(path, _ReadVolume(stride=s, volume=vol))`` is ``load_field(path, ReadOptions(stride=s))``
+    without the second read, and without the file's reader (a host with no pyvista, no NIfTI)."""
+
+    volume: object = None
+
+    def read(self, path):
+        vol, s = self.volume, self.stride
+        if s == 1:
+            return vol
+        spacing = tuple(float(v) * s if np.isfinite(v) else float(s) for v in vol.spacing)  # as io._finish
+        return dataclasses.replace(vol, data=vol.data[::s, ::s, ::s], spacing=spacing)
+
+
+def real_cache_path(volume_dir: Path, fname: str) -> Path:
+    return Path(volume_dir) / f"{fname}.npz"
+
+
+def save_real(path: Path, vol) -> None:
+    """A real volume as read here (values in the source dtype, spacing, origin, name, dtype, fill
+    value), for a host that cannot read its file format (no pyvista for NIfTI)."""
+    meta = {k: getattr(vol, k) for k in ("spacing", "origin", "name", "source_dtype", "path", "fill_value")}
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, data=vol.data, meta=np.array(json.dumps(meta, default=float)))
+    os.replace(tmp, path)
+
+
+def load_real(path: Path):
+    from warpgauss.io import Volume
+
+    with np.load(path) as z:
+        meta = json.loads(str(z["meta"]))
+        data = z["data"]
+    meta["spacing"], meta["origin"] = tuple(meta["spacing"]), tuple(meta["origin"])
+    return Volume(data=data, **meta)
+
+
 def volumes(args):
-    """(label, load_field source kwargs, raw array in source units, its .npy path or None) per volume."""
+    """(label, load_field source kwargs, raw array in source units, its .npy path or None) per volume.
+
+    With ``--volume-dir`` a real volume is read from ``<dir>/<file name>.npz`` when that exists,
+    else from ``--data-dir`` and then written there (so that a host that cannot read the format
+    gets the same values, spacing and name: the same header, the same byte budget).
+    """
     from warpgauss.io import read_volume
 
     for name in [x for x in args.fields.split(",") if x]:
@@ -265,23 +429,38 @@ def volumes(args):
             raw, path = generate(name, args.size, seed=0), None
         yield f"{name} {args.size}^3", {"source": np.asarray(raw)}, raw, path
     real = args.real
-    if real in ("", "none") or not DATA_DIR.is_dir():
+    data_dir = Path(getattr(args, "data_dir", None) or DATA_DIR)
+    if real in ("", "none"):
         return
-    names = sorted(p.name for p in DATA_DIR.iterdir() if p.name != "README.md") if real == "all" else real.split(",")
+    if real == "all":
+        if not data_dir.is_dir():
+            print(f"no {data_dir}: no real volumes", flush=True)
+            return
+        names = sorted(p.name for p in data_dir.iterdir() if p.name != "README.md")
+    else:
+        names = real.split(",")
     for fname in names:
-        path = DATA_DIR / fname
-        if not path.is_file():
-            print(f"skip {fname}: not in {DATA_DIR}", flush=True)
+        path = data_dir / fname
+        cache = real_cache_path(args.volume_dir, fname) if args.volume_dir else None
+        if cache is not None and cache.is_file():
+            vol = load_real(cache)
+            print(f"{fname}: read from {cache}", flush=True)
+        elif path.is_file():
+            vol = read_volume(path)
+            if cache is not None:
+                Path(args.volume_dir).mkdir(parents=True, exist_ok=True)
+                save_real(cache, vol)
+        else:
+            print(f"skip {fname}: not in {data_dir}" + (f" nor {cache}" if cache else ""), flush=True)
             continue
         stride = 1
-        vol = read_volume(path)
         while np.prod(vol.data.shape) / stride**3 > args.max_voxels:
             stride += 1
         raw = vol.data[::stride, ::stride, ::stride]
         shape = "x".join(str(s) for s in raw.shape[::-1])
         yield f"{fname} {shape}" + (f" (stride {stride})" if stride > 1 else ""), {
             "source": str(path),
-            "read": ReadOptions(stride=stride),
+            "read": _ReadVolume(stride=stride, volume=vol),
         }, raw, None
 
 
@@ -307,8 +486,11 @@ def _available(module: str) -> str | None:
     try:
         from importlib.metadata import version
 
-        __import__(module)
-        return version({"pysz": "pysz", "zfpy": "zfpy"}[module])
+        if module == "numcodecs_wasm_sperr":
+            _sperr_class()
+        else:
+            __import__(module)
+        return version({"pysz": "pysz", "zfpy": "zfpy", "numcodecs_wasm_sperr": "numcodecs-wasm-sperr"}[module])
     except Exception:  # noqa: BLE001 - not installed (or broken): the codec is skipped
         return None
 
@@ -405,6 +587,95 @@ def bench_warpgauss(label, src, raw, args, dev, add) -> tuple[dict, Truth, list[
     return meta, truth, ratios
 
 
+def _volume_meta(f, info, load_s: float) -> dict:
+    return {
+        "shape_xyz": list(f.shape_xyz),
+        "source_dtype": f.source_dtype,
+        "source_bytes": f.source_bytes,
+        "stride": info["stride"],
+        "value_range": [f.vmin, f.vmax],
+        "masked_voxels": info["masked_voxels"],
+        "n_max": seed_limit(f.eligible, f.occupied),
+        "load_seconds": load_s,
+    }
+
+
+def volume_meta(src) -> tuple[dict, np.ndarray | None]:
+    """The volume entry's fields and the valid-voxel mask (None: all valid), warpgauss not run."""
+    t0 = time.perf_counter()
+    f, info = load_field(src["source"], src.get("read"))
+    return _volume_meta(f, info, time.perf_counter() - t0), f.mask
+
+
+def bench_warpgauss_ratios(label, src, raw, args, dev, add, ratios=None) -> tuple[dict, Truth]:
+    """warpgauss rows for one volume at the fixed ratios ``args.ratios``, one full encode each.
+
+    The options are those of ``warpgauss encode VOLUME --ratio R`` (coded format, default
+    refinement, sampled EV, self-test once per process and device: the warm-up's); only the
+    loaded field is shared between the encodes (stage P is not timed). Each model is saved to a
+    temporary ``.wgs``: its size gives the ratio, and its reload's full-grid decode the PSNR.
+    """
+    t0 = time.perf_counter()
+    f, info = load_field(src["source"], src.get("read"))
+    meta = _volume_meta(f, info, time.perf_counter() - t0)
+    truth = Truth(raw, f.vmin, f.vmax, f.mask)
+    truth.codec_input = None  # only the reference codecs compress it
+    sb = f.source_bytes
+    refine = resolve_refine(None, args.preset, args.iterations, None)
+    meta["warpgauss_ratios"] = list(args.ratios)
+    for r in args.ratios if ratios is None else ratios:
+        opts = EncodeOptions(ratio=r, seed=0, allocation=AllocationConfig(), refine=refine, self_test=True, format=args.format)
+        timer = StageRecorder()
+        t0 = time.perf_counter()
+        try:
+            model = encode_field(f, opts, device=dev, timer=timer, input_info=info, evaluate=not args.no_evaluate)
+        except WarpgaussError as e:  # e.g. no room for a Gaussian at this ratio
+            print(f"{label}: ratio {r:g}: {e}", flush=True)
+            meta.setdefault("unreachable", []).append({"codec": "wg", "target_ratio": r, "error": str(e)})
+            continue
+        enc_s = time.perf_counter() - t0
+        rep = model.report
+        with tempfile.TemporaryDirectory() as td:
+            p = Path(td) / "m.wgs"
+            t0 = time.perf_counter()
+            model.save(p, encoding=encoding_of(opts))
+            save_s = time.perf_counter() - t0
+            nbytes = p.stat().st_size
+            del model
+            t0 = time.perf_counter()
+            loaded = Model.load(p)
+            dec = loaded.decode(device=dev, normalised=True)
+            dec_s = time.perf_counter() - t0
+        ref = rep["refinement"]
+        stages = {s.name: s.seconds for s in timer.stages}
+        add(
+            {
+                "codec": "wg",
+                "param": f"N={loaded.n}",
+                "target_ratio": r,
+                "ratio": sb / nbytes,
+                "bytes": nbytes,
+                "psnr_db": truth.psnr(dec, normalised=True),
+                "encode_s": enc_s + save_s,
+                "decode_s": dec_s,
+                "n": loaded.n,
+                "format": rep["budget"]["format"],
+                "save_s": save_s,
+                "self_test_s": 0.0 if (ref.get("self_test") or {}).get("reused", True) else ref["self_test"].get("seconds", 0.0),
+                "stages": stages,
+                "iterations": ref.get("iterations_done", 0),
+                "samples": ref.get("samples"),
+                "refinement_s": ref.get("seconds"),
+                "refinement_stop": ref.get("stop"),
+                "report_psnr_db": rep.get("psnr_db"),  # EV: 500,000 sampled voxels (what the CLI prints)
+                "budget": rep["budget"],
+                "skipped": rep.get("skipped"),
+            }
+        )
+        del dec, loaded
+    return meta, truth
+
+
 def codec_plan(args, meta: dict, ratios, files: dict) -> tuple[list[dict], list[dict]]:
     """The reference-codec runs for one volume: (independent runs, SZ3 runs matched to warpgauss).
 
@@ -429,8 +700,8 @@ def codec_plan(args, meta: dict, ratios, files: dict) -> tuple[list[dict], list[
         for n, full, compact in ratios:
             for fmt, target in (("full", full), ("compact", compact)):
                 rate = 8.0 * sb / (n_voxels * target)
-                if rate < ZFP_MIN_RATE:  # zfpy 1.0.1 corrupts the heap (malloc abort) at 0.107 bits/value
-                    print(f"zfp rate {rate:.3g} < {ZFP_MIN_RATE} bits/value (N={n}, {fmt}): not run", flush=True)
+                if rate < args.zfp_min_rate:  # zfpy 1.0.1 corrupts the heap (malloc abort) at 0.107 bits/value
+                    print(f"zfp rate {rate:.3g} < {args.zfp_min_rate} bits/value (N={n}, {fmt}): not run", flush=True)
                     continue
                 first.append({**base, "kind": "zfp-rate", "rate": rate, "matched_to": {"n": n, "format": fmt, "ratio": target}})
         first += [{**base, "kind": "zfp-rate", "rate": r} for r in args.zfp_rates]
@@ -438,10 +709,42 @@ def codec_plan(args, meta: dict, ratios, files: dict) -> tuple[list[dict], list[
     return first, matched
 
 
+def ratio_plan(args, meta: dict, files: dict) -> tuple[list[dict], list[dict], list[dict]]:
+    """The reference-codec runs for one volume at the fixed ratios ``args.ratios``:
+    (independent runs, SZ3 runs searched to each ratio, the ratios a codec cannot reach).
+
+    The SZ3 curve (``--sz3-bounds``) runs first: its (bound, ratio) pairs bracket the searches.
+    """
+    sb, (vmin, vmax) = meta["source_bytes"], meta["value_range"]
+    rng = vmax - vmin
+    n_voxels = int(np.prod(meta["shape_xyz"]))
+    base = {"source_bytes": sb, "vmin": vmin, "vmax": vmax, "tol": args.match_tol, **files}
+    first, matched, unreachable = [], [], []
+    if "sz3" in args.codecs:
+        first += [{**base, "kind": "sz3", "eb": rel * rng} for rel in args.sz3_bounds]
+        matched += [{**base, "kind": "sz3-matched", "target": r, "matched_to": {"target_ratio": r}} for r in args.ratios]
+    for codec, kind, min_rate in (("zfp", "zfp-matched", args.zfp_min_rate), ("sperr", "sperr", 0.0)):
+        if codec not in args.codecs:
+            continue
+        for r in args.ratios:
+            rate = 8.0 * sb / (n_voxels * r)  # bits per value: 8 x source itemsize / R
+            if rate < min_rate:
+                name = "zfp-rate-matched"
+                unreachable.append({"codec": name, "target_ratio": r, "rate_needed": rate, "min_rate": min_rate,
+                                    "max_ratio": 8.0 * sb / (n_voxels * min_rate)})
+                print(f"{name}: ratio {r:g} needs {rate:.3g} bits/value < {min_rate} (--zfp-min-rate): not run", flush=True)
+                continue
+            first.append({**base, "kind": kind, "target": r, "rate": rate, "min_rate": min_rate, "matched_to": {"target_ratio": r}})
+    return first, matched, unreachable
+
+
 def task_key(x: dict) -> tuple:
     """What a codec run is, the same for a planned task and the row it produced (``--resume``)."""
-    kind = x.get("kind") or {"zfp-rate-matched": "zfp-rate"}.get(x["codec"], x["codec"])
     m = x.get("matched_to")
+    fixed = bool(m) and "target_ratio" in m  # a --ratios run: the target says what it is
+    kind = x.get("kind") or {"zfp-rate-matched": "zfp-matched" if fixed else "zfp-rate"}.get(x["codec"], x["codec"])
+    if fixed:
+        return (kind, ("ratio", float(m["target_ratio"])))
     match = (int(m["n"]), m["format"]) if m else None
     if kind == "sz3-matched":
         return (kind, match)
@@ -496,24 +799,51 @@ def _floats(text: str) -> tuple[float, ...]:
     return tuple(float(x) for x in text.split(",") if x)
 
 
+CODEC_MODULES = {"sz3": "pysz", "zfp": "zfpy", "sperr": "numcodecs_wasm_sperr"}
+
+
+def _missing_wg(entry: dict | None, args) -> list[float] | None:
+    """The ratios of ``args.ratios`` a previous run's volume entry has no warpgauss row for
+    (nor found unreachable), or None when there is no usable entry. Its rows are kept."""
+    if not entry or "source_bytes" not in entry:
+        return None
+    if args.no_warpgauss:
+        return []
+    have = {float(r["target_ratio"]) for r in entry.get("rows", ()) if r["codec"] == "wg"}
+    have |= {float(u["target_ratio"]) for u in entry.get("unreachable", ()) if u["codec"] == "wg"}
+    return [r for r in args.ratios if float(r) not in have]
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--fields", default=",".join(EXAMPLES), help="example fields (comma list; '' for none)")
     ap.add_argument("--size", type=int, default=256, help="example field size (cube edge)")
-    ap.add_argument("--real", default="all", help="files in ../shared/data: 'all', a comma list, or 'none'")
+    ap.add_argument("--real", default="all", help="files in --data-dir: 'all', a comma list, or 'none'")
+    ap.add_argument("--data-dir", type=Path, default=DATA_DIR, help="where the real volumes are (default: ../shared/data)")
     ap.add_argument("--max-voxels", type=int, default=256**3, help="stride real volumes down to at most this many voxels")
+    ap.add_argument("--ratios", type=_floats, default=(),
+                    help="fixed-ratio mode: every codec at these compression ratios (e.g. 10,30,100,300,1000); "
+                         "warpgauss with its defaults (coded format), instead of the budget ladder")
+    ap.add_argument("--no-warpgauss", action="store_true", help="run the reference codecs only (with --ratios)")
+    ap.add_argument("--format", default=None, help="--ratios: warpgauss file format (default: the library's, coded)")
+    ap.add_argument("--no-evaluate", action="store_true",
+                    help="--ratios: skip warpgauss's stage EV (the CLI runs it; it can keep the analytic model over a worse refined one)")
     ap.add_argument("--budgets", default="2000,8000,32000,128000", help="warpgauss ladder (capped at each volume's N_max)")
     ap.add_argument("--min-ratio", type=float, default=2.0, help="drop budgets whose full-precision ratio is below this")
-    ap.add_argument("--preset", default="fast", help="warpgauss refinement preset (fast: 300 x 3,072)")
+    ap.add_argument("--preset", default=None,
+                    help="warpgauss refinement preset (ladder default: fast, 300 x 3,072; --ratios default: none, the library's defaults)")
     ap.add_argument("--iterations", type=int, default=None, help="override the preset's iterations (0: analytic)")
-    ap.add_argument("--codecs", default="sz3,zfp", help="reference codecs to run (those not installed are skipped)")
-    ap.add_argument("--match-tol", type=float, default=0.02, help="relative ratio tolerance of the SZ3 search")
+    ap.add_argument("--codecs", default=None,
+                    help="reference codecs to run: sz3, zfp, sperr ('none' or '' for none; default sz3,zfp, with --ratios "
+                         "sz3,zfp,sperr; those not installed are skipped)")
+    ap.add_argument("--match-tol", type=float, default=0.02, help="relative ratio tolerance of the SZ3 (and fixed-rate) searches")
     ap.add_argument("--match-compact", action="store_true", help="also match SZ3 to the compact ratios")
     ap.add_argument("--sz3-bounds", type=_floats, default=SZ3_BOUNDS, help="SZ3 curve: error bounds x (max - min)")
     ap.add_argument("--zfp-rates", type=_floats, default=ZFP_RATES, help="ZFP fixed-rate curve: bits per value")
     ap.add_argument("--zfp-tols", type=_floats, default=ZFP_TOLERANCES, help="ZFP fixed-accuracy curve: tolerances x (max - min)")
+    ap.add_argument("--zfp-min-rate", type=float, default=ZFP_MIN_RATE, help="lowest ZFP fixed rate run (bits per value)")
     ap.add_argument("--workers", type=int, default=0,
-                    help="processes for the SZ3/ZFP runs (0: in this process) and for --volume-dir generation; "
+                    help="processes for the codec runs (0: in this process) and for --volume-dir generation; "
                          "the codec runs start after every warpgauss row, so they never share the machine with one")
     ap.add_argument("--volume-dir", type=Path, default=None,
                     help="read the example fields from <dir>/<name>_<size>.npy, generating the missing ones first")
@@ -523,6 +853,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="benchmarks/results/rd_cpu.json")
     args = ap.parse_args(argv)
+    fixed = bool(args.ratios)
+    if args.no_warpgauss and not fixed:
+        ap.error("--no-warpgauss needs --ratios")
+    if not fixed and args.preset is None:
+        args.preset = "fast"
     args.budgets = [int(b) for b in args.budgets.split(",") if b]
     fields = [x for x in args.fields.split(",") if x]
     gen_s = {}
@@ -533,21 +868,59 @@ def main(argv=None) -> dict:
               f"({', '.join(f'{k} {v:.1f} s' for k, v in gen_s.items())})", flush=True)
         if args.generate_only:
             return {"generated": gen_s}
-    versions = {"pysz": _available("pysz"), "zfpy": _available("zfpy")}
-    wanted = [c for c in args.codecs.split(",") if c]
-    args.codecs = [c for c in wanted if versions[{"sz3": "pysz", "zfp": "zfpy"}[c]]]
-    for c in set(wanted) - set(args.codecs):
+    if args.codecs is None:
+        args.codecs = "sz3,zfp,sperr" if fixed else "sz3,zfp"
+    wanted = [c for c in args.codecs.split(",") if c and c != "none"]
+    unknown = [c for c in wanted if c not in CODEC_MODULES]
+    if unknown or ("sperr" in wanted and not fixed):
+        ap.error(f"--codecs: {', '.join(unknown) or 'sperr'} not known{'' if unknown else ' without --ratios'}")
+    versions = {m: _available(m) for m in ("pysz", "zfpy", "numcodecs_wasm_sperr")}
+    args.codecs = [c for c in wanted if versions[CODEC_MODULES[c]]]
+    for c in [c for c in wanted if c not in args.codecs]:
         print(f"{c}: not installed (pip install -e '.[bench]'): skipped", flush=True)
 
     wp = warp()
     dev = resolve_device(args.device)
-    t0 = time.perf_counter()
-    warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64)  # compile kernels
-    warm = time.perf_counter() - t0
+    warm = None
+    if not args.no_warpgauss:
+        t0 = time.perf_counter()
+        warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64)  # compile kernels
+        warm = time.perf_counter() - t0
     refine = resolve_refine(None, args.preset, args.iterations, None)
     out = Path(args.out)
+    settings = {
+        "match_tol": args.match_tol,
+        "codec_workers": args.workers,
+        "codec_timing": "single-threaded codec calls" + (
+            f", {args.workers} at a time in separate processes (after all warpgauss rows)" if args.workers > 0 else ""),
+        "psnr": "10 log10(1/MSE), full grid, normalised by the volume's finite min/max, masked voxels excluded; same function for every codec",
+        "ratio": "source bytes (voxels x source dtype size) / compressed bytes; SZ3 and ZFP compress float32 in source units, "
+                 "SPERR the float32 field normalised by min/max",
+    }
+    if fixed:
+        settings.update({
+            "mode": "fixed ratios",
+            "ratios": list(args.ratios),
+            "warpgauss": None if args.no_warpgauss else {
+                "options": "warpgauss encode VOLUME --ratio R" + (f" --preset {args.preset}" if args.preset else "")
+                           + (f" --iterations {args.iterations}" if args.iterations is not None else "")
+                           + (f" --format {args.format}" if args.format else ""),
+                "format": encoding_of(EncodeOptions(format=args.format)),
+                "preset": args.preset,
+                "evaluate": not args.no_evaluate,
+                "encode_s": "encode call (S1a to EV, reading excluded) + save of the .wgs",
+                "decode_s": "Model.load + full-grid decode",
+            },
+            "iterations": refine.iterations,
+            "samples": refine.samples,
+            "zfp_min_rate": args.zfp_min_rate,
+        })
+    else:
+        settings.update({"preset": args.preset, "iterations": refine.iterations, "samples": refine.samples,
+                         "budgets": args.budgets, "min_ratio": args.min_ratio})
     result = {
-        "benchmark": "rate-distortion: warpgauss (full precision, compact) vs SZ3 (abs error bound) vs ZFP (fixed rate, fixed accuracy)",
+        "benchmark": "rate-distortion at fixed ratios: warpgauss (defaults, coded) vs SZ3, ZFP (fixed rate) and SPERR (bpp)" if fixed
+        else "rate-distortion: warpgauss (full precision, compact) vs SZ3 (abs error bound) vs ZFP (fixed rate, fixed accuracy)",
         "command": "python benchmarks/bench_rd.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
         "device": dev,
         "device_name": device_name(dev),
@@ -555,24 +928,14 @@ def main(argv=None) -> dict:
         "host": platform.node(),
         "warp_version": wp.config.version,
         "warpgauss_version": warpgauss.__version__,
-        "codec_versions": versions,
+        "codec_versions": {"pysz": versions["pysz"], "zfpy": versions["zfpy"], "numcodecs-wasm-sperr": versions["numcodecs_wasm_sperr"]},
+        "codecs": args.codecs,
+        "warpgauss_run": not args.no_warpgauss,
         "numpy_version": np.__version__,
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "warmup_seconds": warm,
         "generation_seconds": gen_s,
-        "settings": {
-            "preset": args.preset,
-            "iterations": refine.iterations,
-            "samples": refine.samples,
-            "budgets": args.budgets,
-            "min_ratio": args.min_ratio,
-            "match_tol": args.match_tol,
-            "codec_workers": args.workers,
-            "codec_timing": "single-threaded SZ3/ZFP calls" + (
-                f", {args.workers} at a time in separate processes (after all warpgauss rows)" if args.workers > 0 else ""),
-            "psnr": "10 log10(1/MSE), full grid, normalised by the volume's finite min/max, masked voxels excluded; same function for every codec",
-            "ratio": "source bytes (voxels x source dtype size) / compressed bytes; SZ3 and ZFP compress float32",
-        },
+        "settings": settings,
         "volumes": {},
         "complete": False,
     }
@@ -593,12 +956,32 @@ def main(argv=None) -> dict:
     plans, seen = [], {}
     with tempfile.TemporaryDirectory(prefix="bench_rd_") as work:
         for k, (label, src, raw, path) in enumerate(volumes(args)):
-            ratios = _reused_ratios(prev.get(label, {}))
-            if ratios is not None:  # its warpgauss rows are measured: keep them (and its codec rows)
+            ratios = None if fixed else _reused_ratios(prev.get(label, {}))
+            missing = _missing_wg(prev.get(label), args) if fixed else None
+            if missing:  # some warpgauss ratios measured: keep those rows (and the codec rows), run the rest
+                print(f"{label}: rows reused from {args.resume}; warpgauss at {', '.join(f'{r:g}' for r in missing)}", flush=True)
+                result["volumes"][label] = json.loads(json.dumps(prev[label]))
+                meta, truth = bench_warpgauss_ratios(label, src, raw, args, dev, lambda row, lb=label: add(lb, row), missing)
+                valid = truth.valid
+                del truth
+                result["volumes"][label].update({**meta, "unreachable": prev[label].get("unreachable", []) + meta.get("unreachable", [])})
+                meta = {k_: v for k_, v in result["volumes"][label].items() if k_ != "rows"}
+            elif missing is not None or ratios is not None:
+                # its warpgauss rows are measured: keep them (and its codec rows)
                 result["volumes"][label] = json.loads(json.dumps(prev[label]))
                 meta = {k_: v for k_, v in prev[label].items() if k_ != "rows"}
                 valid = load_field(src["source"], src.get("read"))[0].mask if meta.get("masked_voxels") else None
-                print(f"{label}: warpgauss rows reused from {args.resume}", flush=True)
+                print(f"{label}: rows reused from {args.resume}", flush=True)
+            elif fixed and args.no_warpgauss:
+                result["volumes"][label] = {"rows": []}
+                meta, valid = volume_meta(src)
+                result["volumes"][label].update(meta)
+            elif fixed:
+                result["volumes"][label] = {"rows": []}
+                meta, truth = bench_warpgauss_ratios(label, src, raw, args, dev, lambda row, lb=label: add(lb, row))
+                result["volumes"][label].update(meta)
+                valid = truth.valid
+                del truth
             else:
                 result["volumes"][label] = {"rows": []}
                 meta, truth, ratios = bench_warpgauss(label, src, raw, args, dev, lambda row, lb=label: add(lb, row))
@@ -607,6 +990,7 @@ def main(argv=None) -> dict:
                 del truth
             _write(result, out)
             if not args.codecs:
+                del raw
                 continue
             files = {"raw": str(path) if path is not None else None, "valid": None}
             if path is None:  # the workers map the volume from a file
@@ -617,7 +1001,12 @@ def main(argv=None) -> dict:
                 np.save(files["valid"], valid)
             rows = result["volumes"][label]["rows"]
             done = {task_key(r) for r in rows if not r["codec"].startswith("wg")}
-            first, matched = codec_plan(args, meta, ratios, files)
+            if fixed:
+                first, matched, unreachable = ratio_plan(args, meta, files)
+                entry = result["volumes"][label]
+                entry["unreachable"] = [u for u in entry.get("unreachable", []) if u["codec"] == "wg"] + unreachable
+            else:
+                first, matched = codec_plan(args, meta, ratios, files)
             plans.append((label, [t for t in first if task_key(t) not in done], [t for t in matched if task_key(t) not in done]))
             seen[label] = [(r["abs_error_bound"], r["ratio"]) for r in rows if r["codec"] == "sz3"]
             del raw
@@ -626,7 +1015,9 @@ def main(argv=None) -> dict:
         result["codec_wall_seconds"] = time.perf_counter() - t0
     result["complete"] = True
     _write(result, out)
-    print(f"\n{result['device_name']}, Warp {result['warp_version']}, pysz {versions['pysz']}, zfpy {versions['zfpy']} -> {out}")
+    v = result["codec_versions"]
+    print(f"\n{result['device_name']}, Warp {result['warp_version']}, pysz {v['pysz']}, zfpy {v['zfpy']}, "
+          f"numcodecs-wasm-sperr {v['numcodecs-wasm-sperr']} -> {out}")
     return result
 
 

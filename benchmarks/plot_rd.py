@@ -4,6 +4,14 @@ Also prints (or writes with ``--table``) a Markdown table per volume: each warpg
 SZ3 and ZFP at the matched ratio, and encode / decode seconds.
 
     python benchmarks/plot_rd.py benchmarks/results/rd_cpu_128.json -o benchmarks/results/rd_cpu_128.png
+
+Fixed-ratio runs (``bench_rd.py --ratios``) are merged by volume label, so the reference codecs
+measured on one machine and warpgauss on another make one figure: series wg, sz3-matched,
+zfp-rate-matched and sperr, and per volume a table with a row per target ratio (PSNR of each
+codec, warpgauss minus SZ3 and minus SPERR, achieved ratios, encode / decode seconds):
+
+    python benchmarks/plot_rd.py benchmarks/results/i18_rd_codecs_cpu.json i18_rd_wg_h100.json \\
+        -o benchmarks/results/i18_rd.png --table benchmarks/results/i18_rd.md
 """
 
 from __future__ import annotations
@@ -100,6 +108,168 @@ def table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+# ---------------------------------------------------------------------------- fixed ratios
+
+FIXED_SERIES = (  # codec, label, style
+    ("wg", "warpgauss (defaults, coded)", dict(color="C0", marker="o", ls="-")),
+    ("sz3-matched", "SZ3 (abs bound searched to the CR)", dict(color="C3", marker="^", ls="-")),
+    ("zfp-rate-matched", "ZFP fixed rate", dict(color="C2", marker="v", ls="-")),
+    ("sperr", "SPERR (bpp)", dict(color="C4", marker="s", ls="-")),
+)
+FIXED_NAMES = {"wg": "wg", "sz3-matched": "SZ3", "zfp-rate-matched": "ZFP", "sperr": "SPERR"}
+
+
+def _is_fixed(res: dict) -> bool:
+    return res.get("settings", {}).get("mode") == "fixed ratios"
+
+
+def _target(row: dict) -> float | None:
+    if "target_ratio" in row:
+        return float(row["target_ratio"])
+    m = row.get("matched_to") or {}
+    return float(m["target_ratio"]) if "target_ratio" in m else None
+
+
+def _machine(res: dict) -> str:
+    return f"{res['device_name']} ({res.get('cpu_count')} cores)"
+
+
+def merge_fixed(results: list[dict], names: list[str] | None = None) -> dict:
+    """Fixed-ratio runs merged by volume label: label -> {"meta", "rows": {codec: {target: row}},
+    "unreachable": [...], "sources": {codec: machine}}.
+
+    A codec measured by two runs keeps the later run's rows. Volumes whose source bytes differ
+    between runs are refused: the labels would name different data.
+    """
+    merged: dict = {}
+    names = names or [f"run {i}" for i in range(len(results))]
+    for res, name in zip(results, names):
+        for label, entry in res["volumes"].items():
+            m = merged.setdefault(label, {"meta": {k: v for k, v in entry.items() if k not in ("rows", "unreachable")},
+                                          "rows": {}, "unreachable": [], "sources": {}})
+            if m["meta"].get("source_bytes") != entry.get("source_bytes") or m["meta"].get("shape_xyz") != entry.get("shape_xyz"):
+                raise ValueError(f"{label}: {name} has other source bytes or shape than an earlier run")
+            for row in entry["rows"]:
+                t = _target(row)
+                if row["codec"] in FIXED_NAMES and t is not None:
+                    m["rows"].setdefault(row["codec"], {})[t] = row
+                    m["sources"][row["codec"]] = _machine(res)
+            m["unreachable"] += entry.get("unreachable", [])
+    return merged
+
+
+def _where_fixed(sources: dict) -> str:
+    """'wg on A; SZ3, ZFP, SPERR on B': the machine of each codec's rows."""
+    by: dict = {}
+    for codec, _, _ in FIXED_SERIES:
+        if codec in sources:
+            by.setdefault(sources[codec], []).append(FIXED_NAMES[codec])
+    return "; ".join(f"{', '.join(names)} on {machine}" for machine, names in by.items())
+
+
+def plot_fixed(merged: dict, results: list[dict], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    vols = [(label, m) for label, m in merged.items() if m["rows"]]
+    cols = min(3, len(vols))
+    nrows = math.ceil(len(vols) / cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.8 * nrows), squeeze=False)
+    for ax, (label, m) in zip(axes.ravel(), vols):
+        for codec, name, style in FIXED_SERIES:
+            pts = sorted((r["ratio"], r["psnr_db"]) for r in m["rows"].get(codec, {}).values())
+            if pts:
+                ax.plot(*zip(*pts), label=name, lw=1.2, **style)
+        ax.set_xscale("log")
+        ax.set_title(label, fontsize=9)
+        ax.set_xlabel("compression ratio (source bytes / compressed bytes)", fontsize=7)
+        ax.set_ylabel("PSNR (dB), full grid", fontsize=8)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[len(vols):]:
+        ax.axis("off")
+    handles = {}
+    for ax in axes.ravel()[: len(vols)]:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(lab, h)
+    names = [name for _, name, _ in FIXED_SERIES if name in handles]  # the series' order, whichever panel has each
+    fig.legend([handles[n] for n in names], names, loc="lower center", ncol=4, fontsize=8, frameon=False)
+    where = [_where_fixed(m["sources"]) for m in merged.values()]
+    where = sorted(set(where), key=where.index)
+    wg = next((r for r in results if r.get("warpgauss_run")), None)
+    v = next((r["codec_versions"] for r in results if r.get("codecs")), {})
+    parts = ["; ".join(where)]
+    if wg is not None:
+        rows = [r for m in merged.values() for r in m["rows"].get("wg", {}).values()]
+        its = sorted({r.get("iterations") for r in rows if r.get("iterations") is not None})
+        sam = sorted({r.get("samples") for r in rows if r.get("samples") is not None})
+        span = f"{'/'.join(f'{i:,}' for i in its)} iterations x {'-'.join(f'{x:,}' for x in (sam[:1] + sam[-1:] if len(sam) > 1 else sam))} samples"
+        parts.append(f"warpgauss {wg['warpgauss_version']} defaults ({span}, per row in the JSON), Warp {wg['warp_version']}")
+    if v:
+        parts.append(f"pysz {v.get('pysz')}, zfpy {v.get('zfpy')}, numcodecs-wasm-sperr {v.get('numcodecs-wasm-sperr')}")
+    fig.suptitle("Rate-distortion at fixed ratios: " + "\n".join(parts), fontsize=8)
+    height = 3.8 * nrows  # inches: the title takes its lines, the legend about half an inch
+    fig.tight_layout(rect=(0, 0.5 / height, 1, 1 - (0.17 * len(parts) + 0.1) / height))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    print(f"-> {out}")
+
+
+def table_fixed(merged: dict) -> str:
+    """Markdown, one table per volume: a row per target ratio, the PSNR of each codec, warpgauss
+    minus SZ3 and minus SPERR, the ratios achieved, encode / decode seconds of each.
+
+    ``n/r``: the codec cannot reach that ratio (ZFP below its minimum rate, warpgauss with no room
+    for a Gaussian); ``-``: not measured; ``*``: the ratio achieved is outside the search tolerance.
+    """
+    codecs = [c for c, _, _ in FIXED_SERIES]
+    out = []
+    for label, m in merged.items():
+        meta = m["meta"]
+        unreach = {(u["codec"], float(u["target_ratio"])) for u in m["unreachable"]}
+        targets = sorted({t for rows in m["rows"].values() for t in rows} | {t for _, t in unreach})
+        src = _where_fixed(m["sources"])
+        out += [
+            f"### {label}",
+            "",
+            f"{meta.get('source_dtype')}, {meta.get('source_bytes', 0):,} source bytes; {src}",
+            "",
+            "| CR | " + " | ".join(f"{FIXED_NAMES[c]} dB" for c in codecs) + " | wg - SZ3 dB | wg - SPERR dB | achieved CR "
+            + ", ".join(FIXED_NAMES[c] for c in codecs) + " | " + " | ".join(f"{FIXED_NAMES[c]} enc / dec s" for c in codecs) + " |",
+            "|" + "---|" * (1 + 2 * len(codecs) + 3),
+        ]
+        for t in targets:
+            rows = {c: m["rows"].get(c, {}).get(t) for c in codecs}
+
+            def cell(c, fmt, mark=True):
+                r = rows[c]
+                if r is None:
+                    return "n/r" if (c, t) in unreach else "-"
+                star = "" if not mark or (r.get("matched_to") or {}).get("within_tol", True) else "*"
+                return fmt(r) + star
+
+            def diff(a, b):
+                ra, rb = rows[a], rows[b]
+                return "-" if ra is None or rb is None else f"{ra['psnr_db'] - rb['psnr_db']:+.2f}"
+
+            out.append(
+                f"| {t:g} | "
+                + " | ".join(cell(c, lambda r: f"{r['psnr_db']:.2f}") for c in codecs)
+                + f" | {diff('wg', 'sz3-matched')} | {diff('wg', 'sperr')} | "
+                + ", ".join(cell(c, lambda r: f"{r['ratio']:.1f}") for c in codecs)
+                + " | "
+                + " | ".join(cell(c, lambda r: f"{r['encode_s']:.3g} / {r['decode_s']:.3g}", False) for c in codecs)
+                + " |"
+            )
+        out.append("")
+    out.append("n/r: ratio not reachable by the codec; -: not measured; *: achieved ratio outside the search tolerance. "
+               "PSNR: full grid, normalised by the volume's min/max. Encode / decode: one single-threaded call "
+               "(SZ3: the call at the bound found); warpgauss: encode + save / load + full-grid decode.")
+    return "\n".join(out)
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("json", nargs="+", help="bench_rd.py outputs")
@@ -107,6 +277,17 @@ def main(argv=None) -> None:
     ap.add_argument("--table", default=None, help="also write the Markdown table here")
     args = ap.parse_args(argv)
     results = [json.loads(Path(p).read_text()) for p in args.json]
+    fixed = [_is_fixed(r) for r in results]
+    if any(fixed):
+        if not all(fixed):
+            ap.error("give fixed-ratio runs (bench_rd.py --ratios) or ladder runs, not both")
+        merged = merge_fixed(results, args.json)
+        plot_fixed(merged, results, Path(args.out))
+        t = table_fixed(merged)
+        print(t)
+        if args.table:
+            Path(args.table).write_text(t + "\n")
+        return
     plot(results, Path(args.out))
     t = table(results)
     print(t)

@@ -28,7 +28,7 @@ def encode(
         typer.Option("--format", help="File format: coded (default: quantised + Zstandard, about 7.5-8.2 B/Gaussian, --ratio/--bytes budgets never exceeded, 99-100 % used), full (float32, 48 B) or compact (12 B)"),
     ] = None,
     iterations: Annotated[int | None, typer.Option(help="Refinement iterations (default 1500; 0: analytic model only)")] = None,
-    samples: Annotated[int | None, typer.Option(help="Samples per iteration (default 3072, x ceil(N / 350000) for large budgets)")] = None,
+    samples: Annotated[int | None, typer.Option(help="Samples per iteration (default 3072, x ceil(N / 350000) for large budgets; on a GPU at least voxels / 128 as a power of two in 16384-131072; the report says what it chose)")] = None,
     preset: Annotated[str | None, typer.Option(help="paper (1500 x 3072 whatever N), fast (300 x 3072) or quality (1500 x 12288)")] = None,
     no_self_test: Annotated[bool, typer.Option("--no-self-test", help="Skip the binned-vs-dense self-test")] = False,
     time_budget: Annotated[float | None, typer.Option(help="Seconds refinement may take: it keeps >= 1,500 iterations, spends spare time on more samples (unless --samples is given), ends in time")] = None,

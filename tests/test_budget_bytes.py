@@ -74,8 +74,12 @@ def test_fit_bytes_shrinks_prunes_and_grows():
     p = realistic_params(np.random.default_rng(9), 3000)
     full = len(coded.encode_coded(p)[0])
     small, bits, info = coded.fit_bytes(p, int(full * 0.6))
-    assert info["bytes"] <= int(full * 0.6) and info["pruned"] > 0 and any(s.endswith("-1") for s in info["steps"])
+    assert 0.95 * int(full * 0.6) <= info["bytes"] <= int(full * 0.6) and any(s.endswith("-1") for s in info["steps"])
     assert sum(bits.values()) < sum(coded.CODED_BITS.values()) and len(small) == 3000 - info["pruned"]
+    least = len(coded.encode_coded(p, coded._MIN_BITS)[0])  # below every depth's least: primitives go
+    small, bits, info = coded.fit_bytes(p, int(least * 0.7))
+    assert 0.95 * int(least * 0.7) <= info["bytes"] <= int(least * 0.7) and info["pruned"] > 0 and len(small) == 3000 - info["pruned"]
+    assert info["bytes"] == len(coded.encode_coded(small, bits)[0])  # the sizes that decide are real codings
     big, bits, info = coded.fit_bytes(p, int(full * 1.3))
     assert info["bytes"] <= int(full * 1.3) and info["pruned"] == 0 and sum(bits.values()) > sum(coded.CODED_BITS.values())
     np.testing.assert_array_equal(big, coded.project_coded(p, bits)[coded.encode_coded(p, bits)[2]])

@@ -82,6 +82,29 @@ def test_coding_is_deterministic_and_independent_of_input_order():
     assert a == b
 
 
+@pytest.mark.parametrize("spread", [1, 3, 50])
+def test_storage_order_is_the_full_lexsort(spread):
+    """The one-key sort with ties re-sorted equals a lexsort over the key and every code, for
+    codes with many shared centres (spread 1: every row the same) and few."""
+    rng = np.random.default_rng(spread)
+    c = rng.integers(-spread, spread + 1, size=(2000, 12)).astype(np.int64)
+    c[:, 6] = rng.integers(0, 4, len(c))
+    mu = c[:, 0:3] - c[:, 0:3].min(0)
+    key = coded._part1by2(mu[:, 0]) | (coded._part1by2(mu[:, 1]) << np.uint64(1)) | (coded._part1by2(mu[:, 2]) << np.uint64(2))
+    full = np.lexsort([*[c[:, k] for k in range(11, 2, -1)], mu[:, 0], mu[:, 1], mu[:, 2], key])
+    np.testing.assert_array_equal(coded.coded_order(c), full)
+
+
+def test_large_planes_use_the_faster_level(monkeypatch):
+    """Above ZSTD_LARGE_RAW the planes are compressed at ZSTD_LEVEL_LARGE; either way they decode."""
+    p = realistic_params(np.random.default_rng(5), 4000)
+    small, quant, _ = coded.encode_coded(p)
+    monkeypatch.setattr(coded, "ZSTD_LARGE_RAW", 1000)
+    large, quant_l, _ = coded.encode_coded(p)
+    assert small != large and quant == quant_l
+    np.testing.assert_array_equal(coded.decode_coded(large, len(p), quant_l), coded.decode_coded(small, len(p), quant))
+
+
 def test_a_single_primitive_and_huge_values():
     p = realistic_params(np.random.default_rng(4), 1)
     payload, quant, order = coded.encode_coded(p)

@@ -20,7 +20,7 @@ bytes first) are concatenated and compressed with Zstandard at level 19. Zstanda
 range coder of our own: a well-kept, fast, bounded-memory library with a frame checksum and a
 declared content size; an adaptive model-based coder might save a few per cent more (not
 measured). Level 19 codes 5 % smaller than level 3 and 0.3 % larger than level 22 (a 25,000-
-Gaussian model).
+Gaussian model); planes above :data:`ZSTD_LARGE_RAW` bytes use level 12 (see there).
 
 Decoding checks every declared width, offset and length against the header before it allocates,
 decompresses into at most the declared size, and rejects codes outside their ranges; no pickle.
@@ -38,6 +38,11 @@ from .errors import WarpgaussError
 # PSNR than the primitives its bytes would buy (about 0.4 dB a byte at these budgets)
 CODED_BITS: dict[str, int] = {"mu": 2, "log_s": 4, "q": 5, "a": 7, "w": 5}
 ZSTD_LEVEL = 19
+# Zstandard 19 codes about 3 MB/s of planes: a 400,000-primitive model (6 MB) took 2.0 s a coding
+# at 19 and 0.25 s at 12, for 2.6 % more bytes (mean_reg2mean analytic model); rate control codes
+# a model several times, so planes above this size use the faster level
+ZSTD_LARGE_RAW = 4 << 20
+ZSTD_LEVEL_LARGE = 12
 # CODED_BITS keep the quantisation noise below the error of 30-42 dB models; a more accurate model
 # needs finer grids: one bit on every attribute per this many dB above BITS_REFERENCE_DB (each bit
 # halves the noise). Measured: a 51.2 dB vortex model lost 2.07 dB at CODED_BITS, 0.14 dB at +2.
@@ -177,13 +182,34 @@ def _part1by2(v: np.ndarray) -> np.ndarray:
 
 def coded_order(codes: np.ndarray) -> np.ndarray:
     """The storage order: by Morton code of the centre codes (offset to 0), ties by every code; a
-    centre range wider than 2^21 codes on an axis falls back to z, y, x order."""
+    centre range wider than 2^21 codes on an axis falls back to z, y, x order.
+
+    Equal to ``np.lexsort`` over (every code, then the key), computed as one sort of the key and
+    a lexsort of the rows whose key is shared (a few, where centres share a grid cell).
+    """
     mu = codes[:, 0:3] - codes[:, 0:3].min(0)
-    keys = [codes[:, k] for k in range(11, 2, -1)]  # least significant first for lexsort
     if int(mu.max(initial=0)) < (1 << 21):
-        m = _part1by2(mu[:, 0]) | (_part1by2(mu[:, 1]) << np.uint64(1)) | (_part1by2(mu[:, 2]) << np.uint64(2))
-        return np.lexsort([*keys, mu[:, 0], mu[:, 1], mu[:, 2], m])
-    return np.lexsort([*keys, mu[:, 0], mu[:, 1], mu[:, 2]])
+        key = _part1by2(mu[:, 0]) | (_part1by2(mu[:, 1]) << np.uint64(1)) | (_part1by2(mu[:, 2]) << np.uint64(2))
+    else:
+        key = None
+    if key is None:
+        keys = [codes[:, k] for k in range(11, 2, -1)]  # least significant first for lexsort
+        return np.lexsort([*keys, mu[:, 0], mu[:, 1], mu[:, 2]])
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    tie = np.zeros(len(ks), bool)
+    if len(ks) > 1:
+        same = ks[1:] == ks[:-1]
+        tie[1:] |= same
+        tie[:-1] |= same
+    if tie.any():  # rows sharing a key: their positions, filled in full-lexsort order
+        pos = np.flatnonzero(tie)
+        rows = np.sort(order[pos])  # original order, so the lexsort's ties resolve as the full one's
+        sub = codes[rows]
+        smu = mu[rows]
+        sub_order = np.lexsort([*[sub[:, k] for k in range(11, 2, -1)], smu[:, 0], smu[:, 1], smu[:, 2], key[rows]])
+        order[pos] = rows[sub_order]
+    return order
 
 
 def _width(max_value: int) -> int:
@@ -217,7 +243,8 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tupl
         planes.append(v.astype("<u8").view(np.uint8).reshape(-1, 8)[:, :w].T.copy())  # (w, n) planes
         raw += w * len(v)
     blob = b"".join(p.tobytes() for p in planes)
-    payload = _zstd().ZstdCompressor(level=ZSTD_LEVEL, write_checksum=True).compress(blob)
+    level = ZSTD_LEVEL if raw <= ZSTD_LARGE_RAW else ZSTD_LEVEL_LARGE
+    payload = _zstd().ZstdCompressor(level=level, write_checksum=True).compress(blob)
     # columns: [offset, bytes] in _COLUMNS order (centres delta-coded from the offset, the rest
     # offset-coded), kept terse: at high compression ratios the header is part of the budget
     quant = {"bits": b, "columns": columns, "raw_bytes": raw}
@@ -296,9 +323,10 @@ GROW_ORDER = ("q", "log_s", "a", "mu", "w")
 _MIN_BITS = {"mu": 0, "log_s": 1, "q": 3, "a": 3, "w": 2}
 _MAX_BITS = {"mu": 8, "log_s": 8, "q": 10, "a": 12, "w": 10}
 PRUNE_SHARE = 0.03  # an excess up to this share of the budget is pruned, beyond it bits are dropped first
-# above this many primitives one coding takes seconds (Zstandard 19 codes ~5 MB/s of planes): the
-# prune count is then the first estimate that fits (about 1 % under the budget), not searched
-SEARCH_MAX_N = 200_000
+FILL_SHARE = 0.002  # the prune search stops once the model is within this share under the budget
+SEARCH_CODINGS = 12  # codings the prune search may spend after the first fit (to within one primitive)
+GROW_MARGIN = 0.5  # a bit is tried when half its predicted bytes fit (its lowest bits may compress)
+_BIT_COLUMNS = {"mu": 3, "log_s": 3, "q": 3, "a": 1, "w": 1}  # stored values per primitive and bit
 
 
 def importance(params: np.ndarray) -> np.ndarray:
@@ -307,14 +335,27 @@ def importance(params: np.ndarray) -> np.ndarray:
     return np.abs(p[:, 11] * p[:, 10]) * np.exp(np.clip(p[:, 3:6].sum(1), -60.0, 60.0))
 
 
+def _bit_bytes(n: int, k: str) -> float:
+    """Predicted bytes one more (or one fewer) bit of attribute ``k`` costs ``n`` primitives: a
+    grid's lowest bit is close to noise, so about one bit per stored value (its columns)."""
+    return n * _BIT_COLUMNS[k] / 8.0
+
+
 def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = None, size_of=None) -> tuple[np.ndarray, dict, dict]:
     """The coded model that fits ``budget`` bytes, as closely as bit depths and primitives allow.
 
     From ``bits`` (default :data:`CODED_BITS`): while the size exceeds the budget by more than
-    :data:`PRUNE_SHARE`, drop one bit of the attributes in :data:`SHRINK_ORDER` in turn; then prune
+    :data:`PRUNE_SHARE`, drop bits of the attributes in :data:`SHRINK_ORDER` in turn; then prune
     the primitives that add least (:func:`importance`) until it fits (a primitive is the finest
     step there is, about 8 bytes). Then add bits in :data:`GROW_ORDER` while they still fit, so
     the budget buys precision when the primitives alone leave it unspent.
+
+    Every size that decides is a real coding, but the steps between codings are predicted (a bit
+    costs about one bit per stored value, a primitive the model's mean size), so a 900,000-
+    primitive model is fitted in a handful of codings rather than dozens: bits are dropped as
+    many at a time as the predicted excess needs, the prune count is found by interpolation
+    (regula falsi) to within one primitive or :data:`FILL_SHARE` of the budget, and a bit is only
+    tried when it is predicted to fit.
 
     Args:
         params: (N, 12) parameters.
@@ -325,24 +366,36 @@ def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = Non
 
     Returns:
         ``(stored, bits, info)``: the parameters as the file will hold them (projected, Morton
-        order), the bit depths, and what was done (steps, pruned count, bytes).
+        order), the bit depths, and what was done (steps, pruned count, bytes, codings).
     """
     b = _check_bits(dict(CODED_BITS if bits is None else bits))
     p = np.asarray(params, np.float32)
-    size = size_of or (lambda pp, bb: len(encode_coded(pp, bb)[0]))
+    codings = 0
+
+    def size(pp, bb) -> int:
+        nonlocal codings
+        codings += 1
+        return (size_of or (lambda q, c: len(encode_coded(q, c)[0])))(pp, bb)
+
     steps: list[str] = []
     cur = size(p, b)
     turn = 0
     while cur > budget * (1.0 + PRUNE_SHARE):
-        for _ in range(len(SHRINK_ORDER)):
-            k = SHRINK_ORDER[turn % len(SHRINK_ORDER)]
-            turn += 1
-            if b[k] > _MIN_BITS[k]:
-                b[k] -= 1
-                steps.append(f"{k}-1")
-                break
-        else:
-            break  # every depth at its least: pruning does the rest
+        pred, dropped = cur, 0
+        while pred > budget * (1.0 + PRUNE_SHARE):
+            for _ in range(len(SHRINK_ORDER)):
+                k = SHRINK_ORDER[turn % len(SHRINK_ORDER)]
+                turn += 1
+                if b[k] > _MIN_BITS[k]:
+                    b[k] -= 1
+                    steps.append(f"{k}-1")
+                    pred -= _bit_bytes(len(p), k)
+                    dropped += 1
+                    break
+            else:
+                break  # every depth at its least: pruning does the rest
+        if not dropped:
+            break
         cur = size(p, b)
     pruned = 0
     if cur > budget:
@@ -351,37 +404,42 @@ def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = Non
         def kept(k: int) -> np.ndarray:
             return p[np.sort(rank[: len(p) - k])]
 
-        lo, hi = 0, None  # lo prunes too few (over budget); hi the fewest found that fit
+        lo, lo_size = 0, cur  # lo prunes too few (over budget); hi the fewest found that fit
+        hi = hi_size = None
         k = 0
-        while hi is None:  # step out by the estimated excess until it fits
+        while hi is None:  # step out by the estimated excess (and 0.2 % more) until it fits
             per = cur / (len(p) - k)
-            k = min(len(p) - 1, k + max(1, int(np.ceil((cur - budget) / per))))
+            k = min(len(p) - 1, k + max(1, int(np.ceil((cur - budget * (1.0 - FILL_SHARE / 2)) / per))))
             cur = size(kept(k), b)
             if cur <= budget:
-                hi = k
+                hi, hi_size = k, cur
             elif k == len(p) - 1:
                 raise WarpgaussError(f"no coded model of one primitive fits {budget} bytes; give a larger byte budget")
             else:
-                lo = k
-        while hi - lo > 1 and len(p) <= SEARCH_MAX_N:  # then the fewest pruned that fit, to within one primitive
-            mid = (lo + hi) // 2
-            if size(kept(mid), b) <= budget:
-                hi = mid
+                lo, lo_size = k, cur
+        # then fewer pruned while more fit: interpolate between the two, halving when that stalls
+        for _ in range(SEARCH_CODINGS):
+            if hi - lo <= 1 or budget - hi_size <= FILL_SHARE * budget:
+                break
+            t = (lo_size - budget) / max(lo_size - hi_size, 1)
+            mid = min(hi - 1, max(lo + 1, lo + int(round(t * (hi - lo)))))
+            s = size(kept(mid), b)
+            if s <= budget:
+                hi, hi_size = mid, s
             else:
-                lo = mid
-        p, pruned = kept(hi), hi
-        cur = size(p, b)
+                lo, lo_size = mid, s
+        p, pruned, cur = kept(hi), hi, hi_size
     grown = True
     while grown:
         grown = False
         for k in GROW_ORDER:
-            if b[k] < _MAX_BITS[k]:
+            if b[k] < _MAX_BITS[k] and cur + _bit_bytes(len(p), k) * GROW_MARGIN <= budget:
                 trial = {**b, k: b[k] + 1}
                 t = size(p, trial)
                 if t <= budget:
                     b, cur, grown = trial, t, True
                     steps.append(f"{k}+1")
-    return as_stored(p, b), b, {"steps": steps, "pruned": pruned, "bytes": cur}
+    return as_stored(p, b), b, {"steps": steps, "pruned": pruned, "bytes": cur, "codings": codings}
 
 
 def bits_for_psnr(psnr_db: float | None) -> tuple[dict[str, int], int]:

@@ -163,6 +163,13 @@ CODED_BPP_FLOOR = 4  # and at least: bounds N before its coded size is measured
 # budget, which pruning the least important primitives trims to within a primitive of it, than
 # under it, which nothing after refinement can fill (coded.fit_bytes)
 CODED_REFINE_GROWTH = 1.15
+# refinement's gain over the analytic model, at least (full-grid PSNR, ratio 100, H100: vortex 512^3
+# +18.9 dB, the three head MRIs +13.7 to +18.3 dB): the pilot sizes N for the bit depths a model
+# that accurate needs (coded.bits_for_psnr), since an accurate model that must drop bits to fit
+# loses more than the primitives cost. Measured on vortex 512^3 at ratio 100: N sized for the
+# default depths (907,190) refined to 70.2 dB in float and 55.9 dB once fitted (mu at 0 bits);
+# the float model at half that N scores 71.2 dB (benchmarks/results/i18_sizing_h100.json)
+CODED_REFINE_GAIN_DB = 12.0
 
 
 DEFAULT_FORMAT = "coded"
@@ -224,22 +231,40 @@ def resolve_budget(f: Field, opts: EncodeOptions, header_bytes: int) -> int:
     return n
 
 
-def coded_budget(dv, opts: EncodeOptions, header: dict, total: int, n_bound: int) -> tuple[int, dict]:
+def coded_budget(dv, f: Field, opts: EncodeOptions, header: dict, total: int, n_bound: int) -> tuple[int, dict]:
     """N for a coded file of ``total`` bytes: a pilot allocation's coded size per primitive, times
-    the growth refinement brings (:data:`CODED_REFINE_GROWTH`; 1 without refinement)."""
+    the growth refinement brings (:data:`CODED_REFINE_GROWTH`; 1 without refinement), at the bit
+    depths the expected accuracy needs (the pilot's PSNR plus :data:`CODED_REFINE_GAIN_DB` when
+    refining, see :func:`warpgauss.coded.bits_for_psnr`)."""
+    from .coded import bits_for_psnr
+    from .evaluate import evaluate_field
     from .wgs import header_size, payload_size, wgs_bytes
 
     pilot = max(1, min(n_bound, (total - header_size(header, n_bound, encoding="coded")) // 8))
     params, _ = allocate(dv, pilot, opts.seed, opts.allocation, StageRecorder())
-    data = wgs_bytes(params, header, encoding="coded")
+    refining = opts.refine.iterations > 0
+    pilot_db = evaluate_field(Model(params, header).field(dv.device), f)["psnr_db"]
+    expected = pilot_db + (CODED_REFINE_GAIN_DB if refining else 0.0)
+    bits, extra = bits_for_psnr(expected)
+    data = wgs_bytes(params, header, encoding="coded", bits=bits)
     payload = payload_size(data)
     bpp = payload / pilot
     # the pilot's own header (the reserved bound is a few hundred bytes wider: at small budgets
     # that is a good share of the payload)
     head = len(data) - payload + 32
-    growth = CODED_REFINE_GROWTH if opts.refine.iterations > 0 else 1.0
+    growth = CODED_REFINE_GROWTH if refining else 1.0
     n = max(1, min(n_bound, int((total - head) // (bpp * growth))))
-    return n, {"pilot_n": pilot, "pilot_bytes_per_primitive": bpp, "header_bytes": head, "refine_growth": growth, "n": n}
+    return n, {
+        "pilot_n": pilot,
+        "pilot_psnr_db": pilot_db,
+        "expected_psnr_db": expected,
+        "bits": bits,
+        "bits_added": extra,
+        "pilot_bytes_per_primitive": bpp,
+        "header_bytes": head,
+        "refine_growth": growth,
+        "n": n,
+    }
 
 
 def _coded_choice(sizing: dict | None, fit: dict | None, note: dict | None) -> str | None:
@@ -248,10 +273,17 @@ def _coded_choice(sizing: dict | None, fit: dict | None, note: dict | None) -> s
         return None
     parts = []
     if sizing is not None:
+        grids = (
+            f"{sizing['bits_added']} bit(s) over the default grids, for the {sizing['expected_psnr_db']:.1f} dB expected "
+            f"(pilot {sizing['pilot_psnr_db']:.1f} dB + refinement), since an accurate model that drops bits to fit loses more than "
+            "the Gaussians cost (benchmarks/results/i18_sizing_h100.json)"
+            if sizing["bits_added"]
+            else "the default grids, since each of their bits costs less PSNR than the Gaussians its bytes would buy "
+            "(benchmarks/results/i18_coded_cpu.json)"
+        )
         parts.append(
             f"N {sizing['n']:,} from a pilot of {sizing['pilot_n']:,} at {sizing['pilot_bytes_per_primitive']:.2f} B x "
-            f"{sizing['refine_growth']:.2f} (refined models code larger); the default grids, since each of their bits "
-            "costs less PSNR than the Gaussians its bytes would buy (benchmarks/results/i18_coded_cpu.json)"
+            f"{sizing['refine_growth']:.2f} (refined models code larger); {grids}"
         )
     if note is not None and note["bits_added"]:
         parts.append(f"{note['bits_added']} bit(s) more on every attribute for a {note['sample_psnr_db']:.1f} dB model")
@@ -356,17 +388,18 @@ def encode_field(
     budget_bytes = target_bytes(f, opts)  # the file size budget, or None for an explicit N
     header = _header_for(f, opts)
     n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
-    base_refine = opts.refine
-    scaled = opts.refine.for_budget(n)
-    if scaled is not opts.refine:  # more samples for a large budget: the header says so
-        opts = dataclasses.replace(opts, refine=scaled)
-        header = _header_for(f, opts)
-        n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
 
     from ._warp import device_name, resolve_device, warp
 
     wp = warp()
     dev = resolve_device(device)
+    voxels = int(np.prod(f.shape_xyz))
+    base_refine = opts.refine
+    scaled = opts.refine.for_budget(n, voxels, dev)
+    if scaled is not opts.refine:  # more samples for a large budget or a GPU: the header says so
+        opts = dataclasses.replace(opts, refine=scaled)
+        header = _header_for(f, opts)
+        n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
     timer = timer or StageRecorder()
     timer.device = dev
     skipped: list[dict] = []
@@ -389,9 +422,9 @@ def encode_field(
     sizing = None
     if enc == "coded" and budget_bytes is not None:
         with timer.stage("S1p", "coded size pilot"):
-            n, sizing = coded_budget(dv, opts, header, budget_bytes, n)
-            if base_refine.for_budget(n) != opts.refine:  # the samples follow the measured N, not its bound
-                opts = dataclasses.replace(opts, refine=base_refine.for_budget(n))
+            n, sizing = coded_budget(dv, f, opts, header, budget_bytes, n)
+            if base_refine.for_budget(n, voxels, dev) != opts.refine:  # the samples follow the measured N, not its bound
+                opts = dataclasses.replace(opts, refine=base_refine.for_budget(n, voxels, dev))
                 header = _header_for(f, opts)
 
     def stored(m: Model) -> tuple[Model, dict | None]:
@@ -403,11 +436,24 @@ def encode_field(
         return m, None
 
     params, facts = allocate(dv, n, opts.seed, opts.allocation, timer)
+    start_bits = None if sizing is None else sizing["bits"]  # the depths N was sized for
 
+    # a coded byte budget fits the analytic model (several codings) only where it may be the
+    # result: no refinement, an --analytic-output file, or a refined model that scores below it
+    fit_later = enc == "coded" and budget_bytes is not None and opts.refine.iterations > 0 and analytic_output is None
     with timer.stage("S1x", "analytic model"):
-        analytic, analytic_fit = stored(Model(params, header))
+        analytic = Model(params, header)
+        analytic.coded_bits = start_bits
+        analytic, analytic_fit = (analytic, None) if fit_later else stored(analytic)
         if analytic_output is not None:
             analytic.save(analytic_output, encoding=enc, force=force)
+    if fit_later:
+        skipped.append(
+            {
+                "what": "S1x rate control of the analytic model",
+                "why": "it is fitted to the byte budget only if the refined model scores below it; until then it is evaluated as allocated",
+            }
+        )
     model = analytic
     refined_fit = None
     coded_bits_note = None
@@ -426,6 +472,10 @@ def encode_field(
                 }
             )
             refinement = {"iterations": 0, "stop": {"reason": "target PSNR reached by the analytic model", "iterations_skipped": opts.refine.iterations}}
+            if fit_later:  # it is the result: fitted to the budget and scored as stored
+                analytic, analytic_fit = stored(analytic)
+                model = analytic
+                early_eval = evaluate_field(analytic.field(dev), f, full=full_eval)
     if opts.refine.iterations > 0 and not refinement.get("stop"):
         from .refine import SELF_TESTS, Refiner, load_kernels, self_test
 
@@ -503,6 +553,7 @@ def encode_field(
                 "time_budget": refiner.budget,
                 "iterations": refiner.cfg.iterations,
                 "samples": refiner.m,
+                "samples_rule": base_refine.samples_rule(n, voxels, dev)[1],
                 "seconds": total,
                 "sessions": sessions,
                 "iterations_done": refiner.iteration,
@@ -561,6 +612,10 @@ def encode_field(
                         }
                     )
                 refined_db, analytic_db = evaluation["final"]["psnr_db"], evaluation["analytic"]["psnr_db"]
+                if refined_db < analytic_db and fit_later:  # the analytic model as it would be stored
+                    analytic, analytic_fit = stored(analytic)
+                    evaluation["analytic"] = evaluate_field(analytic.field(dev), f, full=full_eval)
+                    analytic_db = evaluation["analytic"]["psnr_db"]
                 if refined_db < analytic_db:  # e.g. too few iterations for a large N: keep the better model
                     evaluation["discarded_refined"] = evaluation["final"]
                     evaluation["final"] = evaluation["analytic"]
@@ -785,7 +840,9 @@ def encode(
         device: Warp device; None picks CUDA when present, else CPU.
         iterations: Refinement iterations (default 1,500, the paper's; 0: analytic model only).
         samples: Samples per iteration (default 3,072, the paper's, times ceil(N / 350,000) for
-            large budgets: 12,288 at 1.4M; see :meth:`RefineConfig.for_budget`).
+            large budgets, 12,288 at 1.4M; on a GPU at least one per 128 voxels as a power of two
+            within 16,384-131,072; see :meth:`RefineConfig.samples_rule`; the report's
+            ``refinement.samples_rule`` says what was chosen).
         preset: "paper" (1,500 x 3,072 whatever N), "fast" (300 x 3,072, the paper's time-budget
             mode) or "quality" (1,500 x 12,288); explicit ``iterations``/``samples`` override it.
         refine: Learning rates, loss weights and schedule (:class:`warpgauss.optimize.RefineConfig`).

@@ -19,6 +19,11 @@ PRESETS = {  # exactly these settings: no sample count raised for large budgets
 }
 AUTO_BATCH_PRIMITIVES = 350_000  # the default raises the samples by one batch per this many primitives
 AUTO_MAX_BATCHES = 16
+# on a CUDA device the default also draws one sample per this many voxels an iteration, as a power
+# of two within these bounds (see RefineConfig.samples_rule for the measurements)
+GPU_VOXELS_PER_SAMPLE = 128
+GPU_MIN_SAMPLES = 16_384
+GPU_MAX_SAMPLES = 131_072
 
 
 
@@ -142,20 +147,42 @@ class RefineConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
-    def for_budget(self, n: int) -> RefineConfig:
-        """The settings for ``n`` primitives: with ``auto_samples``, ``samples`` x ceil(n /
-        :data:`AUTO_BATCH_PRIMITIVES`) samples per iteration (at most :data:`AUTO_MAX_BATCHES` x).
+    def samples_rule(self, n: int, voxels: int | None = None, device: str | None = None) -> tuple[int, str]:
+        """Samples per iteration for ``n`` primitives in a volume of ``voxels`` on ``device``, and why.
+
+        With ``auto_samples`` (the default; off in the presets and when samples were given):
+        ``samples`` x ceil(n / :data:`AUTO_BATCH_PRIMITIVES`) (at most :data:`AUTO_MAX_BATCHES`
+        x), and on a CUDA device at least one sample per :data:`GPU_VOXELS_PER_SAMPLE` voxels,
+        rounded to a power of two within [:data:`GPU_MIN_SAMPLES`, :data:`GPU_MAX_SAMPLES`].
 
         Measured on an H100 with 1.4M Gaussians (``benchmarks/results/tradeoff_*_h100.json``):
         1,500 x 3,072 samples touch each primitive about 0.25 times an iteration and score below
         128,000 Gaussians on smooth fields (vortex 1024^3: 53.4 against 59.6 dB); 4x the samples
-        (12,288, what this rule gives at 1.4M) reach 60.1 dB, +1.8 to +8.9 dB on the four example
-        fields at 512^3 and 1024^3, for 1.5-2.0x the refinement time.
+        (12,288, what the primitive rule gives at 1.4M) reach 60.1 dB, +1.8 to +8.9 dB on the
+        four example fields at 512^3 and 1024^3, for 1.5-2.0x the refinement time. The device
+        rule (``benchmarks/results/i18_sweep_*_h100.json``, three head MRIs of 4.4-11.5M voxels
+        at ratio 100, coded): 3,072 -> 16,384 -> 65,536 samples gained +1.2 to +1.9 dB, then
+        -0.3 to +0.6 dB, and 131,072 another 0.1-0.2 dB; refinement 1.9-4.0 s at 3,072 and
+        4.6-10.0 s at 65,536. On the CPU (one thread runs a kernel) the primitive rule alone.
         """
         if not self.auto_samples or self.iterations == 0:
-            return self
+            return self.samples, "as set" if not self.auto_samples else "no refinement"
         k = min(AUTO_MAX_BATCHES, max(1, -(-int(n) // AUTO_BATCH_PRIMITIVES)))
-        return self if k == 1 else dataclasses.replace(self, samples=self.samples * k)
+        s, why = self.samples * k, (f"{self.samples:,} x {k} (one batch per {AUTO_BATCH_PRIMITIVES:,} primitives)" if k > 1 else f"{self.samples:,}")
+        if voxels is not None and device is not None and str(device).startswith("cuda"):
+            g = 1 << max(0, round(math.log2(max(1, int(voxels)) / GPU_VOXELS_PER_SAMPLE)))
+            g = min(GPU_MAX_SAMPLES, max(GPU_MIN_SAMPLES, g))
+            if g > s:
+                s, why = g, (
+                    f"{g:,}: on a GPU one sample per {GPU_VOXELS_PER_SAMPLE} voxels ({int(voxels):,}), "
+                    f"as a power of two within {GPU_MIN_SAMPLES:,}-{GPU_MAX_SAMPLES:,}"
+                )
+        return s, why
+
+    def for_budget(self, n: int, voxels: int | None = None, device: str | None = None) -> RefineConfig:
+        """These settings with :meth:`samples_rule`'s samples per iteration."""
+        s, _ = self.samples_rule(n, voxels, device)
+        return self if s == self.samples else dataclasses.replace(self, samples=s)
 
     def validate(self) -> None:
         """Refuse settings that would diverge or fail late, naming the option."""
