@@ -20,7 +20,9 @@ def kernels(
     n: Annotated[str | None, typer.Option("--n", help="Primitive counts, e.g. 2000,20000,200000,650000,1400000")] = None,
     samples: Annotated[str | None, typer.Option(help="Samples per iteration, e.g. 3072,65536,262144,1048576")] = None,
     repeat: Annotated[int, typer.Option(help="Calls per timing")] = 10,
-    dense_max_n: Annotated[int | None, typer.Option(help="Time the dense evaluator up to this N (default 650000 on CUDA, 2000 on the CPU)")] = None,
+    dense_max_n: Annotated[
+        int | None, typer.Option(help="Time the dense evaluator up to this N (default 650000 on CUDA, 2000 on the CPU)")
+    ] = None,
     no_decode: Annotated[bool, typer.Option("--no-decode", help="Skip the full-grid decode timing")] = False,
     device: Annotated[str | None, typer.Option(help="Warp device, e.g. cuda:0 or cpu (default: CUDA if present)")] = None,
     json_out: Annotated[Path | None, typer.Option("--json-out", help="Also write the result as JSON here")] = None,

@@ -7,8 +7,10 @@ import json
 import math
 import os
 import sys
+from pathlib import Path
 
 import typer
+import typer.core
 from rich.console import Console
 
 from warpgauss.errors import WarpgaussError
@@ -124,3 +126,128 @@ def human_bytes(n: float | None) -> str:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.2f} {unit}"
         n /= 1024
     return f"{n:.2f} TiB"
+
+
+# ---------------------------------------------------------------------------- --config FILE
+
+
+def _option_names(command) -> dict[str, str]:
+    """Every name a configuration file may use for ``command``'s parameters -> the parameter:
+    the long option without dashes, with '-' or '_' ("bytes", "w-smooth", "w_smooth", "json"),
+    and the parameter's own name."""
+    names: dict[str, str] = {}
+    for p in command.params:
+        if p.name == "config":
+            continue
+        names[p.name] = p.name
+        for opt in getattr(p, "opts", []) + getattr(p, "secondary_opts", []):
+            if opt.startswith("--"):
+                names[opt[2:]] = p.name
+                names[opt[2:].replace("-", "_")] = p.name
+    return names
+
+
+def _long_name(param) -> str:
+    longs = [o[2:] for o in getattr(param, "opts", []) if o.startswith("--")]
+    return longs[0] if longs else param.name
+
+
+def read_config(path: Path) -> dict:
+    """The options a ``--config`` file holds: a TOML table of option names (``[encode]`` or top
+    level), or a run report's ``config`` (JSON), so a run repeats from its report."""
+    if not path.is_file():
+        raise WarpgaussError(f"no such configuration file: {path}")
+    text = path.read_bytes()
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(text)
+        except (ValueError, UnicodeDecodeError) as e:
+            raise WarpgaussError(f"{path}: not valid JSON ({e}); give a TOML file or a run report") from None
+        if not isinstance(data, dict) or not isinstance(data.get("config"), dict):
+            raise WarpgaussError(f"{path}: a JSON configuration must be a run report with a 'config' table")
+        return data["config"]
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        import tomli as tomllib  # type: ignore[no-redef]
+    try:
+        data = tomllib.loads(text.decode("utf-8"))
+    except (ValueError, UnicodeDecodeError) as e:
+        raise WarpgaussError(f"{path}: not valid TOML ({_first_line(e)})") from None
+    return data
+
+
+def config_callback(ctx: typer.Context, param, value: Path | None):
+    """Eager ``--config`` callback: the file's values become the command's defaults (click's
+    ``default_map``), so options given on the command line still win. Unknown names and values of
+    the wrong type are refused in one line, naming the option."""
+    if value is None or ctx.resilient_parsing:
+        return value
+    try:
+        data = read_config(Path(value))
+        command = ctx.command
+        if isinstance(data.get(command.name), dict):  # a [encode] table
+            data = data[command.name]
+        names = _option_names(command)
+        params = {p.name: p for p in command.params}
+        defaults: dict = {}
+        for key, v in data.items():
+            if isinstance(v, dict):
+                continue  # other commands' tables
+            if key not in names:
+                raise WarpgaussError(f"{value}: unknown option {key!r} for 'warpgauss {command.name}'; see warpgauss {command.name} --help")
+            p = params[names[key]]
+            if v is None:
+                continue
+            defaults[p.name] = v  # converted and checked as a default of the option
+    except WarpgaussError as e:
+        if debugging():
+            raise
+        fail(_first_line(e))
+    ctx.default_map = {**(ctx.default_map or {}), **defaults}
+    return value
+
+
+NOT_REPEATED = ("config", "force", "resume")  # flags of one invocation: a repeat must ask again to overwrite
+
+
+def resolved_config(ctx: typer.Context) -> dict:
+    """The command's parameters as run (long option names, None and :data:`NOT_REPEATED` left
+    out): a ``--config`` file of these repeats the run (and refuses to overwrite its output)."""
+    out = {}
+    for p in ctx.command.params:
+        if p.name in NOT_REPEATED:
+            continue
+        v = ctx.params.get(p.name)
+        if v is None:
+            continue
+        out[_long_name(p)] = str(v) if isinstance(v, Path) else v
+    return out
+
+
+PANELS = ("Input", "Budget and format", "Refinement", "Loss weights", "Run control", "Output")  # help order
+
+
+class PanelCommand(typer.core.TyperCommand):
+    """A command whose plain-text help groups its options under their ``rich_help_panel`` names
+    in the order of :data:`PANELS` (others after them); options without a panel (``--help``)
+    close the list."""
+
+    def format_options(self, ctx, formatter) -> None:
+        args: list = []
+        groups: dict[str, list] = {}
+        for param in self.get_params(ctx):
+            rv = param.get_help_record(ctx)
+            if rv is None:
+                continue
+            if param.param_type_name == "argument":
+                args.append(rv)
+            else:
+                groups.setdefault(getattr(param, "rich_help_panel", None) or "Other options", []).append(rv)
+        if args:
+            with formatter.section("Arguments"):
+                formatter.write_dl(args)
+        order = {t: i for i, t in enumerate(PANELS)}
+        for title, rows in sorted(groups.items(), key=lambda kv: order.get(kv[0], len(PANELS) + (kv[0] == "Other options"))):
+            with formatter.section(title):
+                formatter.write_dl(rows)

@@ -7,56 +7,155 @@ from typing import Annotated
 
 import typer
 
-from .common import err_console, fail, handle_errors, human_bytes, json_text, out_console, parse_int_list, parse_shape, print_json
+from .common import (
+    config_callback,
+    err_console,
+    fail,
+    handle_errors,
+    human_bytes,
+    json_text,
+    out_console,
+    parse_int_list,
+    parse_shape,
+    print_json,
+    resolved_config,
+)
 
 
 @handle_errors
 def encode(
-    input: Annotated[Path | None, typer.Argument(help="Volume file (.raw .npy .h5 .vti .nii.gz .nrrd .mha .nc .mrc ...)")] = None,
-    output: Annotated[Path | None, typer.Option("-o", "--output", help="Model file; default NAME.wgs")] = None,
-    example: Annotated[str | None, typer.Option(help="Encode a built-in example volume instead of a file")] = None,
-    size: Annotated[int, typer.Option(help="Edge length of the --example volume")] = 64,
-    budget: Annotated[int | None, typer.Option("--budget", "-n", help="Number of Gaussians N (exact)")] = None,
-    ladder: Annotated[str | None, typer.Option(help="Several budgets, e.g. 2000,20000,200000: one read and analysis, one model each (OUTPUT with .nN before the suffix)")] = None,
-    ratio: Annotated[float | None, typer.Option(help="Target compression ratio (N from SPEC section 4); default 20")] = None,
-    file_bytes: Annotated[int | None, typer.Option("--bytes", help="File size budget in bytes (header included), instead of --budget or --ratio")] = None,
-    seed: Annotated[int, typer.Option(help="Seed: same seed and device give the same model")] = 0,
-    device: Annotated[str | None, typer.Option(help="Warp device: cpu, cuda, cuda:N (default: CUDA if present)")] = None,
-    compact: Annotated[bool, typer.Option("--compact", help="Write the compact 12-byte/primitive format")] = False,
+    ctx: typer.Context,
+    input: Annotated[
+        Path | None, typer.Argument(rich_help_panel="Input", help="Volume file (.raw .npy .h5 .vti .nii.gz .nrrd .mha .nc .mrc ...)")
+    ] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", rich_help_panel="Output", help="Model file; default NAME.wgs")] = None,
+    example: Annotated[str | None, typer.Option(rich_help_panel="Input", help="Encode a built-in example volume instead of a file")] = None,
+    size: Annotated[int, typer.Option(rich_help_panel="Input", help="Edge length of the --example volume")] = 64,
+    budget: Annotated[
+        int | None, typer.Option("--budget", "-n", rich_help_panel="Budget and format", help="Number of Gaussians N (exact)")
+    ] = None,
+    ladder: Annotated[
+        str | None,
+        typer.Option(
+            rich_help_panel="Budget and format",
+            help="Several budgets, e.g. 2000,20000,200000: one read and analysis, one model each (OUTPUT with .nN before the suffix)",
+        ),
+    ] = None,
+    ratio: Annotated[
+        float | None, typer.Option(rich_help_panel="Budget and format", help="Target compression ratio (N from SPEC section 4); default 20")
+    ] = None,
+    file_bytes: Annotated[
+        int | None,
+        typer.Option(
+            "--bytes",
+            rich_help_panel="Budget and format",
+            help="File size budget in bytes (header included), instead of --budget or --ratio",
+        ),
+    ] = None,
+    seed: Annotated[int, typer.Option(rich_help_panel="Refinement", help="Seed: same seed and device give the same model")] = 0,
+    device: Annotated[
+        str | None, typer.Option(rich_help_panel="Refinement", help="Warp device: cpu, cuda, cuda:N (default: CUDA if present)")
+    ] = None,
+    compact: Annotated[
+        bool, typer.Option("--compact", rich_help_panel="Budget and format", help="Write the compact 12-byte/primitive format")
+    ] = False,
     fmt: Annotated[
         str | None,
-        typer.Option("--format", help="File format: coded (default: quantised + Zstandard, about 7.5-8.2 B/Gaussian, --ratio/--bytes budgets never exceeded, 99-100 % used), full (float32, 48 B) or compact (12 B)"),
+        typer.Option(
+            "--format",
+            rich_help_panel="Budget and format",
+            help="File format: coded (default: quantised + Zstandard, about 7.5-8.2 B/Gaussian, --ratio/--bytes budgets never exceeded, 99-100 % used), full (float32, 48 B) or compact (12 B)",
+        ),
     ] = None,
-    iterations: Annotated[int | None, typer.Option(help="Refinement iterations (default 1500; 0: analytic model only)")] = None,
-    samples: Annotated[int | None, typer.Option(help="Samples per iteration (default 3072, x ceil(N / 350000) for large budgets; on a GPU at least voxels / 128 as a power of two in 16384-131072; the report says what it chose)")] = None,
-    preset: Annotated[str | None, typer.Option(help="paper (1500 x 3072 whatever N), fast (300 x 3072) or quality (1500 x 12288)")] = None,
-    no_self_test: Annotated[bool, typer.Option("--no-self-test", help="Skip the binned-vs-dense self-test")] = False,
-    time_budget: Annotated[float | None, typer.Option(help="Seconds refinement may take: it keeps >= 1,500 iterations, spends spare time on more samples (unless --samples is given), ends in time")] = None,
-    lr: Annotated[float, typer.Option(help="Adam base learning rate (per-group multipliers apply)")] = 8e-3,
-    w_value_empty: Annotated[float, typer.Option(help="Loss weight: value term at empty samples (paper: 0)")] = 1.0,
-    w_density: Annotated[float, typer.Option(help="Loss weight: density towards 1 where occupied")] = 0.001,
-    w_smooth: Annotated[float, typer.Option(help="Loss weight: smoothness at the start (anneals)")] = 0.01,
-    w_smooth_final: Annotated[float, typer.Option(help="Loss weight: smoothness at the end")] = 0.0001,
-    w_anchor: Annotated[float, typer.Option(help="Loss weight: anchor of a to V(mu)")] = 0.001,
-    w_aniso: Annotated[float, typer.Option(help="Loss weight: anisotropy bound 3:1")] = 1.0,
-    w_cap: Annotated[float, typer.Option(help="Loss weight: scale range")] = 1.0,
-    save_analytic: Annotated[Path | None, typer.Option(help="Also write the analytic (pre-refinement) model")] = None,
-    stride: Annotated[int, typer.Option(help="Take every K-th voxel on each axis")] = 1,
-    shape: Annotated[str | None, typer.Option(help="Raw files: XxYxZ when the name does not say")] = None,
-    dtype: Annotated[str | None, typer.Option(help="Raw files: uint8, int16, float32, ...")] = None,
-    endian: Annotated[str | None, typer.Option(help="Raw files: little (default) or big")] = None,
-    dataset: Annotated[str | None, typer.Option(help="HDF5: dataset path (default: first 3D dataset)")] = None,
-    variable: Annotated[str | None, typer.Option(help="netCDF: variable name (default: first 3D variable)")] = None,
-    fill_value: Annotated[float | None, typer.Option(help="Source value marking missing data (masked out)")] = None,
-    report: Annotated[Path | None, typer.Option(help="Run report JSON; default OUTPUT.report.json")] = None,
-    full_eval: Annotated[bool, typer.Option("--full-eval", help="PSNR on the full grid, not 500,000 samples")] = False,
-    as_json: Annotated[bool, typer.Option("--json", help="Print the run report as JSON on stdout")] = False,
-    checkpoint: Annotated[Path | None, typer.Option(help="Refinement checkpoint file; default OUTPUT.ckpt (deleted when the run ends)")] = None,
-    checkpoint_every: Annotated[float, typer.Option(help="Seconds between checkpoints (Ctrl-C also writes one)")] = 60.0,
-    resume: Annotated[bool, typer.Option("--resume", help="Continue an interrupted run from its checkpoint (same input and options)")] = False,
-    target_psnr: Annotated[float | None, typer.Option(help="dB: skip refinement if the analytic model reaches it, else stop once a validation PSNR does")] = None,
-    plateau: Annotated[float | None, typer.Option(help="dB: stop refinement once the validation PSNR gains less than this over 300 iterations")] = None,
-    force: Annotated[bool, typer.Option("--force", help="Overwrite existing output files")] = False,
+    iterations: Annotated[
+        int | None, typer.Option(rich_help_panel="Refinement", help="Refinement iterations (default 1500; 0: analytic model only)")
+    ] = None,
+    samples: Annotated[
+        int | None,
+        typer.Option(
+            rich_help_panel="Refinement",
+            help="Samples per iteration (default 3072, x ceil(N / 350000) for large budgets; on a GPU at least voxels / 128 as a power of two in 16384-131072; the report says what it chose)",
+        ),
+    ] = None,
+    preset: Annotated[
+        str | None,
+        typer.Option(rich_help_panel="Refinement", help="paper (1500 x 3072 whatever N), fast (300 x 3072) or quality (1500 x 12288)"),
+    ] = None,
+    no_self_test: Annotated[
+        bool, typer.Option("--no-self-test", rich_help_panel="Refinement", help="Skip the binned-vs-dense self-test")
+    ] = False,
+    time_budget: Annotated[
+        float | None,
+        typer.Option(
+            rich_help_panel="Refinement",
+            help="Seconds refinement may take: it keeps >= 1,500 iterations, spends spare time on more samples (unless --samples is given), ends in time",
+        ),
+    ] = None,
+    lr: Annotated[float, typer.Option(rich_help_panel="Refinement", help="Adam base learning rate (per-group multipliers apply)")] = 8e-3,
+    w_value_empty: Annotated[
+        float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: value term at empty samples (paper: 0)")
+    ] = 1.0,
+    w_density: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: density towards 1 where occupied")] = 0.001,
+    w_smooth: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: smoothness at the start (anneals)")] = 0.01,
+    w_smooth_final: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: smoothness at the end")] = 0.0001,
+    w_anchor: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: anchor of a to V(mu)")] = 0.001,
+    w_aniso: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: anisotropy bound 3:1")] = 1.0,
+    w_cap: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: scale range")] = 1.0,
+    save_analytic: Annotated[
+        Path | None, typer.Option(rich_help_panel="Output", help="Also write the analytic (pre-refinement) model")
+    ] = None,
+    stride: Annotated[int, typer.Option(rich_help_panel="Input", help="Take every K-th voxel on each axis")] = 1,
+    shape: Annotated[str | None, typer.Option(rich_help_panel="Input", help="Raw files: XxYxZ when the name does not say")] = None,
+    dtype: Annotated[str | None, typer.Option(rich_help_panel="Input", help="Raw files: uint8, int16, float32, ...")] = None,
+    endian: Annotated[str | None, typer.Option(rich_help_panel="Input", help="Raw files: little (default) or big")] = None,
+    dataset: Annotated[str | None, typer.Option(rich_help_panel="Input", help="HDF5: dataset path (default: first 3D dataset)")] = None,
+    variable: Annotated[
+        str | None, typer.Option(rich_help_panel="Input", help="netCDF: variable name (default: first 3D variable)")
+    ] = None,
+    fill_value: Annotated[
+        float | None, typer.Option(rich_help_panel="Input", help="Source value marking missing data (masked out)")
+    ] = None,
+    report: Annotated[Path | None, typer.Option(rich_help_panel="Output", help="Run report JSON; default OUTPUT.report.json")] = None,
+    full_eval: Annotated[
+        bool, typer.Option("--full-eval", rich_help_panel="Output", help="PSNR on the full grid, not 500,000 samples")
+    ] = False,
+    as_json: Annotated[bool, typer.Option("--json", rich_help_panel="Output", help="Print the run report as JSON on stdout")] = False,
+    checkpoint: Annotated[
+        Path | None,
+        typer.Option(rich_help_panel="Run control", help="Refinement checkpoint file; default OUTPUT.ckpt (deleted when the run ends)"),
+    ] = None,
+    checkpoint_every: Annotated[
+        float, typer.Option(rich_help_panel="Run control", help="Seconds between checkpoints (Ctrl-C also writes one)")
+    ] = 60.0,
+    resume: Annotated[
+        bool,
+        typer.Option(
+            "--resume", rich_help_panel="Run control", help="Continue an interrupted run from its checkpoint (same input and options)"
+        ),
+    ] = False,
+    target_psnr: Annotated[
+        float | None,
+        typer.Option(
+            rich_help_panel="Refinement", help="dB: skip refinement if the analytic model reaches it, else stop once a validation PSNR does"
+        ),
+    ] = None,
+    plateau: Annotated[
+        float | None,
+        typer.Option(
+            rich_help_panel="Refinement", help="dB: stop refinement once the validation PSNR gains less than this over 300 iterations"
+        ),
+    ] = None,
+    force: Annotated[bool, typer.Option("--force", rich_help_panel="Output", help="Overwrite existing output files")] = False,
+    config: Annotated[
+        Path | None,
+        typer.Option(
+            "--config",
+            is_eager=True,
+            callback=config_callback,
+            rich_help_panel="Run control",
+            help="TOML file of options (names as here, e.g. ratio = 100, w-smooth = 0.01), or a run report to repeat; the command line wins",
+        ),
+    ] = None,
 ) -> None:
     """Encode a volume into N anisotropic Gaussians, evaluate it and write the model and a report."""
     import warpgauss
@@ -75,12 +174,36 @@ def encode(
 
     weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
     if ladder is not None:
-        if budget is not None or ratio is not None or file_bytes is not None or resume or time_budget is not None or save_analytic is not None:
-            fail("--ladder gives the budgets: it does not combine with --budget, --ratio, --bytes, --time-budget, --resume or --save-analytic")
+        if (
+            budget is not None
+            or ratio is not None
+            or file_bytes is not None
+            or resume
+            or time_budget is not None
+            or save_analytic is not None
+        ):
+            fail(
+                "--ladder gives the budgets: it does not combine with --budget, --ratio, --bytes, --time-budget, --resume or --save-analytic"
+            )
         _encode_ladder(
-            ladder, input, out, example, size, seed, device, iterations, samples, preset, RefineConfig(lr=lr, weights=weights),
-            not no_self_test, compact, fmt, ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
-            full_eval, as_json, force,
+            ladder,
+            input,
+            out,
+            example,
+            size,
+            seed,
+            device,
+            iterations,
+            samples,
+            preset,
+            RefineConfig(lr=lr, weights=weights),
+            not no_self_test,
+            compact,
+            fmt,
+            ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
+            full_eval,
+            as_json,
+            force,
         )
         return
     status = None if as_json else err_console.status("starting", spinner="dots")
@@ -88,9 +211,7 @@ def encode(
         status.start()
 
     def progress(it: int, total: int, rec: dict) -> None:
-        status.update(
-            f"[bold]S2[/] refinement {it}/{total}  loss {rec['total']:.3e}  sample PSNR {rec['sample_psnr_db']:.2f} dB"
-        )
+        status.update(f"[bold]S2[/] refinement {it}/{total}  loss {rec['total']:.3e}  sample PSNR {rec['sample_psnr_db']:.2f} dB")
 
     try:
         model = warpgauss.encode(
@@ -129,6 +250,7 @@ def encode(
             status.stop()
     rep = model.report
     rep["report"] = str(rep_path)
+    rep["config"] = resolved_config(ctx)  # warpgauss encode --config REPORT repeats the run
     atomic_write_bytes(rep_path, json_text(rep).encode())
     if as_json:
         print_json(rep)
@@ -146,7 +268,26 @@ def encode(
         raise typer.Exit(130)
 
 
-def _encode_ladder(text, input, out, example, size, seed, device, iterations, samples, preset, refine, self_test, compact, fmt, read, full_eval, as_json, force) -> None:
+def _encode_ladder(
+    text,
+    input,
+    out,
+    example,
+    size,
+    seed,
+    device,
+    iterations,
+    samples,
+    preset,
+    refine,
+    self_test,
+    compact,
+    fmt,
+    read,
+    full_eval,
+    as_json,
+    force,
+) -> None:
     import warpgauss
     from warpgauss._fs import atomic_write_bytes, check_writable
 
@@ -159,9 +300,23 @@ def _encode_ladder(text, input, out, example, size, seed, device, iterations, sa
         status.start()
     try:
         models = warpgauss.encode_ladder(
-            input, budgets=budgets, output_pattern=pattern, force=force, seed=seed, device=device, iterations=iterations,
-            samples=samples, preset=preset, refine=refine, self_test=self_test, compact=compact, format=fmt, example=example,
-            example_size=size, read=read, full_eval=full_eval,
+            input,
+            budgets=budgets,
+            output_pattern=pattern,
+            force=force,
+            seed=seed,
+            device=device,
+            iterations=iterations,
+            samples=samples,
+            preset=preset,
+            refine=refine,
+            self_test=self_test,
+            compact=compact,
+            format=fmt,
+            example=example,
+            example_size=size,
+            read=read,
+            full_eval=full_eval,
             on_stage=None if status is None else lambda name, title: status.update(f"[bold]{name}[/] {title}"),
         )
     finally:
@@ -193,7 +348,15 @@ def _encode_ladder(text, input, out, example, size, seed, device, iterations, sa
     for col in ("N", "bytes", "ratio", "analytic dB", "PSNR dB", "seconds", "model"):
         t.add_column(col, justify="left" if col == "model" else "right")
     for r in rows:
-        t.add_row(f"{r['n']:,}", f"{r['bytes']:,}", f"{r['compression_ratio']:.2f}x", f"{r['psnr_analytic_db']:.2f}", f"{r['psnr_db']:.2f}", f"{r['seconds']:.2f}", r["output"])
+        t.add_row(
+            f"{r['n']:,}",
+            f"{r['bytes']:,}",
+            f"{r['compression_ratio']:.2f}x",
+            f"{r['psnr_analytic_db']:.2f}",
+            f"{r['psnr_db']:.2f}",
+            f"{r['seconds']:.2f}",
+            r["output"],
+        )
     out_console.print(t)
 
 
@@ -231,17 +394,12 @@ def _print_summary(rep: dict) -> None:
         )
     if ev:
         occ = ev["psnr_occupied_db"]
-        out_console.print(
-            f"PSNR {ev['psnr_db']:.2f} dB (occupied {occ:.2f} dB), max abs error {ev['max_abs_error']:.4f}, "
-            f"{ev['mode']}"
-        )
+        out_console.print(f"PSNR {ev['psnr_db']:.2f} dB (occupied {occ:.2f} dB), max abs error {ev['max_abs_error']:.4f}, {ev['mode']}")
     t = Table(show_edge=False, header_style="bold")
     for col in ("stage", "what", "seconds", "host peak", "device peak"):
         t.add_column(col, justify="right" if col in ("seconds", "host peak", "device peak") else "left")
     for s in rep["stages"]:
-        t.add_row(
-            s["stage"], s["title"], f"{s['seconds']:.3f}", human_bytes(s["host_peak_bytes"]), human_bytes(s["device_peak_bytes"])
-        )
+        t.add_row(s["stage"], s["title"], f"{s['seconds']:.3f}", human_bytes(s["host_peak_bytes"]), human_bytes(s["device_peak_bytes"]))
     out_console.print(t)
     for sk in rep["skipped"]:
         out_console.print(f"skipped {sk['what']}: {sk['why']}")

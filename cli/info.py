@@ -26,8 +26,11 @@ def info(
         "file": str(model),
         "n": m.n,
         "bytes": size,
-        "header_bytes": size - (payload["payload_bytes"] if payload.get("bytes_per_primitive") is None else m.n * int(payload["bytes_per_primitive"])),
-        "bytes_per_primitive": (payload["payload_bytes"] / m.n) if payload.get("bytes_per_primitive") is None else payload["bytes_per_primitive"],
+        "header_bytes": size
+        - (payload["payload_bytes"] if payload.get("bytes_per_primitive") is None else m.n * int(payload["bytes_per_primitive"])),
+        "bytes_per_primitive": (payload["payload_bytes"] / m.n)
+        if payload.get("bytes_per_primitive") is None
+        else payload["bytes_per_primitive"],
         "format": payload.get("encoding"),
         "compression_ratio": m.source_bytes / size,
         "source_bytes": m.source_bytes,

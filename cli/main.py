@@ -7,6 +7,7 @@ import os
 import typer
 
 from .bench import bench_app
+from .common import PanelCommand
 from .decode import decode
 from .encode import encode
 from .evaluate import evaluate
@@ -34,15 +35,15 @@ def main(debug: bool = typer.Option(False, "--debug", help="Show the full traceb
         os.environ["WARPGAUSS_DEBUG"] = "1"
 
 
-app.command("encode")(encode)
-app.command("decode")(decode)
-app.command("info")(info)
-app.command("eval")(evaluate)
-app.command("example")(example)
-app.command("stats")(stats)
-app.command("render")(render)
-app.command("export")(export)
-app.command("view")(view)
+app.command("encode", cls=PanelCommand)(encode)
+app.command("decode", cls=PanelCommand)(decode)
+app.command("info", cls=PanelCommand)(info)
+app.command("eval", cls=PanelCommand)(evaluate)
+app.command("example", cls=PanelCommand)(example)
+app.command("stats", cls=PanelCommand)(stats)
+app.command("render", cls=PanelCommand)(render)
+app.command("export", cls=PanelCommand)(export)
+app.command("view", cls=PanelCommand)(view)
 app.add_typer(bench_app, name="bench")
 
 

@@ -92,12 +92,32 @@ def check_png(path: Path) -> None:
 def render(
     input: Annotated[Path, typer.Argument(help="Model (.wgs) or volume file (the reference rendering)")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Image file (.png)")],
-    method: Annotated[str, typer.Option(help="march (exact ray marching of V~), cached (ray marching of V~ decoded once onto a grid: fast) or splat (EWA splatting); models only")] = "march",
-    cache_res: Annotated[int | None, typer.Option("--cache-res", help="--method cached: voxels along the cache grid's longest axis, aspect kept (default: the model's grid)")] = None,
-    compare: Annotated[Path | None, typer.Option(help="Volume the model encodes: write model | reference | |difference| and print image PSNR and SSIM")] = None,
+    method: Annotated[
+        str,
+        typer.Option(
+            help="march (exact ray marching of V~), cached (ray marching of V~ decoded once onto a grid: fast) or splat (EWA splatting); models only"
+        ),
+    ] = "march",
+    cache_res: Annotated[
+        int | None,
+        typer.Option(
+            "--cache-res", help="--method cached: voxels along the cache grid's longest axis, aspect kept (default: the model's grid)"
+        ),
+    ] = None,
+    compare: Annotated[
+        Path | None, typer.Option(help="Volume the model encodes: write model | reference | |difference| and print image PSNR and SSIM")
+    ] = None,
     size: Annotated[str, typer.Option(help="Image size N or WxH in pixels")] = "512",
-    colormap: Annotated[str | None, typer.Option(help="viridis, magma, inferno, plasma, cividis, turbo, coolwarm, jet, grayscale (NAME_r reverses); default: the model's")] = None,
-    opacity: Annotated[str | None, typer.Option(help="Opacity curve value:opacity,... over normalised values, e.g. 0:0,0.3:0,1:1 (or linear, flat, a number)")] = None,
+    colormap: Annotated[
+        str | None,
+        typer.Option(
+            help="viridis, magma, inferno, plasma, cividis, turbo, coolwarm, jet, grayscale (NAME_r reverses); default: the model's"
+        ),
+    ] = None,
+    opacity: Annotated[
+        str | None,
+        typer.Option(help="Opacity curve value:opacity,... over normalised values, e.g. 0:0,0.3:0,1:1 (or linear, flat, a number)"),
+    ] = None,
     tf: Annotated[Path | None, typer.Option("--tf", help="Transfer function .json (ours or a ParaView colormap/opacity export)")] = None,
     density: Annotated[float | None, typer.Option(help="Extinction per voxel at opacity 1 (default 10 / the largest grid extent)")] = None,
     step: Annotated[float, typer.Option(help="Ray-marching step in voxels")] = 0.5,
@@ -142,14 +162,26 @@ def render(
         raise WarpgaussError(f"--cache-res must be a positive number of voxels along the longest axis, got {cache_res}")
     width, height = parse_size(size)
     camera = Camera(
-        azimuth=azimuth, elevation=elevation, distance=distance, zoom=zoom, fov=fov, ortho=ortho,
-        position=parse_vector(position, "--position"), look_at=parse_vector(look_at, "--look-at"),
+        azimuth=azimuth,
+        elevation=elevation,
+        distance=distance,
+        zoom=zoom,
+        fov=fov,
+        ortho=ortho,
+        position=parse_vector(position, "--position"),
+        look_at=parse_vector(look_at, "--look-at"),
         up=parse_vector(up, "--up"),  # type: ignore[arg-type]
     )
     camera.validate()
     settings = RenderSettings(
-        width=width, height=height, step=step, density=density, ert=ert, background=parse_colour(background),
-        shading=shading, skip=skip,
+        width=width,
+        height=height,
+        step=step,
+        density=density,
+        ert=ert,
+        background=parse_colour(background),
+        shading=shading,
+        skip=skip,
     )
     settings.validate()
     if diff_gain <= 0:
@@ -159,7 +191,9 @@ def render(
         raise WarpgaussError(f"no such transfer-function file: {tf}")
 
     if is_model_file(input):
-        summary = _render_model(input, output, method, compare, camera, settings, colormap, opacity, tf, read, diff_gain, device, force, cache_res)
+        summary = _render_model(
+            input, output, method, compare, camera, settings, colormap, opacity, tf, read, diff_gain, device, force, cache_res
+        )
     else:
         if compare is not None:
             raise WarpgaussError("--compare takes the volume a model encodes; render the model (.wgs) with --compare VOLUME")
@@ -200,11 +234,21 @@ def _read_normalised(path: Path, read, value_range=None):
     return vol, f
 
 
-def _render_model(path, output, method, compare, camera, settings, colormap, opacity, tf_path, read, gain, device, force, cache_res=None) -> dict:
+def _render_model(
+    path, output, method, compare, camera, settings, colormap, opacity, tf_path, read, gain, device, force, cache_res=None
+) -> dict:
     from warpgauss._warp import resolve_device
     from warpgauss.model import Model
     from warpgauss.render import (
-        Scene, VolumeRenderer, cache_grid_shape, check_cache_memory, image_psnr, image_ssim, make_renderer, resolve_view, save_png,
+        Scene,
+        VolumeRenderer,
+        cache_grid_shape,
+        check_cache_memory,
+        image_psnr,
+        image_ssim,
+        make_renderer,
+        resolve_view,
+        save_png,
         side_by_side,
     )
 
@@ -219,8 +263,15 @@ def _render_model(path, output, method, compare, camera, settings, colormap, opa
         view = resolve_view(camera, renderer.scene, settings.width, settings.height)
         img = renderer.render(view, tf, settings)
         summary = {
-            "input": str(path), "output": str(output), "method": method, "n": model.n, "width": settings.width,
-            "height": settings.height, "seconds": img.seconds, "device": renderer.device, "transfer_function": tf.describe(),
+            "input": str(path),
+            "output": str(output),
+            "method": method,
+            "n": model.n,
+            "width": settings.width,
+            "height": settings.height,
+            "seconds": img.seconds,
+            "device": renderer.device,
+            "transfer_function": tf.describe(),
             **img.stats,
         }
         if compare is None:
@@ -229,8 +280,11 @@ def _render_model(path, output, method, compare, camera, settings, colormap, opa
         _, f = _read_normalised(compare, read, model.value_range)
         ref = VolumeRenderer(f.values, Scene.from_header(model.header), device=renderer.device).render(view, tf, settings)
     summary.update(
-        compare=str(compare), reference_seconds=ref.seconds, image_psnr_db=image_psnr(img.rgb, ref.rgb),
-        image_ssim=image_ssim(img.rgb, ref.rgb), diff_gain=gain,
+        compare=str(compare),
+        reference_seconds=ref.seconds,
+        image_psnr_db=image_psnr(img.rgb, ref.rgb),
+        image_ssim=image_ssim(img.rgb, ref.rgb),
+        diff_gain=gain,
     )
     save_png(output, side_by_side(img.rgb, ref.rgb, gain), force=force)
     return summary
@@ -247,6 +301,13 @@ def _render_volume(path, output, camera, settings, colormap, opacity, tf_path, r
         img = r.render(camera, tf, settings)
     save_png(output, img.rgb8(), force=force)
     return {
-        "input": str(path), "output": str(output), "method": "reference", "width": settings.width, "height": settings.height,
-        "seconds": img.seconds, "device": r.device, "transfer_function": tf.describe(), **img.stats,
+        "input": str(path),
+        "output": str(output),
+        "method": "reference",
+        "width": settings.width,
+        "height": settings.height,
+        "seconds": img.seconds,
+        "device": r.device,
+        "transfer_function": tf.describe(),
+        **img.stats,
     }

@@ -37,7 +37,9 @@ def stats(
         raise WarpgaussError("give a volume file or --example NAME (one of them)")
     ladder = parse_int_list(budgets, "--budgets") or DEFAULT_BUDGETS
     t0 = time.perf_counter()
-    f, _ = load_field(input, ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value), example=example, example_size=size)
+    f, _ = load_field(
+        input, ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value), example=example, example_size=size
+    )
     load_seconds = time.perf_counter() - t0
     res = field_stats(f, device, ladder)
     res["seconds_load"] = load_seconds
@@ -52,7 +54,8 @@ def stats(
     )
     out_console.print(
         f"occupancy {100 * res['occupancy']:.2f} %   gradient top-10 % {100 * res['grad_top10']:.1f} %   "
-        f"S(1)/S(16) {'n/a' if res['s1_s16'] is None else format(res['s1_s16'], '.4f')}   N_max {res['n_max']:,}" + ("   (statistics sampled)" if res["sampled"] else ""),
+        f"S(1)/S(16) {'n/a' if res['s1_s16'] is None else format(res['s1_s16'], '.4f')}   N_max {res['n_max']:,}"
+        + ("   (statistics sampled)" if res["sampled"] else ""),
         soft_wrap=True,
     )
     from rich.table import Table

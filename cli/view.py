@@ -54,8 +54,20 @@ class Viewer:
         cache_res: Voxels along the cache grid's longest axis (None: the model's grid).
     """
 
-    def __init__(self, model, *, method="cached", size=(768, 768), tf=None, settings=None, camera=None, device=None,
-                 off_screen=False, preview_scale=0.5, cache_res=None):
+    def __init__(
+        self,
+        model,
+        *,
+        method="cached",
+        size=(768, 768),
+        tf=None,
+        settings=None,
+        camera=None,
+        device=None,
+        off_screen=False,
+        preview_scale=0.5,
+        cache_res=None,
+    ):
         import pyvista as pv
         from vtkmodules.vtkCommonDataModel import vtkImageData
         from vtkmodules.vtkRenderingCore import vtkImageActor, vtkRenderer
@@ -125,8 +137,13 @@ class Viewer:
         if not off_screen:  # the slider is for hands; screenshots show the frame alone
             d = self.density
             pl.add_slider_widget(
-                lambda v: self.set_density(10.0**v), [math.log10(d) - 2, math.log10(d) + 2], value=math.log10(d),
-                title="log10 density", pointa=(0.55, 0.08), pointb=(0.95, 0.08), style="modern",
+                lambda v: self.set_density(10.0**v),
+                [math.log10(d) - 2, math.log10(d) + 2],
+                value=math.log10(d),
+                title="log10 density",
+                pointa=(0.55, 0.08),
+                pointb=(0.95, 0.08),
+                style="modern",
             )
 
     # -- state changes (each redraws) --------------------------------------------------------
@@ -136,9 +153,7 @@ class Viewer:
 
         method = method or self.method
         if method not in self._cache:
-            self._cache[method] = make_renderer(
-                self.model, method, self.device, cache_res=self.cache_res if method == "cached" else None
-            )
+            self._cache[method] = make_renderer(self.model, method, self.device, cache_res=self.cache_res if method == "cached" else None)
         return self._cache[method]
 
     def frame_method(self) -> str:
@@ -257,8 +272,15 @@ class Viewer:
 @handle_errors
 def view(
     model: Annotated[Path, typer.Argument(help="Model file (.wgs)")],
-    method: Annotated[str, typer.Option(help="cached (ray marching of V~ decoded once onto a grid; interactive), splat (EWA splatting) or march (exact ray marching; dragging shows the cached grid)")] = "cached",
-    cache_res: Annotated[int | None, typer.Option("--cache-res", help="Voxels along the cache grid's longest axis, aspect kept (default: the model's grid)")] = None,
+    method: Annotated[
+        str,
+        typer.Option(
+            help="cached (ray marching of V~ decoded once onto a grid; interactive), splat (EWA splatting) or march (exact ray marching; dragging shows the cached grid)"
+        ),
+    ] = "cached",
+    cache_res: Annotated[
+        int | None, typer.Option("--cache-res", help="Voxels along the cache grid's longest axis, aspect kept (default: the model's grid)")
+    ] = None,
     size: Annotated[str, typer.Option(help="Window size N or WxH")] = "768",
     colormap: Annotated[str | None, typer.Option(help="Start colormap (default: the model's)")] = None,
     opacity: Annotated[str | None, typer.Option(help="Start opacity curve value:opacity,...")] = None,
@@ -304,8 +326,18 @@ def view(
     settings.validate()
     camera = Camera(azimuth=azimuth, elevation=elevation, zoom=zoom)
     camera.validate()
-    viewer = Viewer(m, method=method, size=(w, h), tf=tfn, settings=settings, camera=camera, device=device,
-                    off_screen=screenshot is not None, preview_scale=preview_scale, cache_res=cache_res)
+    viewer = Viewer(
+        m,
+        method=method,
+        size=(w, h),
+        tf=tfn,
+        settings=settings,
+        camera=camera,
+        device=device,
+        off_screen=screenshot is not None,
+        preview_scale=preview_scale,
+        cache_res=cache_res,
+    )
     if screenshot is not None:
         viewer.screenshot(screenshot)
         out_console.print(f"wrote {screenshot} ({w}x{h}, {method}, off-screen)")

@@ -83,9 +83,7 @@ def gradient_at(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), 
 
 
 @wp.func
-def seed_weight(
-    vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int, mode: int
-) -> float:
+def seed_weight(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int, mode: int) -> float:
     """Draw weight of a voxel: 0 if not eligible; 1 for coverage (mode 1); |grad V| for detail (mode 0)."""
     if not valid_at(mask, has_mask, k, j, i):
         return 0.0

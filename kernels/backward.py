@@ -94,7 +94,13 @@ def pair_terms(p: wp.vec3, st: wp.vec4, g: float, mu: wp.vec3, R: wp.mat33, inv:
     d = p - mu
     yl = wp.transpose(R) @ d
     ys = wp.vec3(yl[0] * inv[0], yl[1] * inv[1], yl[2] * inv[2])
-    return kk * ys, kk * wp.vec3(yl[0] * ys[0], yl[1] * ys[1], yl[2] * ys[2]), -kk * wp.outer(d, ys), gv * w * g / st[2], g * (gv * dv_dg + gr)
+    return (
+        kk * ys,
+        kk * wp.vec3(yl[0] * ys[0], yl[1] * ys[1], yl[2] * ys[2]),
+        -kk * wp.outer(d, ys),
+        gv * w * g / st[2],
+        g * (gv * dv_dg + gr),
+    )
 
 
 @wp.func
@@ -481,16 +487,13 @@ def raw_gradient(
     z = p[8] / qn
     w = p[9] / qn
     gx = 2.0 * (
-        gR[0, 1] * y + gR[0, 2] * z + gR[1, 0] * y - 2.0 * gR[1, 1] * x - gR[1, 2] * w + gR[2, 0] * z + gR[2, 1] * w
-        - 2.0 * gR[2, 2] * x
+        gR[0, 1] * y + gR[0, 2] * z + gR[1, 0] * y - 2.0 * gR[1, 1] * x - gR[1, 2] * w + gR[2, 0] * z + gR[2, 1] * w - 2.0 * gR[2, 2] * x
     )
     gy = 2.0 * (
-        -2.0 * gR[0, 0] * y + gR[0, 1] * x + gR[0, 2] * w + gR[1, 0] * x + gR[1, 2] * z - gR[2, 0] * w + gR[2, 1] * z
-        - 2.0 * gR[2, 2] * y
+        -2.0 * gR[0, 0] * y + gR[0, 1] * x + gR[0, 2] * w + gR[1, 0] * x + gR[1, 2] * z - gR[2, 0] * w + gR[2, 1] * z - 2.0 * gR[2, 2] * y
     )
     gz = 2.0 * (
-        -2.0 * gR[0, 0] * z - gR[0, 1] * w + gR[0, 2] * x + gR[1, 0] * w - 2.0 * gR[1, 1] * z + gR[1, 2] * y
-        + gR[2, 0] * x + gR[2, 1] * y
+        -2.0 * gR[0, 0] * z - gR[0, 1] * w + gR[0, 2] * x + gR[1, 0] * w - 2.0 * gR[1, 1] * z + gR[1, 2] * y + gR[2, 0] * x + gR[2, 1] * y
     )
     gw = 2.0 * (-gR[0, 1] * z + gR[0, 2] * y + gR[1, 0] * z - gR[1, 2] * x - gR[2, 0] * y + gR[2, 1] * x)
     radial = x * gx + y * gy + z * gz + w * gw
@@ -561,7 +564,19 @@ def finish_grads(
     """
     j = wp.tid()
     g, reg = raw_gradient(
-        params[j], d_mu[j], d_ls[j], d_rot[j], d_a[j], d_w[j], vol, l_anchor, l_aniso, l_cap, log_aniso, log_cap, log_min,
+        params[j],
+        d_mu[j],
+        d_ls[j],
+        d_rot[j],
+        d_a[j],
+        d_w[j],
+        vol,
+        l_anchor,
+        l_aniso,
+        l_cap,
+        log_aniso,
+        log_cap,
+        log_min,
         1.0 / float(params.shape[0]),
     )
     reg_loss[j] = reg

@@ -333,7 +333,19 @@ def refine_update(
     if not touched(j, d_mu, d_a, d_w):
         return
     g, reg = raw_gradient(
-        evaluated(raw[j], quant), d_mu[j], d_ls[j], d_rot[j], d_a[j], d_w[j], vol, l_anchor, l_aniso, l_cap, log_aniso, log_cap, log_min,
+        evaluated(raw[j], quant),
+        d_mu[j],
+        d_ls[j],
+        d_rot[j],
+        d_a[j],
+        d_w[j],
+        vol,
+        l_anchor,
+        l_aniso,
+        l_cap,
+        log_aniso,
+        log_cap,
+        log_min,
         1.0 / float(raw.shape[0]),
     )
     d_mu[j] = wp.vec3()

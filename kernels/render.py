@@ -293,7 +293,8 @@ def shade(rgb: wp.vec3, g_vox: wp.vec3, view: wp.vec3, prm: MarchParams) -> wp.v
     h = wp.normalize(l + view)
     ndl = wp.abs(wp.dot(n, l))
     ndh = wp.abs(wp.dot(n, h))
-    spec = prm.specular * wp.pow(ndh, prm.shininess)
+    # Warp's pow takes its own float types (Warp scalars, not Python floats); mypy sees object
+    spec = prm.specular * wp.pow(ndh, prm.shininess)  # type: ignore[type-var]
     return rgb * (prm.ambient + prm.diffuse * ndl) + wp.vec3(spec, spec, spec)
 
 

@@ -88,7 +88,9 @@ def project(
     s2 = wp.vec3(1.0 / inv_s2[i][0], 1.0 / inv_s2[i][1], 1.0 / inv_s2[i][2])
     m = wp.diag(wpv) @ r
     cov_w = m @ wp.diag(s2) @ wp.transpose(m)
-    view = wp.mat33(cam.right[0], cam.right[1], cam.right[2], cam.up[0], cam.up[1], cam.up[2], cam.forward[0], cam.forward[1], cam.forward[2])
+    view = wp.mat33(
+        cam.right[0], cam.right[1], cam.right[2], cam.up[0], cam.up[1], cam.up[2], cam.forward[0], cam.forward[1], cam.forward[2]
+    )
     cov_c = view @ cov_w @ wp.transpose(view)
     width = float(cam.width)
     height = float(cam.height)

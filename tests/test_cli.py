@@ -189,3 +189,56 @@ def test_unexpected_failure_is_one_line_and_debug_shows_the_traceback(tmp_path, 
     res = CliRunner().invoke(app, ["--debug", "info", str(path)])
     os.environ.pop("WARPGAUSS_DEBUG", None)  # --debug sets it for the process
     assert isinstance(res.exception, RuntimeError)  # propagated with its traceback
+
+
+def test_encode_help_groups_options_in_panels():
+    """The options sit under Input, Budget and format, Refinement, Loss weights, Run control and
+    Output, in that order, each option under its own panel."""
+    r = CliRunner().invoke(app, ["encode", "--help"], env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    heads = [line.rstrip(":") for line in r.output.splitlines() if line and not line.startswith(" ") and line.endswith(":")]
+    assert heads == ["Arguments", "Input", "Budget and format", "Refinement", "Loss weights", "Run control", "Output", "Other options"]
+    sections = r.output.split("\n\n")
+    where = {s.splitlines()[0].rstrip(":"): s for s in sections if s and s.splitlines()[0].endswith(":")}
+    assert "--w-smooth " in where["Loss weights"] and "--bytes" in where["Budget and format"] and "--config" in where["Run control"]
+    assert "--samples" in where["Refinement"] and "--shape" in where["Input"] and "--report" in where["Output"]
+
+
+def test_config_file_sets_options_and_the_report_repeats_the_run(tmp_path):
+    """A TOML file sets any option (the command line wins); the report records the resolved
+    options, and --config REPORT gives the same model bit for bit (same seed, same device)."""
+    cfg = tmp_path / "run.toml"
+    cfg.write_text('example = "vortex"\nsize = 20\nbudget = 40\niterations = 50\ndevice = "cpu"\nno-self-test = true\nw-smooth = 0.02\nformat = "full"\n')
+    out = tmp_path / "a.wgs"
+    r = CliRunner().invoke(app, ["encode", "--config", str(cfg), "--iterations", "4", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    rep = json.loads((tmp_path / "a.wgs.report.json").read_text())
+    assert rep["config"]["iterations"] == 4 and rep["config"]["w-smooth"] == 0.02 and rep["config"]["budget"] == 40
+    from warpgauss.model import Model
+
+    assert rep["refinement"]["iterations"] == 4 and Model.load(out).header["encoding"]["refinement"]["weights"]["smooth"] == 0.02
+    assert "force" not in rep["config"]  # a repeat must ask again to overwrite
+    r = CliRunner().invoke(app, ["encode", "--config", str(tmp_path / "a.wgs.report.json")])
+    assert r.exit_code == 2 and "exists" in r.output  # the report names a.wgs: not overwritten
+    again = tmp_path / "b.wgs"
+    r = CliRunner().invoke(app, ["encode", "--config", str(tmp_path / "a.wgs.report.json"), "-o", str(again)])
+    assert r.exit_code == 0, r.output
+    np.testing.assert_array_equal(Model.load(out).params, Model.load(again).params)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("ratioo = 5\n", "unknown option 'ratioo'"),
+        ("ratio = [\n", "not valid TOML"),
+    ],
+)
+def test_bad_config_file_is_refused_in_one_line(tmp_path, text, message):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(text)
+    out = tmp_path / "x.wgs"
+    r = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "16", "--config", str(cfg), "-o", str(out)])
+    assert r.exit_code == 2 and message in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    assert not out.exists()
+    r = CliRunner().invoke(app, ["encode", "--example", "vortex", "--config", str(tmp_path / "missing.toml")])
+    assert r.exit_code == 2 and "no such configuration file" in r.output

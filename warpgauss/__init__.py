@@ -3,8 +3,7 @@
 The package imports Warp lazily: reading, validating and refusing a request costs no Warp start-up.
 """
 
-__version__ = "0.1.0"
-
+from ._version import __version__
 from .errors import WarpgaussError  # noqa: E402
 from .model import Model  # noqa: E402
 from .pipeline import encode, encode_ladder  # noqa: E402

@@ -40,8 +40,8 @@ class Field:
     mask: np.ndarray | None
     vmin: float
     vmax: float
-    spacing: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    spacing: tuple[float, ...] = (1.0, 1.0, 1.0)
+    origin: tuple[float, ...] = (0.0, 0.0, 0.0)
     name: str = "volume"
     source_dtype: str = "float32"
     source_itemsize: int = 4

@@ -18,6 +18,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -25,8 +26,12 @@ from ._warp import device_name, resolve_device, warp
 from .analysis import DeviceVolume, normalise
 from .errors import WarpgaussError
 
-GPU_DEFAULTS = {"size": 1024, "ns": (2_000, 20_000, 200_000, 650_000, 1_400_000), "samples": (3_072, 65_536, 262_144, 1_048_576)}
-CPU_DEFAULTS = {"size": 48, "ns": (500, 2_000), "samples": (1_024, 4_096)}
+GPU_DEFAULTS: dict[str, Any] = {
+    "size": 1024,
+    "ns": (2_000, 20_000, 200_000, 650_000, 1_400_000),
+    "samples": (3_072, 65_536, 262_144, 1_048_576),
+}
+CPU_DEFAULTS: dict[str, Any] = {"size": 48, "ns": (500, 2_000), "samples": (1_024, 4_096)}
 
 
 @dataclass
@@ -157,7 +162,7 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
         for m in cfg.samples:
             r.set_samples(m)
             r.set_raw(raw0)  # every sample count sees the same primitives
-            row = {"n": n, "samples": m}
+            row: dict[str, Any] = {"n": n, "samples": m}
             row["sample_ms"] = timer.ms(r.sample, cfg.repeat)
             row["forward_ms"] = timer.ms(r.forward, cfg.repeat)
             pairs = r.pairs.numpy().astype(np.float64)
@@ -172,7 +177,12 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
             if cfg.atomic_baseline:  # the point-major atomic scatter the primitive-major pass replaced
                 row["backward_atomic_ms"] = timer.ms(lambda: r.passes.atomic_pairs(kb.accumulate_pairs, 2 * m), cfg.repeat)
                 r.state.zero_grads()
-            both = timer.ms(lambda: (r.backward(), r.update()), cfg.repeat)
+
+            def backward_update() -> None:
+                r.backward()
+                r.update()
+
+            both = timer.ms(backward_update, cfg.repeat)
             row["update_ms"] = max(both - row["backward_ms"], 0.0)
             r.state.zero_grads()
             fb = row["forward_ms"] + row["backward_ms"]
@@ -315,7 +325,11 @@ def format_table(result: dict) -> str:
             f"{r.get('backward_atomic_ms', float('nan')):.3f} | {r['update_ms']:.3f} | {r['iteration_ms']:.3f} | {r.get('iteration_nograph_ms', float('nan')):.3f} | "
             f"{r['pairs_per_point']:.1f} | {r['gpairs_per_s'] or 0:.2f} | {r.get('dense_over_binned', float('nan')):.1f} |"
         )
-    lines += ["", "| N | levels | bin ms | decode s | cell-walk decode s | row-major decode s | Gvoxels/s |", "|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| N | levels | bin ms | decode s | cell-walk decode s | row-major decode s | Gvoxels/s |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for e in result["per_n"]:
         lines.append(
             f"| {e['n']:,} | {e['levels']} | {e['bin_ms']:.3f} | {e.get('decode_ms', float('nan')) / 1e3:.3f} | "

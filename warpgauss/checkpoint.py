@@ -14,6 +14,7 @@ import json
 import os
 import zipfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -54,7 +55,8 @@ def save(path: str | os.PathLike, arrays: dict, meta: dict) -> None:
     blob = np.frombuffer(json.dumps(record, default=float).encode(), np.uint8)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays, **{META: blob})
+            meta_arrays: dict[str, Any] = {META: blob}
+            np.savez(fh, **arrays, **meta_arrays)
             fh.flush()
             os.fsync(fh.fileno())
 

@@ -175,7 +175,13 @@ def as_stored(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndar
 def _part1by2(v: np.ndarray) -> np.ndarray:
     """Spread the low 21 bits of v to every third bit (Morton interleave of one axis)."""
     v = v.astype(np.uint64) & np.uint64(0x1FFFFF)
-    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F), (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+    for shift, mask in (
+        (32, 0x1F00000000FFFF),
+        (16, 0x1F0000FF0000FF),
+        (8, 0x100F00F00F00F00F),
+        (4, 0x10C30C30C30C30C3),
+        (2, 0x1249249249249249),
+    ):
         v = (v | (v << np.uint64(shift))) & np.uint64(mask)
     return v
 
@@ -380,6 +386,7 @@ def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = Non
     steps: list[str] = []
     cur = size(p, b)
     turn = 0
+    pred: float  # the predicted size: less a bit's (fractional) bytes at each drop
     while cur > budget * (1.0 + PRUNE_SHARE):
         pred, dropped = cur, 0
         while pred > budget * (1.0 + PRUNE_SHARE):
@@ -406,17 +413,17 @@ def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = Non
 
         lo, lo_size = 0, cur  # lo prunes too few (over budget); hi the fewest found that fit
         hi = hi_size = None
-        k = 0
+        cut = 0
         while hi is None:  # step out by the estimated excess (and 0.2 % more) until it fits
-            per = cur / (len(p) - k)
-            k = min(len(p) - 1, k + max(1, int(np.ceil((cur - budget * (1.0 - FILL_SHARE / 2)) / per))))
-            cur = size(kept(k), b)
+            per = cur / (len(p) - cut)
+            cut = min(len(p) - 1, cut + max(1, int(np.ceil((cur - budget * (1.0 - FILL_SHARE / 2)) / per))))
+            cur = size(kept(cut), b)
             if cur <= budget:
-                hi, hi_size = k, cur
-            elif k == len(p) - 1:
+                hi, hi_size = cut, cur
+            elif cut == len(p) - 1:
                 raise WarpgaussError(f"no coded model of one primitive fits {budget} bytes; give a larger byte budget")
             else:
-                lo, lo_size = k, cur
+                lo, lo_size = cut, cur
         # then fewer pruned while more fit: interpolate between the two, halving when that stalls
         for _ in range(SEARCH_CODINGS):
             if hi - lo <= 1 or budget - hi_size <= FILL_SHARE * budget:

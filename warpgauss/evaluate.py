@@ -102,7 +102,7 @@ def evaluate_against(model, volume, *, full: bool = False, device: str | None = 
     """
     from .analysis import normalise
     from .errors import WarpgaussError
-    from .pipeline import ReadOptions
+    from .io import ReadOptions
 
     read = read or ReadOptions(stride=int(model.header.get("encoding", {}).get("stride", 1)))
     fill = fill_value if fill_value is not None else read.fill_value

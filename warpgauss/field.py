@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -37,12 +38,12 @@ class BinPlan:
     """
 
     sizes: tuple[float, ...]
-    dims: tuple[tuple[int, int, int], ...]
+    dims: tuple[tuple[int, ...], ...]
     offsets: tuple[int, ...]
     total_cells: int
 
 
-def plan_bins(radius: np.ndarray, shape_xyz: tuple[int, int, int]) -> BinPlan:
+def plan_bins(radius: np.ndarray, shape_xyz: tuple[int, ...]) -> BinPlan:
     """Choose cell levels for primitives of the given truncation radii on a grid of ``shape_xyz``.
 
     One level per occupied power-of-two radius class (classes start at a power of two), its cells
@@ -66,7 +67,7 @@ def plan_bins(radius: np.ndarray, shape_xyz: tuple[int, int, int]) -> BinPlan:
     return _plan_from_classes(base, [int(c) for c in classes], shape_xyz)
 
 
-def plan_bins_on_device(radius, shape_xyz: tuple[int, int, int]) -> BinPlan:
+def plan_bins_on_device(radius, shape_xyz: tuple[int, ...]) -> BinPlan:
     """:func:`plan_bins` of a Warp array of radii: the least radius and the occupied classes are
     found on its device (two launches, 260 bytes read back instead of 4 bytes a primitive; the
     numpy plan of 1.4M radii took 40-80 ms of host time every re-plan)."""
@@ -86,11 +87,11 @@ def plan_bins_on_device(radius, shape_xyz: tuple[int, int, int]) -> BinPlan:
     return _plan_from_classes(base, [int(c) for c in np.flatnonzero(flags.numpy())], shape_xyz)
 
 
-def _plan_from_classes(base: float, classes: list[int], shape_xyz: tuple[int, int, int]) -> BinPlan:
+def _plan_from_classes(base: float, classes: list[int], shape_xyz: tuple[int, ...]) -> BinPlan:
     """The levels of occupied radius classes ``base`` x 2^c (ascending), then the global level."""
     shape = np.asarray(shape_xyz, dtype=np.float64)
     sizes: list[float] = []
-    dims: list[tuple[int, int, int]] = []
+    dims: list[tuple[int, ...]] = []
     for c in classes:
         size = base * 2.0 ** int(c)
         if sizes:
@@ -106,7 +107,7 @@ def _plan_from_classes(base: float, classes: list[int], shape_xyz: tuple[int, in
     return _with_global_level(sizes, dims)
 
 
-def _with_global_level(sizes: list[float], dims: list[tuple[int, int, int]]) -> BinPlan:
+def _with_global_level(sizes: list[float], dims: list[tuple[int, ...]]) -> BinPlan:
     """The plan of these levels followed by the global level (one cell), with the cell offsets."""
     sizes = [*sizes, float(np.finfo(np.float32).max)]
     dims = [*dims, (1, 1, 1)]
@@ -130,7 +131,7 @@ MAX_POINT_CELLS = 1 << 22  # cells of one level's point grid (16 MiB of int32 st
 ROW_COST = 16.0  # cost of visiting one row of point cells, in candidate-point tests (H100: 16 beat 1 and 4 by 3-6 % and 64 by 24 %, benchmarks/results/i17_rowcost_h100.json)
 
 
-def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, int, int], occupied_voxels: int) -> BinPlan:
+def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, ...], occupied_voxels: int) -> BinPlan:
     """Choose, per primitive level, the cell grid the backward pass bins points on (a
     :class:`BinPlan` of the same levels: the last is one global cell).
 
@@ -151,7 +152,7 @@ def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, int, in
     volume = float(np.prod(shape))
     rho = 0.75 * n_points / max(float(occupied_voxels), 1.0) + 0.25 * n_points / volume
     sizes: list[float] = []
-    dims: list[tuple[int, int, int]] = []
+    dims: list[tuple[int, ...]] = []
     for s in plan.sizes[:-1]:  # the global level gets one cell below
         e = 0.75 * s
         best = None
@@ -195,7 +196,13 @@ def sort_into_cells(prims, prepared, keys, order, device: str) -> None:
     wp = warp()
     mu, rot, inv_s2, ext, radius, a, w = prepared
     n = mu.shape[0]
-    wp.launch(kf.bin_keys, dim=n, inputs=[mu, radius, prims.level_size, prims.level_dims, prims.level_offset], outputs=[keys, order], device=device)
+    wp.launch(
+        kf.bin_keys,
+        dim=n,
+        inputs=[mu, radius, prims.level_size, prims.level_dims, prims.level_offset],
+        outputs=[keys, order],
+        device=device,
+    )
     wp.utils.radix_sort_pairs(keys, order, n)
     prims.cell_start.zero_()
     prims.cell_end.zero_()
@@ -235,7 +242,7 @@ class GaussianField:
         raw: ``params`` are training parameters (weight logit in slot 11, quaternion unnormalised).
     """
 
-    def __init__(self, params, shape_xyz: tuple[int, int, int], device: str | None = None, *, raw: bool = False):
+    def __init__(self, params, shape_xyz: tuple[int, ...], device: str | None = None, *, raw: bool = False):
         wp = warp()
         from .kernels import field as kf
 
@@ -270,7 +277,7 @@ class GaussianField:
         p.a = wp.empty_like(self.a)
         p.w = wp.empty_like(self.w)
         self.plan: BinPlan | None = None
-        self._active = None
+        self._active: tuple[Any, float] | None = None  # (brick grid or None: every brick, active share)
         self._decode_bufs: dict = {}  # int scratch of the brick-list decode, kept between slabs
         self.update(replan=True)
 
@@ -411,7 +418,11 @@ class GaussianField:
             active = self._wp.ones((1, 1, 1), dtype=self._wp.uint8, device=self.device)
         h, ny, nx = out.shape
         self._wp.launch(
-            kd.eval_grid_blocked, dim=kd.blocked_threads(h, ny, nx), inputs=[z0, scale, self.prims, active, int(use)], outputs=[out], device=self.device
+            kd.eval_grid_blocked,
+            dim=kd.blocked_threads(h, ny, nx),
+            inputs=[z0, scale, self.prims, active, int(use)],
+            outputs=[out],
+            device=self.device,
         )
 
     def active_bricks(self):
@@ -462,9 +473,9 @@ class GaussianField:
                 progress(z0 + slab.shape[0], nz)
         return result
 
+
 def grid_points(shape_xyz: tuple[int, int, int]) -> np.ndarray:
     """All voxel centres of a grid as (nz*ny*nx, 3) float32 positions in C order (x fastest)."""
     nx, ny, nz = shape_xyz
     z, y, x = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
     return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1).astype(np.float32)
-

@@ -26,9 +26,10 @@ import math
 import os
 import re
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from types import ModuleType
 
 import numpy as np
 
@@ -202,16 +203,15 @@ def _read_raw(path: Path, *, shape=None, dtype=None, endian=None, **_) -> _Read:
         )
     shape_xyz = _resolve_shape(shape) if shape is not None else parsed[0]  # type: ignore[index]
     base = _resolve_dtype(dtype) if dtype is not None else parsed[1]  # type: ignore[index]
-    dt = base.newbyteorder(_byte_order(endian))
+    # numpy's stubs take only literal byte-order codes; _byte_order returns "<" or ">"
+    dt = base.newbyteorder(_byte_order(endian))  # type: ignore[arg-type]
     nx, ny, nz = shape_xyz
     if min(shape_xyz) < 1:
         raise WarpgaussError(f"{path.name} names an empty grid {_fmt_xyz(shape_xyz)}; every axis needs at least 1 voxel")
     need = nx * ny * nz * dt.itemsize
     have = path.stat().st_size
     if have != need:
-        raise WarpgaussError(
-            f"{path.name} holds {have} bytes but {_fmt_xyz(shape_xyz)} {base.name} needs {need}; check --shape/--dtype"
-        )
+        raise WarpgaussError(f"{path.name} holds {have} bytes but {_fmt_xyz(shape_xyz)} {base.name} needs {need}; check --shape/--dtype")
     return _Read(np.memmap(path, dtype=dt, mode="r", shape=(nz, ny, nx)))
 
 
@@ -279,8 +279,7 @@ def _hdf5_array(path: Path, ds, shape: tuple, stride: int) -> tuple[np.ndarray, 
         return np.asarray(ds[(0,) * (ds.ndim - 3) + (s, s, s)]), True
     except MemoryError:
         raise WarpgaussError(
-            f"not enough memory to read {path.name}:{ds.name} ({voxels} voxels x {ds.dtype.itemsize} bytes); "
-            "use a larger --stride"
+            f"not enough memory to read {path.name}:{ds.name} ({voxels} voxels x {ds.dtype.itemsize} bytes); use a larger --stride"
         ) from None
     except OSError as e:  # a damaged chunk or a missing compression filter
         raise WarpgaussError(f"cannot read {path.name}:{ds.name} ({_first_line(e)})") from None
@@ -342,17 +341,13 @@ def _read_netcdf(path: Path, *, variable=None, dataset=None, stride: int = 1, **
     try:
         f = netcdf_file(path, "r", mmap=False)
     except Exception as e:  # scipy raises TypeError/ValueError for unsupported variants (CDF-5)
-        raise WarpgaussError(
-            f"scipy cannot read {path.name} ({_first_line(e)}); convert it with `nccopy -k nc4` and retry"
-        ) from e
+        raise WarpgaussError(f"scipy cannot read {path.name} ({_first_line(e)}); convert it with `nccopy -k nc4` and retry") from e
     with f:
         shapes = [(n, _drop_leading_ones(v.shape)) for n, v in f.variables.items()]
         wanted = variable if variable is not None else dataset
         if wanted is not None:
             if wanted not in f.variables:
-                raise WarpgaussError(
-                    f"{path.name} has no variable {wanted!r}; it holds {_list_datasets(shapes)}; pick one with --variable"
-                )
+                raise WarpgaussError(f"{path.name} has no variable {wanted!r}; it holds {_list_datasets(shapes)}; pick one with --variable")
             key = wanted
         else:
             key = next((n for n, s in shapes if len(s) == 3), None)
@@ -416,12 +411,32 @@ def _read_pyvista(path: Path, **_) -> _Read:
 
 _NRRD_SIZES = {
     1: ("uchar", "unsigned char", "uint8", "uint8_t", "signed char", "int8", "int8_t", "char"),
-    2: ("short", "short int", "signed short", "signed short int", "int16", "int16_t", "ushort", "unsigned short",
-        "unsigned short int", "uint16", "uint16_t"),
+    2: (
+        "short",
+        "short int",
+        "signed short",
+        "signed short int",
+        "int16",
+        "int16_t",
+        "ushort",
+        "unsigned short",
+        "unsigned short int",
+        "uint16",
+        "uint16_t",
+    ),
     4: ("int", "signed int", "int32", "int32_t", "uint", "unsigned int", "uint32", "uint32_t", "float"),
 }
-_META_SIZES = {"MET_UCHAR": 1, "MET_CHAR": 1, "MET_SHORT": 2, "MET_USHORT": 2, "MET_INT": 4, "MET_UINT": 4,
-               "MET_FLOAT": 4, "MET_LONG": 4, "MET_ULONG": 4}
+_META_SIZES = {
+    "MET_UCHAR": 1,
+    "MET_CHAR": 1,
+    "MET_SHORT": 2,
+    "MET_USHORT": 2,
+    "MET_INT": 4,
+    "MET_UINT": 4,
+    "MET_FLOAT": 4,
+    "MET_LONG": 4,
+    "MET_ULONG": 4,
+}
 
 
 def _quiet_pyvista_read(pv, path: Path):
@@ -491,7 +506,7 @@ def _gzip_bytes(path: Path, offset: int, enough: int) -> int:
     outer_gz = path.name.lower().endswith(".gz")
     total = 0
     try:
-        with (gzip.open(path, "rb") if outer_gz else open(path, "rb")) as fh:
+        with gzip.open(path, "rb") if outer_gz else open(path, "rb") as fh:
             fh.seek(offset) if not outer_gz else fh.read(offset)
             if outer_gz:  # the file itself is gzip: count what follows the header
                 while total < enough:
@@ -589,16 +604,16 @@ def _nifti_declared(path: Path):
     else:
         head = _head_text(path, 544)
         size = path.stat().st_size
-    for e in ("<", ">"):
-        if len(head) >= 348 and struct.unpack(e + "i", head[:4])[0] == 348:
-            dim = struct.unpack(e + "8h", head[40:56])
-            bitpix = struct.unpack(e + "h", head[72:74])[0]
-            offset = struct.unpack(e + "f", head[108:112])[0]
+    for order in ("<", ">"):
+        if len(head) >= 348 and struct.unpack(order + "i", head[:4])[0] == 348:
+            dim = struct.unpack(order + "8h", head[40:56])
+            bitpix = struct.unpack(order + "h", head[72:74])[0]
+            offset = struct.unpack(order + "f", head[108:112])[0]
             break
-        if len(head) >= 540 and struct.unpack(e + "i", head[:4])[0] == 540:
-            dim = struct.unpack(e + "8q", head[16:80])
-            bitpix = struct.unpack(e + "h", head[14:16])[0]
-            offset = struct.unpack(e + "q", head[168:176])[0]
+        if len(head) >= 540 and struct.unpack(order + "i", head[:4])[0] == 540:
+            dim = struct.unpack(order + "8q", head[16:80])
+            bitpix = struct.unpack(order + "h", head[14:16])[0]
+            offset = struct.unpack(order + "q", head[168:176])[0]
             break
     else:
         raise WarpgaussError(f"{path.name} has no NIfTI-1 or NIfTI-2 header (sizeof_hdr is not 348 or 540)")
@@ -709,7 +724,8 @@ def _read_mrc(path: Path, **_) -> _Read:
     floats = np.frombuffer(head, dtype=e + "f4")
     nx, ny, nz, mode = (int(v) for v in ints[0:4])
     mapcrs = _mrc_axis_map(path, ints[16:19])
-    dt = _mrc_dtype(path, mode).newbyteorder(e)
+    # numpy's stubs take only literal byte-order codes; _mrc_byte_order returns "<" or ">"
+    dt = _mrc_dtype(path, mode).newbyteorder(e)  # type: ignore[arg-type]
     if min(nx, ny, nz) < 1:
         raise WarpgaussError(f"{path.name} has an empty MRC grid {nx}x{ny}x{nz} (columns x rows x sections)")
     offset = 1024 + max(int(ints[23]), 0)
@@ -719,6 +735,7 @@ def _read_mrc(path: Path, **_) -> _Read:
             f"{path.name} holds {max(size - offset, 0)} bytes of data but its header "
             f"({nx}x{ny}x{nz}, MODE {mode}) needs {need}; the file is truncated"
         )
+    data: np.ndarray  # a memmap of the file, or a view of the decompressed bytes
     if blob is None:
         data = np.memmap(path, dtype=dt, mode="r", offset=offset, shape=(nz, ny, nx))
     else:
@@ -733,6 +750,7 @@ def _read_mrc(path: Path, **_) -> _Read:
 def _decompressed(path: Path) -> bytes | None:
     """The whole decompressed content of a ``.gz``/``.bz2`` file; None for an uncompressed one."""
     lower = path.name.lower()
+    codec: ModuleType
     if lower.endswith(".bz2"):
         import bz2 as codec
     elif lower.endswith(".gz"):
@@ -842,10 +860,11 @@ READERS: dict[str, _Reader] = {
     ".hdf": _Reader(_read_hdf5, _H5_OPTS, "HDF5"),
     ".nc": _Reader(_read_netcdf, _H5_OPTS, "netCDF"),
     ".cdf": _Reader(_read_netcdf, _H5_OPTS, "netCDF"),
-    **{ext: _Reader(_read_pyvista, frozenset(), "VTK/medical image")
-       for ext in (".vti", ".vtk", ".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")},
-    **{base + comp: _Reader(_read_mrc, frozenset(), "MRC/CCP4")
-       for base in (".mrc", ".map", ".ccp4") for comp in ("", ".gz", ".bz2")},
+    **{
+        ext: _Reader(_read_pyvista, frozenset(), "VTK/medical image")
+        for ext in (".vti", ".vtk", ".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
+    },
+    **{base + comp: _Reader(_read_mrc, frozenset(), "MRC/CCP4") for base in (".mrc", ".map", ".ccp4") for comp in ("", ".gz", ".bz2")},
     ".plt": _Reader(_read_plt, frozenset(), "gOpenMol plt"),
 }
 
@@ -1107,3 +1126,28 @@ def _xyz_tuple(value, what: str) -> tuple[float, float, float]:
     if len(out) != 3 or not all(np.isfinite(out)):
         raise WarpgaussError(f"{what} must be three finite numbers (x, y, z), got {value!r}")
     return out  # type: ignore[return-value]
+
+
+@dataclass
+class ReadOptions:
+    """How to read a file source (see :func:`warpgauss.io.read_volume`)."""
+
+    shape: tuple[int, int, int] | None = None
+    dtype: str | None = None
+    endian: str | None = None
+    dataset: str | None = None
+    variable: str | None = None
+    stride: int = 1
+    fill_value: float | None = None
+
+    def read(self, path):
+        """Read a volume file with these options (:func:`warpgauss.io.read_volume`)."""
+        return read_volume(
+            path,
+            shape=self.shape,
+            dtype=self.dtype,
+            endian=self.endian,
+            dataset=self.dataset,
+            variable=self.variable,
+            stride=self.stride,
+        )

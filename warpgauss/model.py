@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from . import __version__
+from ._version import __version__
 from .errors import WarpgaussError
 
 # viridis at nine evenly spaced stops (RGB 0..255); the default colormap of the header's LUT
@@ -126,9 +127,7 @@ def _header_problem(h: dict) -> str | None:
     if "lut_rgba8" in tf and not isinstance(tf["lut_rgba8"], str):
         return "transfer_function lut_rgba8 is not a hex string"
     op = tf.get("opacity")
-    if op is not None and not (
-        isinstance(op, list) and all(isinstance(q, list) and len(q) == 2 and all(map(_is_number, q)) for q in op)
-    ):
+    if op is not None and not (isinstance(op, list) and all(isinstance(q, list) and len(q) == 2 and all(map(_is_number, q)) for q in op)):
         return f"transfer_function opacity {op!r} is not a list of [value, opacity] pairs"
     stride = (h.get("encoding") or {}).get("stride", 1)
     if not _is_count(stride, 1):
@@ -183,7 +182,7 @@ class Model:
         return int(self.params.shape[0])
 
     @property
-    def shape_xyz(self) -> tuple[int, int, int]:
+    def shape_xyz(self) -> tuple[int, ...]:
         return tuple(int(s) for s in self.header["grid"]["shape_xyz"])
 
     @property
@@ -284,7 +283,7 @@ class Model:
         *,
         device: str | None = None,
         normalised: bool = False,
-        progress=None,
+        progress: Callable[[int, int], None] | None = None,
         info: dict | None = None,
     ) -> np.ndarray:
         """Evaluate the model on a grid spanning the model's extent.
@@ -313,19 +312,17 @@ class Model:
         lo, hi = self.value_range
         return denormalise(v, lo, hi)
 
-    def decoded_spacing(self, shape: tuple[int, int, int] | None = None) -> tuple[float, float, float]:
+    def decoded_spacing(self, shape: tuple[int, int, int] | None = None) -> tuple[float, ...]:
         """Physical voxel spacing of a decode at ``shape`` (same extent as the encoded grid)."""
         sp = self.header["grid"]["spacing"]
         if shape is None:
             return tuple(float(s) for s in sp)
         return tuple(float(sp[a]) * self.shape_xyz[a] / int(shape[a]) for a in range(3))
 
-    def decoded_origin(self, shape: tuple[int, int, int] | None = None) -> tuple[float, float, float]:
+    def decoded_origin(self, shape: tuple[int, int, int] | None = None) -> tuple[float, ...]:
         """Physical position of the first voxel centre of a decode at ``shape``."""
         sp = self.header["grid"]["spacing"]
         org = self.header["grid"]["origin"]
         if shape is None:
             return tuple(float(o) for o in org)
-        return tuple(
-            float(org[a]) + float(sp[a]) * (0.5 * self.shape_xyz[a] / int(shape[a]) - 0.5) for a in range(3)
-        )
+        return tuple(float(org[a]) + float(sp[a]) * (0.5 * self.shape_xyz[a] / int(shape[a]) - 0.5) for a in range(3))

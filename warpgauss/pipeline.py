@@ -11,50 +11,25 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import os
-import time
 import platform
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from . import __version__
+from ._version import __version__
 from .allocate import AllocationConfig, allocate
 from .analysis import Field, budget_from_bytes, check_budget, normalise, seed_limit
 from .errors import WarpgaussError
+from .io import ReadOptions  # noqa: F401 - part of this module's API (stage P's options)
 from .model import Model, make_header
 from .optimize import PRESETS, RefineConfig
 from .profiling import StageRecorder
 
 DEFAULT_RATIO = 20.0  # used when neither a budget nor a ratio is given
 MAX_SAMPLES = 1 << 24  # samples per iteration: 16.8M is 1.7 GB of per-sample buffers and 64x the largest preset
-
-
-@dataclass
-class ReadOptions:
-    """How to read a file source (see :func:`warpgauss.io.read_volume`)."""
-
-    shape: tuple[int, int, int] | None = None
-    dtype: str | None = None
-    endian: str | None = None
-    dataset: str | None = None
-    variable: str | None = None
-    stride: int = 1
-    fill_value: float | None = None
-
-    def read(self, path):
-        """Read a volume file with these options (:func:`warpgauss.io.read_volume`)."""
-        from .io import read_volume
-
-        return read_volume(
-            path,
-            shape=self.shape,
-            dtype=self.dtype,
-            endian=self.endian,
-            dataset=self.dataset,
-            variable=self.variable,
-            stride=self.stride,
-        )
 
 
 @dataclass
@@ -115,7 +90,9 @@ def load_field(
         voxels = int(np.prod([int(d) for d in dims], dtype=object))
         if voxels > MAX_VOXELS:
             largest = int(round(MAX_VOXELS ** (1 / 3))) - 1
-            raise WarpgaussError(f"--size {example_size} gives {voxels:,} voxels, more than the {MAX_VOXELS:,} warpgauss indexes; use --size {largest} or less")
+            raise WarpgaussError(
+                f"--size {example_size} gives {voxels:,} voxels, more than the {MAX_VOXELS:,} warpgauss indexes; use --size {largest} or less"
+            )
         free = _available_memory()
         if free is not None and 3 * 4 * voxels > free:  # the float32 field and generation temporaries
             raise WarpgaussError(
@@ -293,9 +270,7 @@ def _coded_choice(sizing: dict | None, fit: dict | None, note: dict | None) -> s
     return "; ".join(parts)
 
 
-def resolve_refine(
-    refine: RefineConfig | None, preset: str | None, iterations: int | None, samples: int | None
-) -> RefineConfig:
+def resolve_refine(refine: RefineConfig | None, preset: str | None, iterations: int | None, samples: int | None) -> RefineConfig:
     """Refinement settings from a preset, overridden by explicit iterations / samples."""
     cfg = refine or RefineConfig()
     if preset is not None:
@@ -308,9 +283,7 @@ def resolve_refine(
         cfg = dataclasses.replace(cfg, iterations=int(iterations))
     if samples is not None:
         if samples < 1 or samples > MAX_SAMPLES:
-            raise WarpgaussError(
-                f"--samples must be between 1 and {MAX_SAMPLES:,} (about 100 bytes of buffers per sample), got {samples}"
-            )
+            raise WarpgaussError(f"--samples must be between 1 and {MAX_SAMPLES:,} (about 100 bytes of buffers per sample), got {samples}")
         cfg = dataclasses.replace(cfg, samples=int(samples), budget_samples=False, auto_samples=False)  # the user's count stays
     cfg.validate()
     return cfg
@@ -357,8 +330,8 @@ def encode_field(
     input_info: dict | None = None,
     evaluate: bool = True,
     full_eval: bool = False,
-    on_stats=None,
-    on_progress=None,
+    on_stats: Callable[[dict], None] | None = None,
+    on_progress: Callable[[int, int, dict], None] | None = None,
     log_every: int = 25,
     analytic_output=None,
     force: bool = False,
@@ -408,7 +381,13 @@ def encode_field(
 
     if cache is not None and cache.get("device") == dev and cache.get("field") is f:
         dv, stats = cache["dv"], cache["stats"]
-        skipped.append({"what": "S1a", "why": "device volume and statistics reused from the previous budget of the ladder", "seconds_saved": cache["seconds"]})
+        skipped.append(
+            {
+                "what": "S1a",
+                "why": "device volume and statistics reused from the previous budget of the ladder",
+                "seconds_saved": cache["seconds"],
+            }
+        )
     else:
         t0 = time.perf_counter()
         with timer.stage("S1a", "occupancy, gradients, structure statistics"):
@@ -471,7 +450,10 @@ def encode_field(
                     "why": f"the analytic model already reaches the target ({early_eval['psnr_db']:.2f} >= {opts.refine.target_psnr:g} dB)",
                 }
             )
-            refinement = {"iterations": 0, "stop": {"reason": "target PSNR reached by the analytic model", "iterations_skipped": opts.refine.iterations}}
+            refinement = {
+                "iterations": 0,
+                "stop": {"reason": "target PSNR reached by the analytic model", "iterations_skipped": opts.refine.iterations},
+            }
             if fit_later:  # it is the result: fitted to the budget and scored as stored
                 analytic, analytic_fit = stored(analytic)
                 model = analytic
@@ -518,7 +500,11 @@ def encode_field(
             if opts.self_test and dev in SELF_TESTS:  # once per process and device: the kernels cannot change
                 refinement["self_test"] = {**SELF_TESTS[dev], "reused": True, "seconds": 0.0}
                 skipped.append(
-                    {"what": "self-test", "why": "passed earlier in this process on this device", "seconds_saved": SELF_TESTS[dev]["seconds"]}
+                    {
+                        "what": "self-test",
+                        "why": "passed earlier in this process on this device",
+                        "seconds_saved": SELF_TESTS[dev]["seconds"],
+                    }
                 )
             elif opts.self_test:  # the self-test leaves the training state as it was
                 t0 = time.perf_counter()
@@ -581,7 +567,13 @@ def encode_field(
                 "seconds_saved_estimate": left * total / max(refiner.iteration, 1),
                 "checks": refiner.checks,
             }
-            skipped.append({"what": f"S2 iterations {refiner.iteration}-{refiner.cfg.iterations}", "why": refiner.stop_reason, "seconds_saved": refinement["stop"]["seconds_saved_estimate"]})
+            skipped.append(
+                {
+                    "what": f"S2 iterations {refiner.iteration}-{refiner.cfg.iterations}",
+                    "why": refiner.stop_reason,
+                    "seconds_saved": refinement["stop"]["seconds_saved_estimate"],
+                }
+            )
         elif refiner.checks:
             refinement["checks"] = refiner.checks
         if refiner.interrupted:
@@ -674,13 +666,13 @@ class _Checkpoints:
     """When to write refinement checkpoints, and resuming from one (see :mod:`warpgauss.checkpoint`)."""
 
     def __init__(self, opts: EncodeOptions, params: np.ndarray, cfg: RefineConfig, device: str):
-        from . import checkpoint
+        from .checkpoint import fingerprint
 
         self.path = None if opts.checkpoint is None else Path(opts.checkpoint)
         self.every = float(opts.checkpoint_every)
         settings = {k: v for k, v in cfg.to_dict().items() if k not in ("iterations", "samples")}
         settings.update({"requested_iterations": cfg.iterations, "requested_samples": cfg.samples, "seed": opts.seed})
-        self.fingerprint = checkpoint.fingerprint(params, settings)
+        self.fingerprint = fingerprint(params, settings)
         self.device = device
         self.sessions: list[dict] = []
         self.start_iteration = 0
@@ -689,11 +681,11 @@ class _Checkpoints:
         self.resumed_from: int | None = None
 
     def resume(self, refiner) -> None:
-        from . import checkpoint
+        from .checkpoint import load as load_checkpoint
 
         if self.path is None:
             raise WarpgaussError("--resume needs a checkpoint path (--checkpoint PATH, or an output file)")
-        arrays, meta = checkpoint.load(self.path)
+        arrays, meta = load_checkpoint(self.path)
         if meta.get("fingerprint") != self.fingerprint:
             raise WarpgaussError(
                 f"{self.path} was written for another input, budget, seed or other refinement options; "
@@ -717,7 +709,7 @@ class _Checkpoints:
             self.save(refiner)
 
     def save(self, refiner) -> None:
-        from . import checkpoint
+        from .checkpoint import save as save_checkpoint
 
         if self.path is None:
             return
@@ -732,7 +724,7 @@ class _Checkpoints:
             "sessions": self.sessions + [session],
             "warpgauss_version": __version__,
         }
-        checkpoint.save(self.path, arrays, meta)
+        save_checkpoint(self.path, arrays, meta)
         self.last = time.perf_counter()
         self.written += 1
         self.last_iteration = refiner.iteration
@@ -793,7 +785,7 @@ def finish_report(model: Model, timer: StageRecorder) -> dict:
 
 
 def encode(
-    source=None,
+    source: str | os.PathLike | np.ndarray | None = None,
     *,
     budget: int | None = None,
     ratio: float | None = None,
@@ -822,9 +814,9 @@ def encode(
     output: str | os.PathLike | None = None,
     force: bool = False,
     analytic_output: str | os.PathLike | None = None,
-    on_stage=None,
-    on_stats=None,
-    on_progress=None,
+    on_stage: Callable[[str, str], None] | None = None,
+    on_stats: Callable[[dict], None] | None = None,
+    on_progress: Callable[[int, int, dict], None] | None = None,
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
 
@@ -944,9 +936,9 @@ def encode(
 
 
 def encode_ladder(
-    source=None,
+    source: str | os.PathLike | np.ndarray | None = None,
     *,
-    budgets,
+    budgets: Sequence[int],
     output_pattern: str | None = None,
     force: bool = False,
     seed: int = 0,
@@ -964,8 +956,8 @@ def encode_ladder(
     allocation: AllocationConfig | None = None,
     evaluate: bool = True,
     full_eval: bool = False,
-    on_stage=None,
-    on_progress=None,
+    on_stage: Callable[[str, str], None] | None = None,
+    on_progress: Callable[[int, int, dict], None] | None = None,
 ) -> list[Model]:
     """Encode one volume at several budgets, reading and analysing it once (the paper's ladders).
 
@@ -973,7 +965,8 @@ def encode_ladder(
         budgets: Primitive counts; all are checked against the seed limit before any encoding.
         evaluate: Run stage EV for each model (benchmarks that measure PSNR their own way skip it).
         output_pattern: If given, each model is written to ``output_pattern.format(n=N)``.
-        Others: as :func:`encode`.
+
+    The other arguments are those of :func:`encode`.
 
     Returns:
         One model per budget (ascending), each with its report; ``report["ladder"]`` says what
@@ -984,7 +977,7 @@ def encode_ladder(
     ladder = sorted({int(b) for b in budgets})
     if not ladder or ladder[0] < 1:
         raise WarpgaussError(f"--ladder needs positive budgets, got {list(budgets)}")
-    paths = [None] * len(ladder)
+    paths: list[Path | None] = [None] * len(ladder)
     if output_pattern is not None:
         paths = [Path(output_pattern.format(n=n)) for n in ladder]
         for p in paths:
@@ -1004,11 +997,26 @@ def encode_ladder(
     for i, (n, path) in enumerate(zip(ladder, paths)):
         timer = first if i == 0 else StageRecorder(on_stage=on_stage)
         opts = EncodeOptions(
-            n, None, seed, compact, allocation or AllocationConfig(), stride=(read or ReadOptions()).stride,
-            refine=refine, self_test=self_test and i == 0, format=format,
+            n,
+            None,
+            seed,
+            compact,
+            allocation or AllocationConfig(),
+            stride=(read or ReadOptions()).stride,
+            refine=refine,
+            self_test=self_test and i == 0,
+            format=format,
         )
         model = encode_field(
-            f, opts, device=device, timer=timer, input_info=info, evaluate=evaluate, full_eval=full_eval, on_progress=on_progress, cache=cache
+            f,
+            opts,
+            device=device,
+            timer=timer,
+            input_info=info,
+            evaluate=evaluate,
+            full_eval=full_eval,
+            on_progress=on_progress,
+            cache=cache,
         )
         if i > 0:
             model.report["skipped"].insert(0, {"what": "P", "why": "volume loaded once for the ladder", "seconds_saved": load_seconds})

@@ -7,6 +7,7 @@ import os
 import resource
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 POLL_SECONDS = 0.01
@@ -62,7 +63,7 @@ class StageRecorder:
 
     device: str | None = None
     stages: list[StageRecord] = field(default_factory=list)
-    on_stage: object = None  # optional callback(name, title) when a stage starts
+    on_stage: Callable[[str, str], None] | None = None  # optional callback(name, title) when a stage starts
 
     @contextlib.contextmanager
     def stage(self, name: str, title: str):

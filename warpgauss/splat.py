@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from .render import Camera, Image, RenderSettings, Scene, View, _Marcher, resolve_view
+from .raymarch import Camera, Image, RenderSettings, Scene, View, _Marcher, resolve_view
 from .transfer import TransferFunction, make_transfer_function
 
 
@@ -65,7 +65,9 @@ class SplatRenderer(_Marcher):
             self.pair_prims = wp.empty(2 * cap, dtype=int, device=self.device)
             self._pairs = cap
 
-    def render(self, camera: Camera | View | None = None, tf: TransferFunction | None = None, settings: RenderSettings | None = None) -> Image:
+    def render(
+        self, camera: Camera | View | None = None, tf: TransferFunction | None = None, settings: RenderSettings | None = None
+    ) -> Image:
         """One frame by EWA splatting (same camera, transfer function and settings as ray marching)."""
         wp, ks, dev, f, n = self._wp, self._ks, self.device, self.field, self.n
         settings = settings or RenderSettings()

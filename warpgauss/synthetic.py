@@ -370,9 +370,7 @@ def _bubbles(shape_xyz: tuple[int, int, int], rng: np.random.Generator) -> np.nd
     return out
 
 
-def _draw_bubble(
-    out: np.ndarray, centre: np.ndarray, radius: float, value: float, tilt: np.ndarray, threshold: float
-) -> tuple[int, float]:
+def _draw_bubble(out: np.ndarray, centre: np.ndarray, radius: float, value: float, tilt: np.ndarray, threshold: float) -> tuple[int, float]:
     """max-composite one bubble into ``out`` within its bounding box.
 
     Args:

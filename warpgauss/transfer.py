@@ -24,6 +24,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -419,7 +420,7 @@ def _from_ours(doc: dict, value_range, p: Path) -> TransferFunction:
     if space not in ("normalised", "normalized", "data"):
         raise WarpgaussError(f"{p}: 'space' must be 'normalised' or 'data', got {doc['space']!r}")
     x = np.linspace(0.0, 1.0, LUT_SIZE)
-    src = {"file": str(p)}
+    src: dict[str, Any] = {"file": str(p)}
     if "colors" in doc:
         try:
             pts = np.asarray(doc["colors"], np.float64)
@@ -462,7 +463,7 @@ def _pv_range(xs: np.ndarray, value_range) -> tuple[np.ndarray, str]:
 def _from_paraview(d: dict, value_range, p: Path) -> TransferFunction:
     x = np.linspace(0.0, 1.0, LUT_SIZE)
     name = str(d.get("Name", p.stem))
-    src = {"file": str(p), "paraview": name}
+    src: dict[str, Any] = {"file": str(p), "paraview": name}
     if "IndexedColors" in d and "RGBPoints" not in d:
         raise WarpgaussError(f"{p}: a categorical (indexed) ParaView colormap; give a continuous one")
     if "RGBPoints" in d:

@@ -117,9 +117,7 @@ def _header_bytes(header: dict, n: int, payload_info: dict) -> bytes:
     h["n"] = int(n)
     h["payload"] = payload_info
     try:
-        text = json.dumps(
-            h, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False, default=_json_default
-        )
+        text = json.dumps(h, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False, default=_json_default)
         return text.encode("utf-8")
     except (TypeError, ValueError) as e:  # UnicodeEncodeError (lone surrogates) is a ValueError
         raise WarpgaussError(
@@ -199,7 +197,9 @@ def _encoding(compact: bool, encoding: str | None) -> str:
 
 def _reserved_size(header: dict, encoding: str) -> int:
     x = _FLOAT_PLACEHOLDER
-    quant = {"compact96": lambda: _quant_dict([x] * 3, [x] * 3, x, x, x, x, x, x), "coded": _coded_placeholder}.get(encoding, lambda: None)()
+    quant = {"compact96": lambda: _quant_dict([x] * 3, [x] * 3, x, x, x, x, x, x), "coded": _coded_placeholder}.get(
+        encoding, lambda: None
+    )()
     info = _payload_info(encoding, _SHA_PLACEHOLDER, quant, _N_PLACEHOLDER)
     body = _header_bytes(header, _N_PLACEHOLDER, info)
     if ENCODINGS[encoding] is None:  # a variable payload: no block padding (the header is part of the budget)
@@ -432,7 +432,9 @@ def payload_size(data: bytes) -> int:
     return len(data) - PREFIX_SIZE - hlen
 
 
-def wgs_bytes(params: np.ndarray, header: dict, *, encoding: str = "float32", header_size: int | None = None, bits: dict | None = None) -> bytes:
+def wgs_bytes(
+    params: np.ndarray, header: dict, *, encoding: str = "float32", header_size: int | None = None, bits: dict | None = None
+) -> bytes:
     """The bytes :func:`write_wgs` writes (for sizes and in-memory round trips); ``bits``: the
     coded bit depths (default :data:`warpgauss.coded.CODED_BITS`)."""
     p = _validated_params(params)
@@ -500,11 +502,14 @@ def read_wgs(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
         if magic != MAGIC:
             raise bad("not a warpgauss model file (bad magic); give a .wgs file written by warpgauss")
         if version != FORMAT_VERSION:
-            raise bad(f"unsupported .wgs format version {version} (this warpgauss reads version {FORMAT_VERSION}); "
-                      "upgrade warpgauss or re-encode the volume")
+            raise bad(
+                f"unsupported .wgs format version {version} (this warpgauss reads version {FORMAT_VERSION}); "
+                "upgrade warpgauss or re-encode the volume"
+            )
         if hlen > size - PREFIX_SIZE:
-            raise bad(f"declared header length {hlen} exceeds the {size - PREFIX_SIZE} bytes after the prefix; "
-                      "the file is truncated or damaged")
+            raise bad(
+                f"declared header length {hlen} exceeds the {size - PREFIX_SIZE} bytes after the prefix; the file is truncated or damaged"
+            )
         area = f.read(hlen)
         if len(area) != hlen:
             raise bad("the file changed while being read; try again")
@@ -530,12 +535,13 @@ def read_wgs(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
                 raise bad(f"the header's payload description lacks '{key}'; the file was not written by warpgauss")
         enc = info["encoding"]
         if not isinstance(enc, str) or enc not in ENCODINGS:
-            raise bad(f"unknown payload encoding {enc!r} (this warpgauss reads {', '.join(ENCODINGS)}); "
-                      "upgrade warpgauss or re-encode")
+            raise bad(f"unknown payload encoding {enc!r} (this warpgauss reads {', '.join(ENCODINGS)}); upgrade warpgauss or re-encode")
         bpp = ENCODINGS[enc]
         if info["bytes_per_primitive"] != bpp or isinstance(info["bytes_per_primitive"], bool):
-            raise bad(f"payload encoding {enc} has {bpp} bytes per primitive, the header says "
-                      f"{info['bytes_per_primitive']!r}; the file is damaged")
+            raise bad(
+                f"payload encoding {enc} has {bpp} bytes per primitive, the header says "
+                f"{info['bytes_per_primitive']!r}; the file is damaged"
+            )
         if bpp is None:
             total = info.get("payload_bytes")
             if isinstance(total, bool) or not isinstance(total, int) or total < 0:
@@ -554,8 +560,10 @@ def read_wgs(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
         if size != expected:
             kind = "truncated" if size < expected else f"{size - expected} trailing bytes"
             what = f"{n} x {bpp}" if bpp is not None else f"{total}-byte coded"
-            raise bad(f"file size {size} != expected {expected} (prefix {PREFIX_SIZE} + header {hlen} + "
-                      f"{what} payload): {kind}; the file is damaged")
+            raise bad(
+                f"file size {size} != expected {expected} (prefix {PREFIX_SIZE} + header {hlen} + "
+                f"{what} payload): {kind}; the file is damaged"
+            )
         if n < 1:
             raise bad("the model holds no primitives (n = 0); a model needs at least one, re-encode it")
         payload = f.read(total)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 from ..errors import WarpgaussError
 
@@ -12,7 +13,7 @@ from ..errors import WarpgaussError
 # at 128^3 with 20,000 Gaussians, split-cell kernels): 1,500 x 12,288 gives +2.7 / +1.0 dB over
 # the paper configuration in 7.1 / 4.7 s of refinement (paper: 2.2 / 1.7 s); doubling the samples
 # again adds only 0.3-0.6 dB for twice the time, and doubling iterations instead gains the same.
-PRESETS = {  # exactly these settings: no sample count raised for large budgets
+PRESETS: dict[str, dict[str, Any]] = {  # exactly these settings: no sample count raised for large budgets
     "paper": {"iterations": 1500, "samples": 3072, "auto_samples": False},
     "fast": {"iterations": 300, "samples": 3072, "auto_samples": False},
     "quality": {"iterations": 1500, "samples": 12288, "auto_samples": False},
@@ -24,7 +25,6 @@ AUTO_MAX_BATCHES = 16
 GPU_VOXELS_PER_SAMPLE = 128
 GPU_MIN_SAMPLES = 16_384
 GPU_MAX_SAMPLES = 131_072
-
 
 
 @dataclass
@@ -168,14 +168,20 @@ class RefineConfig:
         if not self.auto_samples or self.iterations == 0:
             return self.samples, "as set" if not self.auto_samples else "no refinement"
         k = min(AUTO_MAX_BATCHES, max(1, -(-int(n) // AUTO_BATCH_PRIMITIVES)))
-        s, why = self.samples * k, (f"{self.samples:,} x {k} (one batch per {AUTO_BATCH_PRIMITIVES:,} primitives)" if k > 1 else f"{self.samples:,}")
+        s, why = (
+            self.samples * k,
+            (f"{self.samples:,} x {k} (one batch per {AUTO_BATCH_PRIMITIVES:,} primitives)" if k > 1 else f"{self.samples:,}"),
+        )
         if voxels is not None and device is not None and str(device).startswith("cuda"):
             g = 1 << max(0, round(math.log2(max(1, int(voxels)) / GPU_VOXELS_PER_SAMPLE)))
             g = min(GPU_MAX_SAMPLES, max(GPU_MIN_SAMPLES, g))
             if g > s:
-                s, why = g, (
-                    f"{g:,}: on a GPU one sample per {GPU_VOXELS_PER_SAMPLE} voxels ({int(voxels):,}), "
-                    f"as a power of two within {GPU_MIN_SAMPLES:,}-{GPU_MAX_SAMPLES:,}"
+                s, why = (
+                    g,
+                    (
+                        f"{g:,}: on a GPU one sample per {GPU_VOXELS_PER_SAMPLE} voxels ({int(voxels):,}), "
+                        f"as a power of two within {GPU_MIN_SAMPLES:,}-{GPU_MAX_SAMPLES:,}"
+                    ),
                 )
         return s, why
 

@@ -48,7 +48,11 @@ class Sampler:
         if self.uniform_support:
             shape = self.bricks
             # (coverage counts per brick, "everything" flag, supported voxels per brick)
-            self.marks = (wp.zeros(shape, dtype=int, device=dev), wp.zeros(1, dtype=int, device=dev), wp.zeros(shape, dtype=int, device=dev))
+            self.marks = (
+                wp.zeros(shape, dtype=int, device=dev),
+                wp.zeros(1, dtype=int, device=dev),
+                wp.zeros(shape, dtype=int, device=dev),
+            )
             self.support = wp.zeros(int(np.prod(shape)), dtype=int, device=dev)
         else:
             self.marks = None

@@ -129,7 +129,13 @@ class PairPasses:
         wp, dev, b = self._wp, self.device, self.buffers()
         grid, cells = b["grid"], b["grid_plan"].total_cells
         k = len(self.state.plan.sizes) * count
-        wp.launch(kf.point_keys, dim=k, inputs=[self.sampler.points, count, grid.size, grid.dims, grid.offset], outputs=[b["keys"], b["order"]], device=dev)
+        wp.launch(
+            kf.point_keys,
+            dim=k,
+            inputs=[self.sampler.points, count, grid.size, grid.dims, grid.offset],
+            outputs=[b["keys"], b["order"]],
+            device=dev,
+        )
         wp.utils.radix_sort_pairs(b["keys"], b["order"], k, 0, max(1, (cells - 1).bit_length()))
         cell_starts(b["keys"], k, b["cell_counts"], grid.start, dev)
 
@@ -140,7 +146,13 @@ class PairPasses:
         from ..kernels import field as kf
 
         wp, dev, p, b = self._wp, self.device, self.state.prims, self.buffers()
-        wp.launch(kf.point_keys, dim=count, inputs=[self.sampler.points, count, p.level_size, p.level_dims, p.level_offset], outputs=[b["fkeys"], b["forder"]], device=dev)
+        wp.launch(
+            kf.point_keys,
+            dim=count,
+            inputs=[self.sampler.points, count, p.level_size, p.level_dims, p.level_offset],
+            outputs=[b["fkeys"], b["forder"]],
+            device=dev,
+        )
         wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, max(1, (self.state.plan.total_cells - 1).bit_length()))
 
     def forward(self, value_empty: float, density_weight: float, now) -> None:
@@ -158,7 +170,9 @@ class PairPasses:
             wp.launch(kf.eval_points_partial, dim=b["part"].shape, inputs=[s.points, order, prims], outputs=[b["part"]], device=dev)
             wp.launch(kf.finish_partials, dim=m2, inputs=[order, b["part"]], outputs=[self.value, self.density, self.pairs], device=dev)
         else:
-            wp.launch(kf.eval_points_ordered, dim=m2, inputs=[s.points, order, prims], outputs=[self.value, self.density, self.pairs], device=dev)
+            wp.launch(
+                kf.eval_points_ordered, dim=m2, inputs=[s.points, order, prims], outputs=[self.value, self.density, self.pairs], device=dev
+            )
         wp.launch(
             kb.point_grads,
             dim=self.m,
@@ -196,17 +210,36 @@ class PairPasses:
         grid, cap = b["grid"], b["capacity"]
         wp.launch(kb.pair_work, dim=n, inputs=[st.slot_cell, st.prims, grid], outputs=[b["work"]], device=dev)
         wp.utils.array_scan(b["work"], b["work_cum"], inclusive=True)
-        wp.launch(kb.pair_chunks, dim=n, inputs=[b["work"], b["work_cum"], cap, MIN_CHUNK, MAX_CHUNKS], outputs=[b["chunks"], b["chunk_size"]], device=dev)
+        wp.launch(
+            kb.pair_chunks,
+            dim=n,
+            inputs=[b["work"], b["work_cum"], cap, MIN_CHUNK, MAX_CHUNKS],
+            outputs=[b["chunks"], b["chunk_size"]],
+            device=dev,
+        )
         wp.utils.array_scan(b["chunks"], b["chunk_cum"], inclusive=True)
         wp.launch(kb.chunk_owner, dim=n, inputs=[b["chunks"], b["chunk_cum"]], outputs=[b["owner"]], device=dev)
         wp.launch(
             kb.pair_grad_chunks,
             dim=n + cap,
-            inputs=[b["owner"], b["chunks"], b["chunk_cum"], st.slot_cell, st.prims, grid, b["pos"], b["state"], b["order"], int(count_pairs)],
+            inputs=[
+                b["owner"],
+                b["chunks"],
+                b["chunk_cum"],
+                st.slot_cell,
+                st.prims,
+                grid,
+                b["pos"],
+                b["state"],
+                b["order"],
+                int(count_pairs),
+            ],
             outputs=[self.back_pairs, *b["parts"]],
             device=dev,
         )
-        wp.launch(kb.reduce_chunks, dim=n, inputs=[b["chunks"], b["chunk_cum"], st.prims, *b["parts"]], outputs=list(st.pair_grads), device=dev)
+        wp.launch(
+            kb.reduce_chunks, dim=n, inputs=[b["chunks"], b["chunk_cum"], st.prims, *b["parts"]], outputs=list(st.pair_grads), device=dev
+        )
         st.clean = False
 
     def atomic_pairs(self, kernel, count: int) -> None:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from typing import Any
 
 import numpy as np
 
@@ -108,11 +109,11 @@ class Refiner:
         self.write_schedule(max(config.iterations, 1))
         self.iteration = 0
         self.touch_scale = 1.0  # learning-rate factor from the contact density (see touch_ref)
-        self.contacts = None
+        self.contacts: float | None = None
         self.stop_requested = False
         self.interrupted = False
-        self.graph_error = None
-        self.budget = None
+        self.graph_error: str | None = None
+        self.budget: dict[str, Any] | None = None
         self.rebin(replan=True)
 
     # -- views of the units' state (tests, reports, the pipeline) ----------------------------
@@ -396,7 +397,12 @@ class Refiner:
             "rebins": self.rebins,
             "split": self.split,
             "support_everything": int(smp.marks[1].numpy()[0]) if smp.uniform_support else 0,
-            "plan": {"sizes": list(plan.sizes), "dims": [list(d) for d in plan.dims], "offsets": list(plan.offsets), "total_cells": plan.total_cells},
+            "plan": {
+                "sizes": list(plan.sizes),
+                "dims": [list(d) for d in plan.dims],
+                "offsets": list(plan.offsets),
+                "total_cells": plan.total_cells,
+            },
         }
         return {k: np.ascontiguousarray(v) for k, v in arrays.items()}, scalars
 
@@ -409,12 +415,27 @@ class Refiner:
         if int(scalars["n"]) != self.n:
             raise WarpgaussError(f"checkpoint holds {scalars['n']} primitives, this run has {self.n}")
         pl = scalars["plan"]
-        plan = BinPlan(tuple(float(x) for x in pl["sizes"]), tuple(tuple(int(v) for v in d) for d in pl["dims"]), tuple(int(x) for x in pl["offsets"]), int(pl["total_cells"]))
+        plan = BinPlan(
+            tuple(float(x) for x in pl["sizes"]),
+            tuple(tuple(int(v) for v in d) for d in pl["dims"]),
+            tuple(int(x) for x in pl["offsets"]),
+            int(pl["total_cells"]),
+        )
         s.plan = plan
         set_plan(p, plan, dev, arrays["cell_start"], arrays["cell_end"])
         self.binner.slot_cells()
         self.passes.invalidate()
-        for dst, key in ((s.raw, "raw"), (s.m1, "m1"), (s.m2, "m2"), (s.ids, "ids"), (b.lo, "bounds_lo"), (b.hi, "bounds_hi"), (b.cell, "bounds_cell"), (s.counts, "counts"), (s.reach, "reach")):
+        for dst, key in (
+            (s.raw, "raw"),
+            (s.m1, "m1"),
+            (s.m2, "m2"),
+            (s.ids, "ids"),
+            (b.lo, "bounds_lo"),
+            (b.hi, "bounds_hi"),
+            (b.cell, "bounds_cell"),
+            (s.counts, "counts"),
+            (s.reach, "reach"),
+        ):
             dst.assign(arrays[key])
         it = int(scalars["iteration"])
         refit = self.cfg.quantise_mode == "refit"
@@ -474,7 +495,9 @@ class Refiner:
 
     # -- the run -----------------------------------------------------------------------------
 
-    def run(self, progress=None, log_every: int = 25, deadline: float | None = None, clock=time.perf_counter, after_step=None) -> list[dict]:
+    def run(
+        self, progress=None, log_every: int = 25, deadline: float | None = None, clock=time.perf_counter, after_step=None
+    ) -> list[dict]:
         """Run the iterations; ``progress(it, total, losses)`` every ``log_every`` iterations.
 
         Args:

@@ -10,6 +10,7 @@ from timed probe iterations.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -49,7 +50,9 @@ class Schedule:
         self.touch = wp.array([1.0], dtype=float, device=device)
         self.now = wp.zeros(1, dtype=wp.vec4, device=device)
         self.stream = wp.zeros(1, dtype=int, device=device)
-        self.table = self.streams = None
+        # Warp arrays of the rows (vec4 factors, int streams), allocated by write()
+        self.table: Any = None
+        self.streams: Any = None
 
     def write(self, cfg: RefineConfig, capacity: int | None = None) -> bool:
         """Write the rows of ``cfg``'s iterations (at least ``capacity`` rows); returns whether the
@@ -80,7 +83,13 @@ class Schedule:
         """Read the current iteration's row into :attr:`now` and :attr:`stream`."""
         from ..kernels import optim as ko
 
-        self._wp.launch(ko.begin_iteration, dim=1, inputs=[self.counter, self.table, self.streams, self.touch], outputs=[self.now, self.stream], device=self.device)
+        self._wp.launch(
+            ko.begin_iteration,
+            dim=1,
+            inputs=[self.counter, self.table, self.streams, self.touch],
+            outputs=[self.now, self.stream],
+            device=self.device,
+        )
 
     def end(self) -> None:
         """Advance the device's iteration counter."""

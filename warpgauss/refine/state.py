@@ -8,10 +8,14 @@ the model (the order the model is returned in).
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .._warp import warp
+
+if TYPE_CHECKING:
+    from ..field import BinPlan
 
 
 class Primitives:
@@ -47,7 +51,7 @@ class Primitives:
         b.lo = wp.empty(n, dtype=wp.vec3, device=dev)
         b.hi = wp.empty(n, dtype=wp.vec3, device=dev)
         b.cell = wp.empty(n, dtype=float, device=dev)
-        self.plan = None  # the bin levels (field.BinPlan), set by the first re-bin
+        self.plan: BinPlan | None = None  # the bin levels, set by the first re-bin
         self.slot_cell = wp.zeros(n, dtype=int, device=dev)  # cell of each slot (pair pass)
         self.d_mu = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.d_ls = wp.zeros(n, dtype=wp.vec3, device=dev)

@@ -1,0 +1,85 @@
+"""The dependency picture flows one way: cli -> pipeline -> stages -> kernels, with no import
+circles among the package's modules (imports inside functions count too)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = (("warpgauss", "warpgauss"), ("cli", "warpgauss.cli"), ("kernels", "warpgauss.kernels"))
+
+
+def _imports() -> dict[str, set[str]]:
+    """Module -> the package modules it imports (``from . import x`` counts as ``x``)."""
+    mods: dict[str, set[str]] = {}
+    for folder, pkg in PACKAGES:
+        for path in (ROOT / folder).rglob("*.py"):
+            parts = path.relative_to(ROOT / folder).with_suffix("").parts
+            name = ".".join((pkg, *parts)).removesuffix(".__init__")
+            deps: set[str] = set()
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ImportFrom):
+                    if node.level:
+                        base = name.split(".")
+                        if path.name != "__init__.py":
+                            base = base[:-1]
+                        base = base[: len(base) - (node.level - 1)]
+                        mod = ".".join(base + ([node.module] if node.module else []))
+                    else:
+                        mod = node.module or ""
+                    subs = {f"{mod}.{a.name}" for a in node.names}
+                    deps |= subs if not node.module and node.level else {mod} | subs
+                elif isinstance(node, ast.Import):
+                    deps |= {a.name for a in node.names}
+            mods[name] = deps
+    return {m: {d for d in deps if d in mods and d != m} for m, deps in mods.items()}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_circles():
+    assert _cycles(_imports()) == []
+
+
+def test_dependencies_flow_one_way():
+    graph = _imports()
+    for mod, deps in graph.items():
+        for dep in deps:
+            if mod.startswith("warpgauss.kernels"):
+                assert dep.startswith("warpgauss.kernels"), f"{mod} (a kernel module) imports {dep}"
+            if not mod.startswith("warpgauss.cli"):
+                assert not dep.startswith("warpgauss.cli"), f"{mod} imports the CLI ({dep})"
+
+
+def test_the_circle_finder_finds_circles():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
