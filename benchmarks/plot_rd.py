@@ -43,6 +43,19 @@ def _where(res: dict) -> str:
     return here if not prev else f"{prev['device_name']} ({prev.get('cpu_count')} cores), rows added on {here}"
 
 
+def _panel(ax, label: str, series) -> None:
+    """One volume's panel: each (name, style, points) series, PSNR against ratio on a log axis."""
+    for name, style, pts in series:
+        if pts:
+            ax.plot(*zip(*pts), label=name, lw=1.2, **style)
+    ax.set_xscale("log")
+    ax.set_title(label, fontsize=9)
+    ax.set_xlabel("compression ratio (source bytes / compressed bytes)", fontsize=7)
+    ax.set_ylabel("PSNR (dB), full grid", fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.tick_params(labelsize=7)
+
+
 def plot(results: list[dict], out: Path, max_psnr: float = 120.0) -> None:
     import matplotlib
 
@@ -54,16 +67,7 @@ def plot(results: list[dict], out: Path, max_psnr: float = 120.0) -> None:
     rows = math.ceil(len(vols) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.6 * rows), squeeze=False)
     for ax, (res, label, entry) in zip(axes.ravel(), vols):
-        for codec, name, style in SERIES:
-            pts = [(r["ratio"], r["psnr_db"]) for r in _rows(entry, codec) if r["psnr_db"] <= max_psnr]
-            if pts:
-                ax.plot(*zip(*pts), label=name, lw=1.2, **style)
-        ax.set_xscale("log")
-        ax.set_title(label, fontsize=9)
-        ax.set_xlabel("compression ratio (source bytes / compressed bytes)", fontsize=7)
-        ax.set_ylabel("PSNR (dB), full grid", fontsize=8)
-        ax.grid(True, which="both", alpha=0.3)
-        ax.tick_params(labelsize=7)
+        _panel(ax, label, [(name, style, [(r["ratio"], r["psnr_db"]) for r in _rows(entry, codec) if r["psnr_db"] <= max_psnr]) for codec, name, style in SERIES])
     for ax in axes.ravel()[len(vols):]:
         ax.axis("off")
     handles, labels = axes.ravel()[0].get_legend_handles_labels()
@@ -178,16 +182,7 @@ def plot_fixed(merged: dict, results: list[dict], out: Path) -> None:
     nrows = math.ceil(len(vols) / cols)
     fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.8 * nrows), squeeze=False)
     for ax, (label, m) in zip(axes.ravel(), vols):
-        for codec, name, style in FIXED_SERIES:
-            pts = sorted((r["ratio"], r["psnr_db"]) for r in m["rows"].get(codec, {}).values())
-            if pts:
-                ax.plot(*zip(*pts), label=name, lw=1.2, **style)
-        ax.set_xscale("log")
-        ax.set_title(label, fontsize=9)
-        ax.set_xlabel("compression ratio (source bytes / compressed bytes)", fontsize=7)
-        ax.set_ylabel("PSNR (dB), full grid", fontsize=8)
-        ax.grid(True, which="both", alpha=0.3)
-        ax.tick_params(labelsize=7)
+        _panel(ax, label, [(name, style, sorted((r["ratio"], r["psnr_db"]) for r in m["rows"].get(codec, {}).values())) for codec, name, style in FIXED_SERIES])
     for ax in axes.ravel()[len(vols):]:
         ax.axis("off")
     handles = {}

@@ -1,0 +1,127 @@
+"""Read and write 3D scalar volumes: one module per format family, chosen by extension here.
+
+Readers are chosen by file extension from :data:`READERS` (pyvista style: an extension-to-reader
+table, early one-line errors). The full suffix decides, so ``.nii.gz`` and ``.map.bz2`` pick their
+own readers. Heavy libraries (pyvista, h5py, scipy) are imported inside the readers that need them.
+
+Conventions:
+    * Arrays are indexed ``[z, y, x]`` (x fastest in memory, as raw scientific files store them).
+      Shapes shown to users and in file names are ``XxYxZ``; spacing and origin are ``(x, y, z)``.
+    * Values come back in the source dtype (uint8, int16, float32, ...), never normalised and
+      with NaN and fill values left in place: the caller masks and normalises. Non-native byte
+      order is swapped to native order (this copies the strided voxels into memory).
+    * ``data`` may be a read-only ``np.memmap`` or a strided view of one; call
+      ``np.ascontiguousarray`` before handing it to code that needs a contiguous buffer.
+
+Formats read: raw binary named ``NAME_XxYxZ_DTYPE.raw`` (or ``--shape``/``--dtype``), ``.npy``,
+HDF5, classic netCDF (netCDF-4 goes through the HDF5 reader), VTK ImageData (``.vti``, legacy
+``.vtk``), NIfTI, MetaImage and NRRD (through pyvista), MRC/CCP4 (plain, ``.gz`` or ``.bz2``) and
+gOpenMol ``.plt``. Formats written: ``.vti``, ``.npy``, ``.raw`` and ``.h5``/``.hdf5``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ..errors import WarpgaussError
+from .common import MAX_READ_VOXELS, Volume, _check_options, _check_stride, _finish, _match_suffix, _Reader, parse_raw_name
+from .hdf5 import _read_hdf5, _read_netcdf
+from .mrc import _read_mrc
+from .plt import _read_plt
+from .raw import _read_npy, _read_raw
+from .vtk import _read_pyvista
+from .write import WRITERS, write_volume
+
+_RAW_OPTS = frozenset({"shape", "dtype", "endian"})
+_H5_OPTS = frozenset({"dataset", "variable"})
+
+#: File extension (lower case, full suffix) -> reader. The longest matching suffix wins.
+READERS: dict[str, _Reader] = {
+    ".raw": _Reader(_read_raw, _RAW_OPTS, "raw binary"),
+    ".bin": _Reader(_read_raw, _RAW_OPTS, "raw binary"),
+    ".npy": _Reader(_read_npy, frozenset(), "numpy"),
+    ".h5": _Reader(_read_hdf5, _H5_OPTS, "HDF5"),
+    ".hdf5": _Reader(_read_hdf5, _H5_OPTS, "HDF5"),
+    ".hdf": _Reader(_read_hdf5, _H5_OPTS, "HDF5"),
+    ".nc": _Reader(_read_netcdf, _H5_OPTS, "netCDF"),
+    ".cdf": _Reader(_read_netcdf, _H5_OPTS, "netCDF"),
+    **{
+        ext: _Reader(_read_pyvista, frozenset(), "VTK/medical image")
+        for ext in (".vti", ".vtk", ".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
+    },
+    **{base + comp: _Reader(_read_mrc, frozenset(), "MRC/CCP4") for base in (".mrc", ".map", ".ccp4") for comp in ("", ".gz", ".bz2")},
+    ".plt": _Reader(_read_plt, frozenset(), "gOpenMol plt"),
+}
+
+
+def supported_extensions() -> list[str]:
+    """File extensions :func:`read_volume` understands, sorted."""
+    return sorted(READERS)
+
+
+def writable_extensions() -> list[str]:
+    """File extensions :func:`write_volume` can write, sorted."""
+    return sorted(WRITERS)
+
+
+# --------------------------------------------------------------------------------------------------
+# read_volume
+# --------------------------------------------------------------------------------------------------
+
+
+def read_volume(
+    path: str | os.PathLike,
+    *,
+    shape: tuple[int, int, int] | None = None,
+    dtype=None,
+    endian: str | None = None,
+    dataset: str | None = None,
+    variable: str | None = None,
+    stride: int = 1,
+) -> Volume:
+    """Read a 3D scalar volume; the reader is chosen by the file's extension.
+
+    Args:
+        path: Volume file; see :func:`supported_extensions`.
+        shape: Raw files only: grid size ``(x, y, z)`` when the name does not carry it.
+        dtype: Raw files only: ``uint8``, ``int8``, ``uint16``, ``int16``, ``uint32``, ``int32``,
+            ``float32`` (``float``), ``float64`` (``double``).
+        endian: Raw files only: ``"little"`` (default) or ``"big"``.
+        dataset: HDF5 (and netCDF-4): dataset path; default: the first 3D dataset in visit order.
+        variable: netCDF: variable name; default: the first 3D variable.
+        stride: Keep every ``stride``-th voxel on each axis (``data[::s, ::s, ::s]``); spacing is
+            multiplied by it.
+
+    Returns:
+        The :class:`Volume`, values in the source dtype, NaN and fill values untouched.
+
+    Raises:
+        WarpgaussError: Missing file, unknown extension, an option the format does not take,
+            a size that does not match the header or name, or data that is not a 3D real array.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise WarpgaussError(f"no such file: {p}")
+    if p.is_dir():
+        raise WarpgaussError(f"{p} is a directory; give a volume file")
+    suffix = _match_suffix(p.name, READERS, "read")
+    reader = READERS[suffix]
+    s = _check_stride(stride)
+    given = {"shape": shape, "dtype": dtype, "endian": endian, "dataset": dataset, "variable": variable}
+    _check_options(p, reader, [k for k, v in given.items() if v is not None])
+    got = reader.func(p, **given, stride=s)
+    return _finish(p, suffix, got, s)
+
+
+__all__ = [
+    "MAX_READ_VOXELS",
+    "READERS",
+    "WRITERS",
+    "Volume",
+    "parse_raw_name",
+    "read_volume",
+    "supported_extensions",
+    "writable_extensions",
+    "write_volume",
+]

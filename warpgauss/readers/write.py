@@ -1,0 +1,110 @@
+"""Writers: ``.vti``, ``.npy``, ``.raw`` and ``.h5``/``.hdf5``, atomically."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .._fs import atomic_path, check_writable
+from ..errors import WarpgaussError
+from .common import _check_dtype, _check_shape, _match_suffix
+
+# --------------------------------------------------------------------------------------------------
+# Writers
+# --------------------------------------------------------------------------------------------------
+
+
+def _write_vti(tmp: Path, data: np.ndarray, spacing, origin, name: str) -> None:
+    import pyvista as pv
+
+    if data.dtype == np.float16:  # VTK has no half-precision arrays
+        data = data.astype(np.float32)
+    nz, ny, nx = data.shape
+    grid = pv.ImageData(dimensions=(nx, ny, nz), spacing=spacing, origin=origin)
+    grid.point_data[name] = data.transpose(2, 1, 0).ravel(order="F")  # x fastest
+    grid.save(tmp)
+
+
+def _write_npy(tmp: Path, data: np.ndarray, spacing, origin, name: str) -> None:
+    with open(tmp, "wb") as fh:
+        np.save(fh, np.ascontiguousarray(data), allow_pickle=False)
+
+
+def _write_raw(tmp: Path, data: np.ndarray, spacing, origin, name: str) -> None:
+    np.ascontiguousarray(data, dtype=data.dtype.newbyteorder("<")).tofile(tmp)
+
+
+def _write_hdf5(tmp: Path, data: np.ndarray, spacing, origin, name: str) -> None:
+    import h5py
+
+    with h5py.File(tmp, "w") as f:
+        ds = f.create_dataset("volume", data=np.ascontiguousarray(data))
+        ds.attrs["spacing"] = np.asarray(spacing, dtype=np.float64)
+        ds.attrs["origin"] = np.asarray(origin, dtype=np.float64)
+        ds.attrs["name"] = name
+        ds.attrs["axis_order"] = "zyx"
+
+
+#: File extension -> writer(temp_path, data, spacing, origin, name).
+WRITERS: dict[str, Callable[..., None]] = {
+    ".vti": _write_vti,
+    ".npy": _write_npy,
+    ".raw": _write_raw,
+    ".h5": _write_hdf5,
+    ".hdf5": _write_hdf5,
+}
+
+
+def write_volume(
+    path: str | os.PathLike,
+    data_zyx: np.ndarray,
+    *,
+    spacing=(1.0, 1.0, 1.0),
+    origin=(0.0, 0.0, 0.0),
+    name: str = "value",
+    force: bool = False,
+) -> Path:
+    """Write a 3D array ``[z, y, x]`` atomically, in the format its extension names.
+
+    ``.vti``: VTK ImageData with point array ``name`` (x fastest), spacing and origin. ``.npy``:
+    the array as is. ``.raw``: little-endian, C-order, native dtype, no header (name the file
+    ``NAME_XxYxZ_DTYPE.raw`` so that it can be read back). ``.h5``/``.hdf5``: dataset ``volume``
+    with ``spacing`` and ``origin`` attributes ``(x, y, z)``.
+
+    Args:
+        path: Destination; see :func:`writable_extensions`.
+        data_zyx: 3D array of real numbers, indexed ``[z, y, x]``.
+        spacing: Voxel size ``(x, y, z)``.
+        origin: First voxel centre ``(x, y, z)``.
+        name: Array name inside ``.vti`` files (and an attribute in HDF5).
+        force: Replace an existing file.
+
+    Returns:
+        The written path.
+    """
+    p = Path(path)
+    suffix = _match_suffix(p.name, WRITERS, "write")
+    data = np.asarray(data_zyx)
+    _check_shape(data.shape, "the array to write")
+    _check_dtype(data.dtype, "the array to write")
+    if not data.dtype.isnative:
+        data = data.astype(data.dtype.newbyteorder("="))
+    spacing_t = _xyz_tuple(spacing, "spacing")
+    origin_t = _xyz_tuple(origin, "origin")
+    check_writable(p, force=force)
+    with atomic_path(p) as tmp:
+        WRITERS[suffix](tmp, data, spacing_t, origin_t, str(name) or "value")
+    return p
+
+
+def _xyz_tuple(value, what: str) -> tuple[float, float, float]:
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) != 3 or not all(np.isfinite(out)):
+        raise WarpgaussError(f"{what} must be three finite numbers (x, y, z), got {value!r}")
+    return out  # type: ignore[return-value]
