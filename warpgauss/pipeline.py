@@ -339,6 +339,9 @@ def encode_field(
 ) -> Model:
     """Stages S1a-S1e, S1x, S2 and EV on a normalised field; returns the model with its report.
 
+    The body is the paper's stage table; each stage is a method of :class:`_EncodeRun`, which
+    also holds the skip decisions (the report's ``skipped`` list) and assembles the report.
+
     Args:
         f: Output of stage P.
         opts: Encoding options (budget or ratio, seed, allocation knobs).
@@ -355,166 +358,163 @@ def encode_field(
         cache: A dict shared by encodes of the same field on the same device (a budget ladder):
             the device volume and structure statistics of the first are reused (S1a skipped).
     """
-    from .wgs import header_size
+    run = _EncodeRun(f, opts, device, timer, evaluate, full_eval, analytic_output)
+    run.analyse(cache, on_stats)  # S1a   occupancy, gradients, structure statistics
+    run.size_coded()  # S1p   coded size pilot (a coded byte budget only)
+    run.allocate()  # S1b-e seeds, shapes, values and weights
+    run.analytic_model(force)  # S1x   the analytic model (and --save-analytic)
+    run.check_target()  # EVa   --target-psnr: is refinement needed at all?
+    run.refine(on_progress, log_every)  # S2    refinement
+    run.evaluate()  # EV    PSNR; keep the better of the two models
+    return run.result(input_info)  # the model, its file size and its report
 
-    enc = encoding_of(opts)
-    budget_bytes = target_bytes(f, opts)  # the file size budget, or None for an explicit N
-    header = _header_for(f, opts)
-    n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
 
-    from ._warp import device_name, resolve_device, warp
+class _EncodeRun:
+    """One encode's state between the stages of :func:`encode_field`, the skip decisions (each
+    recorded in ``skipped`` with why) and the report assembly."""
 
-    wp = warp()
-    dev = resolve_device(device)
-    voxels = int(np.prod(f.shape_xyz))
-    base_refine = opts.refine
-    scaled = opts.refine.for_budget(n, voxels, dev)
-    if scaled is not opts.refine:  # more samples for a large budget or a GPU: the header says so
-        opts = dataclasses.replace(opts, refine=scaled)
-        header = _header_for(f, opts)
-        n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
-    timer = timer or StageRecorder()
-    timer.device = dev
-    skipped: list[dict] = []
+    def __init__(self, f: Field, opts: EncodeOptions, device, timer, evaluate: bool, full_eval: bool, analytic_output):
+        from ._warp import resolve_device, warp
+        from .wgs import header_size
 
-    from .analysis import DeviceVolume, structure_stats
+        self.f = f
+        self.enc = encoding_of(opts)
+        self.budget_bytes = target_bytes(f, opts)  # the file size budget, or None for an explicit N
+        self.header = _header_for(f, opts)
+        self.n = resolve_budget(f, opts, header_size(self.header, 1 << 40, encoding=self.enc))
+        self.wp = warp()
+        self.dev = resolve_device(device)
+        self.voxels = int(np.prod(f.shape_xyz))
+        self.base_refine = opts.refine
+        scaled = opts.refine.for_budget(self.n, self.voxels, self.dev)
+        if scaled is not opts.refine:  # more samples for a large budget or a GPU: the header says so
+            opts = dataclasses.replace(opts, refine=scaled)
+            self.header = _header_for(f, opts)
+            self.n = resolve_budget(f, opts, header_size(self.header, 1 << 40, encoding=self.enc))
+        self.opts = opts
+        self.timer = timer or StageRecorder()
+        self.timer.device = self.dev
+        self.skipped: list[dict] = []
+        self.do_evaluate, self.full_eval = evaluate, full_eval
+        self.sizing: dict | None = None
+        self.analytic_fit: dict | None = None
+        self.refined_fit: dict | None = None
+        self.coded_bits_note: dict | None = None
+        self.refinement: dict = {"iterations": 0}
+        self.early_eval: dict | None = None
+        self.evaluation: dict = {}
+        # a coded byte budget fits the analytic model (several codings) only where it may be the
+        # result: no refinement, an --analytic-output file, or a refined model that scores below it
+        self.fit_later = self.enc == "coded" and self.budget_bytes is not None and opts.refine.iterations > 0 and analytic_output is None
+        self.analytic_output = analytic_output
 
-    if cache is not None and cache.get("device") == dev and cache.get("field") is f:
-        dv, stats = cache["dv"], cache["stats"]
-        skipped.append(
-            {
-                "what": "S1a",
-                "why": "device volume and statistics reused from the previous budget of the ladder",
-                "seconds_saved": cache["seconds"],
-            }
-        )
-    else:
-        t0 = time.perf_counter()
-        with timer.stage("S1a", "occupancy, gradients, structure statistics"):
-            dv = DeviceVolume(f, dev)
-            stats = structure_stats(dv)
-        if cache is not None:
-            cache.update({"device": dev, "field": f, "dv": dv, "stats": stats, "seconds": time.perf_counter() - t0})
-    if on_stats is not None:
-        on_stats(stats)
+    def skip(self, what: str, why: str, **facts) -> None:
+        self.skipped.append({"what": what, "why": why, **facts})
 
-    sizing = None
-    if enc == "coded" and budget_bytes is not None:
-        with timer.stage("S1p", "coded size pilot"):
-            n, sizing = coded_budget(dv, f, opts, header, budget_bytes, n)
-            if base_refine.for_budget(n, voxels, dev) != opts.refine:  # the samples follow the measured N, not its bound
-                opts = dataclasses.replace(opts, refine=base_refine.for_budget(n, voxels, dev))
-                header = _header_for(f, opts)
-
-    def stored(m: Model) -> tuple[Model, dict | None]:
+    def stored(self, m: Model) -> tuple[Model, dict | None]:
         """The model as the file will hold it (coded: fitted to the byte budget)."""
-        if enc == "coded" and budget_bytes is not None:
-            return m.fit_bytes(budget_bytes)
-        m = m.stored(enc)
-        m.format = enc
+        if self.enc == "coded" and self.budget_bytes is not None:
+            return m.fit_bytes(self.budget_bytes)
+        m = m.stored(self.enc)
+        m.format = self.enc
         return m, None
 
-    params, facts = allocate(dv, n, opts.seed, opts.allocation, timer)
-    start_bits = None if sizing is None else sizing["bits"]  # the depths N was sized for
-
-    # a coded byte budget fits the analytic model (several codings) only where it may be the
-    # result: no refinement, an --analytic-output file, or a refined model that scores below it
-    fit_later = enc == "coded" and budget_bytes is not None and opts.refine.iterations > 0 and analytic_output is None
-    with timer.stage("S1x", "analytic model"):
-        analytic = Model(params, header)
-        analytic.coded_bits = start_bits
-        analytic, analytic_fit = (analytic, None) if fit_later else stored(analytic)
-        if analytic_output is not None:
-            analytic.save(analytic_output, encoding=enc, force=force)
-    if fit_later:
-        skipped.append(
-            {
-                "what": "S1x rate control of the analytic model",
-                "why": "it is fitted to the byte budget only if the refined model scores below it; until then it is evaluated as allocated",
-            }
-        )
-    model = analytic
-    refined_fit = None
-    coded_bits_note = None
-    refinement: dict = {"iterations": 0}
-    early_eval = None
-    if opts.refine.iterations > 0 and opts.refine.target_psnr is not None and evaluate:
+    def _evaluate(self, m: Model) -> dict:
         from .evaluate import evaluate_field
 
-        with timer.stage("EVa", "analytic model evaluation (for --target-psnr)"):
-            early_eval = evaluate_field(analytic.field(dev), f, full=full_eval)
-        if early_eval["psnr_db"] >= opts.refine.target_psnr:
-            skipped.append(
-                {
-                    "what": "S2 refinement",
-                    "why": f"the analytic model already reaches the target ({early_eval['psnr_db']:.2f} >= {opts.refine.target_psnr:g} dB)",
-                }
-            )
-            refinement = {
-                "iterations": 0,
-                "stop": {"reason": "target PSNR reached by the analytic model", "iterations_skipped": opts.refine.iterations},
-            }
-            if fit_later:  # it is the result: fitted to the budget and scored as stored
-                analytic, analytic_fit = stored(analytic)
-                model = analytic
-                early_eval = evaluate_field(analytic.field(dev), f, full=full_eval)
-    if opts.refine.iterations > 0 and not refinement.get("stop"):
-        from .refine import SELF_TESTS, Refiner, load_kernels, self_test
+        return evaluate_field(m.field(self.dev), self.f, full=self.full_eval)
 
-        cfg = opts.refine
-        cap = opts.allocation.resolved_cap(f.shape_xyz)
-        with timer.stage("S2", "refinement"):
+    # -- S1a ---------------------------------------------------------------------------------
+    def analyse(self, cache: dict | None, on_stats) -> None:
+        from .analysis import DeviceVolume, structure_stats
+
+        f, dev = self.f, self.dev
+        if cache is not None and cache.get("device") == dev and cache.get("field") is f:
+            self.dv, self.stats = cache["dv"], cache["stats"]
+            self.skip("S1a", "device volume and statistics reused from the previous budget of the ladder", seconds_saved=cache["seconds"])
+        else:
+            t0 = time.perf_counter()
+            with self.timer.stage("S1a", "occupancy, gradients, structure statistics"):
+                self.dv = DeviceVolume(f, dev)
+                self.stats = structure_stats(self.dv)
+            if cache is not None:
+                cache.update({"device": dev, "field": f, "dv": self.dv, "stats": self.stats, "seconds": time.perf_counter() - t0})
+        if on_stats is not None:
+            on_stats(self.stats)
+
+    # -- S1p ---------------------------------------------------------------------------------
+    def size_coded(self) -> None:
+        if self.enc != "coded" or self.budget_bytes is None:
+            return
+        with self.timer.stage("S1p", "coded size pilot"):
+            self.n, self.sizing = coded_budget(self.dv, self.f, self.opts, self.header, self.budget_bytes, self.n)
+            scaled = self.base_refine.for_budget(self.n, self.voxels, self.dev)
+            if scaled != self.opts.refine:  # the samples follow the measured N, not its bound
+                self.opts = dataclasses.replace(self.opts, refine=scaled)
+                self.header = _header_for(self.f, self.opts)
+
+    # -- S1b-S1e -----------------------------------------------------------------------------
+    def allocate(self) -> None:
+        self.params, self.facts = allocate(self.dv, self.n, self.opts.seed, self.opts.allocation, self.timer)
+
+    # -- S1x ---------------------------------------------------------------------------------
+    def analytic_model(self, force: bool) -> None:
+        with self.timer.stage("S1x", "analytic model"):
+            analytic = Model(self.params, self.header)
+            analytic.coded_bits = None if self.sizing is None else self.sizing["bits"]  # the depths N was sized for
+            self.analytic, self.analytic_fit = (analytic, None) if self.fit_later else self.stored(analytic)
+            if self.analytic_output is not None:
+                self.analytic.save(self.analytic_output, encoding=self.enc, force=force)
+        if self.fit_later:
+            self.skip(
+                "S1x rate control of the analytic model",
+                "it is fitted to the byte budget only if the refined model scores below it; until then it is evaluated as allocated",
+            )
+        self.model = self.analytic
+
+    # -- EVa: --target-psnr ------------------------------------------------------------------
+    def check_target(self) -> None:
+        cfg = self.opts.refine
+        if not (cfg.iterations > 0 and cfg.target_psnr is not None and self.do_evaluate):
+            return
+        with self.timer.stage("EVa", "analytic model evaluation (for --target-psnr)"):
+            self.early_eval = self._evaluate(self.analytic)
+        if self.early_eval["psnr_db"] < cfg.target_psnr:
+            return
+        self.skip(
+            "S2 refinement", f"the analytic model already reaches the target ({self.early_eval['psnr_db']:.2f} >= {cfg.target_psnr:g} dB)"
+        )
+        self.refinement = {
+            "iterations": 0,
+            "stop": {"reason": "target PSNR reached by the analytic model", "iterations_skipped": cfg.iterations},
+        }
+        if self.fit_later:  # it is the result: fitted to the budget and scored as stored
+            self.analytic, self.analytic_fit = self.stored(self.analytic)
+            self.model = self.analytic
+            self.early_eval = self._evaluate(self.analytic)
+
+    # -- S2 ----------------------------------------------------------------------------------
+    def refine(self, on_progress, log_every: int) -> None:
+        if self.opts.refine.iterations == 0:
+            self.skip("S2 refinement", "iterations = 0: the analytic model is the result")
+            return
+        if self.refinement.get("stop"):
+            return
+        from .refine import Refiner, load_kernels
+
+        opts, cfg, dev, refinement = self.opts, self.opts.refine, self.dev, self.refinement
+        cap = opts.allocation.resolved_cap(self.f.shape_xyz)
+        with self.timer.stage("S2", "refinement"):
             load_kernels(dev)
             stage_start = time.perf_counter()  # the time budget starts with compiled kernels
-            refiner = Refiner(dv, params, cfg, opts.seed, opts.allocation.scale_min, cap)
-            if refiner.uniform_occupied:
-                occ = refiner.n_high + refiner.n_mid
-                skipped.append(
-                    {
-                        "what": "uniform samples in empty space",
-                        "why": f"value_empty = 0: a sample where V <= 0.02 adds no loss; the uniform stratum is drawn among the {occ:,} occupied voxels",
-                        "uniform_samples_moved_share": 1.0 - occ / dv.field.values.size,
-                    }
-                )
-            elif refiner.uniform_support:
-                share = refiner.support_share()
-                if share < 1.0:
-                    skipped.append(
-                        {
-                            "what": "uniform samples outside the model's support",
-                            "why": "no Gaussian's 5-sigma box (+2 voxels) reaches there: a sample would score 0 with no gradient; "
-                            "the uniform stratum is drawn over the 4^3 bricks the boxes reach, re-marked at every re-bin",
-                            "share_skipped_at_start": 1.0 - share,
-                        }
-                    )
-            if not refiner.partners:
-                skipped.append(
-                    {
-                        "what": "partner points",
-                        "why": "smoothness weight 0: the partners serve only that term, so each iteration evaluates the samples alone (half the points)",
-                    }
-                )
-            ckpt = _Checkpoints(opts, params, cfg, dev)
+            refiner = Refiner(self.dv, self.params, cfg, opts.seed, opts.allocation.scale_min, cap)
+            self._sampling_skips(refiner)
+            ckpt = _Checkpoints(opts, self.params, cfg, dev)
             if opts.resume:
                 ckpt.resume(refiner)
-            if opts.self_test and dev in SELF_TESTS:  # once per process and device: the kernels cannot change
-                refinement["self_test"] = {**SELF_TESTS[dev], "reused": True, "seconds": 0.0}
-                skipped.append(
-                    {
-                        "what": "self-test",
-                        "why": "passed earlier in this process on this device",
-                        "seconds_saved": SELF_TESTS[dev]["seconds"],
-                    }
-                )
-            elif opts.self_test:  # the self-test leaves the training state as it was
-                t0 = time.perf_counter()
-                refinement["self_test"] = self_test(refiner)
-                refinement["self_test"]["seconds"] = time.perf_counter() - t0
-                SELF_TESTS[dev] = dict(refinement["self_test"])
-            else:
-                skipped.append({"what": "self-test", "why": "--no-self-test"})
+            self._self_test(refiner)
             if cfg.target_psnr is not None or cfg.plateau_db is not None:
-                refiner.set_validation(f)
+                refiner.set_validation(self.f)
             t0 = time.perf_counter()
             deadline = None
             if opts.time_budget is not None and not opts.resume:  # 5 % reserve for the export
@@ -525,13 +525,17 @@ def encode_field(
             seconds = time.perf_counter() - t0
             if refiner.interrupted:
                 ckpt.save(refiner)
-            refined = Model(refiner.model_params(), header)
-            if enc == "coded" and history:  # finer grids for a more accurate model
+            refined = Model(refiner.model_params(), self.header)
+            if self.enc == "coded" and history:  # finer grids for a more accurate model
                 from .coded import bits_for_psnr
 
                 refined.coded_bits, extra = bits_for_psnr(history[-1].get("sample_psnr_db"))
-                coded_bits_note = {"sample_psnr_db": history[-1].get("sample_psnr_db"), "bits_added": extra, "bits": refined.coded_bits}
-            model, refined_fit = stored(refined)
+                self.coded_bits_note = {
+                    "sample_psnr_db": history[-1].get("sample_psnr_db"),
+                    "bits_added": extra,
+                    "bits": refined.coded_bits,
+                }
+            self.model, self.refined_fit = self.stored(refined)
         sessions = ckpt.sessions + [{"from_iteration": ckpt.start_iteration, "to_iteration": refiner.iteration, "seconds": seconds}]
         total = sum(x["seconds"] for x in sessions)
         refinement.update(
@@ -539,7 +543,7 @@ def encode_field(
                 "time_budget": refiner.budget,
                 "iterations": refiner.cfg.iterations,
                 "samples": refiner.m,
-                "samples_rule": base_refine.samples_rule(n, voxels, dev)[1],
+                "samples_rule": self.base_refine.samples_rule(self.n, self.voxels, dev)[1],
                 "seconds": total,
                 "sessions": sessions,
                 "iterations_done": refiner.iteration,
@@ -567,99 +571,144 @@ def encode_field(
                 "seconds_saved_estimate": left * total / max(refiner.iteration, 1),
                 "checks": refiner.checks,
             }
-            skipped.append(
-                {
-                    "what": f"S2 iterations {refiner.iteration}-{refiner.cfg.iterations}",
-                    "why": refiner.stop_reason,
-                    "seconds_saved": refinement["stop"]["seconds_saved_estimate"],
-                }
+            self.skip(
+                f"S2 iterations {refiner.iteration}-{refiner.cfg.iterations}",
+                refiner.stop_reason,
+                seconds_saved=refinement["stop"]["seconds_saved_estimate"],
             )
         elif refiner.checks:
             refinement["checks"] = refiner.checks
         if refiner.interrupted:
-            evaluate = False
-            skipped.append({"what": "EV evaluation", "why": f"interrupted at iteration {refiner.iteration}"})
-    else:
-        skipped.append({"what": "S2 refinement", "why": "iterations = 0: the analytic model is the result"})
+            self.do_evaluate = False
+            self.skip("EV evaluation", f"interrupted at iteration {refiner.iteration}")
 
-    evaluation: dict = {}
-    if evaluate:
-        from .evaluate import evaluate_field
+    def _sampling_skips(self, refiner) -> None:
+        """Where the refiner draws no samples, and why (recorded before it runs)."""
+        if refiner.uniform_occupied:
+            occ = refiner.n_high + refiner.n_mid
+            self.skip(
+                "uniform samples in empty space",
+                f"value_empty = 0: a sample where V <= 0.02 adds no loss; the uniform stratum is drawn among the {occ:,} occupied voxels",
+                uniform_samples_moved_share=1.0 - occ / self.dv.field.values.size,
+            )
+        elif refiner.uniform_support:
+            share = refiner.support_share()
+            if share < 1.0:
+                self.skip(
+                    "uniform samples outside the model's support",
+                    "no Gaussian's 5-sigma box (+2 voxels) reaches there: a sample would score 0 with no gradient; "
+                    "the uniform stratum is drawn over the 4^3 bricks the boxes reach, re-marked at every re-bin",
+                    share_skipped_at_start=1.0 - share,
+                )
+        if not refiner.partners:
+            self.skip(
+                "partner points",
+                "smoothness weight 0: the partners serve only that term, so each iteration evaluates the samples alone (half the points)",
+            )
 
-        with timer.stage("EV", "evaluation"):
-            evaluation["analytic"] = early_eval or evaluate_field(analytic.field(dev), f, full=full_eval)
-            if model is analytic:
+    def _self_test(self, refiner) -> None:
+        """The binned-vs-dense self-test: once per process and device (the kernels cannot change)."""
+        from .refine import SELF_TESTS, self_test
+
+        dev = self.dev
+        if self.opts.self_test and dev in SELF_TESTS:
+            self.refinement["self_test"] = {**SELF_TESTS[dev], "reused": True, "seconds": 0.0}
+            self.skip("self-test", "passed earlier in this process on this device", seconds_saved=SELF_TESTS[dev]["seconds"])
+        elif self.opts.self_test:  # the self-test leaves the training state as it was
+            t0 = time.perf_counter()
+            self.refinement["self_test"] = self_test(refiner)
+            self.refinement["self_test"]["seconds"] = time.perf_counter() - t0
+            SELF_TESTS[dev] = dict(self.refinement["self_test"])
+        else:
+            self.skip("self-test", "--no-self-test")
+
+    # -- EV ----------------------------------------------------------------------------------
+    def evaluate(self) -> None:
+        if not self.do_evaluate:
+            if not self.refinement.get("interrupted"):
+                self.skip("EV evaluation", "disabled by the caller")
+            return
+        evaluation = self.evaluation
+        with self.timer.stage("EV", "evaluation"):
+            evaluation["analytic"] = self.early_eval or self._evaluate(self.analytic)
+            if self.model is self.analytic:
                 evaluation["final"] = evaluation["analytic"]
             else:
                 t0 = time.perf_counter()
-                evaluation["final"] = evaluate_field(model.field(dev), f, full=full_eval)
+                evaluation["final"] = self._evaluate(self.model)
                 share = evaluation["final"].get("bricks_evaluated_share")
                 if share is not None and 0.0 < share < 1.0:
-                    skipped.append(
-                        {
-                            "what": "empty 8^3 bricks in the full-grid evaluation",
-                            "why": "no Gaussian's 5-sigma box reaches them: written 0 without evaluation (exactly the model's value)",
-                            "share_skipped": 1.0 - share,
-                            "seconds_saved_estimate": (time.perf_counter() - t0) * (1.0 - share) / share,
-                        }
+                    self.skip(
+                        "empty 8^3 bricks in the full-grid evaluation",
+                        "no Gaussian's 5-sigma box reaches them: written 0 without evaluation (exactly the model's value)",
+                        share_skipped=1.0 - share,
+                        seconds_saved_estimate=(time.perf_counter() - t0) * (1.0 - share) / share,
                     )
-                refined_db, analytic_db = evaluation["final"]["psnr_db"], evaluation["analytic"]["psnr_db"]
-                if refined_db < analytic_db and fit_later:  # the analytic model as it would be stored
-                    analytic, analytic_fit = stored(analytic)
-                    evaluation["analytic"] = evaluate_field(analytic.field(dev), f, full=full_eval)
-                    analytic_db = evaluation["analytic"]["psnr_db"]
-                if refined_db < analytic_db:  # e.g. too few iterations for a large N: keep the better model
-                    evaluation["discarded_refined"] = evaluation["final"]
-                    evaluation["final"] = evaluation["analytic"]
-                    model = analytic
-                    skipped.append(
-                        {
-                            "what": "refined model",
-                            "why": f"it scored {refined_db:.2f} dB, below the analytic model's {analytic_db:.2f} dB: the analytic model is the result",
-                        }
-                    )
+                self._keep_the_better(evaluation)
         evaluation["gain_db"] = evaluation["final"]["psnr_db"] - evaluation["analytic"]["psnr_db"]
-    elif not refinement.get("interrupted"):
-        skipped.append({"what": "EV evaluation", "why": "disabled by the caller"})
 
-    size, payload = model.file_sizes(encoding=enc)  # one coding of a coded model gives both
-    fit = analytic_fit if model is analytic else refined_fit
-    model.report = {
-        "warpgauss_version": __version__,
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "device": dev,
-        "device_name": device_name(dev),
-        "warp_version": wp.config.version,
-        "host": platform.node(),
-        "input": input_info or {"name": f.name, "shape_xyz": list(f.shape_xyz)},
-        "budget": {
-            "n": model.n,
-            "requested_budget": opts.budget,
-            "requested_ratio": opts.ratio if opts.budget is None and opts.bytes is None else None,
-            "requested_bytes": budget_bytes,
-            "budget_used": None if budget_bytes is None else size / budget_bytes,
-            "coded_sizing": sizing,
-            "coded_fit": fit,
-            "coded_bits_from_accuracy": coded_bits_note if model is not analytic else None,
-            "coded_choice": _coded_choice(sizing, fit, coded_bits_note if model is not analytic else None),
-            "n_max": seed_limit(f.eligible, f.occupied),
-            "format": enc,
-            "bytes": size,
-            "bytes_per_primitive": payload / model.n,
-            "compression_ratio": model.source_bytes / size,
-            "full_precision_bytes": model.file_size(False),
-            "compact_bytes": model.file_size(True),
-        },
-        "seed": opts.seed,
-        "structure": stats,
-        "allocation": facts,
-        "refinement": refinement,
-        "evaluation": evaluation,
-        "psnr_db": evaluation.get("final", {}).get("psnr_db"),
-        "interrupted": bool(refinement.get("interrupted")),
-        "skipped": skipped,
-    }
-    return model
+    def _keep_the_better(self, evaluation: dict) -> None:
+        """A refinement that scores below the analytic model (e.g. too few iterations for a large
+        N) is discarded, the analytic model compared as it would be stored."""
+        refined_db, analytic_db = evaluation["final"]["psnr_db"], evaluation["analytic"]["psnr_db"]
+        if refined_db < analytic_db and self.fit_later:
+            self.analytic, self.analytic_fit = self.stored(self.analytic)
+            evaluation["analytic"] = self._evaluate(self.analytic)
+            analytic_db = evaluation["analytic"]["psnr_db"]
+        if refined_db < analytic_db:
+            evaluation["discarded_refined"] = evaluation["final"]
+            evaluation["final"] = evaluation["analytic"]
+            self.model = self.analytic
+            self.skip(
+                "refined model",
+                f"it scored {refined_db:.2f} dB, below the analytic model's {analytic_db:.2f} dB: the analytic model is the result",
+            )
+
+    # -- the report --------------------------------------------------------------------------
+    def result(self, input_info: dict | None) -> Model:
+        from ._warp import device_name
+
+        f, opts, model, dev = self.f, self.opts, self.model, self.dev
+        is_analytic = model is self.analytic
+        size, payload = model.file_sizes(encoding=self.enc)  # one coding of a coded model gives both
+        fit = self.analytic_fit if is_analytic else self.refined_fit
+        note = None if is_analytic else self.coded_bits_note
+        model.report = {
+            "warpgauss_version": __version__,
+            "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "device": dev,
+            "device_name": device_name(dev),
+            "warp_version": self.wp.config.version,
+            "host": platform.node(),
+            "input": input_info or {"name": f.name, "shape_xyz": list(f.shape_xyz)},
+            "budget": {
+                "n": model.n,
+                "requested_budget": opts.budget,
+                "requested_ratio": opts.ratio if opts.budget is None and opts.bytes is None else None,
+                "requested_bytes": self.budget_bytes,
+                "budget_used": None if self.budget_bytes is None else size / self.budget_bytes,
+                "coded_sizing": self.sizing,
+                "coded_fit": fit,
+                "coded_bits_from_accuracy": note,
+                "coded_choice": _coded_choice(self.sizing, fit, note),
+                "n_max": seed_limit(f.eligible, f.occupied),
+                "format": self.enc,
+                "bytes": size,
+                "bytes_per_primitive": payload / model.n,
+                "compression_ratio": model.source_bytes / size,
+                "full_precision_bytes": model.file_size(False),
+                "compact_bytes": model.file_size(True),
+            },
+            "seed": opts.seed,
+            "structure": self.stats,
+            "allocation": self.facts,
+            "refinement": self.refinement,
+            "evaluation": self.evaluation,
+            "psnr_db": self.evaluation.get("final", {}).get("psnr_db"),
+            "interrupted": bool(self.refinement.get("interrupted")),
+            "skipped": self.skipped,
+        }
+        return model
 
 
 class _Checkpoints:
