@@ -248,6 +248,8 @@ class PanelCommand(typer.core.TyperCommand):
             with formatter.section("Arguments"):
                 formatter.write_dl(args)
         order = {t: i for i, t in enumerate(PANELS)}
+        if list(groups) == ["Other options"]:  # a command without panels: click's usual heading
+            groups = {"Options": groups["Other options"]}
         for title, rows in sorted(groups.items(), key=lambda kv: order.get(kv[0], len(PANELS) + (kv[0] == "Other options"))):
             with formatter.section(title):
                 formatter.write_dl(rows)
