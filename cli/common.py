@@ -225,7 +225,7 @@ def resolved_config(ctx: typer.Context) -> dict:
     return out
 
 
-PANELS = ("Input", "Budget and format", "Refinement", "Loss weights", "Run control", "Output")  # help order
+PANELS = ("Input", "Budget and format", "Refinement", "Loss weights", "Bricks and cluster", "Run control", "Output")  # help order
 
 
 class PanelCommand(typer.core.TyperCommand):

@@ -146,6 +146,27 @@ def encode(
         ),
     ] = None,
     force: Annotated[bool, typer.Option("--force", rich_help_panel="Output", help="Overwrite existing output files")] = False,
+    bricks: Annotated[
+        str | None,
+        typer.Option(
+            rich_help_panel="Bricks and cluster",
+            help="Split the grid into bricks, e.g. 2x2x2 (x, y, z), the budget over them up front, each encoded on a Dask worker and merged into one model",
+        ),
+    ] = None,
+    halo: Annotated[
+        int | None, typer.Option(rich_help_panel="Bricks and cluster", help="Voxels of halo around each brick (default 4)")
+    ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            rich_help_panel="Bricks and cluster",
+            help="Local cluster size for --bricks (default: one worker per GPU, this process on one GPU, up to 4 processes on the CPU; 0: this process)",
+        ),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(rich_help_panel="Bricks and cluster", help="Address of a running Dask scheduler (e.g. tcp://host:8786) for --bricks"),
+    ] = None,
     config: Annotated[
         Path | None,
         typer.Option(
@@ -213,6 +234,21 @@ def encode(
     def progress(it: int, total: int, rec: dict) -> None:
         status.update(f"[bold]S2[/] refinement {it}/{total}  loss {rec['total']:.3e}  sample PSNR {rec['sample_psnr_db']:.2f} dB")
 
+    client = None
+    if bricks is None and (halo is not None or workers is not None or scheduler is not None):
+        fail("--halo, --workers and --scheduler apply to a bricked encode: give --bricks XxYxZ")
+    if bricks is not None:
+        from warpgauss.bricked import default_client, parse_bricks
+
+        parse_bricks(bricks)  # refused in one line before a cluster starts
+        client, where = default_client(workers, scheduler, device)
+        if status is not None:
+            status.console.print(f"bricks {bricks}: {where}", highlight=False)
+
+    def brick_progress(done: int, total: int) -> None:
+        if status is not None:
+            status.update(f"[bold]bricks[/] {done}/{total} encoded")
+
     try:
         model = warpgauss.encode(
             input,
@@ -244,10 +280,19 @@ def encode(
             on_stats=None if status is None else lambda s: status.console.print(_stats_line(s)),
             on_progress=None if status is None else progress,
             analytic_output=save_analytic,
+            bricks=bricks,
+            halo=halo,
+            client=client,
+            on_bricks=brick_progress,
         )
     finally:
         if status is not None:
             status.stop()
+        if client is not None:
+            cluster = getattr(client, "cluster", None)
+            client.close()
+            if cluster is not None and scheduler is None:
+                cluster.close()
     rep = model.report
     rep["report"] = str(rep_path)
     rep["config"] = resolved_config(ctx)  # warpgauss encode --config REPORT repeats the run

@@ -821,6 +821,125 @@ class _stop_on_sigint:
         return False
 
 
+def encode_bricked(
+    f: Field,
+    opts: EncodeOptions,
+    bricks,
+    *,
+    halo: int | None = None,
+    device: str | None = None,
+    client=None,
+    timer: StageRecorder | None = None,
+    input_info: dict | None = None,
+    evaluate: bool = True,
+    full_eval: bool = False,
+    on_progress: Callable[[int, int], None] | None = None,
+) -> Model:
+    """The bricked encode (see :mod:`warpgauss.bricked`): the budget split over ``bricks`` (counts
+    x, y, z) before any refinement, each brick encoded in this process (``client`` None) or on a
+    Dask cluster, the primitives merged into one model of exactly N (then stored in the format,
+    coded budgets fitted as in the monolithic encode).
+    """
+    from ._warp import device_name, resolve_device, warp
+    from .analysis import DeviceVolume
+    from .bricked import DEFAULT_HALO, brick_tasks, parse_bricks, plan_bricks, run_bricks, split_bricks
+    from .wgs import header_size
+
+    counts_xyz = parse_bricks(bricks)
+    halo = DEFAULT_HALO if halo is None else int(halo)
+    if opts.resume or opts.time_budget is not None or opts.refine.target_psnr is not None or opts.refine.plateau_db is not None:
+        raise WarpgaussError("--bricks does not combine with --resume, --time-budget, --target-psnr or --plateau yet")
+    enc = encoding_of(opts)
+    budget_bytes = target_bytes(f, opts)
+    header = _header_for(f, opts)
+    n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
+    plan = plan_bricks(f.shape_xyz, counts_xyz, halo)
+    wp = warp()
+    dev = resolve_device(device)
+    timer = timer or StageRecorder()
+    timer.device = dev
+    sizing = None
+    dv = None
+    if enc == "coded" and budget_bytes is not None:
+        with timer.stage("S1p", "coded size pilot"):
+            dv = DeviceVolume(f, dev)
+            n, sizing = coded_budget(dv, f, opts, header, budget_bytes, n)
+    allocation = dataclasses.replace(opts.allocation, scale_cap=opts.allocation.resolved_cap(f.shape_xyz))
+    with timer.stage("Sb", "budget split over the bricks"):
+        counts, stats = split_bricks(f, plan, n)
+    tasks = brick_tasks(f, plan, counts, opts.seed, allocation, opts.refine, None if client is not None else dev)
+    t0 = time.perf_counter()
+    with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
+        results = run_bricks(tasks, client, on_progress)
+    wall = time.perf_counter() - t0
+    params = np.concatenate([r["params"] for r in results]) if results else np.zeros((0, 12), np.float32)
+    merged = Model(params, header)
+    merged.coded_bits = None if sizing is None else sizing["bits"]
+    fit = None
+    if enc == "coded" and budget_bytes is not None:
+        model, fit = merged.fit_bytes(budget_bytes)
+    else:
+        model = merged.stored(enc)
+        model.format = enc
+    evaluation: dict = {}
+    if evaluate:
+        from .evaluate import evaluate_field
+
+        with timer.stage("EV", "evaluation"):
+            evaluation["final"] = evaluate_field(model.field(dev), f, full=full_eval)
+    size, payload = model.file_sizes(encoding=enc)
+    bricks_report = [
+        {
+            "index": list(b.index),
+            "interior_zyx": [list(x) for x in b.interior],
+            "box_zyx": [list(x) for x in b.box],
+            **st,
+            "seconds": r["seconds"],
+            "device": r["device"],
+            "iterations": r["iterations"],
+        }
+        for b, st, r in zip(plan, stats, results)
+    ]
+    model.report = {
+        "warpgauss_version": __version__,
+        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "device": dev,
+        "device_name": device_name(dev),
+        "warp_version": wp.config.version,
+        "host": platform.node(),
+        "input": input_info or {"name": f.name, "shape_xyz": list(f.shape_xyz)},
+        "budget": {
+            "n": model.n,
+            "requested_budget": opts.budget,
+            "requested_ratio": opts.ratio if opts.budget is None and opts.bytes is None else None,
+            "requested_bytes": budget_bytes,
+            "budget_used": None if budget_bytes is None else size / budget_bytes,
+            "coded_sizing": sizing,
+            "coded_fit": fit,
+            "n_max": seed_limit(f.eligible, f.occupied),
+            "format": enc,
+            "bytes": size,
+            "bytes_per_primitive": payload / max(model.n, 1),
+            "compression_ratio": model.source_bytes / size,
+        },
+        "bricking": {
+            "bricks_xyz": list(counts_xyz),
+            "halo": halo,
+            "scheduler": "this process" if client is None else str(client.scheduler.address),
+            "wall_seconds": wall,
+            "bricks": bricks_report,
+            "rule": "detail share by interior sum of |grad V|, coverage share by occupied voxels, largest remainders, seed limits",
+        },
+        "seed": opts.seed,
+        "refinement": {"iterations": opts.refine.iterations, "per_brick": True},
+        "evaluation": evaluation,
+        "psnr_db": evaluation.get("final", {}).get("psnr_db"),
+        "interrupted": False,
+        "skipped": [],
+    }
+    return model
+
+
 def finish_report(model: Model, timer: StageRecorder) -> dict:
     """Put the stage table and totals into the model's report."""
     rep = model.report
@@ -866,6 +985,10 @@ def encode(
     on_stage: Callable[[str, str], None] | None = None,
     on_stats: Callable[[dict], None] | None = None,
     on_progress: Callable[[int, int, dict], None] | None = None,
+    bricks=None,
+    halo: int | None = None,
+    client=None,
+    on_bricks: Callable[[int, int], None] | None = None,
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
 
@@ -919,6 +1042,12 @@ def encode(
         on_progress: Optional callback(iteration, total, losses) during refinement.
         analytic_output: Also write the analytic (pre-refinement) model there.
 
+        bricks: Split the grid into bricks (``"2x2x2"``, counts x, y, z) with a halo, the budget
+            over them before refinement, and encode each on its own (see :mod:`warpgauss.bricked`).
+        halo: Voxels of halo around each brick (default :data:`warpgauss.bricked.DEFAULT_HALO`).
+        client: A ``distributed.Client``: the bricks run on its cluster (None: in this process).
+        on_bricks: Optional callback(bricks done, bricks) during a bricked encode.
+
     Returns:
         The :class:`Model`, with ``model.report`` holding the run report.
     """
@@ -961,19 +1090,36 @@ def encode(
     timer = StageRecorder(on_stage=on_stage)
     with timer.stage("P", "load and normalise"):
         f, info = load_field(source, read, example=example, example_size=example_size)
-    model = encode_field(
-        f,
-        opts,
-        device=device,
-        timer=timer,
-        input_info=info,
-        evaluate=evaluate,
-        full_eval=full_eval,
-        on_stats=on_stats,
-        on_progress=on_progress,
-        analytic_output=analytic_output,
-        force=force or resume,
-    )
+    if bricks is not None:
+        if analytic_output is not None:
+            raise WarpgaussError("--bricks does not write an analytic model (--save-analytic)")
+        model = encode_bricked(
+            f,
+            opts,
+            bricks,
+            halo=halo,
+            device=device,
+            client=client,
+            timer=timer,
+            input_info=info,
+            evaluate=evaluate,
+            full_eval=full_eval,
+            on_progress=on_bricks,
+        )
+    else:
+        model = encode_field(
+            f,
+            opts,
+            device=device,
+            timer=timer,
+            input_info=info,
+            evaluate=evaluate,
+            full_eval=full_eval,
+            on_stats=on_stats,
+            on_progress=on_progress,
+            analytic_output=analytic_output,
+            force=force or resume,
+        )
     if output is not None:
         with timer.stage("S3", "export"):
             model.save(output, encoding=encoding_of(opts), force=True if resume else force)
