@@ -1,0 +1,93 @@
+"""Bricked (2x2x2, in one process on one GPU) against the monolithic encode at the same N and
+settings (issue #20 target: PSNR within 0.2 dB, time within 1.3x), full-grid PSNR, and the PSNR
+on voxels within 2 voxels of an inner brick face against the rest.
+
+    python benchmarks/i20/bricked_vs_mono.py --size 512 --budget 400000 --fields vortex,interface --out $OUT/i20_bricked_h100.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+import warpgauss
+from warpgauss._warp import device_name, resolve_device, warp
+from warpgauss.analysis import normalise
+from warpgauss.bricked import parse_bricks, plan_bricks
+from warpgauss.synthetic import generate
+
+
+def psnr(sse: float, n: int) -> float:
+    return float(10 * np.log10(n / max(sse, 1e-30)))
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--budget", type=int, default=400_000)
+    ap.add_argument("--fields", default="vortex,interface")
+    ap.add_argument("--bricks", default="2x2x2")
+    ap.add_argument("--halo", type=int, default=4)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args(argv)
+    wp = warp()
+    dev = resolve_device(args.device)
+    warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64)  # compile
+    result = {
+        "benchmark": "bricked vs monolithic encode, same N and settings (format full, defaults otherwise)",
+        "command": "python benchmarks/i20/bricked_vs_mono.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+        "device": dev,
+        "device_name": device_name(dev),
+        "warp_version": wp.config.version,
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "rows": [],
+    }
+    counts = parse_bricks(args.bricks)
+    for name in filter(None, args.fields.split(",")):
+        v = generate(name, args.size)
+        f = normalise(v)
+        near = np.zeros(v.shape, bool)
+        for b in plan_bricks(f.shape_xyz, counts, args.halo):
+            for axis, (i0, i1) in enumerate(b.interior):
+                for face in (i0, i1):
+                    if 0 < face < v.shape[axis]:
+                        sl = [slice(None)] * 3
+                        sl[axis] = slice(max(0, face - 2), face + 2)
+                        near[tuple(sl)] = True
+        for mode in ("monolithic", "bricked"):
+            kw = dict(budget=args.budget, device=dev, format="full", self_test=False, evaluate=False)
+            if mode == "bricked":
+                kw.update(bricks=args.bricks, halo=args.halo)
+            t0 = time.perf_counter()
+            m = warpgauss.encode(v, **kw)
+            wall = time.perf_counter() - t0
+            d = m.decode(device=dev, normalised=True)
+            err = (d.astype(np.float64) - f.values) ** 2
+            row = {
+                "field": name,
+                "size": args.size,
+                "mode": mode,
+                "n": m.n,
+                "encode_s": wall,
+                "psnr_db": psnr(float(err.sum()), err.size),
+                "seam_psnr_db": psnr(float(err[near].sum()), int(near.sum())),
+                "interior_psnr_db": psnr(float(err[~near].sum()), int((~near).sum())),
+                "samples": m.report["refinement"].get("samples") if mode == "monolithic" else None,
+            }
+            if mode == "bricked":
+                row["bricks"] = [{k: b[k] for k in ("n", "seconds")} for b in m.report["bricking"]["bricks"]]
+            result["rows"].append(row)
+            print({k: v_ for k, v_ in row.items() if k != "bricks"}, flush=True)
+            args.out.write_text(json.dumps(result, indent=1))
+            del d, err, m
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,68 @@
+"""Seam quality of the bricked encode (issue #20), CPU: full-grid PSNR on voxels within 2 voxels of
+an inner brick face against the rest, 2x2x2 bricks, two halos, two example fields at 48^3.
+
+    python benchmarks/i20/seam_cpu.py --out benchmarks/results/i20_seam_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+from pathlib import Path
+
+import numpy as np
+
+import warpgauss
+from warpgauss._warp import warp
+from warpgauss.analysis import normalise
+from warpgauss.bricked import plan_bricks
+from warpgauss.synthetic import generate
+
+
+def psnr(e: np.ndarray) -> float:
+    return float(10 * np.log10(1 / max(float(e.mean()), 1e-20)))
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--size", type=int, default=48)
+    ap.add_argument("--budget", type=int, default=1500)
+    ap.add_argument("--iterations", type=int, default=150)
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args(argv)
+    rows = []
+    for name in ("vortex", "interface"):
+        v = generate(name, args.size)
+        f = normalise(v)
+        kw = dict(budget=args.budget, iterations=args.iterations, device="cpu", format="full", self_test=False)
+        mono = warpgauss.encode(v, **kw).report["psnr_db"]
+        for halo in (4, 8):
+            m = warpgauss.encode(v, bricks="2x2x2", halo=halo, **kw)
+            err = (m.decode(device="cpu", normalised=True) - f.values) ** 2
+            near = np.zeros(v.shape, bool)
+            for b in plan_bricks(f.shape_xyz, (2, 2, 2), halo):
+                for axis, (i0, i1) in enumerate(b.interior):
+                    for face in (i0, i1):
+                        if 0 < face < v.shape[axis]:
+                            sl = [slice(None)] * 3
+                            sl[axis] = slice(max(0, face - 2), face + 2)
+                            near[tuple(sl)] = True
+            row = {"field": name, "halo": halo, "monolithic_psnr_db": mono, "psnr_db": psnr(err), "seam_psnr_db": psnr(err[near]), "interior_psnr_db": psnr(err[~near])}
+            rows.append(row)
+            print(row, flush=True)
+    result = {
+        "benchmark": "bricked encode seam quality (2x2x2), CPU",
+        "command": "python benchmarks/i20/seam_cpu.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+        "device": "cpu",
+        "warp_version": warp().config.version,
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "settings": vars(args) | {"out": str(args.out)},
+        "rows": rows,
+    }
+    args.out.write_text(json.dumps(result, indent=1))
+    return result
+
+
+if __name__ == "__main__":
+    main()
