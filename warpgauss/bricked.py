@@ -122,16 +122,9 @@ def seam_weights(brick: Brick) -> np.ndarray:
     return w
 
 
-def brick_fields(f: Field, brick: Brick) -> tuple[Field, Field]:
-    """(allocation field: the halo masked out; training field: the whole box), both the brick's
-    share of the field (:func:`seam_weights`) normalised by the volume's min/max."""
-    box = brick.slices("box")
-    values = np.ascontiguousarray(f.values[box])
-    valid = None if f.mask is None else np.ascontiguousarray(f.mask[box])
-    interior = np.zeros(values.shape, bool)
-    interior[brick.interior_in_box()] = True
-    seed_mask = interior if valid is None else interior & valid
-    base: dict[str, Any] = dict(
+def _field_meta(f: Field) -> dict[str, Any]:
+    """What a brick's Field shares with the volume's: the normalisation and the source facts."""
+    return dict(
         vmin=f.vmin,
         vmax=f.vmax,
         spacing=f.spacing,
@@ -140,6 +133,33 @@ def brick_fields(f: Field, brick: Brick) -> tuple[Field, Field]:
         source_dtype=f.source_dtype,
         source_itemsize=f.source_itemsize,
     )
+
+
+def face_band(shape_xyz, bricks: list[Brick], width: int = 2) -> np.ndarray:
+    """Voxels within ``width`` of an inner brick face, (z, y, x) booleans: where seams show."""
+    shape_zyx = tuple(int(s) for s in shape_xyz)[::-1]
+    near = np.zeros(shape_zyx, bool)
+    for b in bricks:
+        for axis, (i0, i1) in enumerate(b.interior):
+            for face in (i0, i1):
+                if 0 < face < shape_zyx[axis]:
+                    sl = [slice(None)] * 3
+                    sl[axis] = slice(max(0, face - width), face + width)
+                    near[tuple(sl)] = True
+    return near
+
+
+def brick_fields(f: Field, brick: Brick) -> tuple[Field, Field]:
+    """(allocation field: the halo masked out; training field: the whole box), both normalised by
+    the volume's min/max (the values as they are: the mixture's normalisation blends overlapping
+    bricks; :func:`seam_weights` is kept for a blended-target experiment, unused by the encode)."""
+    box = brick.slices("box")
+    values = np.ascontiguousarray(f.values[box])
+    valid = None if f.mask is None else np.ascontiguousarray(f.mask[box])
+    interior = np.zeros(values.shape, bool)
+    interior[brick.interior_in_box()] = True
+    seed_mask = interior if valid is None else interior & valid
+    base = _field_meta(f)
     occ, elig = count_seed_candidates(values, seed_mask)
     alloc = Field(values, seed_mask, occupied=occ, eligible=elig, n_valid=int(seed_mask.sum()), **base)
     t_occ, t_elig = count_seed_candidates(values, valid)
@@ -262,15 +282,7 @@ def _local(b: Brick) -> tuple[tuple[int, int], ...]:
 
 
 def brick_tasks(f: Field, bricks: list[Brick], counts: list[int], seed: int, allocation, refine, device) -> list[BrickTask]:
-    meta: dict[str, Any] = dict(
-        vmin=f.vmin,
-        vmax=f.vmax,
-        spacing=f.spacing,
-        origin=f.origin,
-        name=f.name,
-        source_dtype=f.source_dtype,
-        source_itemsize=f.source_itemsize,
-    )
+    meta = _field_meta(f)
     tasks = []
     for i, (b, n) in enumerate(zip(bricks, counts)):
         box = b.slices("box")

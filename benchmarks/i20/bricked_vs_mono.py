@@ -18,7 +18,7 @@ import numpy as np
 import warpgauss
 from warpgauss._warp import device_name, resolve_device, warp
 from warpgauss.analysis import normalise
-from warpgauss.bricked import parse_bricks, plan_bricks
+from warpgauss.bricked import face_band, parse_bricks, plan_bricks
 from warpgauss.synthetic import generate
 
 
@@ -52,14 +52,7 @@ def main(argv=None) -> dict:
     for name in filter(None, args.fields.split(",")):
         v = generate(name, args.size)
         f = normalise(v)
-        near = np.zeros(v.shape, bool)
-        for b in plan_bricks(f.shape_xyz, counts, args.halo):
-            for axis, (i0, i1) in enumerate(b.interior):
-                for face in (i0, i1):
-                    if 0 < face < v.shape[axis]:
-                        sl = [slice(None)] * 3
-                        sl[axis] = slice(max(0, face - 2), face + 2)
-                        near[tuple(sl)] = True
+        near = face_band(f.shape_xyz, plan_bricks(f.shape_xyz, counts, args.halo))
         for mode in ("monolithic", "bricked"):
             kw = dict(budget=args.budget, device=dev, format="full", self_test=False, evaluate=False)
             if mode == "bricked":
