@@ -318,10 +318,15 @@ def refine_update(
     bounds: SlotBounds,
     prims: BinnedPrimitives,  # prepared primitives, slot order (updated)
     quant: QuantGrid,  # on: evaluation sees the parameters on the coded grids (straight-through)
+    ids: wp.array(dtype=int),  # [N] primitive of each slot
+    n_train: int,  # primitives 0 .. n_train - 1 are stepped; the rest are frozen (seen, never moved)
     counts: wp.array(dtype=int),  # [2] out: (non-finite steps skipped, updates deferred to the next re-bin)
     reach: wp.array(dtype=float),  # [N] out: binning radius a deferred slot needs at the next re-bin
 ):
     """Chain rule, sparse Adam, constraints and re-preparation of one slot, fused (one thread per slot).
+
+    A frozen primitive (a finished neighbour brick's, see :mod:`warpgauss.bricked`) takes part in
+    evaluation and its gradients are cleared, but it never steps.
 
     An untouched slot costs one read of its pair gradients. A step that would carry a primitive
     beyond what its cell's neighbourhood covers (:class:`SlotBounds`) is deferred: parameters and
@@ -331,6 +336,13 @@ def refine_update(
     """
     j = wp.tid()
     if not touched(j, d_mu, d_a, d_w):
+        return
+    if ids[j] >= n_train:
+        d_mu[j] = wp.vec3()
+        d_ls[j] = wp.vec3()
+        d_rot[j] = wp.mat33()
+        d_a[j] = 0.0
+        d_w[j] = 0.0
         return
     g, reg = raw_gradient(
         evaluated(raw[j], quant),

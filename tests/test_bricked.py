@@ -1,6 +1,7 @@
 """Bricked encoding: the plan covers the grid, the budget split is exact and within each brick's
-seed limit, and a bricked model is the same bit for bit in this process and on a local Dask
-cluster of two processes (same seed, same bricking, same device)."""
+seed limit, the waves see their finished neighbours frozen, and a bricked model is the same bit
+for bit in this process and on a local Dask cluster of two processes (same seed, same bricking,
+same device), also when a worker is killed mid-run; a brick failing twice fails the run."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 
 import warpgauss
 from warpgauss.analysis import normalise, seed_limit
-from warpgauss.bricked import brick_fields, parse_bricks, plan_bricks, seam_weights, split_bricks
+from warpgauss.bricked import brick_colour, brick_fields, brick_tasks, parse_bricks, plan_bricks, run_bricks, split_bricks, wave_tasks
 from warpgauss.errors import WarpgaussError
 from warpgauss.synthetic import generate
 
@@ -26,10 +27,12 @@ def test_bricks_cover_the_grid_once_with_their_halo(shape, counts, halo):
         for (i0, i1), (b0, b1), n in zip(b.interior, b.box, shape[::-1]):
             assert b0 == max(0, i0 - halo) and b1 == min(n, i1 + halo)
     assert (cover == 1).all()
-    shares = np.zeros(shape[::-1])
-    for b in bricks:
-        shares[b.slices("box")] += seam_weights(b)
-    np.testing.assert_allclose(shares, 1.0, atol=1e-6)  # a partition of unity over the grid
+    # bricks whose boxes overlap never share a wave
+    for a in bricks:
+        for b in bricks:
+            overlap = all(max(x0, y0) < min(x1, y1) for (x0, x1), (y0, y1) in zip(a.box, b.box))
+            if a is not b and overlap and all(s > 2 * halo for s in np.diff(np.array(a.interior), axis=1).ravel()):
+                assert brick_colour(a) != brick_colour(b)
 
 
 def test_bad_bricking_is_refused():
@@ -47,7 +50,7 @@ def test_budget_split_is_exact_and_within_seed_limits():
         counts, stats = split_bricks(f, bricks, n)
         assert sum(counts) == n
         for c, b in zip(counts, bricks):
-            alloc, _ = brick_fields(f, b)
+            alloc = brick_fields(f, b).interior
             assert 0 <= c <= seed_limit(alloc.eligible, alloc.occupied)
         assert counts == split_bricks(f, bricks, n)[0]  # deterministic
     # the bricks with more structure get more: the detail share follows |grad V|
@@ -92,7 +95,22 @@ def test_cli_bricked_encode_and_its_refusals(tmp_path):
     from warpgauss.cli.main import app
 
     out = tmp_path / "b.wgs"
-    base = ["encode", "--example", "vortex", "--size", "20", "--budget", "120", "--iterations", "5", "--device", "cpu", "--no-self-test", "--format", "full"]
+    base = [
+        "encode",
+        "--example",
+        "vortex",
+        "--size",
+        "20",
+        "--budget",
+        "120",
+        "--iterations",
+        "5",
+        "--device",
+        "cpu",
+        "--no-self-test",
+        "--format",
+        "full",
+    ]
     r = CliRunner().invoke(app, [*base, "--bricks", "2x1x1", "--halo", "2", "--workers", "0", "-o", str(out)])
     assert r.exit_code == 0, r.output
     assert warpgauss.Model.load(out).n == 120
@@ -100,3 +118,82 @@ def test_cli_bricked_encode_and_its_refusals(tmp_path):
     assert r.exit_code == 2 and "give --bricks" in r.output and not (tmp_path / "c.wgs").exists()
     r = CliRunner().invoke(app, [*base, "--bricks", "11x1x1", "--workers", "0", "-o", str(tmp_path / "d.wgs")])
     assert r.exit_code == 2 and "fewer than 2 voxels" in r.output and not (tmp_path / "d.wgs").exists()
+
+
+def _tasks(name="vortex", size=20, n=200, counts=(2, 2, 1), halo=2):
+    f = normalise(generate(name, size))
+    bricks = plan_bricks(f.shape_xyz, counts, halo)
+    _, stats = split_bricks(f, bricks, n)
+    from warpgauss.allocate import AllocationConfig
+    from warpgauss.refine.config import RefineConfig
+
+    alloc = AllocationConfig(scale_cap=AllocationConfig().resolved_cap(f.shape_xyz))
+    return f, bricks, brick_tasks(f, bricks, stats, 0, alloc, RefineConfig(iterations=15, samples=128), "cpu", n)
+
+
+def test_a_wave_sees_its_finished_neighbours_frozen_and_stand_ins_for_the_rest():
+    f, bricks, tasks = _tasks()
+    first = wave_tasks(tasks, {}, [0])[0]
+    assert len(first.frozen) == 0 and len(first.pending) == 3  # the other three interiors reach its box
+    done = {0: np.array([[5.0, 5.0, 5.0, 1, 1, 1, 1, 0, 0, 0, 0.5, 0.5], [1.0, 1.0, 1.0, 0.5, 0.5, 0.5, 1, 0, 0, 0, 0.5, 0.5]], np.float32)}
+    second = wave_tasks(tasks, done, [1])[0]  # brick 1 (x 10..20, box from 8): only the first reaches it
+    assert len(second.frozen) == 1 and len(second.pending) == 2
+    x0 = second.brick.box[2][0]
+    assert second.frozen[0, 0] == pytest.approx(5.0 - x0)  # box coordinates
+    r = run_bricks(tasks)
+    assert [x["frozen"] for x in r][0] == 0 and all(x["frozen"] > 0 for x in r[1:])
+    assert sum(len(x["params"]) for x in r) == 200
+
+
+def test_frozen_primitives_are_evaluated_but_never_moved():
+    from warpgauss.allocate import AllocationConfig, allocate
+    from warpgauss.analysis import DeviceVolume
+    from warpgauss.profiling import StageRecorder
+    from warpgauss.refine import Refiner
+    from warpgauss.refine.config import RefineConfig
+
+    f = normalise(generate("bubbles", 16))
+    dv = DeviceVolume(f, "cpu")
+    a = AllocationConfig()
+    p, _ = allocate(dv, 60, 3, a, StageRecorder())
+    p = np.asarray(p, np.float32)
+    r = Refiner(dv, p, RefineConfig(iterations=12, samples=256), 0, a.scale_min, a.resolved_cap(f.shape_xyz), frozen=20)
+    before = r.model_params()
+    r.run()
+    after = r.model_params()
+    np.testing.assert_allclose(after[40:], before[40:], rtol=0, atol=0)
+    assert np.abs(after[:40] - before[:40]).max() > 1e-4  # the others train
+
+
+def test_a_killed_worker_is_survived_and_a_brick_failing_twice_fails_the_run(tmp_path):
+    pytest.importorskip("distributed")
+    from warpgauss.bricked import local_client
+
+    _, _, tasks = _tasks(n=150)
+    serial = run_bricks(tasks)
+    marker = str(tmp_path / "killed")
+
+    def dies_once(task):  # a closure: Dask ships it by value
+        import os
+
+        from warpgauss.bricked import encode_brick
+
+        if task.index == 2 and not os.path.exists(marker):
+            open(marker, "w").close()
+            os._exit(1)  # the worker process dies mid-run
+        return encode_brick(task)
+
+    def always_fails(task):
+        raise ValueError("disk on fire")
+
+    client = local_client(2)
+    try:
+        survived = run_bricks(tasks, client, fn=dies_once)
+        with pytest.raises(WarpgaussError, match="failed on the Dask cluster twice: ValueError: disk on fire; no model written"):
+            run_bricks(tasks, client, fn=always_fails)
+    finally:
+        client.close()
+        client.cluster.close()
+    assert (tmp_path / "killed").exists()
+    for a, b in zip(serial, survived):
+        np.testing.assert_array_equal(a["params"], b["params"])

@@ -867,7 +867,7 @@ def encode_bricked(
     allocation = dataclasses.replace(opts.allocation, scale_cap=opts.allocation.resolved_cap(f.shape_xyz))
     with timer.stage("Sb", "budget split over the bricks"):
         counts, stats = split_bricks(f, plan, n)
-    tasks = brick_tasks(f, plan, counts, opts.seed, allocation, opts.refine, None if client is not None else dev)
+    tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n)
     t0 = time.perf_counter()
     with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
         results = run_bricks(tasks, client, on_progress)
@@ -897,6 +897,9 @@ def encode_bricked(
             "seconds": r["seconds"],
             "device": r["device"],
             "iterations": r["iterations"],
+            "samples": r["samples"],
+            "stand_ins": r["stand_ins"],
+            "frozen": r["frozen"],
         }
         for b, st, r in zip(plan, stats, results)
     ]

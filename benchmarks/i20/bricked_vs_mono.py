@@ -32,13 +32,13 @@ def main(argv=None) -> dict:
     ap.add_argument("--budget", type=int, default=400_000)
     ap.add_argument("--fields", default="vortex,interface")
     ap.add_argument("--bricks", default="2x2x2")
-    ap.add_argument("--halo", type=int, default=4)
+    ap.add_argument("--halo", default="4", help="halos to try, comma separated (voxels)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     wp = warp()
     dev = resolve_device(args.device)
-    warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64)  # compile
+    warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64, format="full")  # compile
     result = {
         "benchmark": "bricked vs monolithic encode, same N and settings (format full, defaults otherwise)",
         "command": "python benchmarks/i20/bricked_vs_mono.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
@@ -52,11 +52,11 @@ def main(argv=None) -> dict:
     for name in filter(None, args.fields.split(",")):
         v = generate(name, args.size)
         f = normalise(v)
-        near = face_band(f.shape_xyz, plan_bricks(f.shape_xyz, counts, args.halo))
-        for mode in ("monolithic", "bricked"):
+        near = face_band(f.shape_xyz, plan_bricks(f.shape_xyz, counts, 0))
+        for mode, halo in [("monolithic", None)] + [("bricked", int(h)) for h in args.halo.split(",")]:
             kw = dict(budget=args.budget, device=dev, format="full", self_test=False, evaluate=False)
             if mode == "bricked":
-                kw.update(bricks=args.bricks, halo=args.halo)
+                kw.update(bricks=args.bricks, halo=halo)
             t0 = time.perf_counter()
             m = warpgauss.encode(v, **kw)
             wall = time.perf_counter() - t0
@@ -66,6 +66,7 @@ def main(argv=None) -> dict:
                 "field": name,
                 "size": args.size,
                 "mode": mode,
+                "halo": halo,
                 "n": m.n,
                 "encode_s": wall,
                 "psnr_db": psnr(float(err.sum()), err.size),
@@ -74,7 +75,9 @@ def main(argv=None) -> dict:
                 "samples": m.report["refinement"].get("samples") if mode == "monolithic" else None,
             }
             if mode == "bricked":
-                row["bricks"] = [{k: b[k] for k in ("n", "seconds")} for b in m.report["bricking"]["bricks"]]
+                row["bricks"] = [
+                    {k: b.get(k) for k in ("n", "seconds", "samples", "stand_ins", "frozen")} for b in m.report["bricking"]["bricks"]
+                ]
             result["rows"].append(row)
             print({k: v_ for k, v_ in row.items() if k != "bricks"}, flush=True)
             args.out.write_text(json.dumps(result, indent=1))

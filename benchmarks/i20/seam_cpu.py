@@ -41,7 +41,14 @@ def main(argv=None) -> dict:
             m = warpgauss.encode(v, bricks="2x2x2", halo=halo, **kw)
             err = (m.decode(device="cpu", normalised=True) - f.values) ** 2
             near = face_band(f.shape_xyz, plan_bricks(f.shape_xyz, (2, 2, 2), halo))
-            row = {"field": name, "halo": halo, "monolithic_psnr_db": mono, "psnr_db": psnr(err), "seam_psnr_db": psnr(err[near]), "interior_psnr_db": psnr(err[~near])}
+            row = {
+                "field": name,
+                "halo": halo,
+                "monolithic_psnr_db": mono,
+                "psnr_db": psnr(err),
+                "seam_psnr_db": psnr(err[near]),
+                "interior_psnr_db": psnr(err[~near]),
+            }
             rows.append(row)
             print(row, flush=True)
     result = {

@@ -82,16 +82,20 @@ class Refiner:
         config: Schedule, learning rates, loss weights.
         seed: Seed of the sampler; same seed and device give the same result.
         scale_min, scale_cap: Scale range of the cap term (sigma in voxels).
+        frozen: The last ``frozen`` rows of ``params`` are evaluated with the rest but never stepped
+            (a bricked encode's finished neighbours).
     """
 
-    def __init__(self, dv: DeviceVolume, params: np.ndarray, config: RefineConfig, seed: int, scale_min: float, scale_cap: float):
+    def __init__(
+        self, dv: DeviceVolume, params: np.ndarray, config: RefineConfig, seed: int, scale_min: float, scale_cap: float, frozen: int = 0
+    ):
         wp = self._wp = warp()
         load_kernels(dv.device)
         self.dv, self.cfg, self.seed = dv, config, seed
         dev = self.device = dv.device
         if config.samples < 1 or config.iterations < 0:
             raise WarpgaussError("--samples must be >= 1 and --iterations >= 0")
-        self.state = Primitives(params, dev, scale_min, scale_cap)
+        self.state = Primitives(params, dev, scale_min, scale_cap, frozen)
         self.n = self.state.n
         self.quant = _quant_grid(config.quantise)
         self.binner = Binner(self.state, dv.field.shape_xyz, self.quant)

@@ -25,15 +25,19 @@ class Primitives:
         params: (N, 12) model parameters (weight in slot 11), primitive order.
         device: Warp device.
         scale_min, scale_cap: Scale range of the cap term (sigma in voxels).
+        frozen: How many primitives, at the end of ``params``, are evaluated but never stepped.
     """
 
-    def __init__(self, params: np.ndarray, device: str, scale_min: float, scale_cap: float):
+    def __init__(self, params: np.ndarray, device: str, scale_min: float, scale_cap: float, frozen: int = 0):
         from ..kernels import field as kf
         from ..kernels import optim as ko
 
         wp = self._wp = warp()
         self.device = dev = device
         self.n = n = int(params.shape[0])
+        if not 0 <= frozen <= n:
+            raise ValueError(f"frozen must be in [0, {n}], got {frozen}")
+        self.n_train = n - int(frozen)
         model = wp.array(np.ascontiguousarray(params, np.float32), dtype=kf.vec12, device=dev)
         self.raw = wp.empty(n, dtype=kf.vec12, device=dev)  # training parameterisation (log-sigmas, weight logit)
         wp.launch(ko.to_raw, dim=n, inputs=[model], outputs=[self.raw], device=dev)

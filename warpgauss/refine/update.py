@@ -63,6 +63,8 @@ class Update:
                 s.bounds,
                 s.prims,
                 self.quant,
+                s.ids,
+                s.n_train,
             ],
             outputs=[s.counts, s.reach],
             device=s.device,
