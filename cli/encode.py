@@ -167,6 +167,13 @@ def encode(
         str | None,
         typer.Option(rich_help_panel="Bricks and cluster", help="Address of a running Dask scheduler (e.g. tcp://host:8786) for --bricks"),
     ] = None,
+    max_device_memory: Annotated[
+        str | None,
+        typer.Option(
+            rich_help_panel="Bricks and cluster",
+            help="Device memory an encode may use, e.g. 24GiB (default: 90 % of a GPU's free memory); a volume whose encode would not fit is split into bricks and read brick by brick",
+        ),
+    ] = None,
     config: Annotated[
         Path | None,
         typer.Option(
@@ -235,8 +242,8 @@ def encode(
         status.update(f"[bold]S2[/] refinement {it}/{total}  loss {rec['total']:.3e}  sample PSNR {rec['sample_psnr_db']:.2f} dB")
 
     client = None
-    if bricks is None and (halo is not None or workers is not None or scheduler is not None):
-        fail("--halo, --workers and --scheduler apply to a bricked encode: give --bricks XxYxZ")
+    if bricks is None and (workers is not None or scheduler is not None or (halo is not None and max_device_memory is None)):
+        fail("--halo, --workers and --scheduler apply to a bricked encode: give --bricks XxYxZ (--halo also --max-device-memory)")
     if bricks is not None:
         from warpgauss.bricked import default_client, parse_bricks
 
@@ -284,6 +291,7 @@ def encode(
             halo=halo,
             client=client,
             on_bricks=brick_progress,
+            max_device_memory=max_device_memory,
         )
     finally:
         if status is not None:

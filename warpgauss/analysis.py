@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import WarpgaussError
+from .lazy import valid_mask as _valid
 
 OCCUPIED = 0.02  # normalised value above which a voxel is occupied (SPEC section 2)
 DETAIL_PERCENT = 55  # detail share of the budget (SPEC section 3); coverage gets the rest
@@ -89,6 +90,7 @@ class _NormPlan:
 
     def __init__(self, lo: float, hi: float, data_lo: float, data_hi: float, exact: bool, clip: bool):
         self.lo, self.clip = lo, clip
+        self.lo_value, self.hi_value = lo, hi
         span = hi - lo
         self.halve = not np.isfinite(span)
         if self.halve:
@@ -153,6 +155,7 @@ def normalise(
     source_dtype: str | None = None,
     value_range: tuple[float, float] | None = None,
     count_candidates: bool = True,
+    lazy: bool = False,
 ) -> Field:
     """Stage P: mask NaN/Inf/fill voxels, normalise by the finite min/max, count occupancy.
 
@@ -163,10 +166,15 @@ def normalise(
             model against a volume uses the model's range); values are then not clipped.
         count_candidates: Count occupied and detail-eligible voxels (needed to validate a
             budget, not to evaluate a model; the counts stay 0 when skipped).
+        lazy: Keep the values where they are (``data`` a memory-mapped or chunked source, see
+            :mod:`warpgauss.lazy`): one streaming pass for the min/max and the counts, and the
+            field's ``values`` and ``mask`` read and normalised on demand (a bricked encode).
+            The counts are then per z-slab (gradients one-sided at slab faces): within a few
+            per cent.
     """
     if data.ndim != 3:
         raise WarpgaussError(f"the volume is {data.ndim}D (shape {data.shape}); warpgauss encodes 3D volumes")
-    if data.size > MAX_VOXELS:
+    if data.size > MAX_VOXELS and not lazy:
         raise WarpgaussError(f"the volume has {data.size} voxels, more than {MAX_VOXELS}; use --stride 2")
     if not (np.issubdtype(data.dtype, np.integer) or np.issubdtype(data.dtype, np.floating)):
         raise WarpgaussError(f"the volume's dtype {data.dtype} is not a real number type")
@@ -200,9 +208,11 @@ def normalise(
             raise WarpgaussError(f"the value range ({lo:g}, {hi:g}) is not finite; the model is damaged")
     if hi <= lo:
         raise WarpgaussError(f"the volume is constant ({lo:g} everywhere it is valid); there is no structure to encode")
+    plan = _NormPlan(lo, hi, data_lo, data_hi, exact, clip)
+    if lazy:
+        return _lazy_field(data, plan, fill_value, n_invalid, spacing, origin, name, source_dtype, count_candidates)
     values = np.empty(data.shape, np.float32)
     mask = np.ones(data.shape, bool) if n_invalid else None
-    plan = _NormPlan(lo, hi, data_lo, data_hi, exact, clip)
 
     def fill(z0: int):
         s = np.asarray(data[z0 : z0 + SLAB])
@@ -233,6 +243,36 @@ def normalise(
     return f
 
 
+def _lazy_field(data, plan, fill_value, n_invalid, spacing, origin, name, source_dtype, count_candidates) -> Field:
+    from .lazy import LazyMask, LazyValues, require_source
+
+    src = require_source(data, name)
+    values = LazyValues(src, plan, fill_value, n_invalid > 0)
+    mask = LazyMask(src, fill_value) if n_invalid else None
+    f = Field(
+        values=values,  # type: ignore[arg-type]
+        mask=mask,  # type: ignore[arg-type]
+        vmin=float(plan.lo_value),
+        vmax=float(plan.hi_value),
+        spacing=tuple(float(x) for x in spacing),
+        origin=tuple(float(x) for x in origin),
+        name=name,
+        source_dtype=str(source_dtype or data.dtype),
+        source_itemsize=int(np.dtype(source_dtype or data.dtype).itemsize),
+    )
+    f.n_valid = f.n_voxels - n_invalid
+    if n_invalid:
+        f.notes.append(f"{n_invalid} voxels are NaN/Inf/fill: masked out of seeding, sampling and every metric")
+    if count_candidates:
+
+        def count(z0: int):
+            return count_seed_candidates(values[z0 : z0 + SLAB * 4], None if mask is None else mask[z0 : z0 + SLAB * 4])
+
+        parts = [count(z0) for z0 in range(0, values.shape[0], SLAB * 4)]
+        f.occupied, f.eligible = sum(p[0] for p in parts), sum(p[1] for p in parts)
+    return f
+
+
 def _map_slabs(fn, nz: int) -> list:
     """Run fn(z0) for every z-slab, on a thread pool (numpy releases the GIL in its loops)."""
     starts = list(range(0, nz, SLAB))
@@ -242,15 +282,6 @@ def _map_slabs(fn, nz: int) -> list:
 
     with ThreadPoolExecutor(max_workers=min(len(starts), os.cpu_count() or 1)) as pool:
         return list(pool.map(fn, starts))
-
-
-def _valid(s: np.ndarray, fill_value: float | None) -> np.ndarray:
-    ok = np.isfinite(s) if np.issubdtype(s.dtype, np.floating) else np.ones(s.shape, bool)
-    if fill_value is not None:
-        if np.issubdtype(s.dtype, np.floating) and not abs(fill_value) <= float(np.finfo(s.dtype).max):
-            return ok  # no finite value of this dtype equals it (and casting it would overflow)
-        ok &= s != fill_value
-    return ok
 
 
 def count_seed_candidates(values: np.ndarray, mask: np.ndarray | None) -> tuple[int, int]:

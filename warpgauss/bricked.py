@@ -99,21 +99,30 @@ def plan_bricks(shape_xyz, counts_xyz, halo: int = DEFAULT_HALO) -> list[Brick]:
     return out
 
 
-def _grad_sums(values: np.ndarray, mask: np.ndarray | None, inner: tuple[slice, ...]) -> tuple[float, float]:
-    """Sums of |grad V| (central differences) over the detail-eligible voxels of the box: (inside
-    ``inner``, in the rest of the box)."""
-    v = values.astype(np.float64)
-    g = np.zeros_like(v)
-    for axis in range(3):
-        if v.shape[axis] > 1:
-            g += np.gradient(v, axis=axis) ** 2
-    g = np.sqrt(g)
-    use = (v > OCCUPIED) & (g > 0)
-    if mask is not None:
-        use &= mask
-    total = float(g[use].sum())
-    inside = float(g[inner][use[inner]].sum())
-    return inside, max(0.0, total - inside)
+GRAD_SLAB = 64  # z-planes per pass of the |grad V| sums (float32: a brick's box at a time stays small)
+
+
+def _grad_sum(values: np.ndarray, select: np.ndarray | None) -> float:
+    """Sum of |grad V| (central differences, one-sided at the box's faces) over the occupied voxels
+    of ``select`` (None: all), z-slab by z-slab in float32."""
+    nz = values.shape[0]
+    total = 0.0
+    for z0 in range(0, nz, GRAD_SLAB):
+        z1 = min(nz, z0 + GRAD_SLAB)
+        lo, hi = max(0, z0 - 1), min(nz, z1 + 1)  # one plane more each side: central differences
+        v = np.asarray(values[lo:hi], np.float32)
+        g = np.zeros(v.shape, np.float32)
+        for axis in range(3):
+            if v.shape[axis] > 1:
+                d = np.gradient(v, axis=axis)
+                g += d * d
+        core = slice(z0 - lo, z0 - lo + (z1 - z0))
+        g, v = g[core], v[core]
+        use = v > OCCUPIED
+        if select is not None:
+            use &= select[z0:z1]
+        total += float(np.sqrt(g[use], dtype=np.float32).sum(dtype=np.float64))
+    return total
 
 
 def _field_meta(f: Field) -> dict[str, Any]:
@@ -185,17 +194,15 @@ def split_bricks(f: Field, bricks: list[Brick], n: int) -> tuple[list[int], list
     by which a brick sizes the stand-ins for its pending neighbours."""
     stats: list[dict[str, Any]] = []
     for b in bricks:
-        box = b.slices("box")
-        fields = brick_fields(f, b)
-        inside, _ = _grad_sums(f.values[box], None if f.mask is None else f.mask[box], b.interior_in_box())
-        stats.append(
-            {
-                "occupied": fields.interior.occupied,
-                "eligible": fields.interior.eligible,
-                "grad_sum": inside,
-                "n_max": seed_limit(fields.interior.eligible, fields.interior.occupied),
-            }
-        )
+        box = b.slices("box")  # read once (a lazy volume reads it from the file)
+        values = np.ascontiguousarray(f.values[box])
+        valid = None if f.mask is None else np.ascontiguousarray(f.mask[box])
+        own = np.zeros(values.shape, bool)
+        own[b.interior_in_box()] = True
+        if valid is not None:
+            own &= valid
+        occ, elig = count_seed_candidates(values, own)
+        stats.append({"occupied": occ, "eligible": elig, "grad_sum": _grad_sum(values, own), "n_max": seed_limit(elig, occ)})
     nd, nc = split_budget(n)
     grad_total = sum(s["grad_sum"] for s in stats) or 1.0
     occ_total = sum(s["occupied"] for s in stats) or 1
@@ -231,7 +238,7 @@ class BrickTask:
 
     index: int
     brick: Brick
-    values: np.ndarray
+    values: np.ndarray | None  # None: read from ``lazy`` where the task runs
     valid: np.ndarray | None
     field_meta: dict
     n: int
@@ -242,6 +249,15 @@ class BrickTask:
     rates: tuple[float, float] = (0.0, 0.0)
     frozen: np.ndarray | None = None
     pending: tuple = ()
+    lazy: tuple | None = None  # (LazyValues, LazyMask or None) of the volume (see warpgauss.lazy)
+
+    def box_arrays(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """The brick's box: normalised values and validity (read now when the volume is lazy)."""
+        if self.values is not None or self.lazy is None:
+            return self.values, self.valid  # type: ignore[return-value]
+        box = self.brick.slices("box")
+        values, mask = self.lazy
+        return np.ascontiguousarray(values[box]), None if mask is None else np.ascontiguousarray(mask[box])
 
 
 def brick_seed(seed: int, index: int) -> int:
@@ -255,13 +271,7 @@ def stand_in_count(fields: BrickFields, rates: tuple[float, float]) -> int:
     h = fields.halo
     if h.occupied == 0:
         return 0
-    g = np.zeros(h.values.shape)
-    v = h.values.astype(np.float64)
-    for axis in range(3):
-        if v.shape[axis] > 1:
-            g += np.gradient(v, axis=axis) ** 2
-    use = (v > OCCUPIED) & (h.mask if h.mask is not None else True)
-    want = rates[0] * float(np.sqrt(g)[use].sum()) + rates[1] * h.occupied
+    want = rates[0] * _grad_sum(h.values, h.mask) + rates[1] * h.occupied
     return int(min(round(want), seed_limit(h.eligible, h.occupied)))
 
 
@@ -282,7 +292,8 @@ def encode_brick(task: BrickTask) -> dict:
 
     t0 = time.perf_counter()
     dev = resolve_device(task.device)
-    f = Field(task.values, task.valid, **task.field_meta)
+    values, valid = task.box_arrays()
+    f = Field(values, valid, **task.field_meta)
     fields = brick_fields(f, dataclasses.replace(task.brick, interior=_local(task.brick), box=_whole(task.brick)), task.pending)
     done = {"index": task.index, "device": dev, "iterations": 0, "stand_ins": 0, "frozen": 0, "samples": 0}
     if task.n == 0:
@@ -361,12 +372,17 @@ def brick_tasks(
     total = sum(st["n"] for st in stats) if n is None else n
     dev = resolve_device(device)
     tasks = []
+    from .lazy import is_lazy
+
+    lazy = is_lazy(f.values)
     for i, (b, st) in enumerate(zip(bricks, stats)):
         box = b.slices("box")
-        valid = None if f.mask is None else np.ascontiguousarray(f.mask[box])
-        values = np.ascontiguousarray(f.values[box])
         cfg = brick_samples(refine, total, f.shape_xyz, b, dev)
-        tasks.append(BrickTask(i, b, values, valid, meta, st["n"], brick_seed(seed, i), allocation, cfg, device, st["rates"]))
+        if lazy:  # each brick reads its own box where it runs
+            values, valid, src = None, None, (f.values, f.mask)
+        else:
+            values, valid, src = np.ascontiguousarray(f.values[box]), None if f.mask is None else np.ascontiguousarray(f.mask[box]), None
+        tasks.append(BrickTask(i, b, values, valid, meta, st["n"], brick_seed(seed, i), allocation, cfg, device, st["rates"], lazy=src))
     return tasks
 
 
@@ -498,3 +514,72 @@ def default_client(workers: int | None, scheduler: str | None, device: str | Non
         return None, "this process (one GPU: the bricks share it)"
     k = workers or max(1, min(4, os.cpu_count() or 1))
     return local_client(k), f"a local cluster of {k} CPU processes"
+
+
+# -- choosing the bricking from a device-memory limit ---------------------------------------------
+
+# Peak device memory of one brick's encode, as a linear model of its box voxels and the primitives
+# it refines (own, stand-ins and frozen neighbours, about 1.5 x its share of N), fitted to the
+# reports' peak device memory on an H100 (benchmarks/results/i20_memory_h100.json).
+DEVICE_BYTES_PER_VOXEL = 24.0
+DEVICE_BYTES_PER_PRIMITIVE = 1024.0
+DEVICE_FIXED_BYTES = 256 * 2**20
+DEVICE_MARGIN = 0.9  # the default limit: this share of the free memory, less the fixed part
+
+_UNITS = {"": 1, "b": 1, "k": 10**3, "kb": 10**3, "kib": 2**10, "m": 10**6, "mb": 10**6, "mib": 2**20}
+_UNITS.update({"g": 10**9, "gb": 10**9, "gib": 2**30, "t": 10**12, "tb": 10**12, "tib": 2**40})
+
+
+def parse_memory(text) -> int:
+    """'24GiB', '24G', '500MB', '1e9' or a number of bytes -> bytes."""
+    if isinstance(text, (int, np.integer)):
+        value = int(text)
+    else:
+        import re
+
+        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-zA-Z]*)\s*", str(text))
+        unit = m.group(2).lower() if m else ""
+        if m is None or unit not in _UNITS:
+            raise WarpgaussError(f"--max-device-memory must be a size such as 24GiB, 500MB or a number of bytes, got {text!r}")
+        value = int(float(m.group(1)) * _UNITS[unit])
+    if value <= DEVICE_FIXED_BYTES:
+        raise WarpgaussError(f"--max-device-memory {text} is too small: a brick needs more than {DEVICE_FIXED_BYTES / 2**20:.0f} MiB")
+    return value
+
+
+def brick_device_bytes(box_voxels: int, primitives: float) -> int:
+    """Estimated peak device memory of a brick's encode (see :data:`DEVICE_BYTES_PER_VOXEL`)."""
+    return int(DEVICE_FIXED_BYTES + DEVICE_BYTES_PER_VOXEL * box_voxels + DEVICE_BYTES_PER_PRIMITIVE * primitives)
+
+
+def default_device_limit(device: str) -> int | None:
+    """What a brick may use on ``device``: :data:`DEVICE_MARGIN` of its free memory (None on the CPU)."""
+    from ._warp import warp
+
+    d = warp().get_device(device)
+    if not d.is_cuda:
+        return None
+    return int(DEVICE_MARGIN * d.free_memory)
+
+
+def choose_bricks(shape_xyz, n: int, limit: int | None, halo: int = DEFAULT_HALO) -> tuple[int, int, int]:
+    """The fewest bricks (x, y, z) whose largest box fits ``limit`` bytes of device memory (by
+    :func:`brick_device_bytes`, ``n`` primitives over them) and the kernels' voxel index; more
+    bricks go along the axis whose bricks are longest. (1, 1, 1) when the whole grid fits."""
+    from .analysis import MAX_VOXELS
+
+    counts = [1, 1, 1]
+    shape = [int(s) for s in shape_xyz]
+    while True:
+        boxes = [int(np.prod([hi - lo for lo, hi in b.box])) for b in plan_bricks(shape, counts, halo if counts != [1, 1, 1] else 0)]
+        k = int(np.prod(counts))
+        need = brick_device_bytes(max(boxes), 1.5 * n / k if k > 1 else n)
+        if max(boxes) <= MAX_VOXELS and (limit is None or need <= limit):
+            return (counts[0], counts[1], counts[2])
+        axis = int(np.argmax([s / c for s, c in zip(shape, counts)]))
+        if shape[axis] // (counts[axis] + 1) < max(2, 4 * halo):
+            raise WarpgaussError(
+                f"no bricking of {'x'.join(map(str, shape))} fits {limit / 2**30 if limit else 0:.1f} GiB of device memory "
+                f"(bricks of {'x'.join(map(str, counts))} need about {need / 2**30:.1f} GiB each); raise --max-device-memory or lower the budget"
+            )
+        counts[axis] += 1

@@ -81,8 +81,12 @@ def evaluate_field(gf: GaussianField, f: Field, *, full: bool = False, progress=
     idx = np.random.default_rng(EVAL_SEED).integers(0, f.n_voxels, EVAL_POINTS, dtype=np.int64)
     nz, ny, nx = f.values.shape
     pts = np.stack([idx % nx, (idx // nx) % ny, idx // (nx * ny)], axis=1).astype(np.float32)
-    truth = f.values.reshape(-1)[idx]
-    valid = None if f.mask is None else f.mask.reshape(-1)[idx]
+    if hasattr(f.values, "take_flat"):  # a volume read on demand (warpgauss.lazy): by z-slabs
+        truth = f.values.take_flat(idx)
+        valid = None if f.mask is None else f.mask.take_flat(idx)  # type: ignore[attr-defined]
+    else:
+        truth = f.values.reshape(-1)[idx]
+        valid = None if f.mask is None else f.mask.reshape(-1)[idx]
     acc.add(gf.evaluate(pts), truth, valid)
     if progress is not None:
         progress(1, 1)

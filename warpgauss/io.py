@@ -30,10 +30,11 @@ class ReadOptions:
     stride: int = 1
     fill_value: float | None = None
 
-    def read(self, path):
+    def read(self, path, lazy: bool = False):
         """Read a volume file with these options (:func:`warpgauss.io.read_volume`)."""
         return read_volume(
             path,
+            lazy=lazy,
             shape=self.shape,
             dtype=self.dtype,
             endian=self.endian,

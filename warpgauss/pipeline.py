@@ -66,8 +66,10 @@ def load_field(
     *,
     example: str | None = None,
     example_size: int | tuple[int, int, int] = 64,
+    lazy: bool = False,
 ) -> tuple[Field, dict]:
-    """Stage P: read (or generate) the volume, apply the stride, mask and normalise it.
+    """Stage P: read (or generate) the volume, apply the stride, mask and normalise it (``lazy``:
+    a file the format lets us leave where it is is read on demand, see :mod:`warpgauss.lazy`).
 
     Args:
         source: A path, a 3D numpy array (nz, ny, nx), or None with ``example``.
@@ -107,15 +109,19 @@ def load_field(
         data = source[::s, ::s, ::s]
         name, spacing, origin, dtype, path = "array", (float(s),) * 3, (0.0, 0.0, 0.0), str(source.dtype), None
     elif isinstance(source, (str, os.PathLike)):
-        vol = read.read(source)
+        vol = read.read(source, lazy=lazy)
         data, name, spacing, origin = vol.data, vol.name, vol.spacing, vol.origin
         dtype, path = vol.source_dtype or str(vol.data.dtype), str(source)
         if fill is None and getattr(vol, "fill_value", None) is not None:
             fill = vol.fill_value
     else:
         raise WarpgaussError("give a file path, a 3D numpy array, or example=NAME as the source")
-    f = normalise(data, fill_value=fill, spacing=spacing, origin=origin, name=name, source_dtype=dtype)
+    from .lazy import source_of
+
+    lazy = lazy and source_of(data) is not None
+    f = normalise(data, fill_value=fill, spacing=spacing, origin=origin, name=name, source_dtype=dtype, lazy=lazy)
     info = {
+        "read_lazily": lazy,
         "name": name,
         "path": path,
         "example": example,
@@ -861,6 +867,12 @@ def encode_bricked(
     sizing = None
     dv = None
     if enc == "coded" and budget_bytes is not None:
+        from .lazy import is_lazy
+
+        if is_lazy(f.values):
+            raise WarpgaussError(
+                "a volume read brick by brick takes its budget as --budget N (the coded size pilot of --bytes/--ratio needs the whole volume on the device)"
+            )
         with timer.stage("S1p", "coded size pilot"):
             dv = DeviceVolume(f, dev)
             n, sizing = coded_budget(dv, f, opts, header, budget_bytes, n)
@@ -943,6 +955,38 @@ def encode_bricked(
     return model
 
 
+AUTO_BRICK_FLOOR = 2 * 2**30  # an encode estimated below this is never bricked by the default limit
+LAZY_SUFFIXES = (".raw", ".bin", ".npy", ".h5", ".hdf5", ".hdf", ".nc", ".cdf")
+
+
+def _bricking(source, read, example, bricks, halo, budget, device, max_device_memory):
+    """(bricks, read lazily, device limit, bricks chosen here) of an encode: given bricks are kept; otherwise a file
+    whose monolithic encode would not fit the device limit (or the kernels' voxel index) is
+    bricked by :func:`~warpgauss.bricked.choose_bricks`. Only a format that can be read on demand
+    is looked at before it is read."""
+    from ._warp import resolve_device
+    from .analysis import MAX_VOXELS
+    from .bricked import DEFAULT_HALO, brick_device_bytes, choose_bricks, default_device_limit, parse_memory
+
+    limit = None if max_device_memory is None else parse_memory(max_device_memory)
+    is_file = example is None and isinstance(source, (str, os.PathLike)) and str(source).lower().endswith(LAZY_SUFFIXES)
+    if bricks is not None or not is_file:
+        return bricks, bricks is not None and is_file, limit, False
+    vol = (read or ReadOptions()).read(source, lazy=True)  # the header: nothing is read yet
+    shape_xyz = tuple(int(v) for v in vol.data.shape[::-1])
+    voxels = int(np.prod(shape_xyz, dtype=np.int64))
+    if limit is None and voxels <= MAX_VOXELS:
+        if brick_device_bytes(voxels, int(budget or 0)) <= AUTO_BRICK_FLOOR:
+            return None, False, None, False  # fits any GPU's free memory: Warp is not started for this
+        limit = default_device_limit(resolve_device(device))
+        if limit is None:
+            return None, False, None, False
+    counts = choose_bricks(shape_xyz, int(budget or 0), limit, DEFAULT_HALO if halo is None else int(halo))
+    if counts == (1, 1, 1):
+        return None, False, limit, False
+    return counts, True, limit, True
+
+
 def finish_report(model: Model, timer: StageRecorder) -> dict:
     """Put the stage table and totals into the model's report."""
     rep = model.report
@@ -992,6 +1036,7 @@ def encode(
     halo: int | None = None,
     client=None,
     on_bricks: Callable[[int, int], None] | None = None,
+    max_device_memory: int | str | None = None,
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
 
@@ -1050,6 +1095,10 @@ def encode(
         halo: Voxels of halo around each brick (default :data:`warpgauss.bricked.DEFAULT_HALO`).
         client: A ``distributed.Client``: the bricks run on its cluster (None: in this process).
         on_bricks: Optional callback(bricks done, bricks) during a bricked encode.
+        max_device_memory: Bytes (or ``"24GiB"``) one encode may use on the device; default: 90 %
+            of what a CUDA device has free (none on the CPU). Without ``bricks``, a volume whose
+            monolithic encode would not fit it, or that has more voxels than the kernels index, is
+            bricked (:func:`warpgauss.bricked.choose_bricks`), and a file read on demand.
 
     Returns:
         The :class:`Model`, with ``model.report`` holding the run report.
@@ -1091,8 +1140,9 @@ def encode(
     )
     encoding_of(opts)  # an unknown format is refused before any work
     timer = StageRecorder(on_stage=on_stage)
+    bricks, lazy, limit, auto = _bricking(source, read, example, bricks, halo, budget, device, max_device_memory)
     with timer.stage("P", "load and normalise"):
-        f, info = load_field(source, read, example=example, example_size=example_size)
+        f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy)
     if bricks is not None:
         if analytic_output is not None:
             raise WarpgaussError("--bricks does not write an analytic model (--save-analytic)")
@@ -1108,6 +1158,11 @@ def encode(
             evaluate=evaluate,
             full_eval=full_eval,
             on_progress=on_bricks,
+        )
+        model.report["bricking"].update(
+            chosen="by the device limit" if auto else "given",
+            max_device_memory=limit,
+            read_lazily=bool(info.get("read_lazily")),
         )
     else:
         model = encode_field(

@@ -17,6 +17,7 @@ import numpy as np
 
 import warpgauss
 from warpgauss._warp import device_name, resolve_device, warp
+from warpgauss.allocate import AllocationConfig
 from warpgauss.analysis import normalise
 from warpgauss.bricked import face_band, parse_bricks, plan_bricks
 from warpgauss.synthetic import generate
@@ -33,6 +34,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--fields", default="vortex,interface")
     ap.add_argument("--bricks", default="2x2x2")
     ap.add_argument("--halo", default="4", help="halos to try, comma separated (voxels)")
+    ap.add_argument("--caps", default="none", help="sigma caps (voxels) to try, comma separated; none: the default")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -53,8 +55,11 @@ def main(argv=None) -> dict:
         v = generate(name, args.size)
         f = normalise(v)
         near = face_band(f.shape_xyz, plan_bricks(f.shape_xyz, counts, 0))
-        for mode, halo in [("monolithic", None)] + [("bricked", int(h)) for h in args.halo.split(",")]:
+        runs = [("monolithic", None)] + [("bricked", int(h)) for h in args.halo.split(",")]
+        for cap, (mode, halo) in [(c, r) for c in args.caps.split(",") for r in runs]:
             kw = dict(budget=args.budget, device=dev, format="full", self_test=False, evaluate=False)
+            if cap != "none":
+                kw["allocation"] = AllocationConfig(scale_cap=float(cap))
             if mode == "bricked":
                 kw.update(bricks=args.bricks, halo=halo)
             t0 = time.perf_counter()
@@ -67,6 +72,7 @@ def main(argv=None) -> dict:
                 "size": args.size,
                 "mode": mode,
                 "halo": halo,
+                "scale_cap": None if cap == "none" else float(cap),
                 "n": m.n,
                 "encode_s": wall,
                 "psnr_db": psnr(float(err.sum()), err.size),

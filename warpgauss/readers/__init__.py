@@ -79,6 +79,7 @@ def read_volume(
     dataset: str | None = None,
     variable: str | None = None,
     stride: int = 1,
+    lazy: bool = False,
 ) -> Volume:
     """Read a 3D scalar volume; the reader is chosen by the file's extension.
 
@@ -92,6 +93,9 @@ def read_volume(
         variable: netCDF: variable name; default: the first 3D variable.
         stride: Keep every ``stride``-th voxel on each axis (``data[::s, ::s, ::s]``); spacing is
             multiplied by it.
+        lazy: Leave the voxels in the file where the format allows (raw, ``.npy`` and HDF5 /
+            netCDF-4 datasets, stride 1; see :mod:`warpgauss.lazy`): ``data`` is then memory-mapped
+            or read on demand, in the file's byte order.
 
     Returns:
         The :class:`Volume`, values in the source dtype, NaN and fill values untouched.
@@ -110,8 +114,8 @@ def read_volume(
     s = _check_stride(stride)
     given = {"shape": shape, "dtype": dtype, "endian": endian, "dataset": dataset, "variable": variable}
     _check_options(p, reader, [k for k, v in given.items() if v is not None])
-    got = reader.func(p, **given, stride=s)
-    return _finish(p, suffix, got, s)
+    got = reader.func(p, **given, stride=s, lazy=lazy and s == 1)
+    return _finish(p, suffix, got, s, lazy=lazy and s == 1)
 
 
 __all__ = [

@@ -198,14 +198,14 @@ def _check_declared(what: str, shape_zyx, itemsize: int, stride: int = 1) -> int
     return voxels
 
 
-def _finish(p: Path, suffix: str, got: _Read, stride: int) -> Volume:
-    """Common validation, stride and byte order; builds the :class:`Volume`."""
+def _finish(p: Path, suffix: str, got: _Read, stride: int, lazy: bool = False) -> Volume:
+    """Common validation, stride and byte order (``lazy``: left to the reads); builds the :class:`Volume`."""
     data = got.data
     _check_shape(data.shape, p.name)
     _check_dtype(data.dtype, p.name)
     if stride > 1 and not got.strided:
         data = data[::stride, ::stride, ::stride]
-    if not data.dtype.isnative:
+    if not data.dtype.isnative and not lazy:
         data = data.astype(data.dtype.newbyteorder("="))
     # a header's inf/NaN geometry (metadata only) must not reach the model header, which is strict JSON
     spacing = tuple(float(v) * stride if np.isfinite(v) else float(stride) for v in got.spacing)
@@ -215,7 +215,7 @@ def _finish(p: Path, suffix: str, got: _Read, stride: int) -> Volume:
         spacing=spacing,  # type: ignore[arg-type]
         origin=origin,  # type: ignore[arg-type]
         name=_volume_name(p.name, suffix),
-        source_dtype=data.dtype.name,
+        source_dtype=data.dtype.newbyteorder("=").name,
         path=str(p),
         fill_value=_fill_in_dtype(got.fill_value, data.dtype),
     )

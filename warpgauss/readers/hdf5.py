@@ -10,7 +10,7 @@ from ..errors import WarpgaussError
 from .common import _attr_xyz, _check_declared, _check_dtype, _check_shape, _fill_attr, _first_line, _Read
 
 
-def _read_hdf5(path: Path, *, dataset=None, variable=None, stride: int = 1, drop_leading: bool = False, **_) -> _Read:
+def _read_hdf5(path: Path, *, dataset=None, variable=None, stride: int = 1, drop_leading: bool = False, lazy: bool = False, **_) -> _Read:
     """HDF5: the named dataset, else the first 3D dataset in visit order; ``[z, y, x]`` order assumed.
 
     With ``drop_leading`` (netCDF-4 files) leading length-1 axes such as a single time step are dropped.
@@ -39,7 +39,7 @@ def _read_hdf5(path: Path, *, dataset=None, variable=None, stride: int = 1, drop
         shape = keep(ds.shape)
         _check_shape(shape, f"{path.name}:{key}")
         _check_dtype(ds.dtype, f"{path.name}:{key}")
-        data, strided = _hdf5_array(path, ds, shape, stride)
+        data, strided = _hdf5_array(path, ds, shape, stride, lazy)
         return _Read(
             data,
             spacing=_attr_xyz(ds.attrs, "spacing", (1.0, 1.0, 1.0)),
@@ -49,14 +49,20 @@ def _read_hdf5(path: Path, *, dataset=None, variable=None, stride: int = 1, drop
         )
 
 
-def _hdf5_array(path: Path, ds, shape: tuple, stride: int) -> tuple[np.ndarray, bool]:
-    """Memory-map a contiguous uncompressed dataset; otherwise read only the strided voxels.
+def _hdf5_array(path: Path, ds, shape: tuple, stride: int, lazy: bool = False) -> tuple[np.ndarray, bool]:
+    """Memory-map a contiguous uncompressed dataset; otherwise read only the strided voxels
+    (``lazy``: leave a chunked dataset unread, to be read by bricks; see :mod:`warpgauss.lazy`).
 
     ``shape`` is the dataset's 3D shape once leading length-1 axes are dropped.
     """
     offset = ds.id.get_offset() if ds.chunks is None else None
     if offset is not None and ds.size > 0 and not ds.external:
         return np.memmap(path, dtype=ds.dtype, mode="r", offset=offset, shape=shape), False
+    if lazy:
+        from ..lazy import ArraySource, _Lazy3D
+
+        src = ArraySource("hdf5", str(path), tuple(int(v) for v in shape), ds.dtype.str, key=ds.name)  # type: ignore[arg-type]
+        return _Lazy3D(src), False  # type: ignore[return-value]
     # read into memory: the declared shape is all we know (a chunked or never-written dataset
     # may declare terabytes in a few bytes of file), so check it before allocating
     voxels = _check_declared(f"{path.name}:{ds.name}", shape, ds.dtype.itemsize, stride)
@@ -79,7 +85,7 @@ def _list_datasets(found: list[tuple[str, tuple]], limit: int = 12) -> str:
     return ", ".join(items) + more
 
 
-def _read_netcdf(path: Path, *, variable=None, dataset=None, stride: int = 1, **_) -> _Read:
+def _read_netcdf(path: Path, *, variable=None, dataset=None, stride: int = 1, lazy: bool = False, **_) -> _Read:
     """Classic netCDF (CDF-1/2) through scipy; a netCDF-4 (HDF5-based) file goes to the HDF5 reader.
 
     Leading length-1 axes (a single time step, ``(1, nz, ny, nx)``) are dropped. ``scale_factor`` /
@@ -88,7 +94,7 @@ def _read_netcdf(path: Path, *, variable=None, dataset=None, stride: int = 1, **
     with open(path, "rb") as fh:
         magic = fh.read(8)
     if magic.startswith(b"\x89HDF\r\n\x1a\n"):
-        return _read_hdf5(path, dataset=dataset if dataset is not None else variable, stride=stride, drop_leading=True)
+        return _read_hdf5(path, dataset=dataset if dataset is not None else variable, stride=stride, drop_leading=True, lazy=lazy)
     if not magic.startswith(b"CDF"):
         raise WarpgaussError(f"{path.name} is neither classic netCDF nor netCDF-4/HDF5 (it starts with {magic[:4]!r})")
     from scipy.io import netcdf_file
