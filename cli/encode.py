@@ -154,7 +154,11 @@ def encode(
         ),
     ] = None,
     halo: Annotated[
-        int | None, typer.Option(rich_help_panel="Bricks and cluster", help="Voxels of halo around each brick (default 4)")
+        int | None,
+        typer.Option(
+            rich_help_panel="Bricks and cluster",
+            help="Voxels of halo around each brick (default: the longest side / 32, at least 4); a brick caps sigma at halo / 2",
+        ),
     ] = None,
     workers: Annotated[
         int | None,

@@ -273,9 +273,10 @@ def _lazy_field(data, plan, fill_value, n_invalid, spacing, origin, name, source
     return f
 
 
-def _map_slabs(fn, nz: int) -> list:
-    """Run fn(z0) for every z-slab, on a thread pool (numpy releases the GIL in its loops)."""
-    starts = list(range(0, nz, SLAB))
+def _map_slabs(fn, nz: int, slab: int = SLAB) -> list:
+    """Run fn(z0) for every z-slab, on a thread pool (numpy releases the GIL in its loops); the
+    results in slab order."""
+    starts = list(range(0, nz, slab))
     if len(starts) == 1:
         return [fn(starts[0])]
     from concurrent.futures import ThreadPoolExecutor

@@ -848,18 +848,17 @@ def encode_bricked(
     """
     from ._warp import device_name, resolve_device, warp
     from .analysis import DeviceVolume
-    from .bricked import DEFAULT_HALO, brick_tasks, parse_bricks, plan_bricks, run_bricks, split_bricks
+    from .bricked import brick_cap, brick_tasks, default_halo, parse_bricks, plan_bricks, run_bricks, split_bricks
     from .wgs import header_size
 
     counts_xyz = parse_bricks(bricks)
-    halo = DEFAULT_HALO if halo is None else int(halo)
     if opts.resume or opts.time_budget is not None or opts.refine.target_psnr is not None or opts.refine.plateau_db is not None:
         raise WarpgaussError("--bricks does not combine with --resume, --time-budget, --target-psnr or --plateau yet")
     enc = encoding_of(opts)
     budget_bytes = target_bytes(f, opts)
     header = _header_for(f, opts)
     n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
-    plan = plan_bricks(f.shape_xyz, counts_xyz, halo)
+    plan_bricks(f.shape_xyz, counts_xyz, 0 if halo is None else halo)  # a bad bricking is refused before the device starts
     wp = warp()
     dev = resolve_device(device)
     timer = timer or StageRecorder()
@@ -876,7 +875,9 @@ def encode_bricked(
         with timer.stage("S1p", "coded size pilot"):
             dv = DeviceVolume(f, dev)
             n, sizing = coded_budget(dv, f, opts, header, budget_bytes, n)
-    allocation = dataclasses.replace(opts.allocation, scale_cap=opts.allocation.resolved_cap(f.shape_xyz))
+    allocation = dataclasses.replace(opts.allocation, scale_cap=brick_cap(opts.allocation.resolved_cap(f.shape_xyz), f.shape_xyz, n))
+    halo = default_halo(allocation.scale_cap) if halo is None else int(halo)
+    plan = plan_bricks(f.shape_xyz, counts_xyz, halo)
     with timer.stage("Sb", "budget split over the bricks"):
         counts, stats = split_bricks(f, plan, n)
     tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n)
@@ -940,6 +941,7 @@ def encode_bricked(
         "bricking": {
             "bricks_xyz": list(counts_xyz),
             "halo": halo,
+            "scale_cap": allocation.scale_cap,
             "scheduler": "this process" if client is None else str(client.scheduler.address),
             "wall_seconds": wall,
             "bricks": bricks_report,
@@ -966,7 +968,7 @@ def _bricking(source, read, example, bricks, halo, budget, device, max_device_me
     is looked at before it is read."""
     from ._warp import resolve_device
     from .analysis import MAX_VOXELS
-    from .bricked import DEFAULT_HALO, brick_device_bytes, choose_bricks, default_device_limit, parse_memory
+    from .bricked import brick_cap, brick_device_bytes, choose_bricks, default_device_limit, default_halo, parse_memory
 
     limit = None if max_device_memory is None else parse_memory(max_device_memory)
     is_file = example is None and isinstance(source, (str, os.PathLike)) and str(source).lower().endswith(LAZY_SUFFIXES)
@@ -981,7 +983,10 @@ def _bricking(source, read, example, bricks, halo, budget, device, max_device_me
         limit = default_device_limit(resolve_device(device))
         if limit is None:
             return None, False, None, False
-    counts = choose_bricks(shape_xyz, int(budget or 0), limit, DEFAULT_HALO if halo is None else int(halo))
+    if halo is None:  # as the bricked encode will choose it (without a budget: for 1 Gaussian per 300 voxels)
+        n_guess = int(budget) if budget else max(1, voxels // 300)
+        halo = default_halo(brick_cap(max(2.0, max(shape_xyz) / 16.0), shape_xyz, n_guess))
+    counts = choose_bricks(shape_xyz, int(budget or 0), limit, int(halo))
     if counts == (1, 1, 1):
         return None, False, limit, False
     return counts, True, limit, True
@@ -1092,7 +1097,7 @@ def encode(
 
         bricks: Split the grid into bricks (``"2x2x2"``, counts x, y, z) with a halo, the budget
             over them before refinement, and encode each on its own (see :mod:`warpgauss.bricked`).
-        halo: Voxels of halo around each brick (default :data:`warpgauss.bricked.DEFAULT_HALO`).
+        halo: Voxels of halo around each brick (default :func:`warpgauss.bricked.default_halo`: 4, 16 at 512^3).
         client: A ``distributed.Client``: the bricks run on its cluster (None: in this process).
         on_bricks: Optional callback(bricks done, bricks) during a bricked encode.
         max_device_memory: Bytes (or ``"24GiB"``) one encode may use on the device; default: 90 %
