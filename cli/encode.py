@@ -178,6 +178,13 @@ def encode(
             help="Device memory an encode may use, e.g. 24GiB (default: 90 % of a GPU's free memory); a volume whose encode would not fit is split into bricks and read brick by brick",
         ),
     ] = None,
+    max_host_memory: Annotated[
+        str | None,
+        typer.Option(
+            rich_help_panel="Bricks and cluster",
+            help="Host memory a brick may use, e.g. 16GiB (default: half of what is available); a volume that would not fit is split into bricks and read brick by brick",
+        ),
+    ] = None,
     config: Annotated[
         Path | None,
         typer.Option(
@@ -246,7 +253,9 @@ def encode(
         status.update(f"[bold]S2[/] refinement {it}/{total}  loss {rec['total']:.3e}  sample PSNR {rec['sample_psnr_db']:.2f} dB")
 
     client = None
-    if bricks is None and (workers is not None or scheduler is not None or (halo is not None and max_device_memory is None)):
+    if bricks is None and (
+        workers is not None or scheduler is not None or (halo is not None and max_device_memory is None and max_host_memory is None)
+    ):
         fail("--halo, --workers and --scheduler apply to a bricked encode: give --bricks XxYxZ (--halo also --max-device-memory)")
     if bricks is not None:
         from warpgauss.bricked import default_client, parse_bricks
@@ -296,6 +305,7 @@ def encode(
             client=client,
             on_bricks=brick_progress,
             max_device_memory=max_device_memory,
+            max_host_memory=max_host_memory,
         )
     finally:
         if status is not None:

@@ -87,7 +87,7 @@ def test_a_device_memory_limit_chooses_the_bricking(tmp_path):
     limit = brick_device_bytes(24 * 24 * 24, 150) - 1  # the whole grid does not fit
     m = warpgauss.encode(str(raw), budget=150, max_device_memory=limit, halo=2, **FAST)
     b = m.report["bricking"]
-    assert b["chosen"] == "by the device limit" and b["read_lazily"] and b["bricks_xyz"] == [2, 1, 1]
+    assert b["chosen"] == "by the device and host limits" and b["read_lazily"] and b["bricks_xyz"] == [2, 1, 1]
     assert m.n == 150
 
 

@@ -178,6 +178,10 @@ def normalise(
         raise WarpgaussError(f"the volume has {data.size} voxels, more than {MAX_VOXELS}; use --stride 2")
     if not (np.issubdtype(data.dtype, np.integer) or np.issubdtype(data.dtype, np.floating)):
         raise WarpgaussError(f"the volume's dtype {data.dtype} is not a real number type")
+    if lazy:  # every read through the source: nothing stays mapped (see warpgauss.lazy)
+        from .lazy import _Lazy3D, require_source
+
+        data = _Lazy3D(require_source(data, name))  # type: ignore[assignment]
     nz = data.shape[0]
     exact = np.dtype(data.dtype).itemsize > 4 or np.dtype(data.dtype) in (np.int32, np.uint32)
     maybe_invalid = np.issubdtype(data.dtype, np.floating) or fill_value is not None

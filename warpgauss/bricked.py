@@ -543,18 +543,23 @@ def default_client(workers: int | None, scheduler: str | None, device: str | Non
 # -- choosing the bricking from a device-memory limit ---------------------------------------------
 
 # Peak device memory of one brick's encode, as a linear model of its box voxels and the primitives
-# it refines (own, stand-ins and frozen neighbours, about 1.5 x its share of N), fitted to the
-# reports' peak device memory on an H100 (benchmarks/results/i20_memory_h100.json).
-DEVICE_BYTES_PER_VOXEL = 24.0
+# it refines (own, stand-ins and frozen neighbours, about 1.5 x its share of N). Measured on an
+# H100 (results/i20_out_of_core1536_h100.json): bricks of 966M voxels and about 1.5M primitives
+# peaked at 5.19 GB, 3.5 B/voxel once the per-primitive part is taken off; 5 leaves a margin.
+DEVICE_BYTES_PER_VOXEL = 5.0
 DEVICE_BYTES_PER_PRIMITIVE = 1024.0
 DEVICE_FIXED_BYTES = 256 * 2**20
-DEVICE_MARGIN = 0.9  # the default limit: this share of the free memory, less the fixed part
+DEVICE_MARGIN = 0.9  # the default limit: this share of the free memory
+# Peak host memory of one brick's encode per box voxel: the source's copy and the float32 values,
+# the interior/halo/validity masks and their uint8 uploads (benchmarks/results/i20_out_of_core*.json)
+HOST_BYTES_PER_VOXEL = 14.0
+HOST_SHARE = 0.5  # the default host limit: this share of the memory available now
 
 _UNITS = {"": 1, "b": 1, "k": 10**3, "kb": 10**3, "kib": 2**10, "m": 10**6, "mb": 10**6, "mib": 2**20}
 _UNITS.update({"g": 10**9, "gb": 10**9, "gib": 2**30, "t": 10**12, "tb": 10**12, "tib": 2**40})
 
 
-def parse_memory(text) -> int:
+def parse_memory(text, option: str = "--max-device-memory") -> int:
     """'24GiB', '24G', '500MB', '1e9' or a number of bytes -> bytes."""
     if isinstance(text, (int, np.integer)):
         value = int(text)
@@ -564,10 +569,10 @@ def parse_memory(text) -> int:
         m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-zA-Z]*)\s*", str(text))
         unit = m.group(2).lower() if m else ""
         if m is None or unit not in _UNITS:
-            raise WarpgaussError(f"--max-device-memory must be a size such as 24GiB, 500MB or a number of bytes, got {text!r}")
+            raise WarpgaussError(f"{option} must be a size such as 24GiB, 500MB or a number of bytes, got {text!r}")
         value = int(float(m.group(1)) * _UNITS[unit])
     if value <= DEVICE_FIXED_BYTES:
-        raise WarpgaussError(f"--max-device-memory {text} is too small: a brick needs more than {DEVICE_FIXED_BYTES / 2**20:.0f} MiB")
+        raise WarpgaussError(f"{option} {text} is too small: a brick needs more than {DEVICE_FIXED_BYTES / 2**20:.0f} MiB")
     return value
 
 
@@ -586,10 +591,11 @@ def default_device_limit(device: str) -> int | None:
     return int(DEVICE_MARGIN * d.free_memory)
 
 
-def choose_bricks(shape_xyz, n: int, limit: int | None, halo: int = DEFAULT_HALO) -> tuple[int, int, int]:
+def choose_bricks(shape_xyz, n: int, limit: int | None, halo: int = DEFAULT_HALO, host_limit: int | None = None) -> tuple[int, int, int]:
     """The fewest bricks (x, y, z) whose largest box fits ``limit`` bytes of device memory (by
-    :func:`brick_device_bytes`, ``n`` primitives over them) and the kernels' voxel index; more
-    bricks go along the axis whose bricks are longest. (1, 1, 1) when the whole grid fits."""
+    :func:`brick_device_bytes`, ``n`` primitives over them), ``host_limit`` bytes of host memory
+    (:data:`HOST_BYTES_PER_VOXEL`) and the kernels' voxel index; more bricks go along the axis
+    whose bricks are longest. (1, 1, 1) when the whole grid fits."""
     from .analysis import MAX_VOXELS
 
     counts = [1, 1, 1]
@@ -598,12 +604,14 @@ def choose_bricks(shape_xyz, n: int, limit: int | None, halo: int = DEFAULT_HALO
         boxes = [int(np.prod([hi - lo for lo, hi in b.box])) for b in plan_bricks(shape, counts, halo if counts != [1, 1, 1] else 0)]
         k = int(np.prod(counts))
         need = brick_device_bytes(max(boxes), 1.5 * n / k if k > 1 else n)
-        if max(boxes) <= MAX_VOXELS and (limit is None or need <= limit):
+        host = HOST_BYTES_PER_VOXEL * max(boxes)
+        if max(boxes) <= MAX_VOXELS and (limit is None or need <= limit) and (host_limit is None or host <= host_limit):
             return (counts[0], counts[1], counts[2])
         axis = int(np.argmax([s / c for s, c in zip(shape, counts)]))
         if shape[axis] // (counts[axis] + 1) < max(2, 4 * halo):
             raise WarpgaussError(
-                f"no bricking of {'x'.join(map(str, shape))} fits {limit / 2**30 if limit else 0:.1f} GiB of device memory "
-                f"(bricks of {'x'.join(map(str, counts))} need about {need / 2**30:.1f} GiB each); raise --max-device-memory or lower the budget"
+                f"no bricking of {'x'.join(map(str, shape))} fits {limit / 2**30 if limit else 0:.1f} GiB of device memory and "
+                f"{host_limit / 2**30 if host_limit else 0:.1f} GiB of host memory (bricks of {'x'.join(map(str, counts))} need about "
+                f"{need / 2**30:.1f} and {host / 2**30:.1f} GiB each); raise --max-device-memory / --max-host-memory or lower the budget"
             )
         counts[axis] += 1

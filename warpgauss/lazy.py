@@ -53,8 +53,6 @@ class ArraySource:
         return (self.kind, self.path, self.key, self.offset)
 
     def _open(self):
-        if self.kind == "memmap":
-            return np.memmap(self.path, dtype=np.dtype(self.dtype), mode="r", offset=self.offset, shape=self.shape)
         if self.kind == "hdf5":
             import h5py
 
@@ -68,7 +66,14 @@ class ArraySource:
         raise ValueError(f"unknown array source kind {self.kind!r}")
 
     def read(self, key) -> np.ndarray:
-        """The voxels at ``key`` (slices), in native byte order."""
+        """A copy of the voxels at ``key`` (slices), in native byte order. A memory-mapped file is
+        mapped for this read only: pages left mapped would count in the process's resident memory
+        until the whole file had been."""
+        if self.kind == "memmap":
+            m = np.memmap(self.path, dtype=np.dtype(self.dtype), mode="r", offset=self.offset, shape=self.shape)
+            a = np.array(m[key], dtype=m.dtype.newbyteorder("="))
+            del m
+            return a
         a = np.asarray(self.open()[key])
         return a if a.dtype.isnative else a.astype(a.dtype.newbyteorder("="))
 

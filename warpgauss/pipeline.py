@@ -961,32 +961,31 @@ AUTO_BRICK_FLOOR = 2 * 2**30  # an encode estimated below this is never bricked 
 LAZY_SUFFIXES = (".raw", ".bin", ".npy", ".h5", ".hdf5", ".hdf", ".nc", ".cdf")
 
 
-def _bricking(source, read, example, bricks, halo, budget, device, max_device_memory):
-    """(bricks, read lazily, device limit, bricks chosen here) of an encode: given bricks are kept; otherwise a file
-    whose monolithic encode would not fit the device limit (or the kernels' voxel index) is
-    bricked by :func:`~warpgauss.bricked.choose_bricks`. Only a format that can be read on demand
-    is looked at before it is read."""
+def _bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory=None):
+    """(bricks, read lazily, device limit, bricks chosen here) of an encode: given bricks are kept;
+    otherwise a file whose monolithic encode would not fit the device or host limit (or the
+    kernels' voxel index) is bricked by :func:`~warpgauss.bricked.choose_bricks`. Only a format
+    that can be read on demand is looked at before it is read."""
     from ._warp import resolve_device
-    from .analysis import MAX_VOXELS
-    from .bricked import brick_cap, brick_device_bytes, choose_bricks, default_device_limit, default_halo, parse_memory
+    from .bricked import HOST_SHARE, brick_cap, brick_device_bytes, choose_bricks, default_device_limit, default_halo, parse_memory
 
-    limit = None if max_device_memory is None else parse_memory(max_device_memory)
+    limit = None if max_device_memory is None else parse_memory(max_device_memory, "--max-device-memory")
+    host = None if max_host_memory is None else parse_memory(max_host_memory, "--max-host-memory")
     is_file = example is None and isinstance(source, (str, os.PathLike)) and str(source).lower().endswith(LAZY_SUFFIXES)
     if bricks is not None or not is_file:
         return bricks, bricks is not None and is_file, limit, False
     vol = (read or ReadOptions()).read(source, lazy=True)  # the header: nothing is read yet
     shape_xyz = tuple(int(v) for v in vol.data.shape[::-1])
     voxels = int(np.prod(shape_xyz, dtype=np.int64))
-    if limit is None and voxels <= MAX_VOXELS:
-        if brick_device_bytes(voxels, int(budget or 0)) <= AUTO_BRICK_FLOOR:
-            return None, False, None, False  # fits any GPU's free memory: Warp is not started for this
-        limit = default_device_limit(resolve_device(device))
-        if limit is None:
-            return None, False, None, False
+    if host is None:
+        free = _available_memory()
+        host = None if free is None else int(HOST_SHARE * free)
+    if limit is None and brick_device_bytes(voxels, int(budget or 0)) > AUTO_BRICK_FLOOR:
+        limit = default_device_limit(resolve_device(device))  # None on the CPU
     if halo is None:  # as the bricked encode will choose it (without a budget: for 1 Gaussian per 300 voxels)
         n_guess = int(budget) if budget else max(1, voxels // 300)
         halo = default_halo(brick_cap(max(2.0, max(shape_xyz) / 16.0), shape_xyz, n_guess))
-    counts = choose_bricks(shape_xyz, int(budget or 0), limit, int(halo))
+    counts = choose_bricks(shape_xyz, int(budget or 0), limit, int(halo), host)
     if counts == (1, 1, 1):
         return None, False, limit, False
     return counts, True, limit, True
@@ -1042,6 +1041,7 @@ def encode(
     client=None,
     on_bricks: Callable[[int, int], None] | None = None,
     max_device_memory: int | str | None = None,
+    max_host_memory: int | str | None = None,
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
 
@@ -1104,6 +1104,8 @@ def encode(
             of what a CUDA device has free (none on the CPU). Without ``bricks``, a volume whose
             monolithic encode would not fit it, or that has more voxels than the kernels index, is
             bricked (:func:`warpgauss.bricked.choose_bricks`), and a file read on demand.
+        max_host_memory: The same for this machine's memory (default: half of what is available
+            now); a bricked encode of a file keeps one brick's box in memory at a time.
 
     Returns:
         The :class:`Model`, with ``model.report`` holding the run report.
@@ -1145,7 +1147,7 @@ def encode(
     )
     encoding_of(opts)  # an unknown format is refused before any work
     timer = StageRecorder(on_stage=on_stage)
-    bricks, lazy, limit, auto = _bricking(source, read, example, bricks, halo, budget, device, max_device_memory)
+    bricks, lazy, limit, auto = _bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory)
     with timer.stage("P", "load and normalise"):
         f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy)
     if bricks is not None:
@@ -1165,7 +1167,7 @@ def encode(
             on_progress=on_bricks,
         )
         model.report["bricking"].update(
-            chosen="by the device limit" if auto else "given",
+            chosen="by the device and host limits" if auto else "given",
             max_device_memory=limit,
             read_lazily=bool(info.get("read_lazily")),
         )

@@ -39,6 +39,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--size", type=int, default=2048)
     ap.add_argument("--budget", type=int, default=4_000_000)
     ap.add_argument("--max-device-memory", default="24GiB")
+    ap.add_argument("--max-host-memory", default=None)
     ap.add_argument("--halo", type=int, default=None)
     ap.add_argument("--dir", type=Path, default=Path("/tmp"))
     ap.add_argument("--device", default=None)
@@ -66,6 +67,7 @@ def main(argv=None) -> dict:
         format="full",
         self_test=False,
         max_device_memory=args.max_device_memory,
+        max_host_memory=args.max_host_memory,
         halo=args.halo,
         on_bricks=lambda d, t: (done.append(d), print(f"brick {d}/{t} at {time.perf_counter() - t0:.1f} s", flush=True)),
     )
@@ -78,6 +80,7 @@ def main(argv=None) -> dict:
         "file_bytes": path.stat().st_size,
         "n": m.n,
         "max_device_memory": b.get("max_device_memory"),
+        "max_host_memory": args.max_host_memory,
         "bricks_xyz": b["bricks_xyz"],
         "halo": b["halo"],
         "chosen": b.get("chosen"),
