@@ -33,7 +33,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--budget", type=int, default=400_000)
     ap.add_argument("--fields", default="vortex,interface")
     ap.add_argument("--bricks", default="2x2x2")
-    ap.add_argument("--halo", default="4", help="halos to try, comma separated (voxels)")
+    ap.add_argument("--halo", default="default", help="halos to try, comma separated (voxels; default: the bricked encode's rule)")
     ap.add_argument("--caps", default="none", help="sigma caps (voxels) to try, comma separated; none: the default")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
@@ -55,7 +55,7 @@ def main(argv=None) -> dict:
         v = generate(name, args.size)
         f = normalise(v)
         near = face_band(f.shape_xyz, plan_bricks(f.shape_xyz, counts, 0))
-        runs = [("monolithic", None)] + [("bricked", int(h)) for h in args.halo.split(",")]
+        runs = [("monolithic", None)] + [("bricked", None if h == "default" else int(h)) for h in args.halo.split(",")]
         for cap, (mode, halo) in [(c, r) for c in args.caps.split(",") for r in runs]:
             kw = dict(budget=args.budget, device=dev, format="full", self_test=False, evaluate=False)
             if cap != "none":
@@ -81,6 +81,8 @@ def main(argv=None) -> dict:
                 "samples": m.report["refinement"].get("samples") if mode == "monolithic" else None,
             }
             if mode == "bricked":
+                row["halo"] = m.report["bricking"]["halo"]
+                row["brick_scale_cap"] = m.report["bricking"]["scale_cap"]
                 row["bricks"] = [
                     {k: b.get(k) for k in ("n", "seconds", "samples", "stand_ins", "frozen")} for b in m.report["bricking"]["bricks"]
                 ]
