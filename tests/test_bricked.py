@@ -197,3 +197,22 @@ def test_a_killed_worker_is_survived_and_a_brick_failing_twice_fails_the_run(tmp
     assert (tmp_path / "killed").exists()
     for a, b in zip(serial, survived):
         np.testing.assert_array_equal(a["params"], b["params"])
+
+
+def test_seams_are_within_1_db_of_the_interior():
+    """Issue #20's seam criterion on the CPU: PSNR on the voxels within 2 voxels of an inner brick
+    face at most 1 dB below the rest (vortex: no feature of its own sits on the centre planes)."""
+    from warpgauss.bricked import face_band
+
+    v = generate("vortex", 32)
+    f = normalise(v)
+    m = warpgauss.encode(v, budget=600, bricks="2x2x2", iterations=100, device="cpu", self_test=False, format="full", evaluate=False)
+    err = (m.decode(device="cpu", normalised=True).astype(np.float64) - f.values) ** 2
+    near = face_band(f.shape_xyz, plan_bricks(f.shape_xyz, (2, 2, 2), 0))
+
+    def psnr(e):
+        return 10 * np.log10(1 / e.mean())
+
+    seam, interior = psnr(err[near]), psnr(err[~near])
+    assert seam >= interior - 1.0, (seam, interior)
+    assert interior > 35.0

@@ -20,6 +20,7 @@ OCCUPIED = 0.02  # normalised value above which a voxel is occupied (SPEC sectio
 DETAIL_PERCENT = 55  # detail share of the budget (SPEC section 3); coverage gets the rest
 MAX_VOXELS = 2**31 - 1  # linear voxel indices are int32 in the kernels
 SLAB = 32  # z-slices per numpy pass
+LAZY_SLAB_VOXELS = 4 * 2**20  # voxels per pass (and thread) of a volume read on demand
 STATS_EXACT_VOXELS = 1 << 22  # up to this many voxels the statistics use every voxel
 STATS_SAMPLES = 1 << 21  # voxels drawn (with replacement) for the statistics of larger volumes
 STRUCTURE_LAG = 16
@@ -187,7 +188,7 @@ def normalise(
     maybe_invalid = np.issubdtype(data.dtype, np.floating) or fill_value is not None
 
     def scan(z0: int):
-        s = np.asarray(data[z0 : z0 + SLAB])
+        s = np.asarray(data[z0 : z0 + slab])
         if not maybe_invalid:
             return s.min(), s.max(), 0
         ok = _valid(s, fill_value)
@@ -198,7 +199,10 @@ def normalise(
             return np.inf, -np.inf, ok.size
         return s[ok].min(), s[ok].max(), ok.size - n_ok
 
-    parts = _map_slabs(scan, nz)
+    # read on demand, a slab is the source's copy and its temporaries on every thread: keep it small
+    plane = int(np.prod(data.shape[1:], dtype=np.int64))
+    slab = SLAB if not lazy else max(1, min(SLAB, LAZY_SLAB_VOXELS // max(plane, 1)))
+    parts = _map_slabs(scan, nz, slab)
     lo = min(float(p[0]) for p in parts)
     hi = max(float(p[1]) for p in parts)
     n_invalid = sum(p[2] for p in parts)
@@ -269,10 +273,12 @@ def _lazy_field(data, plan, fill_value, n_invalid, spacing, origin, name, source
         f.notes.append(f"{n_invalid} voxels are NaN/Inf/fill: masked out of seeding, sampling and every metric")
     if count_candidates:
 
-        def count(z0: int):
-            return count_seed_candidates(values[z0 : z0 + SLAB * 4], None if mask is None else mask[z0 : z0 + SLAB * 4])
+        step = max(1, 4 * LAZY_SLAB_VOXELS // max(1, values.shape[1] * values.shape[2]))
 
-        parts = [count(z0) for z0 in range(0, values.shape[0], SLAB * 4)]
+        def count(z0: int):
+            return count_seed_candidates(values[z0 : z0 + step], None if mask is None else mask[z0 : z0 + step])
+
+        parts = [count(z0) for z0 in range(0, values.shape[0], step)]
         f.occupied, f.eligible = sum(p[0] for p in parts), sum(p[1] for p in parts)
     return f
 

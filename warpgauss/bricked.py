@@ -120,7 +120,7 @@ def plan_bricks(shape_xyz, counts_xyz, halo: int = DEFAULT_HALO) -> list[Brick]:
     return out
 
 
-GRAD_SLAB = 64  # z-planes per pass of the |grad V| sums (float32: a brick's box at a time stays small)
+GRAD_SLAB = 8  # z-planes per pass of the |grad V| sums (one pass per thread: their temporaries stay small)
 
 
 def _grad_sum(values: np.ndarray, select: np.ndarray | None) -> float:
@@ -551,16 +551,18 @@ DEVICE_BYTES_PER_PRIMITIVE = 1024.0
 DEVICE_FIXED_BYTES = 256 * 2**20
 DEVICE_MARGIN = 0.9  # the default limit: this share of the free memory
 # Peak host memory of one brick's encode per box voxel: the source's copy and the float32 values,
-# the interior/halo/validity masks and their uint8 uploads (benchmarks/results/i20_out_of_core*.json)
-HOST_BYTES_PER_VOXEL = 14.0
+# the interior/halo/validity masks and their uint8 uploads, the counting passes' temporaries on
+# every thread. Measured (H100 host, 16 threads, results/i20_out_of_core1536_rss_h100.json): boxes
+# of 499M voxels peaked at 11.0 GB RSS, 22 B/voxel (the first estimate, 14, let it pass an 8 GiB limit).
+HOST_BYTES_PER_VOXEL = 22.0
 HOST_SHARE = 0.5  # the default host limit: this share of the memory available now
 
 _UNITS = {"": 1, "b": 1, "k": 10**3, "kb": 10**3, "kib": 2**10, "m": 10**6, "mb": 10**6, "mib": 2**20}
 _UNITS.update({"g": 10**9, "gb": 10**9, "gib": 2**30, "t": 10**12, "tb": 10**12, "tib": 2**40})
 
 
-def parse_memory(text, option: str = "--max-device-memory") -> int:
-    """'24GiB', '24G', '500MB', '1e9' or a number of bytes -> bytes."""
+def parse_memory(text, option: str = "--max-device-memory", floor: int = DEVICE_FIXED_BYTES) -> int:
+    """'24GiB', '24G', '500MB', '1e9' or a number of bytes -> bytes (more than ``floor``)."""
     if isinstance(text, (int, np.integer)):
         value = int(text)
     else:
@@ -571,8 +573,8 @@ def parse_memory(text, option: str = "--max-device-memory") -> int:
         if m is None or unit not in _UNITS:
             raise WarpgaussError(f"{option} must be a size such as 24GiB, 500MB or a number of bytes, got {text!r}")
         value = int(float(m.group(1)) * _UNITS[unit])
-    if value <= DEVICE_FIXED_BYTES:
-        raise WarpgaussError(f"{option} {text} is too small: a brick needs more than {DEVICE_FIXED_BYTES / 2**20:.0f} MiB")
+    if value <= floor:
+        raise WarpgaussError(f"{option} {text} is too small: a brick needs more than {floor / 2**20:.0f} MiB")
     return value
 
 

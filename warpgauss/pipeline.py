@@ -970,7 +970,7 @@ def _bricking(source, read, example, bricks, halo, budget, device, max_device_me
     from .bricked import HOST_SHARE, brick_cap, brick_device_bytes, choose_bricks, default_device_limit, default_halo, parse_memory
 
     limit = None if max_device_memory is None else parse_memory(max_device_memory, "--max-device-memory")
-    host = None if max_host_memory is None else parse_memory(max_host_memory, "--max-host-memory")
+    host = None if max_host_memory is None else parse_memory(max_host_memory, "--max-host-memory", 2**20)
     is_file = example is None and isinstance(source, (str, os.PathLike)) and str(source).lower().endswith(LAZY_SUFFIXES)
     if bricks is not None or not is_file:
         return bricks, bricks is not None and is_file, limit, False

@@ -41,6 +41,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--max-device-memory", default="24GiB")
     ap.add_argument("--max-host-memory", default=None)
     ap.add_argument("--halo", type=int, default=None)
+    ap.add_argument("--iterations", type=int, default=None, help="refinement iterations (default: the encode's)")
     ap.add_argument("--dir", type=Path, default=Path("/tmp"))
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
@@ -69,6 +70,7 @@ def main(argv=None) -> dict:
         max_device_memory=args.max_device_memory,
         max_host_memory=args.max_host_memory,
         halo=args.halo,
+        iterations=args.iterations,
         on_bricks=lambda d, t: (done.append(d), print(f"brick {d}/{t} at {time.perf_counter() - t0:.1f} s", flush=True)),
     )
     wall = time.perf_counter() - t0
@@ -92,6 +94,7 @@ def main(argv=None) -> dict:
         "peak_host_rss_bytes": rss,
         "host_rss_before_encode_bytes": rss0,
         "rss_over_file": rss / path.stat().st_size,
+        "rss_growth_over_file": (rss - rss0) / path.stat().st_size,
         "stages": [{k: s[k] for k in ("name", "seconds", "device_peak_bytes", "host_peak_bytes") if k in s} for s in r.get("stages", [])],
         "bricks": [{k: x.get(k) for k in ("n", "seconds", "samples", "stand_ins", "frozen", "box_zyx")} for x in b["bricks"]],
         "generate_s": gen_s,
