@@ -272,7 +272,6 @@ def _lazy_field(data, plan, fill_value, n_invalid, spacing, origin, name, source
     if n_invalid:
         f.notes.append(f"{n_invalid} voxels are NaN/Inf/fill: masked out of seeding, sampling and every metric")
     if count_candidates:
-
         step = max(1, 4 * LAZY_SLAB_VOXELS // max(1, values.shape[1] * values.shape[2]))
 
         def count(z0: int):
