@@ -91,43 +91,8 @@ def test_cli_bytes_budget(tmp_path, cpu):
     from warpgauss.cli.main import app
 
     out = tmp_path / "v.wgs"
-    r = CliRunner().invoke(
-        app,
-        [
-            "encode",
-            "--example",
-            "vortex",
-            "--size",
-            "24",
-            "--bytes",
-            "6000",
-            "--iterations",
-            "5",
-            "--device",
-            "cpu",
-            "--no-self-test",
-            "-o",
-            str(out),
-        ],
-    )
+    r = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "24", "--bytes", "6000", "--iterations", "5", "--device", "cpu", "--no-self-test", "-o", str(out)])
     assert r.exit_code == 0, r.output
     assert 0.95 * 6000 <= out.stat().st_size <= 6000
-    r = CliRunner().invoke(
-        app,
-        [
-            "encode",
-            "--example",
-            "vortex",
-            "--size",
-            "24",
-            "--bytes",
-            "6000",
-            "--budget",
-            "10",
-            "--device",
-            "cpu",
-            "-o",
-            str(tmp_path / "w.wgs"),
-        ],
-    )
+    r = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "24", "--bytes", "6000", "--budget", "10", "--device", "cpu", "-o", str(tmp_path / "w.wgs")])
     assert r.exit_code == 2 and "one of --budget, --ratio and --bytes" in r.output and not (tmp_path / "w.wgs").exists()

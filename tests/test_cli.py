@@ -48,22 +48,8 @@ def test_example_encode_info_decode_eval_journey(vortex_raw, tmp_path):
     model = tmp_path / "vortex.wgs"
     analytic = tmp_path / "analytic.wgs"
     r = cli(
-        "encode",
-        vortex_raw,
-        "--budget",
-        "300",
-        "-o",
-        model,
-        "--device",
-        "cpu",
-        "--iterations",
-        "40",
-        "--format",
-        "full",
-        "--samples",
-        "512",
-        "--save-analytic",
-        analytic,
+        "encode", vortex_raw, "--budget", "300", "-o", model, "--device", "cpu", "--iterations", "40", "--format", "full",
+        "--samples", "512", "--save-analytic", analytic,
     )
     assert r.exit_code == 0, r.output
     assert model.stat().st_size == analytic.stat().st_size == 48 * 300 + 4096  # 48 N + H, H one 4 KiB block
@@ -176,19 +162,7 @@ def test_infeasible_budget_is_refused_before_warp_starts(tmp_path):
 
 def test_encode_builtin_example_writes_model_and_report(tmp_path):
     r = cli(
-        "encode",
-        "--example",
-        "bubbles",
-        "--size",
-        "32",
-        "--budget",
-        "200",
-        "--device",
-        "cpu",
-        "--iterations",
-        "0",
-        "--format",
-        "full",
+        "encode", "--example", "bubbles", "--size", "32", "--budget", "200", "--device", "cpu", "--iterations", "0", "--format", "full",
         cwd=tmp_path,
     )
     assert r.exit_code == 0, r.output
@@ -223,17 +197,7 @@ def test_encode_help_groups_options_in_panels():
     r = CliRunner().invoke(app, ["encode", "--help"], env={"COLUMNS": "200"})
     assert r.exit_code == 0, r.output
     heads = [line.rstrip(":") for line in r.output.splitlines() if line and not line.startswith(" ") and line.endswith(":")]
-    assert heads == [
-        "Arguments",
-        "Input",
-        "Budget and format",
-        "Refinement",
-        "Loss weights",
-        "Bricks and cluster",
-        "Run control",
-        "Output",
-        "Other options",
-    ]
+    assert heads == ["Arguments", "Input", "Budget and format", "Refinement", "Loss weights", "Bricks and cluster", "Run control", "Output", "Other options"]
     sections = r.output.split("\n\n")
     where = {s.splitlines()[0].rstrip(":"): s for s in sections if s and s.splitlines()[0].endswith(":")}
     assert "--w-smooth " in where["Loss weights"] and "--bytes" in where["Budget and format"] and "--config" in where["Run control"]
@@ -244,9 +208,7 @@ def test_config_file_sets_options_and_the_report_repeats_the_run(tmp_path):
     """A TOML file sets any option (the command line wins); the report records the resolved
     options, and --config REPORT gives the same model bit for bit (same seed, same device)."""
     cfg = tmp_path / "run.toml"
-    cfg.write_text(
-        'example = "vortex"\nsize = 20\nbudget = 40\niterations = 50\ndevice = "cpu"\nno-self-test = true\nw-smooth = 0.02\nformat = "full"\n'
-    )
+    cfg.write_text('example = "vortex"\nsize = 20\nbudget = 40\niterations = 50\ndevice = "cpu"\nno-self-test = true\nw-smooth = 0.02\nformat = "full"\n')
     out = tmp_path / "a.wgs"
     r = CliRunner().invoke(app, ["encode", "--config", str(cfg), "--iterations", "4", "-o", str(out)])
     assert r.exit_code == 0, r.output
