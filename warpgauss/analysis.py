@@ -232,22 +232,28 @@ def normalise(
         values[z0 : z0 + SLAB] = v
 
     _map_slabs(fill, nz)
+    f = _new_field(values, mask, lo, hi, spacing, origin, name, source_dtype or data.dtype, n_invalid)
+    if count_candidates:
+        f.occupied, f.eligible = count_seed_candidates(values, mask)
+    return f
+
+
+def _new_field(values, mask, lo, hi, spacing, origin, name, source_dtype, n_invalid: int) -> Field:
+    """The Field of normalised ``values`` (an array, or read on demand) and its stage-P facts."""
     f = Field(
         values=values,
         mask=mask,
-        vmin=lo,
-        vmax=hi,
+        vmin=float(lo),
+        vmax=float(hi),
         spacing=tuple(float(x) for x in spacing),
         origin=tuple(float(x) for x in origin),
         name=name,
-        source_dtype=str(source_dtype or data.dtype),
-        source_itemsize=int(np.dtype(source_dtype or data.dtype).itemsize),
+        source_dtype=str(source_dtype),
+        source_itemsize=int(np.dtype(source_dtype).itemsize),
     )
     f.n_valid = f.n_voxels - n_invalid
     if n_invalid:
         f.notes.append(f"{n_invalid} voxels are NaN/Inf/fill: masked out of seeding, sampling and every metric")
-    if count_candidates:
-        f.occupied, f.eligible = count_seed_candidates(values, mask)
     return f
 
 
@@ -257,20 +263,7 @@ def _lazy_field(data, plan, fill_value, n_invalid, spacing, origin, name, source
     src = require_source(data, name)
     values = LazyValues(src, plan, fill_value, n_invalid > 0)
     mask = LazyMask(src, fill_value) if n_invalid else None
-    f = Field(
-        values=values,  # type: ignore[arg-type]
-        mask=mask,  # type: ignore[arg-type]
-        vmin=float(plan.lo_value),
-        vmax=float(plan.hi_value),
-        spacing=tuple(float(x) for x in spacing),
-        origin=tuple(float(x) for x in origin),
-        name=name,
-        source_dtype=str(source_dtype or data.dtype),
-        source_itemsize=int(np.dtype(source_dtype or data.dtype).itemsize),
-    )
-    f.n_valid = f.n_voxels - n_invalid
-    if n_invalid:
-        f.notes.append(f"{n_invalid} voxels are NaN/Inf/fill: masked out of seeding, sampling and every metric")
+    f = _new_field(values, mask, plan.lo_value, plan.hi_value, spacing, origin, name, source_dtype or data.dtype, n_invalid)
     if count_candidates:
         step = max(1, 4 * LAZY_SLAB_VOXELS // max(1, values.shape[1] * values.shape[2]))
 
