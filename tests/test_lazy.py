@@ -105,3 +105,20 @@ def test_cli_max_device_memory(tmp_path):
     r = CliRunner().invoke(app, [*base, "--max-device-memory", limit, "--halo", "2", "-o", str(tmp_path / "b.wgs")])
     assert r.exit_code == 0, r.output
     assert warpgauss.Model.load(tmp_path / "b.wgs").n == 120
+
+
+def test_dask_workers_read_their_own_boxes(tmp_path):
+    pytest.importorskip("distributed")
+    from warpgauss.bricked import local_client
+
+    v = generate("interface", 20)
+    raw, _, _ = _files(tmp_path, v)
+    serial = warpgauss.encode(str(raw), budget=150, bricks="2x1x2", halo=2, **FAST)
+    client = local_client(2)
+    try:
+        on_cluster = warpgauss.encode(str(raw), budget=150, bricks="2x1x2", halo=2, client=client, **FAST)
+    finally:
+        client.close()
+        client.cluster.close()
+    assert on_cluster.report["bricking"]["read_lazily"]
+    np.testing.assert_array_equal(serial.params, on_cluster.params)

@@ -8,9 +8,11 @@ a brick must be fitted beside what the merged model will hold around it: the bri
 beside the finished neighbours' primitives that reach its box (frozen: evaluated, never moved)
 and beside stand-ins for the neighbours still to come (seeded in their part of the halo at the
 density the budget rule gives there, refined, then dropped). The merged model holds only the
-bricks' own primitives: exactly N. Measured (``benchmarks/i20/README.md``): without the frozen
-neighbours and stand-ins a 2x2x2 bricking lost 15.7 dB on a 512^3 vortex and 11.5 dB on the
-interface; with them 3.5 dB and +0.3 dB (halo 16).
+bricks' own primitives: exactly N. A brick caps sigma by the primitive spacing and its default
+halo is twice that cap (:func:`brick_cap`, :func:`default_halo`). Measured
+(``benchmarks/i20/README.md``, H100, 2x2x2): without the frozen neighbours and stand-ins a
+bricking lost 15.7 dB on a 512^3 vortex and 11.5 dB on the interface; with them and the cap,
+-0.35 / +0.33 dB at 512^3 and -0.38 / +0.71 dB at 1024^3, in 2.4-3.2x the monolithic time.
 
 Values are normalised once, by the whole volume's min/max, so every brick fits the same field. The
 budget is split analytically from brick statistics, as the monolithic allocation would spend it:
