@@ -122,3 +122,26 @@ def test_dask_workers_read_their_own_boxes(tmp_path):
         client.cluster.close()
     assert on_cluster.report["bricking"]["read_lazily"]
     np.testing.assert_array_equal(serial.params, on_cluster.params)
+
+
+def test_zarr_stores_are_read_whole_or_by_bricks(tmp_path):
+    zarr = pytest.importorskip("zarr")
+    v = generate("vortex", 20)
+    path = tmp_path / "v.zarr"
+    g = zarr.open_group(str(path), mode="w")
+    make = g.create_array if hasattr(g, "create_array") else g.create_dataset
+    a = make("fields/rho", shape=v.shape, chunks=(8, 8, 8), dtype="float32")
+    a[...] = v
+    a.attrs["spacing"] = [2.0, 2.0, 2.0]
+    whole = read_volume(path)
+    np.testing.assert_array_equal(whole.data, v)
+    assert whole.spacing == (2.0, 2.0, 2.0)
+    ref = normalise(v)
+    lazy = normalise(read_volume(path, lazy=True).data, lazy=True)
+    np.testing.assert_array_equal(lazy.values[3:11, 2:5], ref.values[3:11, 2:5])
+    mem = warpgauss.encode(v, budget=150, bricks="1x2x2", halo=2, **FAST)
+    from_store = warpgauss.encode(str(path), budget=150, bricks="1x2x2", halo=2, **FAST)
+    assert from_store.report["bricking"]["read_lazily"]
+    np.testing.assert_array_equal(from_store.params, mem.params)
+    with pytest.raises(WarpgaussError, match="has no array 'nope'"):
+        read_volume(path, dataset="nope")

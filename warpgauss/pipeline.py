@@ -958,7 +958,7 @@ def encode_bricked(
 
 
 AUTO_BRICK_FLOOR = 2 * 2**30  # an encode estimated below this is never bricked by the default limit
-LAZY_SUFFIXES = (".raw", ".bin", ".npy", ".h5", ".hdf5", ".hdf", ".nc", ".cdf")
+LAZY_SUFFIXES = (".raw", ".bin", ".npy", ".h5", ".hdf5", ".hdf", ".nc", ".cdf", ".zarr")
 
 
 def _bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory=None):

@@ -32,6 +32,7 @@ from .plt import _read_plt
 from .raw import _read_npy, _read_raw
 from .vtk import _read_pyvista
 from .write import WRITERS, write_volume
+from .zarr import _read_zarr
 
 _RAW_OPTS = frozenset({"shape", "dtype", "endian"})
 _H5_OPTS = frozenset({"dataset", "variable"})
@@ -52,6 +53,7 @@ READERS: dict[str, _Reader] = {
     },
     **{base + comp: _Reader(_read_mrc, frozenset(), "MRC/CCP4") for base in (".mrc", ".map", ".ccp4") for comp in ("", ".gz", ".bz2")},
     ".plt": _Reader(_read_plt, frozenset(), "gOpenMol plt"),
+    ".zarr": _Reader(_read_zarr, frozenset({"dataset"}), "Zarr store"),
 }
 
 
@@ -107,8 +109,8 @@ def read_volume(
     p = Path(path)
     if not p.exists():
         raise WarpgaussError(f"no such file: {p}")
-    if p.is_dir():
-        raise WarpgaussError(f"{p} is a directory; give a volume file")
+    if p.is_dir() and not p.name.lower().endswith(".zarr"):
+        raise WarpgaussError(f"{p} is a directory; give a volume file (or a .zarr store)")
     suffix = _match_suffix(p.name, READERS, "read")
     reader = READERS[suffix]
     s = _check_stride(stride)

@@ -1,0 +1,69 @@
+"""Zarr stores (a ``.zarr`` directory): an array, or a named array of a group; read by chunks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import WarpgaussError
+from .common import _attr_xyz, _check_declared, _check_dtype, _check_shape, _fill_attr, _first_line, _Read
+
+
+def _read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False, **_) -> _Read:
+    """The store's array, or the group's ``dataset`` (default: the first 3D array, by name);
+    ``[z, y, x]`` order assumed. ``lazy``: left unread, each brick reads its box."""
+    try:
+        import zarr
+    except ImportError:
+        raise WarpgaussError("reading a .zarr store needs the 'zarr' package: pip install zarr") from None
+    try:
+        root: Any = zarr.open(str(path), mode="r")
+    except Exception as e:  # zarr raises several types for a store it cannot read
+        raise WarpgaussError(f"cannot open {path.name} as a Zarr store ({_first_line(e)})") from None
+    key = None
+    arr: Any
+    if isinstance(root, zarr.Array):
+        arr = root
+    else:
+        names = sorted(_array_names(root))
+        found = [(n, tuple(root[n].shape)) for n in names]
+        listing = ", ".join(f"{n} {s}" for n, s in found) or "no arrays"
+        if dataset is not None:
+            key = str(dataset).strip("/")
+            if key not in names:
+                raise WarpgaussError(f"{path.name} has no array {dataset!r}; it holds {listing}; pick one with --dataset")
+        else:
+            key = next((n for n, s in found if len(s) == 3), None)
+            if key is None:
+                raise WarpgaussError(f"{path.name} has no 3D array; it holds {listing}")
+        arr = root[key]
+    shape = tuple(int(v) for v in arr.shape)
+    _check_shape(shape, path.name)
+    _check_dtype(np.dtype(arr.dtype), path.name)
+    attrs = dict(arr.attrs)
+    meta = dict(
+        spacing=_attr_xyz(attrs, "spacing", (1.0, 1.0, 1.0)),
+        origin=_attr_xyz(attrs, "origin", (0.0, 0.0, 0.0)),
+        fill_value=_fill_attr(attrs),
+    )
+    if lazy:
+        from ..lazy import ArraySource, _Lazy3D
+
+        src = ArraySource("zarr", str(path), shape, np.dtype(arr.dtype).str, key=key)  # type: ignore[arg-type]
+        return _Read(_Lazy3D(src), **meta)  # type: ignore[arg-type]
+    voxels = _check_declared(f"{path.name}", shape, np.dtype(arr.dtype).itemsize, stride)
+    s = slice(None, None, stride)
+    try:
+        return _Read(np.asarray(arr[s, s, s]), strided=True, **meta)  # type: ignore[arg-type]
+    except MemoryError:
+        raise WarpgaussError(f"not enough memory to read {path.name} ({voxels} voxels); use a larger --stride") from None
+
+
+def _array_names(group, prefix: str = "") -> list[str]:
+    """Every array's path in a group, nested groups included."""
+    out = [prefix + n for n, _ in group.arrays()]
+    for n, sub in group.groups():
+        out += _array_names(sub, prefix + n + "/")
+    return out
