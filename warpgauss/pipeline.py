@@ -50,6 +50,7 @@ class EncodeOptions:
     resume: bool = False
     format: str | None = None  # "float32", "compact96" or "coded"; None: compact96 if compact else float32
     bytes: int | None = None  # file size budget (header included), instead of budget or ratio
+    init: np.ndarray | None = None  # warm start: (N, 12) parameters of the previous timestep's model
 
 
 def _available_memory() -> int | None:
@@ -461,7 +462,18 @@ class _EncodeRun:
 
     # -- S1b-S1e -----------------------------------------------------------------------------
     def allocate(self) -> None:
-        self.params, self.facts = allocate(self.dv, self.n, self.opts.seed, self.opts.allocation, self.timer)
+        init = self.opts.init
+        if init is None:
+            self.params, self.facts = allocate(self.dv, self.n, self.opts.seed, self.opts.allocation, self.timer)
+            return
+        if init.shape != (self.n, 12):
+            raise WarpgaussError(
+                f"a warm start needs a model of the same budget: the previous model has {init.shape[0]:,} Gaussians, this encode {self.n:,}; "
+                "give --budget N of the previous model (or encode cold)"
+            )
+        self.params = np.array(init, np.float32, copy=True)
+        self.facts = {"warm_start": True, "n": self.n}
+        self.skip("S1b-S1e allocation", "warm start: the previous timestep's model is the starting point")
 
     # -- S1x ---------------------------------------------------------------------------------
     def analytic_model(self, force: bool) -> None:
@@ -991,6 +1003,16 @@ def _bricking(source, read, example, bricks, halo, budget, device, max_device_me
     return counts, True, limit, True
 
 
+def _warm_params(warm_start) -> np.ndarray | None:
+    """The (N, 12) float32 parameters of a warm start (a Model or an array), or None."""
+    if warm_start is None:
+        return None
+    p = np.asarray(warm_start.params if isinstance(warm_start, Model) else warm_start, np.float32)
+    if p.ndim != 2 or p.shape[1] != 12 or not np.isfinite(p).all():
+        raise WarpgaussError(f"a warm start is a model or finite (N, 12) parameters, got an array of shape {p.shape}")
+    return p
+
+
 def finish_report(model: Model, timer: StageRecorder) -> dict:
     """Put the stage table and totals into the model's report."""
     rep = model.report
@@ -1042,6 +1064,7 @@ def encode(
     on_bricks: Callable[[int, int], None] | None = None,
     max_device_memory: int | str | None = None,
     max_host_memory: int | str | None = None,
+    warm_start=None,
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
 
@@ -1106,6 +1129,10 @@ def encode(
             bricked (:func:`warpgauss.bricked.choose_bricks`), and a file read on demand.
         max_host_memory: The same for this machine's memory (default: half of what is available
             now); a bricked encode of a file keeps one brick's box in memory at a time.
+        warm_start: A :class:`Model` (or its ``(N, 12)`` parameters) of the previous timestep of
+            the same grid and budget: refinement starts from it instead of the analytic
+            allocation (stage S1b-S1e is skipped; the report's ``evaluation.analytic`` is the
+            starting model on this timestep).
 
     Returns:
         The :class:`Model`, with ``model.report`` holding the run report.
@@ -1144,12 +1171,19 @@ def encode(
         resume=resume,
         format=format,
         bytes=file_bytes,
+        init=_warm_params(warm_start),
     )
+    if opts.init is not None and (bricks is not None or resume or time_budget is not None):
+        raise WarpgaussError("a warm start does not combine with --bricks, --resume or --time-budget yet")
     encoding_of(opts)  # an unknown format is refused before any work
     timer = StageRecorder(on_stage=on_stage)
     bricks, lazy, limit, auto = _bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory)
     with timer.stage("P", "load and normalise"):
         f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy)
+    if isinstance(warm_start, Model) and tuple(warm_start.shape_xyz) != tuple(f.shape_xyz):
+        raise WarpgaussError(
+            f"the warm-start model is on a {'x'.join(map(str, warm_start.shape_xyz))} grid, this volume {'x'.join(map(str, f.shape_xyz))}; encode cold"
+        )
     if bricks is not None:
         if analytic_output is not None:
             raise WarpgaussError("--bricks does not write an analytic model (--save-analytic)")

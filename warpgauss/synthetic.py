@@ -115,6 +115,31 @@ def generate(name: str, size: int | tuple[int, int, int] = 64, seed: int = 0) ->
     return _normalise(volume)
 
 
+SERIES_TURN_DEGREES = 4.0  # an evolving example turns this much about the z axis per timestep
+
+
+def generate_series(
+    name: str, size: int | tuple[int, int, int] = 64, steps: int = 16, seed: int = 0, turn_degrees: float = SERIES_TURN_DEGREES
+) -> Iterator[np.ndarray]:
+    """An evolving example: timestep ``t`` is :func:`generate`'s volume turned ``t x turn_degrees``
+    about the grid's z axis (linear interpolation, edges held), renormalised to [0, 1]. Timestep
+    0 is :func:`generate`'s volume; consecutive steps differ as an advected field does (a rotating
+    vortex, a turning interface), which is what a warm start meets.
+
+    Yields:
+        ``steps`` float32 arrays ``(nz, ny, nx)``.
+    """
+    from scipy.ndimage import rotate
+
+    if not isinstance(steps, (int, np.integer)) or steps < 1:
+        raise WarpgaussError(f"steps must be a positive int, got {steps!r}")
+    base = generate(name, size, seed)
+    yield base
+    for t in range(1, int(steps)):
+        turned = rotate(base, t * float(turn_degrees), axes=(1, 2), reshape=False, order=1, mode="nearest")
+        yield _normalise(turned.astype(np.float32))
+
+
 def raw_name(name: str, size: int | tuple[int, int, int]) -> str:
     """File name in the Open SciVis convention, e.g. ``vortex_128x128x128_float32.raw``.
 
