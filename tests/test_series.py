@@ -44,3 +44,34 @@ def test_a_warm_start_refines_the_previous_model():
         warpgauss.encode(generate("vortex", 16), **FAST, warm_start=m0)
     with pytest.raises(WarpgaussError, match=r"\(N, 12\)"):
         warpgauss.encode(v1, **FAST, warm_start=np.zeros((200, 3)))
+
+
+def test_a_series_is_checked_before_any_work_and_encoded_at_one_n(tmp_path):
+    from warpgauss.series import encode_series
+
+    steps = list(generate_series("interface", 16, 3))
+    for t, v in enumerate(steps):
+        v.tofile(tmp_path / f"s_{t}_16x16x16_float32.raw")
+    pattern = str(tmp_path / "s_*_16x16x16_float32.raw")
+    kw = dict(iterations=20, samples=256, device="cpu", self_test=False, format="full")
+    models = encode_series(pattern, budget=120, output_pattern=str(tmp_path / "out_{t}.wgs"), warm_iterations=10, **kw)
+    assert [m.n for m in models] == [120, 120, 120]
+    assert [m.report["series"]["warm_start"] for m in models] == [False, True, True]
+    assert [m.report["refinement"]["iterations"] for m in models] == [20, 10, 10]
+    assert all(warpgauss.Model.load(tmp_path / f"out_{t}.wgs").n == 120 for t in range(3))
+    again = encode_series([str(tmp_path / f"s_{t}_16x16x16_float32.raw") for t in range(3)], budget=120, warm_iterations=10, **kw)
+    for a, b in zip(models, again):
+        np.testing.assert_array_equal(a.params, b.params)
+    cold = encode_series(steps, budget=120, cold=True, **kw)
+    assert not any(m.report["series"]["warm_start"] for m in cold)
+    # refusals, in one line, before any encode or file
+    generate("vortex", 12).tofile(tmp_path / "s_9_12x12x12_float32.raw")
+    with pytest.raises(WarpgaussError, match="different grids"):
+        encode_series(str(tmp_path / "s_*_float32.raw"), budget=120, output_pattern=str(tmp_path / "x_{t}.wgs"), **kw)
+    assert not list(tmp_path.glob("x_*.wgs"))
+    with pytest.raises(WarpgaussError, match="no file matches"):
+        encode_series(str(tmp_path / "nothing_*.raw"), budget=120, **kw)
+    with pytest.raises(WarpgaussError, match="no such file"):
+        encode_series([str(tmp_path / "gone.raw")], budget=120, **kw)
+    with pytest.raises(WarpgaussError, match=r"must hold \{t\}"):
+        encode_series(steps, budget=120, output_pattern=str(tmp_path / "y.wgs"), **kw)
