@@ -171,6 +171,18 @@ def encode(
         str | None,
         typer.Option(rich_help_panel="Bricks and cluster", help="Address of a running Dask scheduler (e.g. tcp://host:8786) for --bricks"),
     ] = None,
+    cold: Annotated[
+        bool,
+        typer.Option(
+            "--cold",
+            rich_help_panel="Time series",
+            help="A series (INPUT a glob such as 'run/t_*.raw'): encode every timestep from its own allocation, not from the previous model",
+        ),
+    ] = False,
+    warm_iterations: Annotated[
+        int | None,
+        typer.Option(rich_help_panel="Time series", help="Refinement iterations of a warm-started timestep (default: --iterations)"),
+    ] = None,
     max_device_memory: Annotated[
         str | None,
         typer.Option(
@@ -204,6 +216,39 @@ def encode(
 
     if (input is None) == (example is None):
         fail("give a volume file or --example NAME (one of them)")
+    series = input is not None and not input.exists() and any(c in str(input) for c in "*?[")
+    if not series and (cold or warm_iterations is not None):
+        fail("--cold and --warm-iterations apply to a series: give INPUT as a glob such as 'run/t_*.raw'")
+    if series:
+        if ladder is not None or resume or time_budget is not None or save_analytic is not None or bricks is not None:
+            fail("a series does not combine with --ladder, --resume, --time-budget, --save-analytic or --bricks yet")
+        _encode_series(
+            str(input),
+            output,
+            dict(
+                budget=budget,
+                ratio=ratio,
+                file_bytes=file_bytes,
+                seed=seed,
+                device=device,
+                iterations=iterations,
+                samples=samples,
+                preset=preset,
+                refine=RefineConfig(
+                    lr=lr, weights=LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
+                ),
+                self_test=not no_self_test,
+                compact=compact,
+                format=fmt,
+                full_eval=full_eval,
+            ),
+            ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
+            cold,
+            warm_iterations,
+            as_json,
+            force,
+        )
+        return
     if input is not None and not input.exists():
         fail(f"no such file: {input}")
     stem = example if example is not None else _stem(input)
@@ -425,6 +470,66 @@ def _encode_ladder(
             r["output"],
         )
     out_console.print(t)
+
+
+def _encode_series(pattern: str, output, kw: dict, read, cold: bool, warm_iterations, as_json: bool, force: bool) -> None:
+    """``warpgauss encode 'GLOB'``: one model and report per timestep (see warpgauss.encode_series)."""
+    import warpgauss
+    from warpgauss._fs import atomic_write_bytes
+
+    out = output or Path("series.wgs")
+    name = str(out)
+    if "{t" not in name:
+        name = str(out.with_name(f"{out.stem}_{{t:03d}}{out.suffix or '.wgs'}"))
+    from warpgauss._fs import check_writable
+    from warpgauss.series import series_sources
+
+    for t in range(len(series_sources(pattern))):  # the reports too, before any work
+        check_writable(name.format(t=t) + ".report.json", force=force)
+    status = None if as_json else err_console.status("starting", spinner="dots")
+    if status is not None:
+        status.start()
+
+    def step(t: int, steps: int, m) -> None:
+        rep = m.report
+        rep["report"] = rep["output"] + ".report.json"
+        atomic_write_bytes(rep["report"], json_text(rep).encode())
+        if status is not None:
+            status.update(f"[bold]series[/] {t + 1}/{steps} encoded")
+
+    try:
+        models = warpgauss.encode_series(
+            pattern, output_pattern=name, cold=cold, warm_iterations=warm_iterations, force=force, read=read, on_step=step, **kw
+        )
+    finally:
+        if status is not None:
+            status.stop()
+    rows = [
+        {
+            "step": m.report["series"]["step"],
+            "source": m.report["series"]["source"],
+            "warm_start": m.report["series"]["warm_start"],
+            "n": m.n,
+            "iterations": m.report["refinement"].get("iterations", 0),
+            "psnr_db": m.report["psnr_db"],
+            "seconds": m.report.get("total_seconds"),
+            "output": m.report["output"],
+        }
+        for m in models
+    ]
+    if as_json:
+        print_json({"series": rows})
+        return
+    from rich.table import Table
+
+    table = Table(show_edge=False, header_style="bold")
+    for col in ("t", "start", "N", "iterations", "PSNR dB", "seconds", "model"):
+        table.add_column(col, justify="left" if col == "model" else "right")
+    for r in rows:
+        psnr = "-" if r["psnr_db"] is None else f"{r['psnr_db']:.2f}"
+        secs = "-" if r["seconds"] is None else f"{r['seconds']:.1f}"
+        table.add_row(str(r["step"]), "warm" if r["warm_start"] else "cold", f"{r['n']:,}", str(r["iterations"]), psnr, secs, r["output"])
+    out_console.print(table)
 
 
 def _stem(path: Path) -> str:

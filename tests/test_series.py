@@ -75,3 +75,24 @@ def test_a_series_is_checked_before_any_work_and_encoded_at_one_n(tmp_path):
         encode_series([str(tmp_path / "gone.raw")], budget=120, **kw)
     with pytest.raises(WarpgaussError, match=r"must hold \{t\}"):
         encode_series(steps, budget=120, output_pattern=str(tmp_path / "y.wgs"), **kw)
+
+
+def test_cli_encodes_a_glob_as_a_series(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+
+    for t, v in enumerate(generate_series("vortex", 16, 2)):
+        v.tofile(tmp_path / f"r_{t}_16x16x16_float32.raw")
+    base = ["encode", str(tmp_path / "r_*_16x16x16_float32.raw"), "--budget", "100", "--iterations", "10", "--device", "cpu", "--no-self-test"]
+    r = CliRunner().invoke(app, [*base, "--format", "full", "--warm-iterations", "5", "-o", str(tmp_path / "m_{t}.wgs"), "--json"])
+    assert r.exit_code == 0, r.output
+    rows = json.loads(r.output)["series"]
+    assert [(x["step"], x["warm_start"], x["n"], x["iterations"]) for x in rows] == [(0, False, 100, 10), (1, True, 100, 5)]
+    assert (tmp_path / "m_1.wgs.report.json").exists() and warpgauss.Model.load(tmp_path / "m_1.wgs").n == 100
+    r = CliRunner().invoke(app, [*base, "-o", str(tmp_path / "m_{t}.wgs")])
+    assert r.exit_code == 2 and "exists" in r.output  # nothing overwritten without --force
+    r = CliRunner().invoke(app, ["encode", str(tmp_path / "r_0_16x16x16_float32.raw"), "--cold", "--budget", "100"])
+    assert r.exit_code == 2 and "apply to a series" in r.output
