@@ -298,3 +298,26 @@ def _fill_attr(attrs) -> float | None:
 def _first_line(e: BaseException) -> str:
     text = str(e).strip()
     return text.splitlines()[0] if text else type(e).__name__
+
+
+def _list_datasets(found: list[tuple[str, tuple]], limit: int = 12) -> str:
+    if not found:
+        return "no datasets"
+    items = [f"{n} {tuple(int(v) for v in s)}" for n, s in found[:limit]]
+    more = f" and {len(found) - limit} more" if len(found) > limit else ""
+    return ", ".join(items) + more
+
+
+def _pick_array(where: str, found: list[tuple[str, tuple]], wanted, has, noun: str, option: str, strip: str = "/") -> str:
+    """The key of the array to read from a container (HDF5 datasets, netCDF variables, Zarr
+    arrays): ``wanted`` (leading ``strip`` characters dropped) if ``has(key)``, else the first
+    3D one of ``found`` ((name, shape) pairs); a one-line error listing them otherwise."""
+    if wanted is not None:
+        key = str(wanted).lstrip(strip)
+        if not has(key):
+            raise WarpgaussError(f"{where} has no {noun} {wanted!r}; it holds {_list_datasets(found)}; pick one with {option}")
+        return key
+    first = next((n for n, s in found if len(s) == 3), None)
+    if first is None:
+        raise WarpgaussError(f"{where} has no 3D {noun}; it holds {_list_datasets(found)}")
+    return first

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import WarpgaussError
-from .common import _attr_xyz, _check_declared, _check_dtype, _check_shape, _fill_attr, _first_line, _Read
+from .common import _attr_xyz, _check_declared, _check_dtype, _check_shape, _fill_attr, _first_line, _pick_array, _Read
 
 
 def _read_hdf5(path: Path, *, dataset=None, variable=None, stride: int = 1, drop_leading: bool = False, lazy: bool = False, **_) -> _Read:
@@ -25,16 +25,8 @@ def _read_hdf5(path: Path, *, dataset=None, variable=None, stride: int = 1, drop
         found: list[tuple[str, tuple]] = []
         keep = _drop_leading_ones if drop_leading else tuple
         f.visititems(lambda n, o: found.append((n, keep(o.shape))) if isinstance(o, h5py.Dataset) else None)
-        listing = _list_datasets(found)
         wanted = dataset if dataset is not None else variable
-        if wanted is not None:
-            key = str(wanted).lstrip("/")
-            if key not in f or not isinstance(f[key], h5py.Dataset):
-                raise WarpgaussError(f"{path.name} has no dataset {wanted!r}; it holds {listing}; pick one with --dataset")
-        else:
-            key = next((n for n, s in found if len(s) == 3), None)
-            if key is None:
-                raise WarpgaussError(f"{path.name} has no 3D dataset; it holds {listing}")
+        key = _pick_array(path.name, found, wanted, lambda k: k in f and isinstance(f[k], h5py.Dataset), "dataset", "--dataset")
         ds = f[key]
         shape = keep(ds.shape)
         _check_shape(shape, f"{path.name}:{key}")
@@ -77,14 +69,6 @@ def _hdf5_array(path: Path, ds, shape: tuple, stride: int, lazy: bool = False) -
         raise WarpgaussError(f"cannot read {path.name}:{ds.name} ({_first_line(e)})") from None
 
 
-def _list_datasets(found: list[tuple[str, tuple]], limit: int = 12) -> str:
-    if not found:
-        return "no datasets"
-    items = [f"{n} {tuple(int(v) for v in s)}" for n, s in found[:limit]]
-    more = f" and {len(found) - limit} more" if len(found) > limit else ""
-    return ", ".join(items) + more
-
-
 def _read_netcdf(path: Path, *, variable=None, dataset=None, stride: int = 1, lazy: bool = False, **_) -> _Read:
     """Classic netCDF (CDF-1/2) through scipy; a netCDF-4 (HDF5-based) file goes to the HDF5 reader.
 
@@ -106,14 +90,7 @@ def _read_netcdf(path: Path, *, variable=None, dataset=None, stride: int = 1, la
     with f:
         shapes = [(n, _drop_leading_ones(v.shape)) for n, v in f.variables.items()]
         wanted = variable if variable is not None else dataset
-        if wanted is not None:
-            if wanted not in f.variables:
-                raise WarpgaussError(f"{path.name} has no variable {wanted!r}; it holds {_list_datasets(shapes)}; pick one with --variable")
-            key = wanted
-        else:
-            key = next((n for n, s in shapes if len(s) == 3), None)
-            if key is None:
-                raise WarpgaussError(f"{path.name} has no 3D variable; it holds {_list_datasets(shapes)}")
+        key = _pick_array(path.name, shapes, wanted, lambda k: k in f.variables, "variable", "--variable", strip="")
         var = f.variables[key]
         data = np.array(var.data)
         data = data.reshape(_drop_leading_ones(data.shape))

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import WarpgaussError
-from .common import _attr_xyz, _check_declared, _check_dtype, _check_shape, _fill_attr, _first_line, _Read
+from .common import _attr_xyz, _check_declared, _check_dtype, _check_shape, _fill_attr, _first_line, _pick_array, _Read
 
 
 def _read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False, **_) -> _Read:
@@ -29,15 +29,7 @@ def _read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False,
     else:
         names = sorted(_array_names(root))
         found = [(n, tuple(root[n].shape)) for n in names]
-        listing = ", ".join(f"{n} {s}" for n, s in found) or "no arrays"
-        if dataset is not None:
-            key = str(dataset).strip("/")
-            if key not in names:
-                raise WarpgaussError(f"{path.name} has no array {dataset!r}; it holds {listing}; pick one with --dataset")
-        else:
-            key = next((n for n, s in found if len(s) == 3), None)
-            if key is None:
-                raise WarpgaussError(f"{path.name} has no 3D array; it holds {listing}")
+        key = _pick_array(path.name, found, dataset, lambda k: k in names, "array", "--dataset")
         arr = root[key]
     shape = tuple(int(v) for v in arr.shape)
     _check_shape(shape, path.name)
