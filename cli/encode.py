@@ -216,6 +216,7 @@ def encode(
 
     if (input is None) == (example is None):
         fail("give a volume file or --example NAME (one of them)")
+    weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
     series = input is not None and not input.exists() and any(c in str(input) for c in "*?[")
     if not series and (cold or warm_iterations is not None):
         fail("--cold and --warm-iterations apply to a series: give INPUT as a glob such as 'run/t_*.raw'")
@@ -234,9 +235,7 @@ def encode(
                 iterations=iterations,
                 samples=samples,
                 preset=preset,
-                refine=RefineConfig(
-                    lr=lr, weights=LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
-                ),
+                refine=RefineConfig(lr=lr, weights=weights),
                 self_test=not no_self_test,
                 compact=compact,
                 format=fmt,
@@ -256,7 +255,6 @@ def encode(
     rep_path = report or out.with_name(out.name + ".report.json")
     check_writable(rep_path, force=force or resume)
 
-    weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
     if ladder is not None:
         if (
             budget is not None

@@ -182,7 +182,8 @@ def normalise(
     if lazy:  # every read through the source: nothing stays mapped (see warpgauss.lazy)
         from .lazy import _Lazy3D, require_source
 
-        data = _Lazy3D(require_source(data, name))  # type: ignore[assignment]
+        src = require_source(data, name)
+        data = _Lazy3D(src)  # type: ignore[assignment]
     nz = data.shape[0]
     exact = np.dtype(data.dtype).itemsize > 4 or np.dtype(data.dtype) in (np.int32, np.uint32)
     maybe_invalid = np.issubdtype(data.dtype, np.floating) or fill_value is not None
@@ -218,7 +219,7 @@ def normalise(
         raise WarpgaussError(f"the volume is constant ({lo:g} everywhere it is valid); there is no structure to encode")
     plan = _NormPlan(lo, hi, data_lo, data_hi, exact, clip)
     if lazy:
-        return _lazy_field(data, plan, fill_value, n_invalid, spacing, origin, name, source_dtype, count_candidates)
+        return _lazy_field(src, plan, fill_value, n_invalid, spacing, origin, name, source_dtype or data.dtype, count_candidates)
     values = np.empty(data.shape, np.float32)
     mask = np.ones(data.shape, bool) if n_invalid else None
 
@@ -257,13 +258,13 @@ def _new_field(values, mask, lo, hi, spacing, origin, name, source_dtype, n_inva
     return f
 
 
-def _lazy_field(data, plan, fill_value, n_invalid, spacing, origin, name, source_dtype, count_candidates) -> Field:
-    from .lazy import LazyMask, LazyValues, require_source
+def _lazy_field(src, plan, fill_value, n_invalid, spacing, origin, name, source_dtype, count_candidates) -> Field:
+    """The Field of a volume read on demand from ``src`` (a :class:`warpgauss.lazy.ArraySource`)."""
+    from .lazy import LazyMask, LazyValues
 
-    src = require_source(data, name)
     values = LazyValues(src, plan, fill_value, n_invalid > 0)
     mask = LazyMask(src, fill_value) if n_invalid else None
-    f = _new_field(values, mask, plan.lo_value, plan.hi_value, spacing, origin, name, source_dtype or data.dtype, n_invalid)
+    f = _new_field(values, mask, plan.lo_value, plan.hi_value, spacing, origin, name, source_dtype, n_invalid)
     if count_candidates:
         step = max(1, 4 * LAZY_SLAB_VOXELS // max(1, values.shape[1] * values.shape[2]))
 

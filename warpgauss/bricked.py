@@ -318,12 +318,12 @@ def encode_brick(task: BrickTask) -> dict:
 
     t0 = time.perf_counter()
     dev = resolve_device(task.device)
-    values, valid = task.box_arrays()
-    f = Field(values, valid, **task.field_meta)
-    fields = brick_fields(f, dataclasses.replace(task.brick, interior=_local(task.brick), box=_whole(task.brick)), task.pending)
     done = {"index": task.index, "device": dev, "iterations": 0, "stand_ins": 0, "frozen": 0, "samples": 0}
     if task.n == 0:
         return done | {"params": np.zeros((0, 12), np.float32), "seconds": time.perf_counter() - t0}
+    values, valid = task.box_arrays()
+    f = Field(values, valid, **task.field_meta)
+    fields = brick_fields(f, dataclasses.replace(task.brick, interior=_local(task.brick), box=_whole(task.brick)), task.pending)
     params, _ = allocate(DeviceVolume(fields.interior, dev), task.n, task.seed, task.allocation, StageRecorder())
     cfg = task.refine
     if cfg.iterations > 0:
@@ -393,13 +393,12 @@ def brick_tasks(
     """One task per brick, from :func:`split_bricks`' statistics (``n``, ``rates``); the
     samples per brick by :func:`brick_samples` (``n``: the whole budget, default the bricks' sum)."""
     from ._warp import resolve_device
+    from .lazy import is_lazy
 
     meta = _field_meta(f)
     total = sum(st["n"] for st in stats) if n is None else n
     dev = resolve_device(device)
     tasks = []
-    from .lazy import is_lazy
-
     lazy = is_lazy(f.values)
     for i, (b, st) in enumerate(zip(bricks, stats)):
         box = b.slices("box")
