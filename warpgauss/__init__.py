@@ -7,6 +7,7 @@ from ._version import __version__
 from .errors import WarpgaussError  # noqa: E402
 from .model import Model  # noqa: E402
 from .pipeline import encode, encode_ladder  # noqa: E402
+from .encoder import Encoder  # noqa: E402
 from .series import encode_series  # noqa: E402
 
 
@@ -21,4 +22,4 @@ def psnr(model: Model, volume, *, full: bool = False, device: str | None = None,
     return evaluate_against(model, volume, full=full, device=device, fill_value=fill_value)["psnr_db"]
 
 
-__all__ = ["Model", "WarpgaussError", "__version__", "encode", "encode_ladder", "encode_series", "psnr"]
+__all__ = ["Encoder", "Model", "WarpgaussError", "__version__", "encode", "encode_ladder", "encode_series", "psnr"]

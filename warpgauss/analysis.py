@@ -432,15 +432,28 @@ class DeviceVolume:
         from ._warp import warp
 
         wp = warp()
+        from .devicefield import DeviceValues
+
         self.field = f
         self.device = device
-        self.values = wp.array(f.values, dtype=float, device=device)
+        if isinstance(f.values, DeviceValues):  # normalised on a device: used where it is
+            self.values = _on(f.values.array, device)
+        else:
+            self.values = wp.array(f.values, dtype=float, device=device)
         if f.mask is not None:
-            self.mask = wp.array(f.mask.astype(np.uint8), dtype=wp.uint8, device=device)
+            m = f.mask
+            self.mask = _on(m.array, device) if hasattr(m, "array") else wp.array(m.astype(np.uint8), dtype=wp.uint8, device=device)
             self.has_mask = 1
         else:
             self.mask = wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)
             self.has_mask = 0
+
+
+def _on(arr, device: str):
+    """A device array on ``device``: itself, or a copy made there."""
+    from ._warp import warp
+
+    return arr if str(arr.device) == str(device) else warp().clone(arr, device=device)
 
 
 def structure_stats(dv: DeviceVolume, seed: int = 0) -> dict:

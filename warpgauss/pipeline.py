@@ -22,6 +22,7 @@ import numpy as np
 from ._version import __version__
 from .allocate import AllocationConfig, allocate
 from .analysis import Field, budget_from_bytes, check_budget, normalise, seed_limit
+from .devicefield import device_array, is_device_array, normalise_on_device
 from .errors import WarpgaussError
 from .io import ReadOptions  # noqa: F401 - part of this module's API (stage P's options)
 from .model import Model, make_header
@@ -51,6 +52,7 @@ class EncodeOptions:
     format: str | None = None  # "float32", "compact96" or "coded"; None: compact96 if compact else float32
     bytes: int | None = None  # file size budget (header included), instead of budget or ratio
     init: np.ndarray | None = None  # warm start: (N, 12) parameters of the previous timestep's model
+    deadline: float | None = None  # a time.perf_counter() by which refinement ends (an Encoder's call budget)
 
 
 def _available_memory() -> int | None:
@@ -68,14 +70,18 @@ def load_field(
     example: str | None = None,
     example_size: int | tuple[int, int, int] = 64,
     lazy: bool = False,
+    buffers=None,
 ) -> tuple[Field, dict]:
     """Stage P: read (or generate) the volume, apply the stride, mask and normalise it (``lazy``:
     a file the format lets us leave where it is is read on demand, see :mod:`warpgauss.lazy`).
 
     Args:
-        source: A path, a 3D numpy array (nz, ny, nx), or None with ``example``.
+        source: A path, a 3D numpy array (nz, ny, nx), a device array (Warp, or DLPack /
+            ``__cuda_array_interface__``: normalised where it is, see :mod:`warpgauss.devicefield`),
+            or None with ``example``.
         read: Reader options for a path (and stride / fill value for any source).
         example: Name of a built-in example volume (see :mod:`warpgauss.synthetic`).
+        buffers: A device array's normalised values go there (:class:`warpgauss.devicefield.DeviceBuffers`).
 
     Returns:
         (normalised field, description of the input for the report)
@@ -104,6 +110,11 @@ def load_field(
             )
         data = generate(example, example_size, seed=0)[::s, ::s, ::s]
         name, spacing, origin, dtype, path = example, (float(s),) * 3, (0.0, 0.0, 0.0), "float32", None
+    elif is_device_array(source):  # stays where it is: stage P runs on its device
+        arr = device_array(source)
+        f = normalise_on_device(arr[::s, ::s, ::s] if s > 1 else arr, fill_value=fill, spacing=(float(s),) * 3, buffers=buffers)
+        info = {"read_lazily": False, "name": "array", "path": None, "example": None, "on_device": str(arr.device)}
+        return f, {**info, **_field_facts(f, s, fill)}
     elif isinstance(source, np.ndarray):
         if source.ndim != 3:
             raise WarpgaussError(f"the array is {source.ndim}D (shape {source.shape}); warpgauss encodes 3D volumes")
@@ -116,27 +127,28 @@ def load_field(
         if fill is None and getattr(vol, "fill_value", None) is not None:
             fill = vol.fill_value
     else:
-        raise WarpgaussError("give a file path, a 3D numpy array, or example=NAME as the source")
+        raise WarpgaussError("give a file path, a 3D numpy or device array (Warp, CuPy, PyTorch), or example=NAME as the source")
     from .lazy import source_of
 
     lazy = lazy and source_of(data) is not None
     f = normalise(data, fill_value=fill, spacing=spacing, origin=origin, name=name, source_dtype=dtype, lazy=lazy)
-    info = {
-        "read_lazily": lazy,
-        "name": name,
-        "path": path,
-        "example": example,
+    info = {"read_lazily": lazy, "name": name, "path": path, "example": example}
+    return f, {**info, **_field_facts(f, s, fill)}
+
+
+def _field_facts(f: Field, stride: int, fill) -> dict:
+    """The input description of a normalised field (the report's ``input``)."""
+    return {
         "shape_xyz": list(f.shape_xyz),
         "source_dtype": f.source_dtype,
         "source_bytes": f.source_bytes,
-        "stride": s,
+        "stride": stride,
         "fill_value": fill,
         "value_min": f.vmin,
         "value_max": f.vmax,
         "masked_voxels": f.n_voxels - f.n_valid,
         "notes": list(f.notes),
     }
-    return f, info
 
 
 CODED_BPP_SIZING = 12  # bytes per primitive a coded file needs at most in practice (the "no room" check)
@@ -439,6 +451,12 @@ class _EncodeRun:
         if cache is not None and cache.get("device") == dev and cache.get("field") is f:
             self.dv, self.stats = cache["dv"], cache["stats"]
             self.skip("S1a", "device volume and statistics reused from the previous budget of the ladder", seconds_saved=cache["seconds"])
+        elif self.opts.init is not None:  # a warm start allocates nothing: the statistics would only be reported
+            with self.timer.stage("S1a", "the field on the device"):
+                self.dv = DeviceVolume(f, dev)
+            self.stats = None
+            self.skip("S1a structure statistics", "warm start: no allocation needs them")
+            return
         else:
             t0 = time.perf_counter()
             with self.timer.stage("S1a", "occupancy, gradients, structure statistics"):
@@ -534,7 +552,7 @@ class _EncodeRun:
             if cfg.target_psnr is not None or cfg.plateau_db is not None:
                 refiner.set_validation(self.f)
             t0 = time.perf_counter()
-            deadline = None
+            deadline = opts.deadline
             if opts.time_budget is not None and not opts.resume:  # 5 % reserve for the export
                 deadline = stage_start + 0.95 * opts.time_budget
             ckpt.start(t0)
@@ -1003,6 +1021,16 @@ def _bricking(source, read, example, bricks, halo, budget, device, max_device_me
     return counts, True, limit, True
 
 
+def _array_device(arr, device: str | None) -> str:
+    """The device that encodes a device array: its own (``device`` must name it, if given)."""
+    from ._warp import resolve_device
+
+    own = str(arr.device)
+    if device not in (None, "", "auto") and resolve_device(device) != own:
+        raise WarpgaussError(f"the array lives on {own}, the encode was asked to run on {device}; pass device={own!r} (or a copy of the array there)")
+    return own
+
+
 def _warm_params(warm_start) -> np.ndarray | None:
     """The (N, 12) float32 parameters of a warm start (a Model or an array), or None."""
     if warm_start is None:
@@ -1065,11 +1093,15 @@ def encode(
     max_device_memory: int | str | None = None,
     max_host_memory: int | str | None = None,
     warm_start=None,
+    session=None,
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
 
     Args:
-        source: File path or 3D numpy array (nz, ny, nx); None with ``example``.
+        source: File path, 3D numpy array (nz, ny, nx), or a device array: a Warp array or any
+            DLPack / ``__cuda_array_interface__`` producer (CuPy, PyTorch, JAX), any real dtype
+            and strides, normalised and encoded on its device with no host copy of its voxels
+            (``device`` None: the array's own); None with ``example``.
         budget: Number of primitives N (exact); or give ``ratio``.
         ratio: Target compression ratio: the file holds at most floor(S_src / R) bytes; N =
             floor((S_src / R - H) / 48) (12 with ``compact``; measured for ``format="coded"``).
@@ -1133,6 +1165,8 @@ def encode(
             the same grid and budget: refinement starts from it instead of the analytic
             allocation (stage S1b-S1e is skipped; the report's ``evaluation.analytic`` is the
             starting model on this timestep).
+        session: The state a :class:`warpgauss.Encoder` keeps between its calls (device buffers
+            and this call's deadline); not for direct use.
 
     Returns:
         The :class:`Model`, with ``model.report`` holding the run report.
@@ -1173,13 +1207,21 @@ def encode(
         bytes=file_bytes,
         init=_warm_params(warm_start),
     )
-    if opts.init is not None and (bricks is not None or resume or time_budget is not None):
-        raise WarpgaussError("a warm start does not combine with --bricks, --resume or --time-budget yet")
+    if opts.init is not None and (bricks is not None or resume):
+        raise WarpgaussError("a warm start does not combine with --bricks or --resume")
+    if session is not None:
+        opts.deadline = session.deadline
+    if is_device_array(source):
+        if bricks is not None:
+            raise WarpgaussError("a device array is encoded whole; --bricks takes a file")
+        source = device_array(source, None if device in (None, "", "auto") else device)
+        device = _array_device(source, device)
     encoding_of(opts)  # an unknown format is refused before any work
     timer = StageRecorder(on_stage=on_stage)
     bricks, lazy, limit, auto = _bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory)
     with timer.stage("P", "load and normalise"):
-        f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy)
+        buffers = None if session is None else session.buffers
+        f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy, buffers=buffers)
     if isinstance(warm_start, Model) and tuple(warm_start.shape_xyz) != tuple(f.shape_xyz):
         raise WarpgaussError(
             f"the warm-start model is on a {'x'.join(map(str, warm_start.shape_xyz))} grid, this volume {'x'.join(map(str, f.shape_xyz))}; encode cold"

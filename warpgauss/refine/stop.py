@@ -33,11 +33,12 @@ class StopRule:
         wp = self._wp
         n = f.n_voxels
         idx = np.arange(n, dtype=np.int64) if n <= points else np.random.default_rng(EVAL_SEED + 1).integers(0, n, points, dtype=np.int64)
+        lazy = hasattr(f.values, "take_flat")  # read on demand, or on a device
         if f.mask is not None:
-            idx = idx[f.mask.reshape(-1)[idx]]
+            idx = idx[f.mask.take_flat(idx) if lazy else f.mask.reshape(-1)[idx]]
         nz, ny, nx = f.values.shape
         pts = np.stack([idx % nx, (idx // nx) % ny, idx // (nx * ny)], axis=1).astype(np.float32)
-        self.truth = f.values.reshape(-1)[idx].astype(np.float64)
+        self.truth = (f.values.take_flat(idx) if lazy else f.values.reshape(-1)[idx]).astype(np.float64)
         self.points = wp.array(pts, dtype=wp.vec3, device=self.device)
         self._out = [wp.empty(len(idx), dtype=t, device=self.device) for t in (float, float, int)]
 

@@ -1,0 +1,134 @@
+"""In situ encoding (issue #21 part 3): device arrays taken without a host copy (a Warp array, a
+DLPack producer, strided views, other dtypes, NaN/fill masks), normalised on the device exactly as
+the host does, and the Encoder that keeps buffers and the previous model between calls."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import warpgauss
+from warpgauss._warp import warp
+from warpgauss.errors import WarpgaussError
+from warpgauss.io import ReadOptions
+from warpgauss.synthetic import generate, generate_series
+
+FAST = dict(budget=200, iterations=30, samples=256, self_test=False, format="full")
+
+
+class Producer:
+    """A foreign array that offers only DLPack (as a PyTorch or CuPy array does)."""
+
+    def __init__(self, a: np.ndarray):
+        self.a = a
+
+    def __dlpack__(self, **kw):
+        return self.a.__dlpack__(**kw)
+
+    def __dlpack_device__(self):
+        return self.a.__dlpack_device__()
+
+
+@pytest.fixture(scope="module")
+def wp():
+    return warp()
+
+
+def _fields_equal(a, b):
+    assert (a.vmin, a.vmax, a.occupied, a.eligible, a.n_valid) == (b.vmin, b.vmax, b.occupied, b.eligible, b.n_valid)
+    np.testing.assert_array_equal(a.values[:], b.values if isinstance(b.values, np.ndarray) else b.values[:])
+    if b.mask is None:
+        assert a.mask is None
+    else:
+        np.testing.assert_array_equal(a.mask[:], b.mask)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64", "int16", "uint8"])
+def test_device_normalisation_is_the_host_one(wp, dtype):
+    from warpgauss.analysis import normalise
+    from warpgauss.devicefield import normalise_on_device
+
+    v = generate("bubbles", 18)
+    if dtype.startswith(("int", "uint")):
+        src = np.round(v * 200).astype(dtype)
+        fill = 0.0
+    else:
+        src = (v * 7.5 - 2.0).astype(dtype)
+        src[2, 3, 4] = np.nan
+        src[5, 5, 5] = np.inf
+        src[1, 1, 1] = 0.25  # a fill value as the source's own precision holds it
+        fill = 0.25
+    host = normalise(src, fill_value=fill)
+    dev = normalise_on_device(wp.array(src, device="cpu"), fill_value=fill)
+    _fields_equal(dev, host)
+    assert dev.mask is not None and host.mask is not None
+    idx = np.array([0, 7, 18 * 18 * 18 - 1, 1000], np.int64)
+    np.testing.assert_array_equal(dev.values.take_flat(idx), host.values.reshape(-1)[idx])
+    np.testing.assert_array_equal(dev.mask.take_flat(idx), host.mask.reshape(-1)[idx])
+
+
+def test_a_device_array_encodes_as_its_numpy_copy(wp):
+    v = generate("vortex", 20)
+    ref = warpgauss.encode(v, device="cpu", **FAST)
+    for src in (wp.array(v, device="cpu"), Producer(v)):
+        m = warpgauss.encode(src, **FAST)  # device None: the array's own
+        np.testing.assert_array_equal(m.params, ref.params)  # same seed, same device: same model
+        assert m.report["input"]["on_device"] == "cpu"
+        assert m.report["psnr_db"] == ref.report["psnr_db"]
+    padded = np.zeros((22, 22, 22), np.float32)  # a simulation array with ghost cells: a strided view
+    padded[1:-1, 1:-1, 1:-1] = v
+    m = warpgauss.encode(wp.array(padded, device="cpu")[1:-1, 1:-1, 1:-1], **FAST)
+    np.testing.assert_array_equal(m.params, ref.params)
+    strided = warpgauss.encode(wp.array(v, device="cpu"), read=ReadOptions(stride=2), **FAST)
+    assert tuple(strided.shape_xyz) == (10, 10, 10)
+
+
+def test_device_arrays_are_refused_in_one_line(wp):
+    with pytest.raises(WarpgaussError, match="2D"):
+        warpgauss.encode(wp.zeros((4, 4), dtype=float, device="cpu"), **FAST)
+    with pytest.raises(WarpgaussError, match="constant"):
+        warpgauss.encode(wp.ones((8, 8, 8), dtype=float, device="cpu"), **FAST)
+    with pytest.raises(WarpgaussError, match="no finite value"):
+        warpgauss.encode(wp.array(np.full((8, 8, 8), np.nan, np.float32), device="cpu"), **FAST)
+    with pytest.raises(WarpgaussError, match="--bricks takes a file"):
+        warpgauss.encode(wp.zeros((8, 8, 8), dtype=float, device="cpu"), bricks="2x1x1", **FAST)
+    if not wp.is_cuda_available():
+        with pytest.raises(WarpgaussError, match="not available"):
+            warpgauss.encode(wp.array(generate("vortex", 8), device="cpu"), device="cuda:0", **FAST)
+
+
+def test_the_encoder_warm_starts_each_call_and_keeps_its_buffers(wp):
+    steps = list(generate_series("vortex", 20, 3))
+    enc = warpgauss.Encoder(**FAST)
+    models = [enc.encode(wp.array(v, device="cpu")) for v in steps]
+    assert [m.n for m in models] == [200, 200, 200]
+    assert [m.report["encoder"]["warm_start"] for m in models] == [False, True, True]
+    assert [r.call for r in enc.calls] == [0, 1, 2]
+    assert all(r.iterations == 30 and r.seconds >= r.refine_seconds > 0 for r in enc.calls)
+    # one normalised buffer for every call: each field was written into the same device memory
+    assert enc.session.buffers.values is not None and enc.session.buffers.values.shape == (20, 20, 20)
+    # the encoder gives what encode(warm_start=previous) gives, call for call
+    m1 = warpgauss.encode(steps[1], device="cpu", warm_start=models[0], **FAST)
+    np.testing.assert_array_equal(models[1].params, m1.params)
+    assert any(s["what"] == "S1a structure statistics" for s in models[1].report["skipped"])
+    enc.reset()
+    again = enc.encode(wp.array(steps[0], device="cpu"))
+    np.testing.assert_array_equal(again.params, models[0].params)  # cold again: the first model
+    cold = warpgauss.Encoder(cold=True, **FAST)
+    assert [cold.encode(v).report["encoder"]["warm_start"] for v in steps[:2]] == [False, False]
+
+
+def test_the_encoder_keeps_to_a_time_budget(wp, tmp_path):
+    steps = list(generate_series("interface", 20, 3))
+    enc = warpgauss.Encoder(budget=150, samples=256, self_test=False, format="full", time_budget=60.0)
+    short = enc.encode(steps[0], time_budget=0.6, output=tmp_path / "t0.wgs")  # per-call override
+    assert (tmp_path / "t0.wgs").is_file() and short.report["encoder"]["time_budget"] == 0.6
+    assert short.report["refinement"]["time_budget"] is not None  # refinement was planned to the deadline
+    m = enc.encode(steps[1], time_budget=3.0)
+    assert m.report["encoder"]["warm_start"] and m.report["refinement"]["time_budget"]["planned_iterations"] >= 1
+    with pytest.raises(WarpgaussError, match="positive number of seconds"):
+        enc.encode(steps[2], time_budget=0)
+    with pytest.raises(WarpgaussError, match="budget= \\(N\\) or ratio="):
+        warpgauss.Encoder()
+    with pytest.raises(WarpgaussError, match="warm_start="):
+        warpgauss.Encoder(budget=10, warm_start=None)
