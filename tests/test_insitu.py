@@ -29,6 +29,14 @@ class Producer:
         return self.a.__dlpack_device__()
 
 
+class CudaArrayOnly:
+    """A foreign array that offers only ``__cuda_array_interface__`` (as a Numba array does)."""
+
+    def __init__(self, a: np.ndarray):
+        self.a = a
+        self.__cuda_array_interface__ = {"shape": a.shape, "typestr": a.dtype.str, "data": (a.ctypes.data, True), "strides": None, "version": 3}
+
+
 @pytest.fixture(scope="module")
 def wp():
     return warp()
@@ -75,6 +83,8 @@ def test_a_device_array_encodes_as_its_numpy_copy(wp):
         np.testing.assert_array_equal(m.params, ref.params)  # same seed, same device: same model
         assert m.report["input"]["on_device"] == "cpu"
         assert m.report["psnr_db"] == ref.report["psnr_db"]
+    cai = CudaArrayOnly(v)  # the __cuda_array_interface__ path, pointed at host memory for the CPU device
+    np.testing.assert_array_equal(warpgauss.encode(cai, device="cpu", **FAST).params, ref.params)
     padded = np.zeros((22, 22, 22), np.float32)  # a simulation array with ghost cells: a strided view
     padded[1:-1, 1:-1, 1:-1] = v
     m = warpgauss.encode(wp.array(padded, device="cpu")[1:-1, 1:-1, 1:-1], **FAST)

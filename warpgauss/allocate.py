@@ -60,9 +60,13 @@ class AllocationConfig:
         return d
 
 
+RNG_MODULUS = 2**31 - 1
+RNG_TAG_STEP = 7_919
+
+
 def rng_stream(seed: int, tag: int, salt: int = 12_345) -> int:
     """A 31-bit RNG stream id for one use (``tag``) of the encoding seed; ``salt`` separates users."""
-    return int((seed * 1_000_003 + tag * 7_919 + salt) % (2**31 - 1))
+    return int((seed * 1_000_003 + tag * RNG_TAG_STEP + salt) % RNG_MODULUS)
 
 
 def draw_seeds(dv: DeviceVolume, k: int, mode: int, stream: int):

@@ -51,11 +51,27 @@ def device_array(x, device: str | None = None):
         except Exception as e:  # noqa: BLE001 - a producer's own refusal, said in one line
             raise WarpgaussError(f"the array could not be shared through DLPack ({e}); pass a Warp, CuPy or PyTorch array, or a numpy copy") from None
     else:
-        a = wp.array(x, dtype=Any, device=device or "cuda:0", copy=False)
+        a = _from_cuda_array_interface(wp, x.__cuda_array_interface__, x, device or "cuda:0")
     if a.ndim != 3:
         raise WarpgaussError(f"the array is {a.ndim}D (shape {tuple(a.shape)}); warpgauss encodes 3D volumes (z, y, x)")
     if not np.issubdtype(wp.dtype_to_numpy(a.dtype), np.number) or np.issubdtype(wp.dtype_to_numpy(a.dtype), np.complexfloating):
         raise WarpgaussError(f"the array's dtype {a.dtype.__name__} is not a real number type")
+    return a
+
+
+def _from_cuda_array_interface(wp, desc: dict, owner, device: str):
+    """A Warp view of a ``__cuda_array_interface__`` (shape, typestr, data, strides), kept alive with its owner."""
+    np_dtype = np.dtype(desc["typestr"])
+    if np_dtype.byteorder not in ("=", "|") and np_dtype.byteorder != ("<" if np.little_endian else ">"):
+        raise WarpgaussError(f"the array's byte order ({desc['typestr']}) is not this machine's; pass a native-order copy")
+    shape = tuple(int(s) for s in desc["shape"])
+    strides = desc.get("strides") or tuple(int(np_dtype.itemsize * np.prod(shape[i + 1 :], dtype=np.int64)) for i in range(len(shape)))
+    try:
+        dtype = wp.dtype_from_numpy(np_dtype.newbyteorder("="))
+    except TypeError:
+        raise WarpgaussError(f"the array's dtype {np_dtype} is not one warpgauss reads; pass float32") from None
+    a = wp.array(ptr=int(desc["data"][0]), dtype=dtype, shape=shape, strides=tuple(int(s) for s in strides), device=device)
+    a._ref = owner  # the producer's memory lives as long as this view
     return a
 
 

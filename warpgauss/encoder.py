@@ -16,6 +16,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from .errors import WarpgaussError
 from .model import Model
 
@@ -102,6 +104,22 @@ class Encoder:
         self.previous: Model | None = None
         self.calls: list[CallRecord] = []
         self._tail: float | None = None  # seconds the last call spent after refinement
+
+    def prepare(self) -> str:
+        """Load (compiling once per machine) every kernel module an encode uses on this encoder's
+        device, so that no call's time budget pays for it; returns the device."""
+        from ._warp import resolve_device, warp
+        from .kernels import analysis, backward, field, ingest, optim, sampling
+
+        wp = warp()
+        self.device = resolve_device(self.device)
+        for module in (analysis, ingest, field, optim, backward, sampling):
+            wp.load_module(module, device=self.device)
+        from .devicefield import normalise_on_device
+
+        tiny = wp.array(np.arange(8, dtype=np.float32).reshape(2, 2, 2), device=self.device)
+        normalise_on_device(tiny)  # the float32 instance of the generic stage-P kernels
+        return self.device
 
     def reset(self) -> None:
         """Forget the previous model: the next call starts cold (e.g. after a remesh)."""

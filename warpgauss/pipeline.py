@@ -53,6 +53,7 @@ class EncodeOptions:
     bytes: int | None = None  # file size budget (header included), instead of budget or ratio
     init: np.ndarray | None = None  # warm start: (N, 12) parameters of the previous timestep's model
     deadline: float | None = None  # a time.perf_counter() by which refinement ends (an Encoder's call budget)
+    evaluate_start: bool = True  # EV also scores the starting model (a warm start's: the previous timestep's)
 
 
 def _available_memory() -> int | None:
@@ -665,6 +666,13 @@ class _EncodeRun:
                 self.skip("EV evaluation", "disabled by the caller")
             return
         evaluation = self.evaluation
+        if self.opts.init is not None and not self.opts.evaluate_start and self.model is not self.analytic:
+            with self.timer.stage("EV", "evaluation"):
+                evaluation["analytic"] = None
+                evaluation["final"] = self._evaluate(self.model)
+            evaluation["gain_db"] = None
+            self.skip("EV of the starting model", "an Encoder call on a time budget scores only the model it returns")
+            return
         with self.timer.stage("EV", "evaluation"):
             evaluation["analytic"] = self.early_eval or self._evaluate(self.analytic)
             if self.model is self.analytic:
@@ -1211,6 +1219,7 @@ def encode(
         raise WarpgaussError("a warm start does not combine with --bricks or --resume")
     if session is not None:
         opts.deadline = session.deadline
+        opts.evaluate_start = session.deadline is None  # a call on a time budget scores only its result
     if is_device_array(source):
         if bricks is not None:
             raise WarpgaussError("a device array is encoded whole; --bricks takes a file")

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from .._warp import warp
-from ..allocate import rng_stream
+from ..allocate import RNG_MODULUS, RNG_TAG_STEP, rng_stream
 from .config import RefineConfig
 
 SAMPLER_SALT = 99_991  # keeps the sampler's RNG streams apart from the allocation's
@@ -74,7 +74,8 @@ class Schedule:
             ],
             axis=1,
         )
-        streams = np.array([rng_stream(self.seed, i, salt=SAMPLER_SALT) for i in range(capacity)], np.int64)
+        base = rng_stream(self.seed, 0, salt=SAMPLER_SALT)  # rng_stream(seed, i) for every i at once
+        streams = (base + np.arange(capacity, dtype=np.int64) * RNG_TAG_STEP) % RNG_MODULUS
         self.table.assign(sched.astype(np.float32))
         self.streams.assign(streams.astype(np.int32))
         return grown
