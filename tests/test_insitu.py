@@ -109,7 +109,7 @@ def test_device_arrays_are_refused_in_one_line(wp):
 
 def test_the_encoder_warm_starts_each_call_and_keeps_its_buffers(wp):
     steps = list(generate_series("vortex", 20, 3))
-    enc = warpgauss.Encoder(**FAST)
+    enc = warpgauss.Encoder(start="warm", **FAST)
     models = [enc.encode(wp.array(v, device="cpu")) for v in steps]
     assert [m.n for m in models] == [200, 200, 200]
     assert [m.report["encoder"]["warm_start"] for m in models] == [False, True, True]
@@ -124,8 +124,27 @@ def test_the_encoder_warm_starts_each_call_and_keeps_its_buffers(wp):
     enc.reset()
     again = enc.encode(wp.array(steps[0], device="cpu"))
     np.testing.assert_array_equal(again.params, models[0].params)  # cold again: the first model
-    cold = warpgauss.Encoder(cold=True, **FAST)
+    cold = warpgauss.Encoder(start="cold", **FAST)
     assert [cold.encode(v).report["encoder"]["warm_start"] for v in steps[:2]] == [False, False]
+    with pytest.raises(WarpgaussError, match="start='hot'"):
+        warpgauss.Encoder(start="hot", **FAST)
+
+
+def test_auto_start_goes_cold_when_the_field_moved_too_far():
+    enc = warpgauss.Encoder(**FAST)  # start="auto"
+    turning = list(generate_series("vortex", 20, 2, turn_degrees=1.0))
+    first = enc.encode(turning[0])
+    assert "start_choice" not in first.report  # the first call is cold anyway
+    near = enc.encode(turning[1])
+    choice = near.report["start_choice"]
+    assert choice["warm"] and near.report["encoder"]["warm_start"]
+    assert choice["previous_model_psnr_db"] >= choice["last_cold_start_psnr_db"]
+    far = enc.encode(generate("bubbles", 20))  # another field on the same grid: the old model is no head start
+    choice = far.report["start_choice"]
+    assert not choice["warm"] and not far.report["encoder"]["warm_start"]
+    assert choice["previous_model_psnr_db"] < choice["last_cold_start_psnr_db"]
+    assert far.report["allocation"].get("warm_start") is None  # allocated afresh
+    np.testing.assert_array_equal(far.params, warpgauss.encode(generate("bubbles", 20), device="cpu", **FAST).params)
 
 
 def test_the_encoder_keeps_to_a_time_budget(wp, tmp_path):

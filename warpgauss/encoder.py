@@ -31,6 +31,7 @@ class Session:
 
     buffers: Any = None  # warpgauss.devicefield.DeviceBuffers
     deadline: float | None = None
+    choose_start: Any = None  # callback(field, device) -> {"warm": bool, ...} before a warm start
 
 
 @dataclass
@@ -56,7 +57,12 @@ class Encoder:
         ratio: Target compression ratio of the first timestep.
         time_budget: Seconds one call may take, all stages included (None: the configured
             iterations, however long they take); :meth:`encode` may override it per call.
-        cold: Start every timestep from its own analytic allocation (no warm start).
+        start: How a call after the first starts: "warm" (from the previous model), "cold" (from
+            its own analytic allocation) or "auto" (the default): warm, unless the previous model
+            scores below, on the new timestep, what the last cold start's allocation scored on
+            its own (the field moved too far for the old model to be a head start: a short time
+            budget then gains more from a fresh allocation). The report's ``start_choice`` says
+            what was measured.
         warm_iterations: Iterations of a warm-started call without a time budget (default: as
             configured; a time budget plans its own).
         device: Warp device (None: a device array's own, else CUDA when present, else CPU).
@@ -65,7 +71,7 @@ class Encoder:
 
     Example::
 
-        enc = warpgauss.Encoder(budget=50_000, time_budget=0.5)
+        enc = warpgauss.Encoder(budget=50_000, time_budget=0.5)  # start="auto"
         for step in range(steps):
             u = solver.step()              # a (z, y, x) Warp / CuPy / PyTorch array on the GPU
             if step % 10 == 0:
@@ -79,7 +85,7 @@ class Encoder:
         *,
         ratio: float | None = None,
         time_budget: float | None = None,
-        cold: bool = False,
+        start: str = "auto",
         warm_iterations: int | None = None,
         device: str | None = None,
         **encode_kwargs: Any,
@@ -96,11 +102,14 @@ class Encoder:
 
         self.budget, self.ratio = budget, ratio
         self.time_budget = time_budget
-        self.cold = cold
+        if start not in STARTS:
+            raise WarpgaussError(f"start={start!r}: use one of {', '.join(STARTS)}")
+        self.start = start
+        self._cold_start_psnr: float | None = None  # the last cold call's allocation, scored on its timestep
         self.warm_iterations = warm_iterations
         self.device = device
         self.kwargs = encode_kwargs
-        self.session = Session(buffers=DeviceBuffers())
+        self.session = Session(buffers=DeviceBuffers(), choose_start=self._choose_start if start == "auto" else None)
         self.previous: Model | None = None
         self.calls: list[CallRecord] = []
         self._tail: float | None = None  # seconds the last call spent after refinement
@@ -142,7 +151,7 @@ class Encoder:
         budget_s = self.time_budget if time_budget is None else time_budget
         _check_budget_seconds(budget_s)
         kw = {**self.kwargs, **call_kwargs}
-        warm = self.previous is not None and not self.cold
+        warm = self.previous is not None and self.start != "cold"
         if self.previous is None:
             kw.update(budget=self.budget, ratio=self.ratio)
         else:
@@ -159,6 +168,10 @@ class Encoder:
         model = encode(volume, device=device, output=output, force=force, session=self.session, **kw)
         seconds = time.perf_counter() - t0
         rep = model.report
+        warm = warm and rep.get("start_choice", {}).get("warm", True)
+        start_eval = (rep.get("evaluation") or {}).get("analytic")
+        if not warm and start_eval:
+            self._cold_start_psnr = start_eval["psnr_db"]
         refinement = rep.get("refinement") or {}
         stages: dict[str, float] = {}
         for s in rep.get("stages", []):
@@ -189,6 +202,27 @@ class Encoder:
             self.device = rep.get("device")  # later calls stay where the first ran
         self.previous = model
         return model
+
+
+    def _choose_start(self, f, device: str) -> dict:
+        """Warm or cold for this call (``start="auto"``, see the class docstring)."""
+        from .evaluate import evaluate_field
+
+        if self._cold_start_psnr is None:
+            return {"warm": True, "why": "no cold start scored yet"}
+        start = evaluate_field(self.previous.field(device), f)["psnr_db"]
+        warm = start >= self._cold_start_psnr
+        return {
+            "warm": warm,
+            "previous_model_psnr_db": start,
+            "last_cold_start_psnr_db": self._cold_start_psnr,
+            "why": "the previous model scores at least what a cold start's allocation did"
+            if warm
+            else "the previous model scores below what a cold start's allocation did: the field moved too far",
+        }
+
+
+STARTS = ("auto", "warm", "cold")
 
 
 def _check_budget_seconds(seconds) -> None:

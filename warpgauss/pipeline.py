@@ -1235,6 +1235,14 @@ def encode(
         raise WarpgaussError(
             f"the warm-start model is on a {'x'.join(map(str, warm_start.shape_xyz))} grid, this volume {'x'.join(map(str, f.shape_xyz))}; encode cold"
         )
+    start_choice = None
+    if session is not None and opts.init is not None and session.choose_start is not None:
+        from ._warp import resolve_device
+
+        with timer.stage("S0", "warm or cold start"):
+            start_choice = session.choose_start(f, resolve_device(device))
+        if not start_choice["warm"]:
+            opts.init, opts.evaluate_start = None, True
     if bricks is not None:
         if analytic_output is not None:
             raise WarpgaussError("--bricks does not write an analytic model (--save-analytic)")
@@ -1274,6 +1282,8 @@ def encode(
         with timer.stage("S3", "export"):
             model.save(output, encoding=encoding_of(opts), force=True if resume else force)
         model.report["output"] = str(Path(output))
+    if start_choice is not None:
+        model.report["start_choice"] = start_choice
     if checkpoint is not None and not model.report.get("interrupted") and Path(checkpoint).is_file():
         Path(checkpoint).unlink()  # the run finished: its model replaces the checkpoint
     finish_report(model, timer)
