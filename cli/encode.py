@@ -110,7 +110,11 @@ def encode(
     endian: Annotated[str | None, typer.Option(rich_help_panel="Input", help="Raw files: little (default) or big")] = None,
     dataset: Annotated[str | None, typer.Option(rich_help_panel="Input", help="HDF5: dataset path (default: first 3D dataset)")] = None,
     variable: Annotated[
-        str | None, typer.Option(rich_help_panel="Input", help="netCDF: variable name (default: first 3D variable)")
+        list[str] | None,
+        typer.Option(
+            rich_help_panel="Input",
+            help="netCDF/HDF5/Zarr variable (default: the first 3D one); a (t, z, y, x) variable is a series; several --variable: a series each",
+        ),
     ] = None,
     fill_value: Annotated[
         float | None, typer.Option(rich_help_panel="Input", help="Source value marking missing data (masked out)")
@@ -217,14 +221,21 @@ def encode(
     if (input is None) == (example is None):
         fail("give a volume file or --example NAME (one of them)")
     weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
+    variables = list(variable or [])
+    variable = variables[0] if len(variables) == 1 else None  # type: ignore[assignment]
     series = input is not None and not input.exists() and any(c in str(input) for c in "*?[")
+    if input is not None and not series and (len(variables) > 1 or input.exists()):
+        from warpgauss.series import time_steps
+
+        series = len(variables) > 1 or time_steps(input, variable) is not None
     if not series and (cold or warm_iterations is not None):
-        fail("--cold and --warm-iterations apply to a series: give INPUT as a glob such as 'run/t_*.raw'")
+        fail("--cold and --warm-iterations apply to a series: a glob such as 'run/t_*.raw', a file with a time axis, or several --variable")
     if series:
-        if ladder is not None or resume or time_budget is not None or save_analytic is not None or bricks is not None:
-            fail("a series does not combine with --ladder, --resume, --time-budget, --save-analytic or --bricks yet")
+        if ladder is not None or resume or save_analytic is not None or bricks is not None:
+            fail("a series does not combine with --ladder, --resume, --save-analytic or --bricks yet")
         _encode_series(
             str(input),
+            variables,
             output,
             dict(
                 budget=budget,
@@ -240,6 +251,7 @@ def encode(
                 compact=compact,
                 format=fmt,
                 full_eval=full_eval,
+                time_budget=time_budget,
             ),
             ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
             cold,
@@ -470,20 +482,25 @@ def _encode_ladder(
     out_console.print(t)
 
 
-def _encode_series(pattern: str, output, kw: dict, read, cold: bool, warm_iterations, as_json: bool, force: bool) -> None:
-    """``warpgauss encode 'GLOB'``: one model and report per timestep (see warpgauss.encode_series)."""
+def _encode_series(pattern: str, variables: list[str], output, kw: dict, read, cold: bool, warm_iterations, as_json: bool, force: bool) -> None:
+    """``warpgauss encode 'GLOB'`` (or a file with a time axis, or several --variable): one model
+    and report per timestep and variable (see warpgauss.encode_series)."""
     import warpgauss
     from warpgauss._fs import atomic_write_bytes
 
     out = output or Path("series.wgs")
     name = str(out)
+    if len(variables) > 1 and "{var" not in name:
+        name = str(Path(name).with_name(f"{Path(name).stem}_{{var}}{Path(name).suffix or '.wgs'}"))
     if "{t" not in name:
-        name = str(out.with_name(f"{out.stem}_{{t:03d}}{out.suffix or '.wgs'}"))
+        p = Path(name)
+        name = str(p.with_name(f"{p.stem}_{{t:03d}}{p.suffix or '.wgs'}"))
     from warpgauss._fs import check_writable
-    from warpgauss.series import series_sources
+    from warpgauss.series import series_chains
 
-    for t in range(len(series_sources(pattern))):  # the reports too, before any work
-        check_writable(name.format(t=t) + ".report.json", force=force)
+    for var, items, _ in series_chains(pattern, variables or None, read):  # the reports too, before any work
+        for t in range(len(items)):
+            check_writable(name.format(t=t, var=var or "") + ".report.json", force=force)
     status = None if as_json else err_console.status("starting", spinner="dots")
     if status is not None:
         status.start()
@@ -497,13 +514,14 @@ def _encode_series(pattern: str, output, kw: dict, read, cold: bool, warm_iterat
 
     try:
         models = warpgauss.encode_series(
-            pattern, output_pattern=name, cold=cold, warm_iterations=warm_iterations, force=force, read=read, on_step=step, **kw
+            pattern, variables=variables or None, output_pattern=name, cold=cold, warm_iterations=warm_iterations, force=force, read=read, on_step=step, **kw
         )
     finally:
         if status is not None:
             status.stop()
     rows = [
         {
+            "variable": m.report["series"]["variable"],
             "step": m.report["series"]["step"],
             "source": m.report["series"]["source"],
             "warm_start": m.report["series"]["warm_start"],
@@ -521,12 +539,12 @@ def _encode_series(pattern: str, output, kw: dict, read, cold: bool, warm_iterat
     from rich.table import Table
 
     table = Table(show_edge=False, header_style="bold")
-    for col in ("t", "start", "N", "iterations", "PSNR dB", "seconds", "model"):
-        table.add_column(col, justify="left" if col == "model" else "right")
+    for col in ("variable", "t", "start", "N", "iterations", "PSNR dB", "seconds", "model"):
+        table.add_column(col, justify="left" if col in ("model", "variable") else "right")
     for r in rows:
         psnr = "-" if r["psnr_db"] is None else f"{r['psnr_db']:.2f}"
         secs = "-" if r["seconds"] is None else f"{r['seconds']:.1f}"
-        table.add_row(str(r["step"]), "warm" if r["warm_start"] else "cold", f"{r['n']:,}", str(r["iterations"]), psnr, secs, r["output"])
+        table.add_row(r["variable"] or "-", str(r["step"]), "warm" if r["warm_start"] else "cold", f"{r['n']:,}", str(r["iterations"]), psnr, secs, r["output"])
     out_console.print(table)
 
 

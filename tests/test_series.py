@@ -96,3 +96,84 @@ def test_cli_encodes_a_glob_as_a_series(tmp_path):
     assert r.exit_code == 2 and "exists" in r.output  # nothing overwritten without --force
     r = CliRunner().invoke(app, ["encode", str(tmp_path / "r_0_16x16x16_float32.raw"), "--cold", "--budget", "100"])
     assert r.exit_code == 2 and "apply to a series" in r.output
+
+
+def _time_axis_files(tmp_path, steps):
+    """The same series as an HDF5 file (two (t, z, y, x) datasets and a 3D one), a classic netCDF
+    file and a Zarr store."""
+    import h5py
+    from scipy.io import netcdf_file
+
+    cube = np.stack(steps)  # (t, z, y, x)
+    h5 = tmp_path / "run.h5"
+    with h5py.File(h5, "w") as f:
+        f["mask3d"] = steps[0]
+        f["density"] = cube
+        f["energy"] = cube[:, ::-1].copy()
+    nc = tmp_path / "run.nc"
+    with netcdf_file(nc, "w") as f:
+        for name, n in zip(("time", "z", "y", "x"), cube.shape):
+            f.createDimension(name, n)
+        v = f.createVariable("density", "f4", ("time", "z", "y", "x"))
+        v[:] = cube
+    paths = [h5, nc]
+    try:
+        import zarr
+
+        zpath = tmp_path / "run.zarr"
+        z = zarr.open(str(zpath), mode="w", shape=cube.shape, dtype="f4", chunks=(1, 8, 8, 8))
+        z[:] = cube
+        paths.append(zpath)
+    except ImportError:
+        pass
+    return paths
+
+
+def test_a_time_axis_in_one_file_is_a_series(tmp_path):
+    from warpgauss.series import encode_series, series_chains, time_steps
+
+    steps = list(generate_series("bubbles", 16, 3))
+    kw = dict(iterations=15, samples=256, device="cpu", self_test=False, format="full", budget=100, warm_iterations=5)
+    reference = encode_series(steps, **kw)
+    for path in _time_axis_files(tmp_path, steps):
+        found = time_steps(path)
+        assert [s.t for s in found] == [0, 1, 2]
+        np.testing.assert_array_equal(found[1].read(), steps[1])  # one timestep read alone
+        models = encode_series(str(path), **kw)
+        assert [m.report["series"]["step"] for m in models] == [0, 1, 2]
+        for m, ref in zip(models, reference):  # same voxels, same seed: the same models as the arrays
+            np.testing.assert_array_equal(m.params, ref.params)
+    h5 = tmp_path / "run.h5"
+    both = encode_series(str(h5), variables=["density", "energy"], output_pattern=str(tmp_path / "o_{var}_{t}.wgs"), **kw)
+    assert [(m.report["series"]["variable"], m.report["series"]["step"]) for m in both] == [
+        ("density", 0), ("density", 1), ("density", 2), ("energy", 0), ("energy", 1), ("energy", 2)
+    ]
+    assert (tmp_path / "o_energy_2.wgs").is_file() and all(m.n == 100 for m in both)
+    assert time_steps(h5, "mask3d") is None  # a 3D variable is one volume
+    assert len(series_chains(str(h5), ["mask3d"])[0][1]) == 1
+    with pytest.raises(WarpgaussError, match="no variable 'wind'.*density"):
+        time_steps(h5, "wind")
+    with pytest.raises(WarpgaussError, match=r"\{var\}"):
+        encode_series(str(h5), variables=["density", "energy"], output_pattern=str(tmp_path / "o_{t}.wgs"), **kw)
+    with pytest.raises(WarpgaussError, match="named twice"):
+        encode_series(str(h5), variables=["density", "density"], **kw)
+
+
+def test_cli_encodes_a_time_axis_and_several_variables(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+
+    _time_axis_files(tmp_path, list(generate_series("vortex", 16, 2)))
+    base = ["encode", str(tmp_path / "run.h5"), "--budget", "80", "--iterations", "8", "--device", "cpu", "--no-self-test", "--format", "full", "--json"]
+    r = CliRunner().invoke(app, [*base, "--variable", "density", "-o", str(tmp_path / "d_{t}.wgs")])
+    assert r.exit_code == 0, r.output
+    assert [(x["variable"], x["step"], x["warm_start"]) for x in json.loads(r.output)["series"]] == [("density", 0, False), ("density", 1, True)]
+    r = CliRunner().invoke(app, [*base, "--variable", "density", "--variable", "energy", "-o", str(tmp_path / "m.wgs")])
+    assert r.exit_code == 0, r.output
+    rows = json.loads(r.output)["series"]
+    assert [x["output"] for x in rows] == [str(tmp_path / f"m_{v}_{t:03d}.wgs") for v in ("density", "energy") for t in (0, 1)]
+    r = CliRunner().invoke(app, [*base, "--variable", "wind"])
+    assert r.exit_code == 2 and "no variable 'wind'" in r.output

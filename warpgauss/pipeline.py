@@ -452,11 +452,14 @@ class _EncodeRun:
         if cache is not None and cache.get("device") == dev and cache.get("field") is f:
             self.dv, self.stats = cache["dv"], cache["stats"]
             self.skip("S1a", "device volume and statistics reused from the previous budget of the ladder", seconds_saved=cache["seconds"])
-        elif self.opts.init is not None:  # a warm start allocates nothing: the statistics would only be reported
+        elif self.opts.init is not None or self.opts.deadline is not None:
+            # a warm start allocates nothing, and an Encoder call on a time budget spends nothing on
+            # figures only the report would show: the statistics are skipped
             with self.timer.stage("S1a", "the field on the device"):
                 self.dv = DeviceVolume(f, dev)
             self.stats = None
-            self.skip("S1a structure statistics", "warm start: no allocation needs them")
+            why = "warm start: no allocation needs them" if self.opts.init is not None else "an Encoder call on a time budget: only the report would show them"
+            self.skip("S1a structure statistics", why)
             return
         else:
             t0 = time.perf_counter()

@@ -9,8 +9,10 @@ timestep: each stays an ordinary model that decode, render and eval read alone.
 
 from __future__ import annotations
 
+import dataclasses
 import glob as _glob
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,8 +22,106 @@ from .errors import WarpgaussError
 from .model import Model
 
 
+CONTAINER_SUFFIXES = (".h5", ".hdf5", ".hdf", ".nc", ".cdf", ".zarr")
+
+
+@dataclass(frozen=True)
+class TimeStep:
+    """Timestep ``t`` of an array with a time axis ``(t, z, y, x)`` in an HDF5, netCDF or Zarr
+    file; :meth:`read` reads that timestep alone."""
+
+    path: str
+    key: str
+    t: int
+    kind: str  # "hdf5" (netCDF-4 too), "netcdf" (classic) or "zarr"
+    steps: int
+
+    def read(self) -> np.ndarray:
+        if self.kind == "hdf5":
+            import h5py
+
+            with h5py.File(self.path, "r") as f:
+                return np.asarray(f[self.key][self.t])
+        if self.kind == "zarr":
+            import zarr
+
+            root = zarr.open(self.path, mode="r")
+            arr = root if self.key == "" else root[self.key]
+            return np.asarray(arr[self.t])
+        from scipy.io import netcdf_file
+
+        with netcdf_file(self.path, "r", mmap=False) as f:
+            return np.array(f.variables[self.key].data[self.t])
+
+    def __str__(self) -> str:
+        return f"{self.path}:{self.key}[{self.t}]"
+
+
+def _arrays(path: Path) -> tuple[str, list[tuple[str, tuple]]]:
+    """(kind, [(name, shape)]) of the arrays in a container file, without reading them."""
+    if path.is_dir() or path.suffix.lower() == ".zarr":
+        import zarr
+
+        from .readers.zarr import _array_names
+
+        root = zarr.open(str(path), mode="r")
+        if isinstance(root, zarr.Array):
+            return "zarr", [("", tuple(root.shape))]
+        return "zarr", [(n, tuple(root[n].shape)) for n in sorted(_array_names(root))]
+    with open(path, "rb") as fh:
+        magic = fh.read(8)
+    if magic.startswith(b"CDF"):
+        from scipy.io import netcdf_file
+
+        with netcdf_file(path, "r", mmap=False) as f:
+            return "netcdf", [(n, tuple(v.shape)) for n, v in f.variables.items()]
+    import h5py
+
+    found: list[tuple[str, tuple]] = []
+    with h5py.File(path, "r") as f:
+        f.visititems(lambda n, o: found.append((n, tuple(o.shape))) if isinstance(o, h5py.Dataset) else None)
+    return "hdf5", found
+
+
+def time_steps(path, variable: str | None = None) -> list[TimeStep] | None:
+    """The timesteps of ``variable`` (default: the first 4D array) of a container file whose
+    arrays are ``(t, z, y, x)``; None if the file holds no such array (a single volume)."""
+    p = Path(path)
+    if not (p.exists() and str(p).lower().endswith(CONTAINER_SUFFIXES)):
+        return None
+    try:
+        kind, found = _arrays(p)
+    except Exception:  # noqa: BLE001 - not a container we can list: the reader will say why
+        return None
+    shapes = dict(found)
+    if variable is not None:
+        key = variable.lstrip("/") if kind == "hdf5" else variable
+        if key not in shapes:
+            from .readers.common import _list_datasets
+
+            raise WarpgaussError(f"{p.name} has no variable {variable!r}; it holds {_list_datasets(found)}; pick one with --variable")
+        if len(shapes[key]) != 4:
+            return None
+    else:
+        key = next((n for n, sh in found if len(sh) == 4 and sh[0] > 1), None)
+        if key is None:
+            return None
+    steps = int(shapes[key][0])
+    return [TimeStep(str(p), key, t, kind, steps) for t in range(steps)]
+
+
 def series_sources(sources) -> list:
-    """The series' inputs: a glob pattern (sorted matches), or a list of paths and arrays."""
+    """The series' inputs: the timesteps of a file with a time axis (its first 4D array), the
+    matches of a glob pattern (sorted), or a list of paths and arrays."""
+    if isinstance(sources, (str, os.PathLike)):
+        steps = time_steps(sources)
+        if steps is not None:
+            return steps
+    return _listed(sources)
+
+
+def _listed(sources) -> list:
+    """A glob pattern's matches (sorted), or the list given."""
     if isinstance(sources, (str, os.PathLike)):
         pattern = str(sources)
         found = sorted(_glob.glob(pattern))
@@ -36,6 +136,9 @@ def series_sources(sources) -> list:
 
 def _grid(src, read) -> tuple[int, ...]:
     """(x, y, z) of a series input, reading no voxels where the format allows."""
+    if isinstance(src, TimeStep):
+        kind, found = _arrays(Path(src.path))
+        return tuple(int(v) for v in dict(found)[src.key][1:][::-1])
     if isinstance(src, np.ndarray):
         if src.ndim != 3:
             raise WarpgaussError(f"a series array is {src.ndim}D (shape {src.shape}); warpgauss encodes 3D volumes")
@@ -49,9 +152,55 @@ def _grid(src, read) -> tuple[int, ...]:
     return tuple(int(v) for v in vol.data.shape[::-1])
 
 
+def _fill_of(step: TimeStep) -> float | None:
+    """The fill value an array declares (``_FillValue`` / ``missing_value``), as the readers take it."""
+    from .readers.common import _fill_attr
+
+    if step.kind == "hdf5":
+        import h5py
+
+        with h5py.File(step.path, "r") as f:
+            return _fill_attr(f[step.key].attrs)
+    if step.kind == "zarr":
+        import zarr
+
+        root = zarr.open(step.path, mode="r")
+        return _fill_attr(dict((root if step.key == "" else root[step.key]).attrs))
+    from scipy.io import netcdf_file
+
+    with netcdf_file(step.path, "r", mmap=False) as f:
+        return _fill_attr(f.variables[step.key]._attributes)
+
+
+def series_chains(sources, variables=None, read=None) -> list[tuple[str | None, list, Any]]:
+    """The series to encode: one chain (variable, timesteps, reader options) per variable.
+
+    A container file whose variable is ``(t, z, y, x)`` gives its timesteps
+    (:class:`TimeStep`); otherwise ``sources`` is a glob or a list of files (each holding the
+    variable) or arrays. Several ``variables`` give several chains, each warm-started on its own.
+    """
+    from .io import ReadOptions
+
+    read = read or ReadOptions()
+    names = list(variables or [])
+    if len(set(names)) != len(names):
+        raise WarpgaussError(f"a variable is named twice in {names}")
+    if not names:
+        names = [read.variable if read.variable is not None else read.dataset]
+    chains = []
+    for var in names:
+        opts = read if var is None else dataclasses.replace(read, variable=var, dataset=var)
+        steps = None
+        if isinstance(sources, (str, os.PathLike)):
+            steps = time_steps(sources, var)
+        chains.append((var, steps if steps is not None else _listed(sources), opts))
+    return chains
+
+
 def encode_series(
     sources,
     *,
+    variables=None,
     budget: int | None = None,
     ratio: float | None = None,
     output_pattern: str | None = None,
@@ -65,10 +214,13 @@ def encode_series(
     """Encode every timestep of a series at the same N (see the module docstring).
 
     Args:
-        sources: A glob pattern, or a list of paths / 3D arrays, in time order.
+        sources: A glob pattern, a list of paths / 3D arrays in time order, or one HDF5 /
+            netCDF / Zarr file whose variable has a time axis ``(t, z, y, x)``.
+        variables: Several variables (datasets, arrays) of the files: one chain of models each.
         budget, ratio: The budget of timestep 0 (``warpgauss.encode``'s); later timesteps take
             its N exactly.
-        output_pattern: If given, timestep t is written to ``output_pattern.format(t=t)``.
+        output_pattern: If given, timestep t of variable v is written to
+            ``output_pattern.format(t=t, var=v)`` (``{var}`` is needed with several variables).
         cold: Encode every timestep from its own analytic allocation.
         warm_iterations: Refinement iterations of a warm-started timestep (default: as
             configured).
@@ -76,54 +228,64 @@ def encode_series(
         encode_kwargs: Passed to :func:`warpgauss.encode` (seed, device, format, iterations ...).
 
     Returns:
-        The models, in time order (each with its report; ``report["series"]`` says which step
-        and whether it was warm-started).
+        The models, variable by variable, each in time order (each with its report;
+        ``report["series"]`` says which variable and step, and whether it was warm-started).
     """
     from ._fs import check_writable
     from .pipeline import encode
 
-    items = series_sources(sources)
-    grids = {_grid(s, read) for s in items}
-    if len(grids) > 1:
-        shown = ", ".join("x".join(map(str, g)) for g in sorted(grids))
-        raise WarpgaussError(f"the series' volumes are on different grids ({shown}); a series shares one grid")
-    outputs = None
+    chains = series_chains(sources, variables, read)
+    for var, items, opts in chains:
+        grids = {_grid(s, opts) for s in items}
+        if len(grids) > 1:
+            shown = ", ".join("x".join(map(str, g)) for g in sorted(grids))
+            what = "the series' volumes" if var is None else f"the series of {var!r}"
+            raise WarpgaussError(f"{what} are on different grids ({shown}); a series shares one grid")
+    outputs: list[list[str]] | None = None
     if output_pattern is not None:
         if "{t" not in output_pattern:
             raise WarpgaussError("the output pattern must hold {t} (the timestep), e.g. out_{t:03d}.wgs")
-        outputs = [output_pattern.format(t=t) for t in range(len(items))]
-        if len(set(outputs)) != len(outputs):
+        if len(chains) > 1 and "{var" not in output_pattern:
+            raise WarpgaussError("several variables need {var} in the output pattern, e.g. out_{var}_{t:03d}.wgs")
+        outputs = [[output_pattern.format(t=t, var=var or "") for t in range(len(items))] for var, items, _ in chains]
+        flat = [o for chain in outputs for o in chain]
+        if len(set(flat)) != len(flat):
             raise WarpgaussError(f"the output pattern {output_pattern!r} gives one name to several timesteps")
-        for o in outputs:
+        for o in flat:
             check_writable(o, force=force)
     if warm_iterations is not None and warm_iterations < 0:
         raise WarpgaussError(f"warm iterations must be >= 0, got {warm_iterations}")
     models: list[Model] = []
-    for t, src in enumerate(items):
-        warm = t > 0 and not cold
-        kw = dict(encode_kwargs)
-        if t == 0:
-            kw.update(budget=budget, ratio=ratio)
-        else:
-            kw.update(budget=models[0].n)
-        if warm:
-            kw["warm_start"] = models[-1]
-            if warm_iterations is not None:
-                kw["iterations"] = warm_iterations
-        m = encode(
-            src,
-            read=read,
-            output=None if outputs is None else outputs[t],
-            force=force,
-            **kw,
-        )
-        m.report["series"] = {
-            "step": t,
-            "steps": len(items),
-            "warm_start": warm,
-            "source": "array" if isinstance(src, np.ndarray) else str(src),
-        }
-        models.append(m)
-        if on_step is not None:
-            on_step(t, len(items), m)
+    for c, (var, items, opts) in enumerate(chains):
+        chain: list[Model] = []
+        for t, src in enumerate(items):
+            warm = t > 0 and not cold
+            kw = dict(encode_kwargs)
+            if t == 0:
+                kw.update(budget=budget, ratio=ratio)
+            else:
+                kw.update(budget=chain[0].n)
+            if warm:
+                kw["warm_start"] = chain[-1]
+                if warm_iterations is not None:
+                    kw["iterations"] = warm_iterations
+            step_opts = opts
+            if isinstance(src, TimeStep):
+                if opts.fill_value is None:
+                    step_opts = dataclasses.replace(opts, fill_value=_fill_of(src))
+                data = src.read()
+            else:
+                data = src
+            m = encode(data, read=step_opts, output=None if outputs is None else outputs[c][t], force=force, **kw)
+            m.report["series"] = {
+                "variable": var,
+                "step": t,
+                "steps": len(items),
+                "warm_start": warm,
+                "source": "array" if isinstance(src, np.ndarray) else str(src),
+            }
+            chain.append(m)
+            if on_step is not None:
+                on_step(t, len(items), m)
+        models += chain
     return models
