@@ -168,12 +168,12 @@ def encode(
         int | None,
         typer.Option(
             rich_help_panel="Bricks and cluster",
-            help="Local cluster size for --bricks (default: one worker per GPU, this process on one GPU, up to 4 processes on the CPU; 0: this process)",
+            help="Local cluster size for --bricks or a series (default: one worker per GPU, this process on one GPU, up to 4 processes on the CPU; 0: this process)",
         ),
     ] = None,
     scheduler: Annotated[
         str | None,
-        typer.Option(rich_help_panel="Bricks and cluster", help="Address of a running Dask scheduler (e.g. tcp://host:8786) for --bricks"),
+        typer.Option(rich_help_panel="Bricks and cluster", help="Address of a running Dask scheduler (e.g. tcp://host:8786) for --bricks or a series"),
     ] = None,
     cold: Annotated[
         bool,
@@ -236,6 +236,7 @@ def encode(
         _encode_series(
             str(input),
             variables,
+            (workers, scheduler),
             output,
             dict(
                 budget=budget,
@@ -482,7 +483,9 @@ def _encode_ladder(
     out_console.print(t)
 
 
-def _encode_series(pattern: str, variables: list[str], output, kw: dict, read, cold: bool, warm_iterations, as_json: bool, force: bool) -> None:
+def _encode_series(
+    pattern: str, variables: list[str], cluster: tuple, output, kw: dict, read, cold: bool, warm_iterations, as_json: bool, force: bool
+) -> None:
     """``warpgauss encode 'GLOB'`` (or a file with a time axis, or several --variable): one model
     and report per timestep and variable (see warpgauss.encode_series)."""
     import warpgauss
@@ -498,27 +501,53 @@ def _encode_series(pattern: str, variables: list[str], output, kw: dict, read, c
     from warpgauss._fs import check_writable
     from warpgauss.series import series_chains
 
+    total = 0
     for var, items, _ in series_chains(pattern, variables or None, read):  # the reports too, before any work
+        total += len(items)
         for t in range(len(items)):
             check_writable(name.format(t=t, var=var or "") + ".report.json", force=force)
+    done = []
     status = None if as_json else err_console.status("starting", spinner="dots")
     if status is not None:
         status.start()
+    workers, scheduler = cluster
+    client = None
+    if workers is not None or scheduler is not None:
+        from warpgauss.bricked import default_client
+
+        client, where = default_client(workers, scheduler, kw.get("device"))
+        if status is not None:
+            status.console.print(f"series: {where}", highlight=False)
 
     def step(t: int, steps: int, m) -> None:
         rep = m.report
         rep["report"] = rep["output"] + ".report.json"
         atomic_write_bytes(rep["report"], json_text(rep).encode())
+        done.append(t)
         if status is not None:
-            status.update(f"[bold]series[/] {t + 1}/{steps} encoded")
+            status.update(f"[bold]series[/] {len(done)}/{total} timesteps encoded")
 
     try:
         models = warpgauss.encode_series(
-            pattern, variables=variables or None, output_pattern=name, cold=cold, warm_iterations=warm_iterations, force=force, read=read, on_step=step, **kw
+            pattern,
+            variables=variables or None,
+            output_pattern=name,
+            cold=cold,
+            warm_iterations=warm_iterations,
+            force=force,
+            read=read,
+            on_step=step,
+            client=client,
+            **kw,
         )
     finally:
         if status is not None:
             status.stop()
+        if client is not None:
+            own = getattr(client, "cluster", None)
+            client.close()
+            if own is not None and scheduler is None:
+                own.close()
     rows = [
         {
             "variable": m.report["series"]["variable"],

@@ -177,3 +177,32 @@ def test_cli_encodes_a_time_axis_and_several_variables(tmp_path):
     assert [x["output"] for x in rows] == [str(tmp_path / f"m_{v}_{t:03d}.wgs") for v in ("density", "energy") for t in (0, 1)]
     r = CliRunner().invoke(app, [*base, "--variable", "wind"])
     assert r.exit_code == 2 and "no variable 'wind'" in r.output
+
+
+def test_a_series_on_a_local_dask_cluster(tmp_path):
+    pytest.importorskip("distributed")
+    from warpgauss.bricked import local_client
+    from warpgauss.series import encode_series
+
+    steps = list(generate_series("vortex", 16, 4))
+    kw = dict(budget=90, iterations=12, samples=256, device="cpu", self_test=False, format="full", warm_iterations=6)
+    serial = encode_series(steps, **kw)
+    client = local_client(2)
+    try:
+        seen = []
+        spread = encode_series(steps, client=client, output_pattern=str(tmp_path / "s_{t}.wgs"), on_step=lambda t, n, m: seen.append(t), **kw)
+        cold = encode_series(steps, client=client, cold=True, **kw)
+    finally:
+        client.close()
+        client.cluster.close()
+    # timestep 0 first; then steps 1-3 in two runs: [1, 2] warm on from 0, [3] cold at N
+    assert [m.report["series"]["step"] for m in spread] == [0, 1, 2, 3] and sorted(seen) == [0, 1, 2, 3]
+    assert [m.report["series"]["warm_start"] for m in spread] == [False, True, True, False]
+    assert all(m.n == 90 for m in spread) and all((tmp_path / f"s_{t}.wgs").is_file() for t in range(4))
+    for t in (0, 1, 2):  # the same processes' work as the serial run, bit for bit
+        np.testing.assert_array_equal(spread[t].params, serial[t].params)
+    alone = warpgauss.encode(steps[3], **{k: v for k, v in kw.items() if k != "warm_iterations"})
+    np.testing.assert_array_equal(spread[3].params, alone.params)
+    assert [m.report["series"]["warm_start"] for m in cold] == [False] * 4
+    for t in range(4):
+        np.testing.assert_array_equal(cold[t].params, warpgauss.encode(steps[t], **{k: v for k, v in kw.items() if k != "warm_iterations"}).params)

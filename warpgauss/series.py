@@ -209,6 +209,7 @@ def encode_series(
     force: bool = False,
     read=None,
     on_step=None,
+    client=None,
     **encode_kwargs: Any,
 ) -> list[Model]:
     """Encode every timestep of a series at the same N (see the module docstring).
@@ -224,7 +225,13 @@ def encode_series(
         cold: Encode every timestep from its own analytic allocation.
         warm_iterations: Refinement iterations of a warm-started timestep (default: as
             configured).
-        on_step: Optional callback(t, steps, model) after each timestep.
+        on_step: Optional callback(t, steps, model) after each timestep (on a cluster: as each
+            part comes back).
+        client: A ``distributed.Client``: the timesteps are spread over its workers. Each
+            variable's timestep 0 runs first (it fixes N); the rest of the chain is split into one
+            run of consecutive timesteps per worker, the first continuing warm from timestep 0,
+            each other starting cold at that N and then warm (``cold``: every timestep on its
+            own). A part that fails is retried once.
         encode_kwargs: Passed to :func:`warpgauss.encode` (seed, device, format, iterations ...).
 
     Returns:
@@ -232,7 +239,6 @@ def encode_series(
         ``report["series"]`` says which variable and step, and whether it was warm-started).
     """
     from ._fs import check_writable
-    from .pipeline import encode
 
     chains = series_chains(sources, variables, read)
     for var, items, opts in chains:
@@ -255,37 +261,143 @@ def encode_series(
             check_writable(o, force=force)
     if warm_iterations is not None and warm_iterations < 0:
         raise WarpgaussError(f"warm iterations must be >= 0, got {warm_iterations}")
-    models: list[Model] = []
-    for c, (var, items, opts) in enumerate(chains):
-        chain: list[Model] = []
-        for t, src in enumerate(items):
-            warm = t > 0 and not cold
-            kw = dict(encode_kwargs)
-            if t == 0:
-                kw.update(budget=budget, ratio=ratio)
-            else:
-                kw.update(budget=chain[0].n)
-            if warm:
-                kw["warm_start"] = chain[-1]
-                if warm_iterations is not None:
-                    kw["iterations"] = warm_iterations
-            step_opts = opts
-            if isinstance(src, TimeStep):
-                if opts.fill_value is None:
-                    step_opts = dataclasses.replace(opts, fill_value=_fill_of(src))
-                data = src.read()
-            else:
-                data = src
-            m = encode(data, read=step_opts, output=None if outputs is None else outputs[c][t], force=force, **kw)
-            m.report["series"] = {
-                "variable": var,
-                "step": t,
-                "steps": len(items),
-                "warm_start": warm,
-                "source": "array" if isinstance(src, np.ndarray) else str(src),
-            }
-            chain.append(m)
+    plan = [
+        Segment(
+            var, opts, list(range(len(items))), list(items), None if outputs is None else outputs[c], None, None,
+            cold, warm_iterations, force, encode_kwargs, len(items), budget, ratio,
+        )
+        for c, (var, items, opts) in enumerate(chains)
+    ]
+    if client is None:
+        models: list[Model] = []
+        for seg in plan:
+            models += encode_segment(seg, on_step)
+        return models
+    return _on_cluster(plan, client, on_step)
+
+
+@dataclass
+class Segment:
+    """Consecutive timesteps of one variable's chain, encoded in order by one process: the first
+    from ``start`` (the previous timestep's model, warm) or from its own allocation at ``n``
+    Gaussians (cold; ``n`` None: the budget or ratio given), the rest each from the one before."""
+
+    var: str | None
+    read: Any
+    steps: list[int]
+    items: list
+    outputs: list[str] | None
+    start: Model | None
+    n: int | None
+    cold: bool
+    warm_iterations: int | None
+    force: bool
+    kwargs: dict
+    total: int  # timesteps of the whole chain
+    budget: int | None = None
+    ratio: float | None = None
+
+    def split(self, k: int) -> list[Segment]:
+        """Up to ``k`` contiguous parts (the first keeps ``start``; the others start cold at ``n``)."""
+        k = max(1, min(k, len(self.steps)))
+        bounds = np.linspace(0, len(self.steps), k + 1).round().astype(int)
+        parts = []
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if b <= a:
+                continue
+            parts.append(
+                dataclasses.replace(
+                    self,
+                    steps=self.steps[a:b],
+                    items=self.items[a:b],
+                    outputs=None if self.outputs is None else self.outputs[a:b],
+                    start=self.start if a == 0 else None,
+                )
+            )
+        return parts
+
+
+def encode_segment(seg: Segment, on_step=None) -> list[Model]:
+    """Encode a :class:`Segment`'s timesteps in order (in this process or on a Dask worker)."""
+    from .pipeline import encode
+
+    chain: list[Model] = []
+    for k, (t, src) in enumerate(zip(seg.steps, seg.items)):
+        before = chain[-1] if chain else seg.start
+        warm = before is not None and not seg.cold
+        kw = dict(seg.kwargs)
+        n = seg.n if seg.n is not None else (chain[0].n if chain else None)
+        if n is None:
+            kw.update(budget=seg.budget, ratio=seg.ratio)
+        else:
+            kw.update(budget=n)
+        if warm:
+            kw["warm_start"] = before
+            if seg.warm_iterations is not None:
+                kw["iterations"] = seg.warm_iterations
+        opts = seg.read
+        if isinstance(src, TimeStep):
+            if opts.fill_value is None:
+                opts = dataclasses.replace(opts, fill_value=_fill_of(src))
+            data = src.read()
+        else:
+            data = src
+        m = encode(data, read=opts, output=None if seg.outputs is None else seg.outputs[k], force=seg.force, **kw)
+        m.report["series"] = {
+            "variable": seg.var,
+            "step": t,
+            "steps": seg.total,
+            "warm_start": warm,
+            "source": "array" if isinstance(src, np.ndarray) else str(src),
+        }
+        chain.append(m)
+        if on_step is not None:
+            on_step(t, seg.total, m)
+    return chain
+
+
+def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
+    """The segments on a Dask cluster: every chain's timestep 0 first (it fixes N), then the rest
+    of each chain split into one contiguous part per worker (timesteps cold: one part each); a
+    part that fails is retried once, one that fails twice fails the run."""
+    from distributed import as_completed
+
+    workers = max(1, len(client.scheduler_info().get("workers", {})))
+    firsts = [dataclasses.replace(seg, steps=seg.steps[:1], items=seg.items[:1], outputs=None if seg.outputs is None else seg.outputs[:1]) for seg in plan]
+    heads = _gather(client, firsts, on_step, as_completed)
+    parts: list[Segment] = []
+    for seg, head in zip(plan, heads):
+        rest = dataclasses.replace(
+            seg, steps=seg.steps[1:], items=seg.items[1:], outputs=None if seg.outputs is None else seg.outputs[1:], start=head[0], n=head[0].n
+        )
+        if rest.steps:
+            parts += rest.split(len(rest.steps) if seg.cold else workers)
+    done = _gather(client, parts, on_step, as_completed)
+    by_var: dict = {}
+    for seg, head in zip(plan, heads):
+        by_var.setdefault(seg.var, []).extend(head)
+    for part, models in zip(parts, done):
+        by_var[part.var].extend(models)
+    return [m for seg in plan for m in sorted(by_var[seg.var], key=lambda m: m.report["series"]["step"])]
+
+
+def _gather(client, segments: list[Segment], on_step, as_completed) -> list[list[Model]]:
+    if not segments:
+        return []
+    futures = client.map(encode_segment, segments, retries=1, pure=False, key=[f"warpgauss-series-{i}-{id(s)}" for i, s in enumerate(segments)])
+    index = {f.key: i for i, f in enumerate(futures)}
+    out: list = [None] * len(segments)
+    try:
+        for fut in as_completed(futures):
+            models = fut.result()
+            out[index[fut.key]] = models
             if on_step is not None:
-                on_step(t, len(items), m)
-        models += chain
-    return models
+                for m in models:
+                    on_step(m.report["series"]["step"], segments[index[fut.key]].total, m)
+    except Exception as e:  # a part that failed twice (its retry included)
+        for fut in futures:
+            fut.cancel()
+        raise WarpgaussError(
+            f"a series part failed on the Dask cluster twice: {type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else ''}"
+        ) from None
+    return out
