@@ -187,6 +187,14 @@ def encode(
         int | None,
         typer.Option(rich_help_panel="Time series", help="Refinement iterations of a warm-started timestep (default: --iterations)"),
     ] = None,
+    motion: Annotated[
+        bool,
+        typer.Option(
+            "--motion/--no-motion",
+            rich_help_panel="Time series",
+            help="Move a warm start's Gaussians with the field's motion (block Lucas-Kanade) before refining",
+        ),
+    ] = True,
     max_device_memory: Annotated[
         str | None,
         typer.Option(
@@ -228,8 +236,8 @@ def encode(
         from warpgauss.series import time_steps
 
         series = len(variables) > 1 or time_steps(input, variable) is not None
-    if not series and (cold or warm_iterations is not None):
-        fail("--cold and --warm-iterations apply to a series: a glob such as 'run/t_*.raw', a file with a time axis, or several --variable")
+    if not series and (cold or warm_iterations is not None or not motion):
+        fail("--cold, --warm-iterations and --no-motion apply to a series: a glob such as 'run/t_*.raw', a file with a time axis, or several --variable")
     if series:
         if ladder is not None or resume or save_analytic is not None or bricks is not None:
             fail("a series does not combine with --ladder, --resume, --save-analytic or --bricks yet")
@@ -253,6 +261,7 @@ def encode(
                 format=fmt,
                 full_eval=full_eval,
                 time_budget=time_budget,
+                motion=motion,
             ),
             ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
             cold,

@@ -138,11 +138,11 @@ def test_auto_start_goes_cold_when_the_field_moved_too_far():
     near = enc.encode(turning[1])
     choice = near.report["start_choice"]
     assert choice["warm"] and near.report["encoder"]["warm_start"]
-    assert choice["previous_model_psnr_db"] >= choice["last_cold_start_psnr_db"]
+    assert choice["warm_start_psnr_db"] >= choice["last_cold_start_psnr_db"]
     far = enc.encode(generate("bubbles", 20))  # another field on the same grid: the old model is no head start
     choice = far.report["start_choice"]
     assert not choice["warm"] and not far.report["encoder"]["warm_start"]
-    assert choice["previous_model_psnr_db"] < choice["last_cold_start_psnr_db"]
+    assert choice["warm_start_psnr_db"] < choice["last_cold_start_psnr_db"]
     assert far.report["allocation"].get("warm_start") is None  # allocated afresh
     np.testing.assert_array_equal(far.params, warpgauss.encode(generate("bubbles", 20), device="cpu", **FAST).params)
 

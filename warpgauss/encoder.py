@@ -31,7 +31,7 @@ class Session:
 
     buffers: Any = None  # warpgauss.devicefield.DeviceBuffers
     deadline: float | None = None
-    choose_start: Any = None  # callback(field, device) -> {"warm": bool, ...} before a warm start
+    cold_start_psnr: float | None = None  # start="auto": a warm start must score this (the last cold start's allocation)
 
 
 @dataclass
@@ -58,11 +58,11 @@ class Encoder:
         time_budget: Seconds one call may take, all stages included (None: the configured
             iterations, however long they take); :meth:`encode` may override it per call.
         start: How a call after the first starts: "warm" (from the previous model), "cold" (from
-            its own analytic allocation) or "auto" (the default): warm, unless the previous model
-            scores below, on the new timestep, what the last cold start's allocation scored on
-            its own (the field moved too far for the old model to be a head start: a short time
-            budget then gains more from a fresh allocation). The report's ``start_choice`` says
-            what was measured.
+            its own analytic allocation) or "auto" (the default): warm, unless the previous model,
+            moved with the field, scores below, on the new timestep, what the last cold start's
+            allocation scored on its own (the field moved too far for the old model to be a head start: a short time
+            budget then gains more from a fresh allocation). The warm start is scored after its
+            motion compensation (``motion``); the report's ``start_choice`` says what was measured.
         warm_iterations: Iterations of a warm-started call without a time budget (default: as
             configured; a time budget plans its own).
         device: Warp device (None: a device array's own, else CUDA when present, else CPU).
@@ -109,7 +109,7 @@ class Encoder:
         self.warm_iterations = warm_iterations
         self.device = device
         self.kwargs = encode_kwargs
-        self.session = Session(buffers=DeviceBuffers(), choose_start=self._choose_start if start == "auto" else None)
+        self.session = Session(buffers=DeviceBuffers())
         self.previous: Model | None = None
         self.calls: list[CallRecord] = []
         self._tail: float | None = None  # seconds the last call spent after refinement
@@ -161,6 +161,7 @@ class Encoder:
             if self.warm_iterations is not None and budget_s is None:
                 kw["iterations"] = self.warm_iterations
         self.session.deadline = None
+        self.session.cold_start_psnr = self._cold_start_psnr if self.start == "auto" else None
         if budget_s is not None:
             tail = FIRST_TAIL_SHARE * budget_s if self._tail is None else TAIL_MARGIN * self._tail
             self.session.deadline = t0 + max(budget_s - tail, 0.0)
@@ -202,24 +203,6 @@ class Encoder:
             self.device = rep.get("device")  # later calls stay where the first ran
         self.previous = model
         return model
-
-
-    def _choose_start(self, f, device: str) -> dict:
-        """Warm or cold for this call (``start="auto"``, see the class docstring)."""
-        from .evaluate import evaluate_field
-
-        if self._cold_start_psnr is None:
-            return {"warm": True, "why": "no cold start scored yet"}
-        start = evaluate_field(self.previous.field(device), f)["psnr_db"]
-        warm = start >= self._cold_start_psnr
-        return {
-            "warm": warm,
-            "previous_model_psnr_db": start,
-            "last_cold_start_psnr_db": self._cold_start_psnr,
-            "why": "the previous model scores at least what a cold start's allocation did"
-            if warm
-            else "the previous model scores below what a cold start's allocation did: the field moved too far",
-        }
 
 
 STARTS = ("auto", "warm", "cold")

@@ -54,6 +54,8 @@ class EncodeOptions:
     init: np.ndarray | None = None  # warm start: (N, 12) parameters of the previous timestep's model
     deadline: float | None = None  # a time.perf_counter() by which refinement ends (an Encoder's call budget)
     evaluate_start: bool = True  # EV also scores the starting model (a warm start's: the previous timestep's)
+    motion: bool = True  # a warm start's primitives first follow the motion to the new timestep (warpgauss.motion)
+    cold_start_psnr: float | None = None  # warm only if the (moved) start scores at least this, else allocate
 
 
 def _available_memory() -> int | None:
@@ -422,6 +424,8 @@ class _EncodeRun:
         self.coded_bits_note: dict | None = None
         self.refinement: dict = {"iterations": 0}
         self.early_eval: dict | None = None
+        self.start_eval: dict | None = None  # a warm start scored before refinement (to choose warm or cold)
+        self.start_choice: dict | None = None
         self.evaluation: dict = {}
         # a coded byte budget fits the analytic model (several codings) only where it may be the
         # result: no refinement, an --analytic-output file, or a refined model that scores below it
@@ -496,6 +500,33 @@ class _EncodeRun:
         self.params = np.array(init, np.float32, copy=True)
         self.facts = {"warm_start": True, "n": self.n}
         self.skip("S1b-S1e allocation", "warm start: the previous timestep's model is the starting point")
+        if self.opts.motion:
+            from .motion import compensate
+
+            with self.timer.stage("S1m", "motion compensation of the warm start"):
+                self.params, self.facts["motion"] = compensate(self.params, self.dv)
+        else:
+            self.skip("S1m motion compensation", "motion=False: the previous model starts where it was")
+        ref = self.opts.cold_start_psnr
+        if ref is None:
+            return
+        with self.timer.stage("S1w", "warm or cold: score the warm start"):
+            self.start_eval = self._evaluate(Model(self.params, self.header))
+        start = self.start_eval["psnr_db"]
+        warm = start >= ref
+        self.start_choice = {
+            "warm": warm,
+            "warm_start_psnr_db": start,
+            "last_cold_start_psnr_db": ref,
+            "why": "the warm start scores at least what the last cold start's allocation did"
+            if warm
+            else "the warm start scores below what the last cold start's allocation did: the field changed too much",
+        }
+        if not warm:  # allocate afresh (the warm start's score is not the start model's any more)
+            self.start_eval = None
+            self.skipped = [x for x in self.skipped if x["what"] != "S1b-S1e allocation"]
+            self.opts = dataclasses.replace(self.opts, init=None, evaluate_start=True)
+            self.params, self.facts = allocate(self.dv, self.n, self.opts.seed, self.opts.allocation, self.timer)
 
     # -- S1x ---------------------------------------------------------------------------------
     def analytic_model(self, force: bool) -> None:
@@ -671,13 +702,14 @@ class _EncodeRun:
         evaluation = self.evaluation
         if self.opts.init is not None and not self.opts.evaluate_start and self.model is not self.analytic:
             with self.timer.stage("EV", "evaluation"):
-                evaluation["analytic"] = None
+                evaluation["analytic"] = self.start_eval
                 evaluation["final"] = self._evaluate(self.model)
-            evaluation["gain_db"] = None
-            self.skip("EV of the starting model", "an Encoder call on a time budget scores only the model it returns")
+            evaluation["gain_db"] = None if self.start_eval is None else evaluation["final"]["psnr_db"] - self.start_eval["psnr_db"]
+            if self.start_eval is None:
+                self.skip("EV of the starting model", "an Encoder call on a time budget scores only the model it returns")
             return
         with self.timer.stage("EV", "evaluation"):
-            evaluation["analytic"] = self.early_eval or self._evaluate(self.analytic)
+            evaluation["analytic"] = self.early_eval or self.start_eval or self._evaluate(self.analytic)
             if self.model is self.analytic:
                 evaluation["final"] = evaluation["analytic"]
             else:
@@ -755,6 +787,8 @@ class _EncodeRun:
             "interrupted": bool(self.refinement.get("interrupted")),
             "skipped": self.skipped,
         }
+        if self.start_choice is not None:
+            model.report["start_choice"] = self.start_choice
         return model
 
 
@@ -1104,6 +1138,7 @@ def encode(
     max_device_memory: int | str | None = None,
     max_host_memory: int | str | None = None,
     warm_start=None,
+    motion: bool = True,
     session=None,
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
@@ -1176,6 +1211,9 @@ def encode(
             the same grid and budget: refinement starts from it instead of the analytic
             allocation (stage S1b-S1e is skipped; the report's ``evaluation.analytic`` is the
             starting model on this timestep).
+        motion: With ``warm_start``, first move every primitive with the motion from the
+            previous model to this timestep (block Lucas-Kanade on a pyramid, see
+            :mod:`warpgauss.motion`; stage S1m); False: start where the previous model was.
         session: The state a :class:`warpgauss.Encoder` keeps between its calls (device buffers
             and this call's deadline); not for direct use.
 
@@ -1217,12 +1255,14 @@ def encode(
         format=format,
         bytes=file_bytes,
         init=_warm_params(warm_start),
+        motion=motion,
     )
     if opts.init is not None and (bricks is not None or resume):
         raise WarpgaussError("a warm start does not combine with --bricks or --resume")
     if session is not None:
         opts.deadline = session.deadline
         opts.evaluate_start = session.deadline is None  # a call on a time budget scores only its result
+        opts.cold_start_psnr = session.cold_start_psnr
     if is_device_array(source):
         if bricks is not None:
             raise WarpgaussError("a device array is encoded whole; --bricks takes a file")
@@ -1238,14 +1278,6 @@ def encode(
         raise WarpgaussError(
             f"the warm-start model is on a {'x'.join(map(str, warm_start.shape_xyz))} grid, this volume {'x'.join(map(str, f.shape_xyz))}; encode cold"
         )
-    start_choice = None
-    if session is not None and opts.init is not None and session.choose_start is not None:
-        from ._warp import resolve_device
-
-        with timer.stage("S0", "warm or cold start"):
-            start_choice = session.choose_start(f, resolve_device(device))
-        if not start_choice["warm"]:
-            opts.init, opts.evaluate_start = None, True
     if bricks is not None:
         if analytic_output is not None:
             raise WarpgaussError("--bricks does not write an analytic model (--save-analytic)")
@@ -1285,8 +1317,6 @@ def encode(
         with timer.stage("S3", "export"):
             model.save(output, encoding=encoding_of(opts), force=True if resume else force)
         model.report["output"] = str(Path(output))
-    if start_choice is not None:
-        model.report["start_choice"] = start_choice
     if checkpoint is not None and not model.report.get("interrupted") and Path(checkpoint).is_file():
         Path(checkpoint).unlink()  # the run finished: its model replaces the checkpoint
     finish_report(model, timer)

@@ -1,0 +1,163 @@
+"""Motion between two timesteps (a warm start's motion compensation, issue #21).
+
+The previous model, decoded on the grid (``ref``), and the new timestep (``cur``) are matched by
+block Lucas-Kanade on an image pyramid: each block of ``block``^3 voxels of a level finds the
+displacement d that minimises sum (ref(x) - cur(x + d))^2 over its voxels by Gauss-Newton steps
+(``lk_step``), starting from the coarser level's estimate (``upsample_blocks``); a block without
+texture takes its neighbours' motion through a confidence-weighted 3^3 average
+(``smooth_blocks``, weight: the trace of its normal matrix). A primitive then moves by the
+displacement interpolated at its centre (``shift_centres``): structure at x at the previous
+timestep is at x + d now.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+MAX_STEP = wp.constant(2.0)  # voxels one Gauss-Newton step may move a block (at its level)
+
+
+@wp.func
+def sample(f: wp.array3d(dtype=float), p: wp.vec3) -> float:
+    """Trilinear value at p = (x, y, z) in voxels, edges held."""
+    nz, ny, nx = f.shape[0], f.shape[1], f.shape[2]
+    x = wp.clamp(p[0], 0.0, float(nx - 1))
+    y = wp.clamp(p[1], 0.0, float(ny - 1))
+    z = wp.clamp(p[2], 0.0, float(nz - 1))
+    i0 = wp.min(int(x), wp.max(nx - 2, 0))
+    j0 = wp.min(int(y), wp.max(ny - 2, 0))
+    k0 = wp.min(int(z), wp.max(nz - 2, 0))
+    i1, j1, k1 = wp.min(i0 + 1, nx - 1), wp.min(j0 + 1, ny - 1), wp.min(k0 + 1, nz - 1)
+    fx, fy, fz = x - float(i0), y - float(j0), z - float(k0)
+    c00 = wp.lerp(f[k0, j0, i0], f[k0, j0, i1], fx)
+    c01 = wp.lerp(f[k0, j1, i0], f[k0, j1, i1], fx)
+    c10 = wp.lerp(f[k1, j0, i0], f[k1, j0, i1], fx)
+    c11 = wp.lerp(f[k1, j1, i0], f[k1, j1, i1], fx)
+    return wp.lerp(wp.lerp(c00, c01, fy), wp.lerp(c10, c11, fy), fz)
+
+
+@wp.kernel
+def downsample2(src: wp.array3d(dtype=float), dst: wp.array3d(dtype=float)):
+    """dst = the 2x2x2 mean of src (a voxel past the edge repeats the last one)."""
+    k, j, i = wp.tid()
+    nz, ny, nx = src.shape[0], src.shape[1], src.shape[2]
+    s = float(0.0)
+    for dk in range(2):
+        for dj in range(2):
+            for di in range(2):
+                s += src[wp.min(2 * k + dk, nz - 1), wp.min(2 * j + dj, ny - 1), wp.min(2 * i + di, nx - 1)]
+    dst[k, j, i] = 0.125 * s
+
+
+@wp.kernel
+def lk_step(
+    ref: wp.array3d(dtype=float),
+    cur: wp.array3d(dtype=float),
+    disp: wp.array3d(dtype=wp.vec3),
+    block: int,
+    lam: float,
+    out: wp.array3d(dtype=wp.vec3),
+    conf: wp.array3d(dtype=float),
+):
+    """One Gauss-Newton step of each block's displacement (see the module docstring)."""
+    bk, bj, bi = wp.tid()
+    nz, ny, nx = ref.shape[0], ref.shape[1], ref.shape[2]
+    d = disp[bk, bj, bi]
+    a = wp.mat33()
+    b = wp.vec3(0.0)
+    for dk in range(block):
+        k = bk * block + dk
+        if k < nz:
+            for dj in range(block):
+                j = bj * block + dj
+                if j < ny:
+                    for di in range(block):
+                        i = bi * block + di
+                        if i < nx:
+                            p = wp.vec3(float(i), float(j), float(k)) + d
+                            c = sample(cur, p)
+                            g = wp.vec3(
+                                0.5 * (sample(cur, p + wp.vec3(1.0, 0.0, 0.0)) - sample(cur, p - wp.vec3(1.0, 0.0, 0.0))),
+                                0.5 * (sample(cur, p + wp.vec3(0.0, 1.0, 0.0)) - sample(cur, p - wp.vec3(0.0, 1.0, 0.0))),
+                                0.5 * (sample(cur, p + wp.vec3(0.0, 0.0, 1.0)) - sample(cur, p - wp.vec3(0.0, 0.0, 1.0))),
+                            )
+                            a += wp.outer(g, g)
+                            b += g * (ref[k, j, i] - c)
+    tr = a[0, 0] + a[1, 1] + a[2, 2]
+    step = wp.inverse(a + wp.identity(n=3, dtype=float) * (lam + 1.0e-3 * tr)) * b
+    n = wp.length(step)
+    if n > MAX_STEP:
+        step = step * (MAX_STEP / n)
+    out[bk, bj, bi] = d + step
+    conf[bk, bj, bi] = tr
+
+
+@wp.kernel
+def smooth_blocks(disp: wp.array3d(dtype=wp.vec3), conf: wp.array3d(dtype=float), floor: float, out: wp.array3d(dtype=wp.vec3)):
+    """Confidence-weighted 3^3 mean of the block displacements (a textureless block takes its neighbours')."""
+    bk, bj, bi = wp.tid()
+    nz, ny, nx = disp.shape[0], disp.shape[1], disp.shape[2]
+    s = wp.vec3(0.0)
+    w = float(0.0)
+    for dk in range(-1, 2):
+        for dj in range(-1, 2):
+            for di in range(-1, 2):
+                k, j, i = bk + dk, bj + dj, bi + di
+                if k >= 0 and j >= 0 and i >= 0 and k < nz and j < ny and i < nx:
+                    c = conf[k, j, i] + floor
+                    if dk == 0 and dj == 0 and di == 0:
+                        c = 2.0 * c
+                    s += c * disp[k, j, i]
+                    w += c
+    out[bk, bj, bi] = s / w
+
+
+@wp.func
+def sample_blocks(d: wp.array3d(dtype=wp.vec3), q: wp.vec3) -> wp.vec3:
+    """Trilinear block displacement at q (block coordinates, block centres at integers), edges held."""
+    nz, ny, nx = d.shape[0], d.shape[1], d.shape[2]
+    x = wp.clamp(q[0], 0.0, float(nx - 1))
+    y = wp.clamp(q[1], 0.0, float(ny - 1))
+    z = wp.clamp(q[2], 0.0, float(nz - 1))
+    i0 = wp.min(int(x), wp.max(nx - 2, 0))
+    j0 = wp.min(int(y), wp.max(ny - 2, 0))
+    k0 = wp.min(int(z), wp.max(nz - 2, 0))
+    i1, j1, k1 = wp.min(i0 + 1, nx - 1), wp.min(j0 + 1, ny - 1), wp.min(k0 + 1, nz - 1)
+    fx, fy, fz = x - float(i0), y - float(j0), z - float(k0)
+    c00 = wp.lerp(d[k0, j0, i0], d[k0, j0, i1], fx)
+    c01 = wp.lerp(d[k0, j1, i0], d[k0, j1, i1], fx)
+    c10 = wp.lerp(d[k1, j0, i0], d[k1, j0, i1], fx)
+    c11 = wp.lerp(d[k1, j1, i0], d[k1, j1, i1], fx)
+    return wp.lerp(wp.lerp(c00, c01, fy), wp.lerp(c10, c11, fy), fz)
+
+
+@wp.kernel
+def upsample_blocks(coarse: wp.array3d(dtype=wp.vec3), coarse_block: int, fine_block: int, fine: wp.array3d(dtype=wp.vec3)):
+    """A finer level's blocks start from twice the coarser level's displacement at their centre."""
+    bk, bj, bi = wp.tid()
+    centre = (wp.vec3(float(bi), float(bj), float(bk)) + wp.vec3(0.5)) * float(fine_block) * 0.5  # coarse voxels
+    fine[bk, bj, bi] = 2.0 * sample_blocks(coarse, centre / float(coarse_block) - wp.vec3(0.5))
+
+
+@wp.kernel
+def shift_centres(params: wp.array2d(dtype=float), disp: wp.array3d(dtype=wp.vec3), block: int, size: wp.vec3, moved: wp.array(dtype=float)):
+    """mu += the displacement at mu (columns 0-2 of the (N, 12) parameters), kept inside the grid."""
+    t = wp.tid()
+    mu = wp.vec3(params[t, 0], params[t, 1], params[t, 2])
+    q = (mu + wp.vec3(0.5)) / float(block) - wp.vec3(0.5)
+    d = sample_blocks(disp, q)
+    for a in range(3):
+        params[t, a] = wp.clamp(mu[a] + d[a], -0.5, size[a] - 0.5)
+    moved[t] = wp.length(d)
+    # the local rotation of the motion (half its curl, small angles) turns the primitive's frame too
+    h = 0.5
+    ex = (sample_blocks(disp, q + wp.vec3(h, 0.0, 0.0)) - sample_blocks(disp, q - wp.vec3(h, 0.0, 0.0))) / (2.0 * h * float(block))
+    ey = (sample_blocks(disp, q + wp.vec3(0.0, h, 0.0)) - sample_blocks(disp, q - wp.vec3(0.0, h, 0.0))) / (2.0 * h * float(block))
+    ez = (sample_blocks(disp, q + wp.vec3(0.0, 0.0, h)) - sample_blocks(disp, q - wp.vec3(0.0, 0.0, h))) / (2.0 * h * float(block))
+    omega = 0.5 * wp.vec3(ey[2] - ez[1], ez[0] - ex[2], ex[1] - ey[0])
+    angle = wp.length(omega)
+    if angle > 1.0e-6:
+        r = wp.quat_from_axis_angle(omega / angle, angle)
+        qq = r * wp.quat(params[t, 6], params[t, 7], params[t, 8], params[t, 9])
+        for a in range(4):
+            params[t, 6 + a] = qq[a]
