@@ -140,7 +140,9 @@ def upsample_blocks(coarse: wp.array3d(dtype=wp.vec3), coarse_block: int, fine_b
 
 
 @wp.kernel
-def shift_centres(params: wp.array2d(dtype=float), disp: wp.array3d(dtype=wp.vec3), block: int, size: wp.vec3, moved: wp.array(dtype=float)):
+def shift_centres(
+    params: wp.array2d(dtype=float), disp: wp.array3d(dtype=wp.vec3), block: int, size: wp.vec3, turn: int, moved: wp.array(dtype=float)
+):
     """mu += the displacement at mu (columns 0-2 of the (N, 12) parameters), kept inside the grid."""
     t = wp.tid()
     mu = wp.vec3(params[t, 0], params[t, 1], params[t, 2])
@@ -149,6 +151,8 @@ def shift_centres(params: wp.array2d(dtype=float), disp: wp.array3d(dtype=wp.vec
     for a in range(3):
         params[t, a] = wp.clamp(mu[a] + d[a], -0.5, size[a] - 0.5)
     moved[t] = wp.length(d)
+    if turn == 0:
+        return
     # the local rotation of the motion (half its curl, small angles) turns the primitive's frame too
     h = 0.5
     ex = (sample_blocks(disp, q + wp.vec3(h, 0.0, 0.0)) - sample_blocks(disp, q - wp.vec3(h, 0.0, 0.0))) / (2.0 * h * float(block))

@@ -118,11 +118,11 @@ class Encoder:
         """Load (compiling once per machine) every kernel module an encode uses on this encoder's
         device, so that no call's time budget pays for it; returns the device."""
         from ._warp import resolve_device, warp
-        from .kernels import analysis, backward, field, ingest, optim, sampling
+        from .kernels import analysis, backward, decode, field, ingest, motion, optim, sampling
 
         wp = warp()
         self.device = resolve_device(self.device)
-        for module in (analysis, ingest, field, optim, backward, sampling):
+        for module in (analysis, ingest, field, decode, motion, optim, backward, sampling):
             wp.load_module(module, device=self.device)
         from .devicefield import normalise_on_device
 

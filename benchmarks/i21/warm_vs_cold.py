@@ -59,8 +59,8 @@ def row(kind: str, t: int, m) -> dict:
         "step": t,
         "psnr_db": r["psnr_db"],
         "start_psnr_db": r["evaluation"]["analytic"]["psnr_db"],
-        "refine_seconds": ref.get("seconds"),
-        "iterations_done": ref.get("iterations_done"),
+        "refine_seconds": ref.get("seconds") or 0.0,  # none: the start already met --target-psnr
+        "iterations_done": ref.get("iterations_done") or 0,
         "samples": ref.get("samples"),
         "stop": stop.get("reason"),
         "total_seconds": r["total_seconds"],
