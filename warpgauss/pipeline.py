@@ -500,6 +500,7 @@ class _EncodeRun:
         self.params = np.array(init, np.float32, copy=True)
         self.facts = {"warm_start": True, "n": self.n}
         self.skip("S1b-S1e allocation", "warm start: the previous timestep's model is the starting point")
+        as_given = self.opts
         if self.opts.motion:
             from .motion import WARM_LR_SCALE, compensate
 
@@ -530,7 +531,8 @@ class _EncodeRun:
         if not warm:  # allocate afresh (the warm start's score is not the start model's any more)
             self.start_eval = None
             self.skipped = [x for x in self.skipped if x["what"] != "S1b-S1e allocation"]
-            self.opts = dataclasses.replace(self.opts, init=None, evaluate_start=True)
+            self.opts = dataclasses.replace(as_given, init=None, evaluate_start=True)
+            self.header = _header_for(self.f, self.opts)
             self.params, self.facts = allocate(self.dv, self.n, self.opts.seed, self.opts.allocation, self.timer)
 
     # -- S1x ---------------------------------------------------------------------------------
