@@ -79,11 +79,16 @@ def main(argv=None) -> dict:
     ap.add_argument("--share", type=float, default=0.25, help="warm refinement time as a share of cold's")
     ap.add_argument("--series", type=int, default=0, help="also encode this many timesteps of the first field as one series")
     ap.add_argument("--warm-iterations", type=int, default=375)
+    ap.add_argument("--no-turn", action="store_true", help="motion compensation moves the primitives without turning them")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     wp = warp()
     dev = resolve_device(args.device)
+    if args.no_turn:
+        import warpgauss.motion
+
+        warpgauss.motion.TURN = False
     kw = dict(budget=args.budget, device=dev, format="full")
     warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64, format="full")  # compile, self-test
     result = {
