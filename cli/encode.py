@@ -173,7 +173,9 @@ def encode(
     ] = None,
     scheduler: Annotated[
         str | None,
-        typer.Option(rich_help_panel="Bricks and cluster", help="Address of a running Dask scheduler (e.g. tcp://host:8786) for --bricks or a series"),
+        typer.Option(
+            rich_help_panel="Bricks and cluster", help="Address of a running Dask scheduler (e.g. tcp://host:8786) for --bricks or a series"
+        ),
     ] = None,
     cold: Annotated[
         bool,
@@ -230,14 +232,16 @@ def encode(
         fail("give a volume file or --example NAME (one of them)")
     weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
     variables = list(variable or [])
-    variable = variables[0] if len(variables) == 1 else None  # type: ignore[assignment]
+    one_variable = variables[0] if len(variables) == 1 else None
     series = input is not None and not input.exists() and any(c in str(input) for c in "*?[")
     if input is not None and not series and (len(variables) > 1 or input.exists()):
         from warpgauss.series import time_steps
 
-        series = len(variables) > 1 or time_steps(input, variable) is not None
+        series = len(variables) > 1 or time_steps(input, one_variable) is not None
     if not series and (cold or warm_iterations is not None or not motion):
-        fail("--cold, --warm-iterations and --no-motion apply to a series: a glob such as 'run/t_*.raw', a file with a time axis, or several --variable")
+        fail(
+            "--cold, --warm-iterations and --no-motion apply to a series: a glob such as 'run/t_*.raw', a file with a time axis, or several --variable"
+        )
     if series:
         if ladder is not None or resume or save_analytic is not None or bricks is not None:
             fail("a series does not combine with --ladder, --resume, --save-analytic or --bricks yet")
@@ -263,7 +267,7 @@ def encode(
                 time_budget=time_budget,
                 motion=motion,
             ),
-            ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
+            ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value),
             cold,
             warm_iterations,
             as_json,
@@ -304,7 +308,7 @@ def encode(
             not no_self_test,
             compact,
             fmt,
-            ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
+            ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value),
             full_eval,
             as_json,
             force,
@@ -357,7 +361,7 @@ def encode(
             format=fmt,
             example=example,
             example_size=size,
-            read=ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, stride, fill_value),
+            read=ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value),
             full_eval=full_eval,
             output=out,
             force=force,
@@ -582,7 +586,16 @@ def _encode_series(
     for r in rows:
         psnr = "-" if r["psnr_db"] is None else f"{r['psnr_db']:.2f}"
         secs = "-" if r["seconds"] is None else f"{r['seconds']:.1f}"
-        table.add_row(r["variable"] or "-", str(r["step"]), "warm" if r["warm_start"] else "cold", f"{r['n']:,}", str(r["iterations"]), psnr, secs, r["output"])
+        table.add_row(
+            r["variable"] or "-",
+            str(r["step"]),
+            "warm" if r["warm_start"] else "cold",
+            f"{r['n']:,}",
+            str(r["iterations"]),
+            psnr,
+            secs,
+            r["output"],
+        )
     out_console.print(table)
 
 

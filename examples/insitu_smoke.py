@@ -23,6 +23,7 @@ import argparse
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import warp as wp
 
@@ -30,23 +31,8 @@ import warpgauss
 
 
 @wp.func
-def sample_scalar(f: wp.array3d(dtype=float), p: wp.vec3) -> float:
-    """Trilinear value at p (x, y, z in cells), edges held."""
-    nz, ny, nx = f.shape[0], f.shape[1], f.shape[2]
-    x = wp.clamp(p[0], 0.0, float(nx - 1))
-    y = wp.clamp(p[1], 0.0, float(ny - 1))
-    z = wp.clamp(p[2], 0.0, float(nz - 1))
-    i0, j0, k0 = wp.min(int(x), nx - 2), wp.min(int(y), ny - 2), wp.min(int(z), nz - 2)
-    fx, fy, fz = x - float(i0), y - float(j0), z - float(k0)
-    c00 = wp.lerp(f[k0, j0, i0], f[k0, j0, i0 + 1], fx)
-    c01 = wp.lerp(f[k0, j0 + 1, i0], f[k0, j0 + 1, i0 + 1], fx)
-    c10 = wp.lerp(f[k0 + 1, j0, i0], f[k0 + 1, j0, i0 + 1], fx)
-    c11 = wp.lerp(f[k0 + 1, j0 + 1, i0], f[k0 + 1, j0 + 1, i0 + 1], fx)
-    return wp.lerp(wp.lerp(c00, c01, fy), wp.lerp(c10, c11, fy), fz)
-
-
-@wp.func
-def sample_vector(f: wp.array3d(dtype=wp.vec3), p: wp.vec3) -> wp.vec3:
+def sample(f: wp.array3d(dtype=Any), p: wp.vec3):
+    """Trilinear value at p (x, y, z in cells), edges held (scalars or vectors)."""
     nz, ny, nx = f.shape[0], f.shape[1], f.shape[2]
     x = wp.clamp(p[0], 0.0, float(nx - 1))
     y = wp.clamp(p[1], 0.0, float(ny - 1))
@@ -72,8 +58,8 @@ def advect(
     k, j, i = wp.tid()
     p = wp.vec3(float(i), float(j), float(k))
     back = p - dt * vel[k, j, i]
-    vel_out[k, j, i] = sample_vector(vel, back)
-    dens_out[k, j, i] = decay * sample_scalar(dens, back)
+    vel_out[k, j, i] = sample(vel, back)
+    dens_out[k, j, i] = decay * sample(dens, back)
 
 
 @wp.kernel

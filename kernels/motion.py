@@ -10,6 +10,8 @@ displacement interpolated at its centre (``shift_centres``): structure at x at t
 timestep is at x + d now.
 """
 
+from typing import Any
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
@@ -18,8 +20,9 @@ MAX_STEP = wp.constant(2.0)  # voxels one Gauss-Newton step may move a block (at
 
 
 @wp.func
-def sample(f: wp.array3d(dtype=float), p: wp.vec3) -> float:
-    """Trilinear value at p = (x, y, z) in voxels, edges held."""
+def sample(f: wp.array3d(dtype=Any), p: wp.vec3):
+    """Trilinear value at p = (x, y, z) in cells, edges held (a scalar volume, or the block
+    displacements in block coordinates, block centres at integers)."""
     nz, ny, nx = f.shape[0], f.shape[1], f.shape[2]
     x = wp.clamp(p[0], 0.0, float(nx - 1))
     y = wp.clamp(p[1], 0.0, float(ny - 1))
@@ -112,31 +115,12 @@ def smooth_blocks(disp: wp.array3d(dtype=wp.vec3), conf: wp.array3d(dtype=float)
     out[bk, bj, bi] = s / w
 
 
-@wp.func
-def sample_blocks(d: wp.array3d(dtype=wp.vec3), q: wp.vec3) -> wp.vec3:
-    """Trilinear block displacement at q (block coordinates, block centres at integers), edges held."""
-    nz, ny, nx = d.shape[0], d.shape[1], d.shape[2]
-    x = wp.clamp(q[0], 0.0, float(nx - 1))
-    y = wp.clamp(q[1], 0.0, float(ny - 1))
-    z = wp.clamp(q[2], 0.0, float(nz - 1))
-    i0 = wp.min(int(x), wp.max(nx - 2, 0))
-    j0 = wp.min(int(y), wp.max(ny - 2, 0))
-    k0 = wp.min(int(z), wp.max(nz - 2, 0))
-    i1, j1, k1 = wp.min(i0 + 1, nx - 1), wp.min(j0 + 1, ny - 1), wp.min(k0 + 1, nz - 1)
-    fx, fy, fz = x - float(i0), y - float(j0), z - float(k0)
-    c00 = wp.lerp(d[k0, j0, i0], d[k0, j0, i1], fx)
-    c01 = wp.lerp(d[k0, j1, i0], d[k0, j1, i1], fx)
-    c10 = wp.lerp(d[k1, j0, i0], d[k1, j0, i1], fx)
-    c11 = wp.lerp(d[k1, j1, i0], d[k1, j1, i1], fx)
-    return wp.lerp(wp.lerp(c00, c01, fy), wp.lerp(c10, c11, fy), fz)
-
-
 @wp.kernel
 def upsample_blocks(coarse: wp.array3d(dtype=wp.vec3), coarse_block: int, fine_block: int, fine: wp.array3d(dtype=wp.vec3)):
     """A finer level's blocks start from twice the coarser level's displacement at their centre."""
     bk, bj, bi = wp.tid()
     centre = (wp.vec3(float(bi), float(bj), float(bk)) + wp.vec3(0.5)) * float(fine_block) * 0.5  # coarse voxels
-    fine[bk, bj, bi] = 2.0 * sample_blocks(coarse, centre / float(coarse_block) - wp.vec3(0.5))
+    fine[bk, bj, bi] = 2.0 * sample(coarse, centre / float(coarse_block) - wp.vec3(0.5))
 
 
 @wp.kernel
@@ -147,7 +131,7 @@ def shift_centres(
     t = wp.tid()
     mu = wp.vec3(params[t, 0], params[t, 1], params[t, 2])
     q = (mu + wp.vec3(0.5)) / float(block) - wp.vec3(0.5)
-    d = sample_blocks(disp, q)
+    d = sample(disp, q)
     for a in range(3):
         params[t, a] = wp.clamp(mu[a] + d[a], -0.5, size[a] - 0.5)
     moved[t] = wp.length(d)
@@ -155,9 +139,9 @@ def shift_centres(
         return
     # the local rotation of the motion (half its curl, small angles) turns the primitive's frame too
     h = 0.5
-    ex = (sample_blocks(disp, q + wp.vec3(h, 0.0, 0.0)) - sample_blocks(disp, q - wp.vec3(h, 0.0, 0.0))) / (2.0 * h * float(block))
-    ey = (sample_blocks(disp, q + wp.vec3(0.0, h, 0.0)) - sample_blocks(disp, q - wp.vec3(0.0, h, 0.0))) / (2.0 * h * float(block))
-    ez = (sample_blocks(disp, q + wp.vec3(0.0, 0.0, h)) - sample_blocks(disp, q - wp.vec3(0.0, 0.0, h))) / (2.0 * h * float(block))
+    ex = (sample(disp, q + wp.vec3(h, 0.0, 0.0)) - sample(disp, q - wp.vec3(h, 0.0, 0.0))) / (2.0 * h * float(block))
+    ey = (sample(disp, q + wp.vec3(0.0, h, 0.0)) - sample(disp, q - wp.vec3(0.0, h, 0.0))) / (2.0 * h * float(block))
+    ez = (sample(disp, q + wp.vec3(0.0, 0.0, h)) - sample(disp, q - wp.vec3(0.0, 0.0, h))) / (2.0 * h * float(block))
     omega = 0.5 * wp.vec3(ey[2] - ez[1], ez[0] - ex[2], ex[1] - ey[0])
     angle = wp.length(omega)
     if angle > 1.0e-6:

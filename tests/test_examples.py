@@ -14,7 +14,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 CASES = {
     "encode_example.py": ["--size", "24", "--budget", "300", "--field", "bubbles", "--iterations", "20"],
     "encode_real_volume.py": ["--file", "nAChR_M2_water.plt", "--ratio", "8", "--stride", "2", "--iterations", "20"],
-    "insitu_smoke.py": ["--size", "20", "--steps", "8", "--every", "4", "--jacobi", "4", "--share", "2.0", "--budget", "150"],
+    "insitu_smoke.py": ["--size", "24", "--steps", "24", "--every", "12", "--jacobi", "4", "--share", "20", "--budget", "80"],
 }
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 import os
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -436,6 +437,8 @@ class DeviceVolume:
 
         self.field = f
         self.device = device
+        self.values: Any
+        self.mask: Any
         if isinstance(f.values, DeviceValues):  # normalised on a device: used where it is
             self.values = _on(f.values.array, device)
         else:

@@ -49,7 +49,9 @@ def device_array(x, device: str | None = None):
         try:
             a = wp.from_dlpack(x)
         except Exception as e:  # noqa: BLE001 - a producer's own refusal, said in one line
-            raise WarpgaussError(f"the array could not be shared through DLPack ({e}); pass a Warp, CuPy or PyTorch array, or a numpy copy") from None
+            raise WarpgaussError(
+                f"the array could not be shared through DLPack ({e}); pass a Warp, CuPy or PyTorch array, or a numpy copy"
+            ) from None
     else:
         a = _from_cuda_array_interface(wp, x.__cuda_array_interface__, x, device or "cuda:0")
     if a.ndim != 3:
@@ -177,7 +179,7 @@ def normalise_on_device(
             then shares that memory: the next normalisation into the same buffers overwrites it.
     """
     from ._warp import warp
-    from .analysis import MAX_VOXELS, _NormPlan, _new_field
+    from .analysis import MAX_VOXELS, _new_field, _NormPlan
     from .kernels import ingest as ki
 
     wp = warp()
@@ -223,9 +225,7 @@ def normalise_on_device(
         outputs=[values, mask, has_mask],
         device=dev,
     )
-    f = _new_field(
-        DeviceValues(values), DeviceMask(mask) if has_mask else None, lo, hi, spacing, origin, name, np_dtype, n_invalid
-    )
+    f = _new_field(DeviceValues(values), DeviceMask(mask) if has_mask else None, lo, hi, spacing, origin, name, np_dtype, n_invalid)
     if count_candidates:
         occ_r, elig_r = (wp.empty(rows, dtype=int, device=dev) for _ in range(2))
         wp.launch(ki.row_candidates, dim=rows, inputs=[values, mask, has_mask], outputs=[occ_r, elig_r], device=dev)

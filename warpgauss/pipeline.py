@@ -462,7 +462,11 @@ class _EncodeRun:
             with self.timer.stage("S1a", "the field on the device"):
                 self.dv = DeviceVolume(f, dev)
             self.stats = None
-            why = "warm start: no allocation needs them" if self.opts.init is not None else "an Encoder call on a time budget: only the report would show them"
+            why = (
+                "warm start: no allocation needs them"
+                if self.opts.init is not None
+                else "an Encoder call on a time budget: only the report would show them"
+            )
             self.skip("S1a structure statistics", why)
             return
         else:
@@ -1079,7 +1083,9 @@ def _array_device(arr, device: str | None) -> str:
 
     own = str(arr.device)
     if device not in (None, "", "auto") and resolve_device(device) != own:
-        raise WarpgaussError(f"the array lives on {own}, the encode was asked to run on {device}; pass device={own!r} (or a copy of the array there)")
+        raise WarpgaussError(
+            f"the array lives on {own}, the encode was asked to run on {device}; pass device={own!r} (or a copy of the array there)"
+        )
     return own
 
 

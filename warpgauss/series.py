@@ -21,7 +21,6 @@ import numpy as np
 from .errors import WarpgaussError
 from .model import Model
 
-
 CONTAINER_SUFFIXES = (".h5", ".hdf5", ".hdf", ".nc", ".cdf", ".zarr")
 
 
@@ -45,7 +44,7 @@ class TimeStep:
         if self.kind == "zarr":
             import zarr
 
-            root = zarr.open(self.path, mode="r")
+            root: Any = zarr.open(self.path, mode="r")
             arr = root if self.key == "" else root[self.key]
             return np.asarray(arr[self.t])
         from scipy.io import netcdf_file
@@ -64,7 +63,7 @@ def _arrays(path: Path) -> tuple[str, list[tuple[str, tuple]]]:
 
         from .readers.zarr import _array_names
 
-        root = zarr.open(str(path), mode="r")
+        root: Any = zarr.open(str(path), mode="r")
         if isinstance(root, zarr.Array):
             return "zarr", [("", tuple(root.shape))]
         return "zarr", [(n, tuple(root[n].shape)) for n in sorted(_array_names(root))]
@@ -164,7 +163,7 @@ def _fill_of(step: TimeStep) -> float | None:
     if step.kind == "zarr":
         import zarr
 
-        root = zarr.open(step.path, mode="r")
+        root: Any = zarr.open(step.path, mode="r")
         return _fill_attr(dict((root if step.key == "" else root[step.key]).attrs))
     from scipy.io import netcdf_file
 
@@ -263,8 +262,20 @@ def encode_series(
         raise WarpgaussError(f"warm iterations must be >= 0, got {warm_iterations}")
     plan = [
         Segment(
-            var, opts, list(range(len(items))), list(items), None if outputs is None else outputs[c], None, None,
-            cold, warm_iterations, force, encode_kwargs, len(items), budget, ratio,
+            var,
+            opts,
+            list(range(len(items))),
+            list(items),
+            None if outputs is None else outputs[c],
+            None,
+            None,
+            cold,
+            warm_iterations,
+            force,
+            encode_kwargs,
+            len(items),
+            budget,
+            ratio,
         )
         for c, (var, items, opts) in enumerate(chains)
     ]
@@ -363,12 +374,20 @@ def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
     from distributed import as_completed
 
     workers = max(1, len(client.scheduler_info().get("workers", {})))
-    firsts = [dataclasses.replace(seg, steps=seg.steps[:1], items=seg.items[:1], outputs=None if seg.outputs is None else seg.outputs[:1]) for seg in plan]
+    firsts = [
+        dataclasses.replace(seg, steps=seg.steps[:1], items=seg.items[:1], outputs=None if seg.outputs is None else seg.outputs[:1])
+        for seg in plan
+    ]
     heads = _gather(client, firsts, on_step, as_completed)
     parts: list[Segment] = []
     for seg, head in zip(plan, heads):
         rest = dataclasses.replace(
-            seg, steps=seg.steps[1:], items=seg.items[1:], outputs=None if seg.outputs is None else seg.outputs[1:], start=head[0], n=head[0].n
+            seg,
+            steps=seg.steps[1:],
+            items=seg.items[1:],
+            outputs=None if seg.outputs is None else seg.outputs[1:],
+            start=head[0],
+            n=head[0].n,
         )
         if rest.steps:
             parts += rest.split(len(rest.steps) if seg.cold else workers)
@@ -384,7 +403,9 @@ def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
 def _gather(client, segments: list[Segment], on_step, as_completed) -> list[list[Model]]:
     if not segments:
         return []
-    futures = client.map(encode_segment, segments, retries=1, pure=False, key=[f"warpgauss-series-{i}-{id(s)}" for i, s in enumerate(segments)])
+    futures = client.map(
+        encode_segment, segments, retries=1, pure=False, key=[f"warpgauss-series-{i}-{id(s)}" for i, s in enumerate(segments)]
+    )
     index = {f.key: i for i, f in enumerate(futures)}
     out: list = [None] * len(segments)
     try:
