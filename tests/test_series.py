@@ -149,6 +149,8 @@ def test_a_time_axis_in_one_file_is_a_series(tmp_path):
         ("density", 0), ("density", 1), ("density", 2), ("energy", 0), ("energy", 1), ("energy", 2)
     ]
     assert (tmp_path / "o_energy_2.wgs").is_file() and all(m.n == 100 for m in both)
+    sizes = {(tmp_path / f"o_{v}_{t}.wgs").stat().st_size for v in ("density", "energy") for t in range(3)}
+    assert sizes == {both[0].file_size(False)}  # exactly the same bytes for every timestep
     assert time_steps(h5, "mask3d") is None  # a 3D variable is one volume
     assert len(series_chains(str(h5), ["mask3d"])[0][1]) == 1
     with pytest.raises(WarpgaussError, match="no variable 'wind'.*density"):

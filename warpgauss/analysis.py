@@ -433,13 +433,11 @@ class DeviceVolume:
         from ._warp import warp
 
         wp = warp()
-        from .devicefield import DeviceValues
-
         self.field = f
         self.device = device
         self.values: Any
         self.mask: Any
-        if isinstance(f.values, DeviceValues):  # normalised on a device: used where it is
+        if hasattr(f.values, "array"):  # normalised on a device (warpgauss.devicefield): used where it is
             self.values = _on(f.values.array, device)
         else:
             self.values = wp.array(f.values, dtype=float, device=device)
