@@ -109,6 +109,7 @@ def _time_axis_files(tmp_path, steps):
     with h5py.File(h5, "w") as f:
         f["mask3d"] = steps[0]
         f["density"] = cube
+        f["density"].attrs["spacing"] = (0.5, 0.5, 2.0)  # as the readers take it: (x, y, z)
         f["energy"] = cube[:, ::-1].copy()
     nc = tmp_path / "run.nc"
     with netcdf_file(nc, "w") as f:
@@ -149,6 +150,9 @@ def test_a_time_axis_in_one_file_is_a_series(tmp_path):
         ("density", 0), ("density", 1), ("density", 2), ("energy", 0), ("energy", 1), ("energy", 2)
     ]
     assert (tmp_path / "o_energy_2.wgs").is_file() and all(m.n == 100 for m in both)
+    spacings = [tuple(m.header["grid"]["spacing"]) for m in (both[0], both[3])]
+    assert spacings == [(0.5, 0.5, 2.0), (1.0, 1.0, 1.0)]  # each array's own
+    assert both[1].report["input"]["name"] == "run.h5:density[1]"
     sizes = {(tmp_path / f"o_{v}_{t}.wgs").stat().st_size for v in ("density", "energy") for t in range(3)}
     assert sizes == {both[0].file_size(False)}  # exactly the same bytes for every timestep
     assert time_steps(h5, "mask3d") is None  # a 3D variable is one volume

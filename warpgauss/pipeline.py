@@ -28,6 +28,7 @@ from .io import ReadOptions  # noqa: F401 - part of this module's API (stage P's
 from .model import Model, make_header
 from .optimize import PRESETS, RefineConfig
 from .profiling import StageRecorder
+from .readers.timesteps import TimeStep
 
 DEFAULT_RATIO = 20.0  # used when neither a budget nor a ratio is given
 MAX_SAMPLES = 1 << 24  # samples per iteration: 16.8M is 1.7 GB of per-sample buffers and 64x the largest preset
@@ -118,6 +119,13 @@ def load_field(
         f = normalise_on_device(arr[::s, ::s, ::s] if s > 1 else arr, fill_value=fill, spacing=(float(s),) * 3, buffers=buffers)
         info = {"read_lazily": False, "name": "array", "path": None, "example": None, "on_device": str(arr.device)}
         return f, {**info, **_field_facts(f, s, fill)}
+    elif isinstance(source, TimeStep):  # one timestep of a file with a time axis, with its attributes
+        data = source.read()[::s, ::s, ::s]
+        (sx, sy, sz), origin, declared_fill = source.meta()
+        spacing = (sx * s, sy * s, sz * s)
+        name, dtype, path = f"{Path(source.path).name}:{source.key}[{source.t}]", str(data.dtype), str(source)
+        if fill is None:
+            fill = declared_fill
     elif isinstance(source, np.ndarray):
         if source.ndim != 3:
             raise WarpgaussError(f"the array is {source.ndim}D (shape {source.shape}); warpgauss encodes 3D volumes")

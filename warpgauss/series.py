@@ -20,93 +20,9 @@ import numpy as np
 
 from .errors import WarpgaussError
 from .model import Model
+from .readers.timesteps import TimeStep, _arrays, time_steps
 
-CONTAINER_SUFFIXES = (".h5", ".hdf5", ".hdf", ".nc", ".cdf", ".zarr")
-
-
-@dataclass(frozen=True)
-class TimeStep:
-    """Timestep ``t`` of an array with a time axis ``(t, z, y, x)`` in an HDF5, netCDF or Zarr
-    file; :meth:`read` reads that timestep alone."""
-
-    path: str
-    key: str
-    t: int
-    kind: str  # "hdf5" (netCDF-4 too), "netcdf" (classic) or "zarr"
-    steps: int
-
-    def read(self) -> np.ndarray:
-        if self.kind == "hdf5":
-            import h5py
-
-            with h5py.File(self.path, "r") as f:
-                return np.asarray(f[self.key][self.t])
-        if self.kind == "zarr":
-            import zarr
-
-            root: Any = zarr.open(self.path, mode="r")
-            arr = root if self.key == "" else root[self.key]
-            return np.asarray(arr[self.t])
-        from scipy.io import netcdf_file
-
-        with netcdf_file(self.path, "r", mmap=False) as f:
-            return np.array(f.variables[self.key].data[self.t])
-
-    def __str__(self) -> str:
-        return f"{self.path}:{self.key}[{self.t}]"
-
-
-def _arrays(path: Path) -> tuple[str, list[tuple[str, tuple]]]:
-    """(kind, [(name, shape)]) of the arrays in a container file, without reading them."""
-    if path.is_dir() or path.suffix.lower() == ".zarr":
-        import zarr
-
-        from .readers.zarr import _array_names
-
-        root: Any = zarr.open(str(path), mode="r")
-        if isinstance(root, zarr.Array):
-            return "zarr", [("", tuple(root.shape))]
-        return "zarr", [(n, tuple(root[n].shape)) for n in sorted(_array_names(root))]
-    with open(path, "rb") as fh:
-        magic = fh.read(8)
-    if magic.startswith(b"CDF"):
-        from scipy.io import netcdf_file
-
-        with netcdf_file(path, "r", mmap=False) as f:
-            return "netcdf", [(n, tuple(v.shape)) for n, v in f.variables.items()]
-    import h5py
-
-    found: list[tuple[str, tuple]] = []
-    with h5py.File(path, "r") as f:
-        f.visititems(lambda n, o: found.append((n, tuple(o.shape))) if isinstance(o, h5py.Dataset) else None)
-    return "hdf5", found
-
-
-def time_steps(path, variable: str | None = None) -> list[TimeStep] | None:
-    """The timesteps of ``variable`` (default: the first 4D array) of a container file whose
-    arrays are ``(t, z, y, x)``; None if the file holds no such array (a single volume)."""
-    p = Path(path)
-    if not (p.exists() and str(p).lower().endswith(CONTAINER_SUFFIXES)):
-        return None
-    try:
-        kind, found = _arrays(p)
-    except Exception:  # noqa: BLE001 - not a container we can list: the reader will say why
-        return None
-    shapes = dict(found)
-    if variable is not None:
-        key = variable.lstrip("/") if kind == "hdf5" else variable
-        if key not in shapes:
-            from .readers.common import _list_datasets
-
-            raise WarpgaussError(f"{p.name} has no variable {variable!r}; it holds {_list_datasets(found)}; pick one with --variable")
-        if len(shapes[key]) != 4:
-            return None
-    else:
-        key = next((n for n, sh in found if len(sh) == 4 and sh[0] > 1), None)
-        if key is None:
-            return None
-    steps = int(shapes[key][0])
-    return [TimeStep(str(p), key, t, kind, steps) for t in range(steps)]
+__all__ = ["TimeStep", "encode_series", "series_chains", "series_sources", "time_steps"]
 
 
 def series_sources(sources) -> list:
@@ -149,26 +65,6 @@ def _grid(src, read) -> tuple[int, ...]:
         raise WarpgaussError(f"no such file in the series: {p}")
     vol = (read or ReadOptions()).read(p, lazy=True)
     return tuple(int(v) for v in vol.data.shape[::-1])
-
-
-def _fill_of(step: TimeStep) -> float | None:
-    """The fill value an array declares (``_FillValue`` / ``missing_value``), as the readers take it."""
-    from .readers.common import _fill_attr
-
-    if step.kind == "hdf5":
-        import h5py
-
-        with h5py.File(step.path, "r") as f:
-            return _fill_attr(f[step.key].attrs)
-    if step.kind == "zarr":
-        import zarr
-
-        root: Any = zarr.open(step.path, mode="r")
-        return _fill_attr(dict((root if step.key == "" else root[step.key]).attrs))
-    from scipy.io import netcdf_file
-
-    with netcdf_file(step.path, "r", mmap=False) as f:
-        return _fill_attr(f.variables[step.key]._attributes)
 
 
 def series_chains(sources, variables=None, read=None) -> list[tuple[str | None, list, Any]]:
@@ -346,14 +242,7 @@ def encode_segment(seg: Segment, on_step=None) -> list[Model]:
             kw["warm_start"] = before
             if seg.warm_iterations is not None:
                 kw["iterations"] = seg.warm_iterations
-        opts = seg.read
-        if isinstance(src, TimeStep):
-            if opts.fill_value is None:
-                opts = dataclasses.replace(opts, fill_value=_fill_of(src))
-            data = src.read()
-        else:
-            data = src
-        m = encode(data, read=opts, output=None if seg.outputs is None else seg.outputs[k], force=seg.force, **kw)
+        m = encode(src, read=seg.read, output=None if seg.outputs is None else seg.outputs[k], force=seg.force, **kw)
         m.report["series"] = {
             "variable": seg.var,
             "step": t,
