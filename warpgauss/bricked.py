@@ -479,22 +479,40 @@ def _run_wave(fn, batch: list[BrickTask], client, progress, done: int, total: in
             if progress is not None:
                 progress(done + len(out), total)
         return out
+    return map_on_cluster(
+        client,
+        fn,
+        batch,
+        [f"warpgauss-brick-{t.index}-{id(t)}" for t in batch],
+        "a brick",
+        tail="; no model written",
+        after=None if progress is None else (lambda n, i, r: progress(done + n, total)),
+    )
+
+
+def map_on_cluster(client, fn, items: list, keys: list[str], what: str, tail: str = "", after=None) -> list:
+    """``fn`` over ``items`` on a Dask cluster, results in item order. An item that fails is
+    retried once; one that fails twice cancels the rest and fails the run in one line (``what``
+    names the item, ``tail`` ends the line). ``after(done, index, result)`` as each comes back."""
     from distributed import as_completed
 
-    futures = client.map(fn, batch, retries=1, pure=False, key=[f"warpgauss-brick-{t.index}-{id(t)}" for t in batch])
-    results = []
+    futures = client.map(fn, items, retries=1, pure=False, key=keys)
+    index = {f.key: i for i, f in enumerate(futures)}
+    out: list = [None] * len(items)
+    done = 0
     try:
         for fut in as_completed(futures):
-            results.append(fut.result())
-            if progress is not None:
-                progress(done + len(results), total)
-    except Exception as e:  # a brick that failed twice (its retry included)
+            i = index[fut.key]
+            out[i] = fut.result()
+            done += 1
+            if after is not None:
+                after(done, i, out[i])
+    except Exception as e:  # an item that failed twice (its retry included)
         for fut in futures:
             fut.cancel()
-        raise WarpgaussError(
-            f"a brick failed on the Dask cluster twice: {type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else ''}; no model written"
-        ) from None
-    return results
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise WarpgaussError(f"{what} failed on the Dask cluster twice: {type(e).__name__}: {first}{tail}") from None
+    return out
 
 
 def local_client(workers: int):

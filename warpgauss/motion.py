@@ -11,8 +11,6 @@ kept: the structure moved, it did not change.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 BLOCK = 2  # voxels per block edge at the finest level
@@ -32,7 +30,10 @@ CONF_FLOOR = 1e-6  # weight of a textureless block in the smoothing
 
 def levels_for(shape_xyz) -> int:
     """Pyramid levels: halve while the shortest side stays >= :data:`COARSEST` voxels."""
-    return max(1, min(MAX_LEVELS, 1 + int(math.floor(math.log2(max(min(shape_xyz), 1) / COARSEST))) if min(shape_xyz) >= COARSEST else 1))
+    side, levels = min(shape_xyz), 1
+    while levels < MAX_LEVELS and side / 2**levels >= COARSEST:
+        levels += 1
+    return levels
 
 
 def decode_on_device(params: np.ndarray, shape_xyz, device: str):

@@ -260,14 +260,12 @@ def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
     """The segments on a Dask cluster: every chain's timestep 0 first (it fixes N), then the rest
     of each chain split into one contiguous part per worker (timesteps cold: one part each); a
     part that fails is retried once, one that fails twice fails the run."""
-    from distributed import as_completed
-
     workers = max(1, len(client.scheduler_info().get("workers", {})))
     firsts = [
         dataclasses.replace(seg, steps=seg.steps[:1], items=seg.items[:1], outputs=None if seg.outputs is None else seg.outputs[:1])
         for seg in plan
     ]
-    heads = _gather(client, firsts, on_step, as_completed)
+    heads = _gather(client, firsts, on_step)
     parts: list[Segment] = []
     for seg, head in zip(plan, heads):
         rest = dataclasses.replace(
@@ -280,7 +278,7 @@ def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
         )
         if rest.steps:
             parts += rest.split(len(rest.steps) if seg.cold else workers)
-    done = _gather(client, parts, on_step, as_completed)
+    done = _gather(client, parts, on_step)
     by_var: dict = {}
     for seg, head in zip(plan, heads):
         by_var.setdefault(seg.var, []).extend(head)
@@ -289,25 +287,13 @@ def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
     return [m for seg in plan for m in sorted(by_var[seg.var], key=lambda m: m.report["series"]["step"])]
 
 
-def _gather(client, segments: list[Segment], on_step, as_completed) -> list[list[Model]]:
-    if not segments:
-        return []
-    futures = client.map(
-        encode_segment, segments, retries=1, pure=False, key=[f"warpgauss-series-{i}-{id(s)}" for i, s in enumerate(segments)]
-    )
-    index = {f.key: i for i, f in enumerate(futures)}
-    out: list = [None] * len(segments)
-    try:
-        for fut in as_completed(futures):
-            models = fut.result()
-            out[index[fut.key]] = models
-            if on_step is not None:
-                for m in models:
-                    on_step(m.report["series"]["step"], segments[index[fut.key]].total, m)
-    except Exception as e:  # a part that failed twice (its retry included)
-        for fut in futures:
-            fut.cancel()
-        raise WarpgaussError(
-            f"a series part failed on the Dask cluster twice: {type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else ''}"
-        ) from None
-    return out
+def _gather(client, segments: list[Segment], on_step) -> list[list[Model]]:
+    from .bricked import map_on_cluster
+
+    def after(done: int, i: int, models: list[Model]) -> None:
+        if on_step is not None:
+            for m in models:
+                on_step(m.report["series"]["step"], segments[i].total, m)
+
+    keys = [f"warpgauss-series-{i}-{id(s)}" for i, s in enumerate(segments)]
+    return map_on_cluster(client, encode_segment, segments, keys, "a series part", after=after) if segments else []
