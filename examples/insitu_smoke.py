@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -203,7 +204,9 @@ class Example:
             )
         overhead = self.encode_seconds / self.sim_seconds
         per_step = 1000 * self.sim_seconds / max(self.steps, 1)
-        print(f"simulation {self.sim_seconds:.2f} s ({per_step:.1f} ms/step), encoding {self.encode_seconds:.2f} s: overhead {100 * overhead:.1f} %")
+        print(
+            f"simulation {self.sim_seconds:.2f} s ({per_step:.1f} ms/step), encoding {self.encode_seconds:.2f} s: overhead {100 * overhead:.1f} %"
+        )
         return {
             "size": self.sim.n,
             "steps": self.steps,
@@ -215,6 +218,7 @@ class Example:
             "device": self.device,
             "device_name": wp.get_device(self.device).name,
             "warp_version": wp.config.version,
+            "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "encode_seconds": self.encode_seconds,
             "overhead": overhead,
             "encodes": self.records,

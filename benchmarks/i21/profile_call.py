@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import datetime as dt
 import io
 import json
 import pstats
@@ -46,8 +47,14 @@ def main(argv=None) -> dict:
     s = io.StringIO()
     pstats.Stats(prof, stream=s).sort_stats("cumulative").print_stats(45)
     print(s.getvalue())
-    out = {"command": "python benchmarks/i21/profile_call.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-           "device_name": device_name(dev), "warp_version": wp.config.version, "calls": calls, "profile": s.getvalue()}
+    out = {
+        "command": "python benchmarks/i21/profile_call.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "device_name": device_name(dev),
+        "warp_version": wp.config.version,
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "calls": calls,
+        "profile": s.getvalue(),
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=2))
     return out

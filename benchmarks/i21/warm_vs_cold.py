@@ -27,8 +27,9 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import warpgauss
+from warpgauss import motion
 from warpgauss._warp import device_name, resolve_device, warp
-from warpgauss.synthetic import generate, generate_series
+from warpgauss.synthetic import generate
 
 
 def steps_of(name: str, size: int, steps: int, turn: float) -> list:
@@ -86,9 +87,7 @@ def main(argv=None) -> dict:
     wp = warp()
     dev = resolve_device(args.device)
     if args.no_turn:
-        import warpgauss.motion
-
-        warpgauss.motion.TURN = False
+        motion.TURN = False
     kw = dict(budget=args.budget, device=dev, format="full")
     warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64, format="full")  # compile, self-test
     result = {
