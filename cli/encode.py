@@ -189,6 +189,13 @@ def encode(
         int | None,
         typer.Option(rich_help_panel="Time series", help="Refinement iterations of a warm-started timestep (default: --iterations)"),
     ] = None,
+    keyframe_drift: Annotated[
+        float | None,
+        typer.Option(
+            rich_help_panel="Time series",
+            help="Re-encode a warm timestep cold when its PSNR falls this many dB below the best warm one since the last cold timestep (default 1.0; 0: never)",
+        ),
+    ] = None,
     motion: Annotated[
         bool,
         typer.Option(
@@ -238,10 +245,12 @@ def encode(
         from warpgauss.series import time_steps
 
         series = len(variables) > 1 or time_steps(input, one_variable) is not None
-    if not series and (cold or warm_iterations is not None or not motion):
+    if not series and (cold or warm_iterations is not None or not motion or keyframe_drift is not None):
         fail(
-            "--cold, --warm-iterations and --no-motion apply to a series: a glob such as 'run/t_*.raw', a file with a time axis, or several --variable"
+            "--cold, --warm-iterations, --keyframe-drift and --no-motion apply to a series: a glob such as 'run/t_*.raw', a file with a time axis, or several --variable"
         )
+    if keyframe_drift is not None and keyframe_drift < 0:
+        fail(f"--keyframe-drift must be >= 0 dB (0: never re-encode cold), got {keyframe_drift:g}")
     if series:
         if ladder is not None or resume or save_analytic is not None or bricks is not None:
             fail("a series does not combine with --ladder, --resume, --save-analytic or --bricks yet")
@@ -270,6 +279,7 @@ def encode(
             ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value),
             cold,
             warm_iterations,
+            keyframe_drift,
             as_json,
             force,
         )
@@ -497,12 +507,23 @@ def _encode_ladder(
 
 
 def _encode_series(
-    pattern: str, variables: list[str], cluster: tuple, output, kw: dict, read, cold: bool, warm_iterations, as_json: bool, force: bool
+    pattern: str,
+    variables: list[str],
+    cluster: tuple,
+    output,
+    kw: dict,
+    read,
+    cold: bool,
+    warm_iterations,
+    keyframe_drift: float | None,
+    as_json: bool,
+    force: bool,
 ) -> None:
     """``warpgauss encode 'GLOB'`` (or a file with a time axis, or several --variable): one model
     and report per timestep and variable (see warpgauss.encode_series)."""
     import warpgauss
     from warpgauss._fs import atomic_write_bytes
+    from warpgauss.series import KEYFRAME_DRIFT_DB
 
     out = output or Path("series.wgs")
     name = str(out)
@@ -547,6 +568,7 @@ def _encode_series(
             output_pattern=name,
             cold=cold,
             warm_iterations=warm_iterations,
+            keyframe_drift=KEYFRAME_DRIFT_DB if keyframe_drift is None else keyframe_drift,
             force=force,
             read=read,
             on_step=step,
@@ -567,6 +589,7 @@ def _encode_series(
             "step": m.report["series"]["step"],
             "source": m.report["series"]["source"],
             "warm_start": m.report["series"]["warm_start"],
+            "keyframe": "keyframe" in m.report["series"],
             "n": m.n,
             "iterations": m.report["refinement"].get("iterations", 0),
             "psnr_db": m.report["psnr_db"],
@@ -589,7 +612,7 @@ def _encode_series(
         table.add_row(
             r["variable"] or "-",
             str(r["step"]),
-            "warm" if r["warm_start"] else "cold",
+            "warm" if r["warm_start"] else ("cold (drift)" if r["keyframe"] else "cold"),
             f"{r['n']:,}",
             str(r["iterations"]),
             psnr,

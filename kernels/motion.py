@@ -7,7 +7,7 @@ displacement d that minimises sum (ref(x) - cur(x + d))^2 over its voxels by Gau
 texture takes its neighbours' motion through a confidence-weighted 3^3 average
 (``smooth_blocks``, weight: the trace of its normal matrix). A primitive then moves by the
 displacement interpolated at its centre (``shift_centres``): structure at x at the previous
-timestep is at x + d now.
+timestep is at x + d now (a primitive it would carry out of the grid stays).
 """
 
 from typing import Any
@@ -127,13 +127,23 @@ def upsample_blocks(coarse: wp.array3d(dtype=wp.vec3), coarse_block: int, fine_b
 def shift_centres(
     params: wp.array2d(dtype=float), disp: wp.array3d(dtype=wp.vec3), block: int, size: wp.vec3, turn: int, moved: wp.array(dtype=float)
 ):
-    """mu += the displacement at mu (columns 0-2 of the (N, 12) parameters), kept inside the grid."""
+    """mu += the displacement at mu (columns 0-2 of the (N, 12) parameters); ``moved`` = its length.
+
+    A primitive whose structure leaves the grid stays where it is (``moved`` = -1): the inflow
+    beside it is new structure to fit, whereas clamping it onto the boundary piled the outflow
+    of every timestep up on the faces (measured: a 4-degree turn carries 2.6 % of the primitives
+    out a step; a 512^3 chain lost 0.3-0.7 dB a step even with the true motion)."""
     t = wp.tid()
     mu = wp.vec3(params[t, 0], params[t, 1], params[t, 2])
     q = (mu + wp.vec3(0.5)) / float(block) - wp.vec3(0.5)
     d = sample(disp, q)
+    to = mu + d
     for a in range(3):
-        params[t, a] = wp.clamp(mu[a] + d[a], -0.5, size[a] - 0.5)
+        if to[a] < -0.5 or to[a] > size[a] - 0.5:
+            moved[t] = -1.0
+            return
+    for a in range(3):
+        params[t, a] = to[a]
     moved[t] = wp.length(d)
     if turn == 0:
         return

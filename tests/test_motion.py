@@ -103,3 +103,29 @@ def test_a_warm_start_follows_the_motion():
     assert follow.report["psnr_db"] > stay.report["psnr_db"]
     assert follow.report["allocation"]["motion"]["passes"] >= 1
     assert any(s["what"] == "S1m motion compensation" for s in stay.report["skipped"])
+
+
+def test_a_primitive_the_motion_carries_out_of_the_grid_stays():
+    """shift_centres moves a centre by the displacement at it, unless that leaves the grid: then
+    the primitive stays where it was, unturned, and is counted (moved = -1)."""
+    from warpgauss._warp import warp
+    from warpgauss.kernels import motion as km
+
+    wp = warp()
+    p0 = np.zeros((3, 12), np.float32)
+    p0[:, 3:6] = 1.0  # unit scales
+    p0[:, 9] = 1.0  # identity rotation (x, y, z, w)
+    p0[:, 10:12] = 0.5
+    p0[:, 0:3] = [[5.0, 5.0, 5.0], [14.8, 5.0, 5.0], [0.2, 5.0, 5.0]]
+    disp = np.zeros((8, 8, 8, 3), np.float32)
+    disp[..., 0] = 1.0  # everything moves one voxel along +x
+    p = wp.array(p0, dtype=float, device="cpu")
+    moved = wp.empty(3, dtype=float, device="cpu")
+    d = wp.array(disp, dtype=wp.vec3, device="cpu")
+    wp.launch(km.shift_centres, dim=3, inputs=[p, d, 2, wp.vec3(16.0, 16.0, 16.0), 1], outputs=[moved], device="cpu")
+    out = p.numpy()
+    np.testing.assert_allclose(out[0, :3], [6.0, 5.0, 5.0])
+    np.testing.assert_array_equal(out[1], p0[1])  # 15.8 > 15.5: it would leave the grid, so it stays
+    np.testing.assert_allclose(out[2, :3], [1.2, 5.0, 5.0])
+    np.testing.assert_allclose(moved.numpy(), [1.0, -1.0, 1.0])
+    np.testing.assert_array_equal(out[:, 6:], p0[:, 6:])  # a uniform shift turns nothing

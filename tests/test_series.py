@@ -96,6 +96,10 @@ def test_cli_encodes_a_glob_as_a_series(tmp_path):
     assert r.exit_code == 2 and "exists" in r.output  # nothing overwritten without --force
     r = CliRunner().invoke(app, ["encode", str(tmp_path / "r_0_16x16x16_float32.raw"), "--cold", "--budget", "100"])
     assert r.exit_code == 2 and "apply to a series" in r.output
+    r = CliRunner().invoke(app, ["encode", str(tmp_path / "r_0_16x16x16_float32.raw"), "--keyframe-drift", "2", "--budget", "100"])
+    assert r.exit_code == 2 and "apply to a series" in r.output
+    r = CliRunner().invoke(app, [*base, "--keyframe-drift", "-1", "-o", str(tmp_path / "n_{t}.wgs")])
+    assert r.exit_code == 2 and "--keyframe-drift must be >= 0" in r.output and not list(tmp_path.glob("n_*"))
 
 
 def _time_axis_files(tmp_path, steps):
@@ -212,3 +216,43 @@ def test_a_series_on_a_local_dask_cluster(tmp_path):
     assert [m.report["series"]["warm_start"] for m in cold] == [False] * 4
     for t in range(4):
         np.testing.assert_array_equal(cold[t].params, warpgauss.encode(steps[t], **{k: v for k, v in kw.items() if k != "warm_iterations"}).params)
+
+
+def test_a_drifting_warm_chain_is_re_encoded_cold_at_the_step_that_drifts(tmp_path):
+    """The key-frame rule: a warm timestep more than keyframe_drift dB below the chain's best warm
+    PSNR is encoded again cold (same N) and the better kept: the cold one is the same model as a
+    cold encode of that timestep (and its file), and the chain goes on warm from it."""
+    from warpgauss.series import encode_series
+
+    a, b, c = generate_series("bubbles", 16, 3)
+    other = np.ascontiguousarray(np.roll(c, 8, axis=2))  # timestep 2 jumps half the grid: warm drifts
+    vols = [a, b, other, other]
+    kw = dict(iterations=30, samples=256, device="cpu", self_test=False, format="full")
+    models = encode_series(vols, budget=120, warm_iterations=3, output_pattern=str(tmp_path / "k_{t}.wgs"), **kw)
+    series = [m.report["series"] for m in models]
+    assert [s["warm_start"] for s in series] == [False, True, False, True]
+    assert "keyframe" not in series[1] and series[2]["keyframe"]["kept"] == "cold"
+    kf = series[2]["keyframe"]
+    assert kf["warm_psnr_db"] < models[1].report["psnr_db"] - 1.0 and kf["cold_psnr_db"] > kf["warm_psnr_db"]
+    cold = warpgauss.encode(other, budget=120, **kw)
+    np.testing.assert_array_equal(models[2].params, cold.params)  # the key frame is the cold model
+    np.testing.assert_array_equal(warpgauss.Model.load(tmp_path / "k_2.wgs").params, cold.params)  # and its file
+    off = encode_series(vols[:3], budget=120, warm_iterations=3, keyframe_drift=None, **kw)
+    assert [m.report["series"]["warm_start"] for m in off] == [False, True, True]
+    np.testing.assert_array_equal(off[2].params, warpgauss.encode(other, budget=120, warm_start=off[1], **{**kw, "iterations": 3}).params)
+
+
+def test_a_key_frame_that_scores_below_the_warm_timestep_is_dropped():
+    """Where the cold re-encode is the worse (here: cold gets 1 iteration, warm 40), the warm
+    model stays, the report says so, and it is the chain's new baseline (no retry next step)."""
+    from warpgauss.series import encode_series
+
+    a, b, c = generate_series("bubbles", 16, 3)
+    c = np.ascontiguousarray(np.roll(c, 5, axis=2))
+    kw = dict(samples=256, device="cpu", self_test=False, format="full")
+    models = encode_series([a, b, c, c], budget=120, iterations=1, warm_iterations=40, **kw)
+    series = [m.report["series"] for m in models]
+    assert [s["warm_start"] for s in series] == [False, True, True, True]
+    kf = series[2]["keyframe"]
+    assert kf["kept"] == "warm" and kf["cold_psnr_db"] < kf["warm_psnr_db"] == models[2].report["psnr_db"]
+    assert "keyframe" not in series[3]

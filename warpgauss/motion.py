@@ -18,12 +18,15 @@ COARSE_BLOCK = 4  # and at the coarser levels
 COARSEST = 16  # voxels: no level coarser than this on its shortest side
 MAX_LEVELS = 5  # 512^3: levels of 512 .. 32 voxels, a capture range of about 2 x 2^4 = 32 voxels
 STEPS = 8  # Gauss-Newton steps per level (3: up to 1 dB lower start on the rotating bubbles)
-# learning-rate factor of the refinement that follows (bubbles / interface / vortex 40^3, N 1,200,
-# 12 deg, 375 iterations, CPU: x1 53.71 / 37.70 / 50.28 dB, x0.3 54.13 / 37.76 / 50.38, x0.1
-# 53.76 / 37.68 / 49.85; cold at 1,500 iterations 54.35 / 37.78 / 50.67)
-WARM_LR_SCALE = 0.3
+# learning-rate factor of the refinement that follows. Chains of 4 warm timesteps at 512^3, N 400k,
+# 375 iterations (i21_motion_sweep512_stay_h100.json), PSNR at step 4 vortex / bubbles / interface:
+# x1 70.53 / 57.81 / 43.42 dB, x0.3 69.89 / 58.13 / 42.56; at 0.1 the vortex chain fell to 64.87
+# (i21_motion_sweep512_vortex2_h100.json). On 40^3 CPU fields x0.3 was 0.1-0.4 dB ahead for one step.
+WARM_LR_SCALE = 1.0
 TURN = True  # turn each primitive with the local rotation (half the curl) of the motion
 PASSES = 2  # decode, match, move; again from the moved model (measured: +0.7 to +2.2 dB at the start)
+FINEST = 0  # the finest level that is estimated (finer levels take its displacement, interpolated)
+SMOOTH = 0  # extra confidence-weighted 3^3 smoothing passes of the finest blocks' displacements
 LAMBDA = 1e-6  # Tikhonov floor of a block's normal matrix (besides 1e-3 of its trace)
 CONF_FLOOR = 1e-6  # weight of a textureless block in the smoothing
 
@@ -80,10 +83,13 @@ def estimate_motion(ref, cur, levels: int | None = None):
             wp.launch(km.upsample_blocks, dim=blocks, inputs=[disp, prev_block, block], outputs=[start], device=dev)
         disp, prev_block = start, block
         step = wp.empty(blocks, dtype=wp.vec3, device=dev)
-        conf = wp.empty(blocks, dtype=float, device=dev)
-        for _ in range(STEPS):
+        conf = wp.full(blocks, 1.0, dtype=float, device=dev)
+        for _ in range(STEPS if level >= FINEST else 0):
             wp.launch(km.lk_step, dim=blocks, inputs=[r, c, disp, block, LAMBDA], outputs=[step, conf], device=dev)
             wp.launch(km.smooth_blocks, dim=blocks, inputs=[step, conf, CONF_FLOOR], outputs=[disp], device=dev)
+    for _ in range(SMOOTH):
+        wp.launch(km.smooth_blocks, dim=disp.shape, inputs=[disp, conf, CONF_FLOOR], outputs=[step], device=dev)
+        disp, step = step, disp
     return disp
 
 
@@ -104,12 +110,15 @@ def compensate(params: np.ndarray, dv, levels: int | None = None) -> tuple[np.nd
     p = wp.array(np.ascontiguousarray(params, np.float32), dtype=float, device=dev)
     moved = wp.empty(p.shape[0], dtype=float, device=dev)
     total = np.zeros(p.shape[0], np.float64)
+    stayed = np.zeros(p.shape[0], bool)
     size = wp.vec3(*(float(s) for s in shape_xyz))
     for _ in range(PASSES):  # each pass matches the model as moved so far
         ref = decode_on_device(p.numpy(), shape_xyz, dev)
         disp = estimate_motion(ref, dv.values, levels)
         wp.launch(km.shift_centres, dim=p.shape[0], inputs=[p, disp, BLOCK, size, int(TURN)], outputs=[moved], device=dev)
-        total += moved.numpy()
+        mv = moved.numpy()
+        stayed |= mv < 0.0
+        total += np.maximum(mv, 0.0)
     m = total
     facts = {
         "levels": levels,
@@ -118,5 +127,6 @@ def compensate(params: np.ndarray, dv, levels: int | None = None) -> tuple[np.nd
         "passes": PASSES,
         "mean_move_voxels": float(m.mean()) if m.size else 0.0,
         "max_move_voxels": float(m.max()) if m.size else 0.0,
+        "stayed_at_edge": int(stayed.sum()),  # primitives the motion would have carried out of the grid
     }
     return p.numpy(), facts

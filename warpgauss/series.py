@@ -3,8 +3,11 @@
 A series is a list of volumes (paths, a glob pattern, or arrays). Every input is checked before
 any work (files exist, one grid for all, outputs writable); timestep 0 is encoded as usual, and
 timestep t > 0 starts from timestep t-1's model (:func:`warpgauss.encode`'s ``warm_start``) with
-``warm_iterations`` (default: the configured iterations) unless ``cold``. One ``.wgs`` per
-timestep: each stays an ordinary model that decode, render and eval read alone.
+``warm_iterations`` (default: the configured iterations) unless ``cold``. A warm timestep that
+drifts more than ``keyframe_drift`` dB below the chain's best since its last cold timestep is
+encoded again cold, and the cold one kept if it scores better (a key frame the chain continues
+from). One ``.wgs`` per timestep: each stays an
+ordinary model that decode, render and eval read alone.
 """
 
 from __future__ import annotations
@@ -23,6 +26,12 @@ from .model import Model
 from .readers.timesteps import TimeStep, _arrays, time_steps
 
 __all__ = ["TimeStep", "encode_series", "series_chains", "series_sources", "time_steps"]
+
+# A warm timestep this many dB below the best warm one since the last cold timestep is re-encoded
+# cold. 16-step chains at 512^3, N 400k, 375 warm iterations (i21_series512_*_stay_h100.json):
+# bubbles stay within 0.9 dB of their best (never re-encoded); the vortex drifts 3 dB from step 5,
+# the interface 10 dB (1-1.7 dB a step), where a cold timestep costs 2.5-3x a warm one.
+KEYFRAME_DRIFT_DB = 1.0
 
 
 def series_sources(sources) -> list:
@@ -101,6 +110,7 @@ def encode_series(
     output_pattern: str | None = None,
     cold: bool = False,
     warm_iterations: int | None = None,
+    keyframe_drift: float | None = KEYFRAME_DRIFT_DB,
     force: bool = False,
     read=None,
     on_step=None,
@@ -120,6 +130,10 @@ def encode_series(
         cold: Encode every timestep from its own analytic allocation.
         warm_iterations: Refinement iterations of a warm-started timestep (default: as
             configured).
+        keyframe_drift: A warm-started timestep whose PSNR falls more than this many dB below
+            the best warm PSNR since the chain's last cold timestep is encoded again, cold, and
+            the better of the two kept (the cold one: a key frame the chain goes on warm from);
+            its report's ``series.keyframe`` says what happened. None or <= 0: never.
         on_step: Optional callback(t, steps, model) after each timestep (on a cluster: as each
             part comes back).
         client: A ``distributed.Client``: the timesteps are spread over its workers. Each
@@ -172,6 +186,7 @@ def encode_series(
             len(items),
             budget,
             ratio,
+            keyframe_drift,
         )
         for c, (var, items, opts) in enumerate(chains)
     ]
@@ -203,6 +218,7 @@ class Segment:
     total: int  # timesteps of the whole chain
     budget: int | None = None
     ratio: float | None = None
+    keyframe_drift: float | None = KEYFRAME_DRIFT_DB
 
     def split(self, k: int) -> list[Segment]:
         """Up to ``k`` contiguous parts (the first keeps ``start``; the others start cold at ``n``)."""
@@ -229,6 +245,8 @@ def encode_segment(seg: Segment, on_step=None) -> list[Model]:
     from .pipeline import encode
 
     chain: list[Model] = []
+    best = None  # the best warm PSNR since the last cold timestep (the key-frame rule)
+    drift = seg.keyframe_drift if seg.keyframe_drift is not None and seg.keyframe_drift > 0 else None
     for k, (t, src) in enumerate(zip(seg.steps, seg.items)):
         before = chain[-1] if chain else seg.start
         warm = before is not None and not seg.cold
@@ -238,11 +256,34 @@ def encode_segment(seg: Segment, on_step=None) -> list[Model]:
             kw.update(budget=seg.budget, ratio=seg.ratio)
         else:
             kw.update(budget=n)
+        out = None if seg.outputs is None else seg.outputs[k]
+        cold_kw = dict(kw)
         if warm:
             kw["warm_start"] = before
             if seg.warm_iterations is not None:
                 kw["iterations"] = seg.warm_iterations
-        m = encode(src, read=seg.read, output=None if seg.outputs is None else seg.outputs[k], force=seg.force, **kw)
+        m = encode(src, read=seg.read, output=out, force=seg.force, **kw)
+        keyframe = None
+        psnr = m.report.get("psnr_db")
+        if warm and drift is not None and psnr is not None:
+            if best is not None and psnr < best - drift:
+                cold = encode(src, read=seg.read, **cold_kw)
+                keyframe = {
+                    "why": f"the warm PSNR {psnr:.2f} dB fell more than {drift:g} dB below the chain's best {best:.2f}",
+                    "warm_psnr_db": psnr,
+                    "cold_psnr_db": cold.report.get("psnr_db"),
+                    "kept": "warm",
+                }
+                if (cold.report.get("psnr_db") or float("-inf")) > psnr:  # else the field changed: the warm one stays
+                    if out is not None:
+                        cold.save(out, force=True)  # over the warm model this call wrote
+                        cold.report["output"] = str(Path(out))
+                    m, warm, keyframe["kept"] = cold, False, "cold"
+                best = psnr if warm else None  # a new baseline either way
+            else:
+                best = psnr if best is None else max(best, psnr)
+        elif not warm:
+            best = None
         m.report["series"] = {
             "variable": seg.var,
             "step": t,
@@ -250,6 +291,8 @@ def encode_segment(seg: Segment, on_step=None) -> list[Model]:
             "warm_start": warm,
             "source": "array" if isinstance(src, np.ndarray) else str(src),
         }
+        if keyframe is not None:
+            m.report["series"]["keyframe"] = keyframe
         chain.append(m)
         if on_step is not None:
             on_step(t, seg.total, m)

@@ -80,6 +80,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--share", type=float, default=0.25, help="warm refinement time as a share of cold's")
     ap.add_argument("--series", type=int, default=0, help="also encode this many timesteps of the first field as one series")
     ap.add_argument("--warm-iterations", type=int, default=375)
+    ap.add_argument("--keyframe-drift", type=float, default=None, help="the series' key-frame rule (default: warpgauss's; 0: never)")
     ap.add_argument("--no-turn", action="store_true", help="motion compensation moves the primitives without turning them")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
@@ -148,7 +149,8 @@ def main(argv=None) -> dict:
         vols = steps_of(name, args.size, args.series, args.turn)
         gen = time.perf_counter() - t0
         t0 = time.perf_counter()
-        models = warpgauss.encode_series(vols, warm_iterations=args.warm_iterations, **kw)
+        drift = {} if args.keyframe_drift is None else {"keyframe_drift": args.keyframe_drift}
+        models = warpgauss.encode_series(vols, warm_iterations=args.warm_iterations, **drift, **kw)
         total = time.perf_counter() - t0
         result["series"] = {
             "field": name,
@@ -164,11 +166,17 @@ def main(argv=None) -> dict:
                     "refine_seconds": m.report["refinement"].get("seconds"),
                     "motion_seconds": sum(s["seconds"] for s in m.report["stages"] if s["stage"] == "S1m"),
                     "iterations": m.report["refinement"]["iterations_done"],
+                    "warm_start": m.report["series"]["warm_start"],
+                    "keyframe": m.report["series"].get("keyframe"),
                 }
                 for t, m in enumerate(models)
             ],
         }
-        print(f"series {name} {args.series} x {args.size}^3: {total:.1f} s; PSNR " + " ".join(f"{m.report['psnr_db']:.2f}" for m in models))
+        print(
+            f"series {name} {args.series} x {args.size}^3: {total:.1f} s; PSNR "
+            + " ".join(f"{m.report['psnr_db']:.2f}{'*' if 'keyframe' in m.report['series'] else ''}" for m in models)
+            + "  (*: re-encoded cold, a key frame)"
+        )
     for s in result["summary"]:
         print(
             f"{s['field']:10s} t={s['step']}: cold {s['cold_psnr_db']:.2f}, warm at {100 * s['warm25_time_share']:.0f} % time "
