@@ -15,6 +15,7 @@ from .example import example
 from .export import export
 from .info import info
 from .render import render
+from .serve import serve
 from .stats import stats
 from .view import view
 
@@ -44,6 +45,7 @@ app.command("stats", cls=PanelCommand)(stats)
 app.command("render", cls=PanelCommand)(render)
 app.command("export", cls=PanelCommand)(export)
 app.command("view", cls=PanelCommand)(view)
+app.command("serve", cls=PanelCommand)(serve)
 app.add_typer(bench_app, name="bench")
 
 

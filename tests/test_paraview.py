@@ -1,0 +1,148 @@
+"""The ParaView reader (issue #22): the same algorithm class on plain VTK (in process, and through
+the warpgauss command line as inside a ParaView without Warp), and in pvpython when Debian's
+paraview is installed."""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import warpgauss
+from warpgauss.synthetic import generate
+
+pytest.importorskip("vtkmodules")
+
+CLI = f"{shlex.quote(sys.executable)} -c 'from warpgauss.cli.main import run; run()'"
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("pv") / "bubbles.wgs"
+    vol = generate("bubbles", 20)
+    m = warpgauss.encode(vol, budget=150, iterations=20, samples=256, device="cpu", self_test=False, format="full")
+    m.header["transfer_function"] = {"colormap": "magma", "opacity": [[0.0, 0.0], [0.5, 0.2], [1.0, 1.0]]}  # no LUT: from the name
+    m.save(path)
+    return path
+
+
+def _read(path, resolution, monkeypatch=None, cli=False):
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from warpgauss.paraview import WarpgaussReader
+
+    if monkeypatch is not None:
+        monkeypatch.setenv("WARPGAUSS_PARAVIEW_CLI", "1" if cli else "0")
+        monkeypatch.setenv("WARPGAUSS_CLI", CLI)
+    r = WarpgaussReader()
+    r.SetFileName(str(path))
+    r.SetResolution(resolution)
+    r.SetDevice("cpu")
+    r.Update()
+    img, pts = r.GetOutputDataObject(0), r.GetOutputDataObject(1)
+    return img, pts, vtk_to_numpy(img.GetPointData().GetScalars()), vtk_to_numpy(pts.GetPoints().GetData())
+
+
+def test_the_reader_decodes_at_a_resolution_with_the_primitives_and_the_transfer_function(model_file, monkeypatch):
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from warpgauss.export import primitive_arrays
+    from warpgauss.paraview import transfer_function_points
+    from warpgauss.transfer import from_header
+
+    m = warpgauss.Model.load(model_file)
+    img, pts, values, points = _read(model_file, 30, monkeypatch)
+    assert img.GetDimensions() == (30, 30, 30)
+    np.testing.assert_allclose(img.GetSpacing(), m.decoded_spacing((30, 30, 30)))
+    np.testing.assert_allclose(img.GetOrigin(), m.decoded_origin((30, 30, 30)))
+    np.testing.assert_array_equal(values, m.decode((30, 30, 30), device="cpu").ravel())  # x fastest, as VTK
+    assert pts.GetNumberOfPoints() == pts.GetNumberOfVerts() == m.n == 150
+    arrays = primitive_arrays(m)
+    np.testing.assert_allclose(points, arrays["points"], rtol=1e-6)
+    np.testing.assert_allclose(vtk_to_numpy(pts.GetPointData().GetArray("value")), arrays["value"], rtol=1e-6)
+    fd = img.GetFieldData()
+    assert fd.GetAbstractArray("warpgauss_colormap").GetValue(0) == "magma"
+    rgb = vtk_to_numpy(fd.GetArray("warpgauss_rgb_points")).reshape(-1, 4)
+    lo, hi = m.value_range
+    assert rgb[0, 0] == pytest.approx(lo) and rgb[-1, 0] == pytest.approx(hi)
+    np.testing.assert_allclose(rgb[-1, 1:], from_header(m.header).rgb[-1], atol=1e-6)  # magma's last colour
+    want_rgb, want_op, _ = transfer_function_points(m.header, from_header(m.header).rgba)
+    np.testing.assert_allclose(vtk_to_numpy(fd.GetArray("warpgauss_opacity_points")), want_op)
+    _, _, native, _ = _read(model_file, 0, monkeypatch)
+    assert native.size == int(np.prod(m.shape_xyz))  # 0: the model's own grid
+
+
+def test_without_warp_the_reader_runs_the_command_line_and_reads_the_same(model_file, monkeypatch):
+    img, pts, values, points = _read(model_file, 24, monkeypatch)
+    img2, pts2, values2, points2 = _read(model_file, 24, monkeypatch, cli=True)
+    assert img2.GetDimensions() == img.GetDimensions()
+    np.testing.assert_allclose(img2.GetSpacing(), img.GetSpacing())
+    np.testing.assert_allclose(img2.GetOrigin(), img.GetOrigin())
+    np.testing.assert_array_equal(values2, values)
+    np.testing.assert_allclose(points2, points, rtol=1e-6)
+    assert img2.GetFieldData().GetArray("warpgauss_opacity_points") is not None
+
+
+def test_a_bad_file_is_refused_with_a_message(tmp_path, monkeypatch, capsys):
+    from warpgauss.paraview import WarpgaussReader
+
+    bad = tmp_path / "x.wgs"
+    bad.write_bytes(b"not a model at all, longer than the prefix")
+    r = WarpgaussReader()
+    r.SetFileName(str(bad))
+    r.Update()
+    assert "bad magic" in capsys.readouterr().out
+    assert r.GetOutputDataObject(0).GetNumberOfPoints() == 0
+
+
+PV_SCRIPT = r"""
+import inspect  # Debian 12's ParaView 5.11 imports inspect.getargspec, gone in Python 3.11
+inspect.getargspec = getattr(inspect, "getargspec", inspect.getfullargspec)
+import importlib.util, json, sys
+import numpy as np
+from paraview.simple import LoadPlugin, GetActiveViewOrCreate
+from paraview import servermanager
+plugin, model, out = sys.argv[1:4]
+LoadPlugin(plugin, ns=globals())
+r = warpgaussmodel(FileName=model, Resolution=16, Device="cpu")
+r.UpdatePipeline()
+img = servermanager.Fetch(r)
+if img.IsA("vtkMultiBlockDataSet"):
+    img = img.GetBlock(0)
+from vtkmodules.util.numpy_support import vtk_to_numpy
+np.save(out + ".npy", vtk_to_numpy(img.GetPointData().GetScalars()))
+spec = importlib.util.spec_from_file_location("wg_pv", plugin)
+mod = importlib.util.module_from_spec(spec); spec.loader.exec_module(mod)
+disp = mod.apply_default_transfer_function(r)
+from paraview.simple import GetColorTransferFunction
+lut = GetColorTransferFunction(img.GetPointData().GetScalars().GetName())
+json.dump({"dims": list(img.GetDimensions()), "rgb_points": len(lut.RGBPoints), "representation": str(disp.GetPropertyValue("Representation"))}, open(out, "w"))
+"""
+
+
+@pytest.mark.skipif(
+    shutil.which("pvpython") is None, reason="pvpython (Debian's paraview) is not installed; the plain-VTK tests cover the reader"
+)
+def test_the_plugin_in_pvpython(model_file, tmp_path):
+    import warpgauss.paraview as plugin
+
+    script = tmp_path / "drive.py"
+    script.write_text(PV_SCRIPT)
+    out = tmp_path / "pv.json"
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    env.update(WARPGAUSS_CLI=CLI)
+    r = subprocess.run(
+        ["pvpython", str(script), plugin.PLUGIN, str(model_file), str(out)], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    got = json.loads(out.read_text())
+    # no LUT in this header: the colours come from ParaView's magma preset
+    assert got["dims"] == [16, 16, 16] and got["representation"].strip("'") == "Volume" and got["rgb_points"] > 0
+    m = warpgauss.Model.load(model_file)
+    np.testing.assert_array_equal(np.load(str(out) + ".npy"), m.decode((16, 16, 16), device="cpu").ravel())

@@ -1,0 +1,222 @@
+"""`warpgauss serve` (issue #22): the viewer's state and frames on the CPU, the page's refusals,
+and the page itself in headless Chromium (Debian's package, driven by Playwright), compared with
+`warpgauss render` of the view the page reports."""
+
+from __future__ import annotations
+
+import io
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+import warpgauss
+from warpgauss.errors import WarpgaussError
+from warpgauss.synthetic import generate
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    d = tmp_path_factory.mktemp("serve")
+    path = d / "vortex.wgs"
+    warpgauss.encode(
+        generate("vortex", 24), budget=300, iterations=30, samples=256, device="cpu", self_test=False, output=path, format="full"
+    )
+    return path
+
+
+def test_the_viewer_orbits_zooms_and_draws_what_render_draws(model_file):
+    from warpgauss.render import Camera, RenderSettings, render_model
+    from warpgauss.viewer import Viewer
+
+    m = warpgauss.Model.load(model_file)
+    v = Viewer([m], [str(model_file)], device="cpu")
+    v.resize(96, 80)
+    v.orbit(50, -20)  # 50 px right, 20 px down
+    assert v.state.azimuth == pytest.approx(-55.0 - 20.0) and v.state.elevation == pytest.approx(25.0 + 8.0)
+    v.orbit(0, -1000)
+    assert v.state.elevation == 89.0  # clamped short of the pole
+    v.orbit(0, 1000 - 160)
+    v.zoom_by(2)
+    assert v.state.zoom == pytest.approx(1.21)
+    v.set_opacity([(1.0, 1.0), (0.0, 0.0), (0.4, 0.0)])
+    assert v.state.opacity == [[0.0, 0.0], [0.4, 0.0], [1.0, 1.0]]
+    img = v.frame()
+    assert img.shape == (80, 96, 3) and img.dtype == np.uint8 and img.any()
+    s = v.state
+    ref = render_model(
+        m,
+        Camera(azimuth=s.azimuth, elevation=s.elevation, zoom=s.zoom),
+        warpgauss.transfer.make_transfer_function("viridis", [(0, 0), (0.4, 0), (1, 1)]),
+        RenderSettings(width=96, height=80),
+        method="cached",
+        device="cpu",
+    )
+    np.testing.assert_array_equal(img, ref.rgb8())  # the page's frame is the renderer's, bit for bit
+    v.state.shading = False
+    assert not np.array_equal(v.frame(), img)
+    with pytest.raises(WarpgaussError, match="at least two points"):
+        v.set_opacity([(0.5, 1.0)])
+
+
+def test_the_render_command_draws_the_same_view(model_file, tmp_path):
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+    from warpgauss.viewer import Viewer
+
+    v = Viewer([warpgauss.Model.load(model_file)], [str(model_file)], device="cpu")
+    v.resize(64, 48)
+    v.orbit(-33, 12)
+    v.set_opacity([(0, 0), (0.25, 0.1), (1, 0.9)])
+    v.state.density_scale = 2.0
+    v.set_colormap("magma")
+    img = v.frame()
+    out = tmp_path / "view.png"
+    args = shlex.split(v.render_command(str(out)))[1:] + ["--device", "cpu"]
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0, r.output
+    from PIL import Image
+
+    got = np.asarray(Image.open(out).convert("RGB"))
+    from warpgauss.render import image_psnr
+
+    assert got.shape == img.shape and image_psnr(got / 255.0, img / 255.0) > 50.0  # printed to 4-6 digits
+
+
+def test_a_series_steps_in_time_and_compares_with_its_volume(tmp_path):
+    from warpgauss.viewer import Viewer, load_models
+
+    vols = [generate("bubbles", 16, seed=s) for s in (1, 2)]
+    for t, vol in enumerate(vols):
+        warpgauss.encode(
+            vol, budget=80, iterations=10, samples=128, device="cpu", self_test=False, output=tmp_path / f"s_{t}.wgs", format="full"
+        )
+    models, paths = load_models(str(tmp_path / "s_*.wgs"))
+    assert paths == [str(tmp_path / "s_0.wgs"), str(tmp_path / "s_1.wgs")]
+    v = Viewer(models, paths, [np.clip(x, 0, 1) for x in vols], device="cpu")
+    v.resize(40, 32)
+    a = v.frame()
+    v.state.time = 1
+    b = v.frame()
+    assert not np.array_equal(a, b) and v.facts()["steps"] == 2 and v.facts()["n"] == 80
+    v.state.compare = True
+    c = v.frame()
+    assert c.shape == (32, 40, 3) and not np.array_equal(c[:, :20], c[:, 20:])
+    with pytest.raises(WarpgaussError, match="no model matches"):
+        load_models(str(tmp_path / "nothing_*.wgs"))
+    with pytest.raises(WarpgaussError, match="one grid"):
+        Viewer([models[0], warpgauss.encode(generate("vortex", 12), budget=20, iterations=0, device="cpu")], device="cpu")
+
+
+def test_serve_refuses_bad_input_in_one_line(model_file, tmp_path):
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+
+    for args, what in (
+        (["serve", str(tmp_path / "missing.wgs")], "no such model"),
+        (["serve", str(model_file), "--port", "70000"], "--port must be 0-65535"),
+        (["serve", str(model_file), "--volume", str(tmp_path / "nope.raw")], "no such file"),
+        (["serve", str(model_file), "--method", "fast"], "unknown render method"),
+    ):
+        r = CliRunner().invoke(app, args)
+        assert r.exit_code == 2 and what in r.output and "Traceback" not in r.output, r.output
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def _psnr(a, b) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
+
+
+def test_the_page_in_a_real_browser(model_file, tmp_path):
+    """Start `warpgauss serve`, open it in headless Chromium, drag the camera, pull the opacity
+    curve's top node down, and compare the page's image with `warpgauss render` of the view the
+    page reports (image PSNR >= 35 dB); a frame on the CPU within 2 s."""
+    if CHROMIUM is None:
+        pytest.fail("Chromium is not installed: `apt-get install chromium` (Debian) is needed for the browser test; .ci/run installs it")
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.fail('Playwright is not installed: pip install -e ".[test]"')
+    from PIL import Image
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+
+    cmd = [sys.executable, "-c", "from warpgauss.cli.main import run; run()", "serve", str(model_file), "--port", "0", "--device", "cpu"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = ""
+        deadline = time.time() + 120
+        while "http://" not in line and time.time() < deadline:
+            line = proc.stdout.readline()
+            if not line and proc.poll() is not None:
+                pytest.fail(f"warpgauss serve exited ({proc.returncode}) before serving")
+        url = re.search(r"http://\S+", line).group(0)
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=["--no-sandbox", "--disable-gpu"])
+            page = browser.new_page(viewport={"width": 900, "height": 600}, device_scale_factor=1)
+            page.goto(url)
+            page.wait_for_function(
+                "() => {const i = document.querySelector('#view img'); return i && i.complete && i.naturalWidth > 0}", timeout=120_000
+            )
+
+            def settled(before: str | None = None, timeout: float = 60.0):
+                """The view's image and the command it reports, once both stop changing."""
+                end = time.time() + timeout
+                last, stable = None, 0
+                while time.time() < end:
+                    time.sleep(0.5)
+                    command = page.locator("#command").inner_text()
+                    shot = page.locator("#view img").screenshot()
+                    key = (command, shot)
+                    stable = stable + 1 if key == last and command != before else 0
+                    last = key
+                    if stable >= 2:
+                        return command, np.asarray(Image.open(io.BytesIO(shot)).convert("RGB"))
+                pytest.fail("the page's view did not settle")
+
+            first, _ = settled()
+            ms = float(re.search(r"frame ([0-9.]+) ms", page.locator("#frame_ms").inner_text()).group(1))
+            assert 0 < ms <= 2000  # the CPU target: a frame in <= 2 s
+            box = page.locator("#view").bounding_box()
+            cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+            page.mouse.move(cx, cy)
+            page.mouse.down()
+            for k in range(1, 9):
+                page.mouse.move(cx + 10 * k, cy - 4 * k)
+                time.sleep(0.05)
+            page.mouse.up()
+            dragged, _ = settled(first)
+            assert "--azimuth -55.0000" not in dragged and "--elevation 25.0000" not in dragged
+            ed = page.locator("#coe .color-opacity-editor-opacity-container").first.bounding_box()
+            x1, y1 = ed["x"] + ed["width"] - 8, ed["y"] + 8  # the curve's top-right node
+            page.mouse.move(x1, y1)
+            page.mouse.down()
+            page.mouse.move(x1, y1 + 40, steps=5)
+            page.mouse.move(x1, y1 + 70, steps=5)
+            page.mouse.up()
+            command, shown = settled(dragged)
+            assert "--opacity 0:0,1:1" not in command
+            browser.close()
+        out = tmp_path / "same.png"
+        args = shlex.split(command)[1:]
+        args[args.index("-o") + 1] = str(out)
+        r = CliRunner().invoke(app, [*args, "--device", "cpu"])
+        assert r.exit_code == 0, r.output
+        ref = np.asarray(Image.open(out).convert("RGB"))
+        assert shown.shape == ref.shape
+        print(f"page vs warpgauss render: {_psnr(shown, ref):.2f} dB, {command}")
+        assert _psnr(shown, ref) >= 35.0
+    finally:
+        proc.terminate()
+        proc.wait(10)

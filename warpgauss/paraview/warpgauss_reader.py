@@ -1,0 +1,339 @@
+"""A ParaView reader for ``.wgs`` models (load this file with Tools > Manage Plugins > Load New;
+``python -c "import warpgauss.paraview as p; print(p.PLUGIN)"`` prints its path).
+
+Opening a ``.wgs`` gives two outputs: the model decoded as image data at a chosen resolution
+(values in the source's units, the header's spacing and origin) and the primitives as a point
+cloud (as ``warpgauss export`` writes it: scales, orientation, value and weight per point). The
+header's default transfer function travels with the image as field data
+(``warpgauss_rgb_points``, ``warpgauss_opacity_points``, ParaView's layouts) and
+:func:`apply_default_transfer_function` applies it (in pvpython, or in ParaView's Python shell:
+``apply_default_transfer_function()``, defined by this file once loaded; or import it by path).
+
+ParaView's Python seldom has Warp: where ``import warpgauss`` fails inside ParaView the reader runs
+the warpgauss command line instead (``warpgauss decode`` to a ``.vti``, ``warpgauss export`` to a
+``.vtp``, in a temporary folder): the executable from ``$WARPGAUSS_CLI`` (a command line, e.g.
+``/opt/venv/bin/warpgauss``) or ``warpgauss`` on the PATH. Outside ParaView the same class runs on
+plain VTK (``vtkmodules``), which is how the tests drive it without pvpython.
+
+Debian 12's ParaView 5.11 cannot load any Python plugin on its Python 3.11 (its
+``paraview.detail.pythonalgorithm`` imports ``inspect.getargspec``, removed in 3.11); before
+loading this one, run in its Python shell (or at the top of a pvpython script)
+``import inspect; inspect.getargspec = inspect.getfullargspec``. ParaView 5.12 and later need nothing.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import os
+import shlex
+import shutil
+import struct
+import subprocess
+import tempfile
+import zlib
+
+if not hasattr(inspect, "getargspec"):  # ParaView 5.11's pythonalgorithm on Python >= 3.11
+    setattr(inspect, "getargspec", inspect.getfullargspec)  # noqa: B010
+
+import numpy as np
+
+try:  # inside ParaView: the decorators make the class a reader proxy
+    from paraview.util.vtkAlgorithm import VTKPythonAlgorithmBase, smdomain, smhint, smproperty, smproxy
+
+    IN_PARAVIEW = True
+except ImportError:  # plain VTK: the same algorithm class, the decorators do nothing
+    from vtkmodules.util.vtkAlgorithm import VTKPythonAlgorithmBase
+
+    IN_PARAVIEW = False
+
+    class _Passthrough:
+        def __getattr__(self, _name):
+            def decorator_factory(*_args, **_kwargs):
+                return lambda f: f
+
+            return decorator_factory
+
+    smproxy = smproperty = smdomain = smhint = _Passthrough()
+
+_PREFIX = struct.Struct("<8sIII")
+MAGIC = b"WGAUSS\x00\x01"
+# our colormap names -> ParaView presets (used where the header carries no LUT, e.g. coded files)
+PARAVIEW_PRESETS = {
+    "viridis": "Viridis (matplotlib)",
+    "magma": "Magma (matplotlib)",
+    "inferno": "Inferno (matplotlib)",
+    "plasma": "Plasma (matplotlib)",
+    "cividis": "Cividis",
+    "turbo": "Turbo",
+    "coolwarm": "Cool to Warm",
+    "jet": "Jet",
+    "grayscale": "Grayscale",
+}
+TF_POINTS = 33  # colour / opacity points written for ParaView
+
+
+class ReaderError(RuntimeError):
+    """A file the reader cannot open (the message says why and what to do)."""
+
+
+def read_header(path: str) -> dict:
+    """The JSON header of a ``.wgs`` file, read with the standard library alone."""
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(_PREFIX.size)
+            if len(raw) < _PREFIX.size:
+                raise ReaderError(f"{path}: not a warpgauss model (too short)")
+            magic, _version, hlen, crc = _PREFIX.unpack(raw)
+            if magic != MAGIC:
+                raise ReaderError(f"{path}: not a warpgauss model (bad magic); open a .wgs file")
+            area = f.read(hlen)
+    except OSError as e:
+        raise ReaderError(f"cannot open {path}: {e.strerror}") from None
+    if len(area) != hlen or zlib.crc32(area) != crc:
+        raise ReaderError(f"{path}: the header is damaged (checksum); restore the file or re-encode")
+    return json.loads(area.decode("utf-8"))
+
+
+def decode_shape(header: dict, resolution: int) -> tuple[int, int, int]:
+    """The decoded grid (x, y, z): the model's, or ``resolution`` voxels along its longest axis."""
+    shape = [int(s) for s in header["grid"]["shape_xyz"]]
+    if resolution <= 0:
+        return (shape[0], shape[1], shape[2])
+    k = resolution / max(shape)
+    return (max(1, round(shape[0] * k)), max(1, round(shape[1] * k)), max(1, round(shape[2] * k)))
+
+
+def _spacing_origin(header: dict, shape) -> tuple[list[float], list[float]]:
+    g = header["grid"]
+    sp = [float(g["spacing"][a]) * int(g["shape_xyz"][a]) / int(shape[a]) for a in range(3)]
+    # the first decoded voxel's centre (as warpgauss.Model.decoded_origin)
+    org = [float(g["origin"][a]) + 0.5 * (sp[a] - float(g["spacing"][a])) for a in range(3)]
+    return sp, org
+
+
+def transfer_function_points(header: dict, lut: np.ndarray | None = None) -> tuple[list[float], list[float], str]:
+    """ParaView's RGBPoints (x, r, g, b, ...) and opacity points (x, a, 0.5, 0, ...) in the
+    source's units, from the header's LUT (or ``lut``: (K, 4) RGBA in [0, 1]); and the colormap
+    name. Without a LUT (coded files) the colours come from the named preset and only the opacity
+    points are exact."""
+    t = header.get("transfer_function") or {}
+    vmin, vmax = float(header["values"]["min"]), float(header["values"]["max"])
+    name = str(t.get("colormap") or "viridis")
+    if lut is None and isinstance(t.get("lut_rgba8"), str):
+        raw = np.frombuffer(bytes.fromhex(t["lut_rgba8"]), np.uint8)
+        if raw.size >= 8 and raw.size % 4 == 0:
+            lut = raw.reshape(-1, 4).astype(np.float64) / 255.0
+    xs = np.linspace(0.0, 1.0, TF_POINTS)
+    rgb_points: list[float] = []
+    alpha = None
+    if lut is not None:
+        k = np.linspace(0.0, 1.0, lut.shape[0])
+        cols = np.stack([np.interp(xs, k, lut[:, c]) for c in range(4)], axis=1)
+        rgb_points = [v for x, c in zip(xs, cols) for v in (vmin + x * (vmax - vmin), c[0], c[1], c[2])]
+        alpha = cols[:, 3]
+    if isinstance(t.get("opacity"), list) and t["opacity"]:
+        pts = sorted((float(p[0]), float(p[1])) for p in t["opacity"])
+        alpha = np.interp(xs, [p[0] for p in pts], [p[1] for p in pts])
+    if alpha is None:
+        alpha = xs.copy()
+    opacity_points = [v for x, a in zip(xs, alpha) for v in (vmin + x * (vmax - vmin), float(a), 0.5, 0.0)]
+    return rgb_points, opacity_points, name
+
+
+def _cli() -> list[str]:
+    cmd = os.environ.get("WARPGAUSS_CLI")
+    if cmd:
+        return shlex.split(cmd)
+    exe = shutil.which("warpgauss")
+    if exe is None:
+        raise ReaderError(
+            "warpgauss is not importable in this Python and no warpgauss command is on the PATH: set WARPGAUSS_CLI to it (e.g. /opt/venv/bin/warpgauss)"
+        )
+    return [exe]
+
+
+def _use_cli() -> bool:
+    if os.environ.get("WARPGAUSS_PARAVIEW_CLI") == "1":
+        return True
+    try:
+        import warpgauss  # noqa: F401
+    except ImportError:
+        return True
+    return False
+
+
+def decode_image(path: str, shape, device: str | None = None):
+    """(vtkImageData of the decode at ``shape``, vtkPolyData of the primitives, (K, 4) LUT or None)."""
+    from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
+
+    if _use_cli():
+        from vtkmodules.vtkIOXML import vtkXMLImageDataReader, vtkXMLPolyDataReader
+
+        with tempfile.TemporaryDirectory(prefix="warpgauss-pv-") as d:
+            vti, vtp = os.path.join(d, "decoded.vti"), os.path.join(d, "primitives.vtp")
+            dev = ["--device", device] if device else []
+            for args in (["decode", path, "-o", vti, "--shape", "x".join(map(str, shape)), *dev], ["export", path, "-o", vtp]):
+                r = subprocess.run([*_cli(), *args], capture_output=True, text=True)
+                if r.returncode != 0:
+                    raise ReaderError(f"warpgauss {args[0]} failed: {(r.stderr or r.stdout).strip().splitlines()[-1:]}")
+            ri, rp = vtkXMLImageDataReader(), vtkXMLPolyDataReader()
+            ri.SetFileName(vti)
+            rp.SetFileName(vtp)
+            ri.Update()
+            rp.Update()
+            img, pts = vtkImageData(), vtkPolyData()
+            img.DeepCopy(ri.GetOutput())
+            pts.DeepCopy(rp.GetOutput())
+        return img, pts, None
+    from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
+    from vtkmodules.vtkCommonCore import vtkPoints
+    from vtkmodules.vtkCommonDataModel import vtkCellArray
+
+    import warpgauss
+    from warpgauss.export import primitive_arrays
+    from warpgauss.transfer import from_header
+
+    m = warpgauss.Model.load(path)
+    values = m.decode(tuple(shape), device=device)
+    img = vtkImageData()
+    img.SetDimensions(*shape)
+    img.SetSpacing(*m.decoded_spacing(tuple(shape)))
+    img.SetOrigin(*m.decoded_origin(tuple(shape)))
+    arr = numpy_to_vtk(np.ascontiguousarray(values).ravel(), deep=1)
+    arr.SetName(str(m.header.get("name") or "value"))
+    img.GetPointData().SetScalars(arr)
+    cols = primitive_arrays(m)
+    poly = vtkPolyData()
+    points = vtkPoints()
+    points.SetData(numpy_to_vtk(np.ascontiguousarray(cols.pop("points"), np.float32), deep=1))
+    poly.SetPoints(points)
+    verts = vtkCellArray()  # one vertex cell per point
+    ids = np.arange(m.n + 1, dtype=np.int64)
+    verts.SetData(numpy_to_vtkIdTypeArray(ids, deep=1), numpy_to_vtkIdTypeArray(ids[:-1].copy(), deep=1))
+    poly.SetVerts(verts)
+    for name, a in cols.items():
+        va = numpy_to_vtk(np.ascontiguousarray(a, np.float32), deep=1)
+        va.SetName(name)
+        poly.GetPointData().AddArray(va)
+    tf = from_header(m.header)
+    return img, poly, tf.rgba
+
+
+@smproxy.reader(name="WarpgaussReader", label="warpgauss model", extensions="wgs", file_description="warpgauss Gaussian models")
+class WarpgaussReader(VTKPythonAlgorithmBase):
+    """Reads a ``.wgs`` model: output 0 the decoded image data, output 1 the primitives."""
+
+    def __init__(self):
+        VTKPythonAlgorithmBase.__init__(self, nInputPorts=0, nOutputPorts=2, outputType="vtkImageData")
+        self._filename = None
+        self._resolution = 0
+        self._device = ""
+
+    def FillOutputPortInformation(self, port, info):
+        from vtkmodules.vtkCommonDataModel import vtkDataObject
+
+        info.Set(vtkDataObject.DATA_TYPE_NAME(), "vtkImageData" if port == 0 else "vtkPolyData")
+        return 1
+
+    @smproperty.stringvector(name="FileName")
+    @smdomain.filelist()
+    @smhint.filechooser(extensions="wgs", file_description="warpgauss Gaussian models")
+    def SetFileName(self, name):
+        if name != self._filename:
+            self._filename = name
+            self.Modified()
+
+    @smproperty.intvector(name="Resolution", default_values=0)
+    @smdomain.intrange(min=0, max=2048)
+    def SetResolution(self, n):
+        """Voxels along the longest axis of the decode (0: the model's own grid)."""
+        if int(n) != self._resolution:
+            self._resolution = int(n)
+            self.Modified()
+
+    @smproperty.stringvector(name="Device", default_values="")
+    def SetDevice(self, device):
+        """Warp device for the decode (empty: CUDA when present, else CPU)."""
+        if device != self._device:
+            self._device = device
+            self.Modified()
+
+    def _header(self) -> dict:
+        if not self._filename:
+            raise ReaderError("no file name set")
+        return read_header(self._filename)
+
+    def RequestInformation(self, request, in_info, out_info):
+        from vtkmodules.vtkCommonDataModel import vtkDataObject
+        from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
+
+        try:
+            header = self._header()
+        except ReaderError as e:
+            print(f"warpgauss reader: {e}")
+            return 0
+        shape = decode_shape(header, self._resolution)
+        sp, org = _spacing_origin(header, shape)
+        info = out_info.GetInformationObject(0)
+        info.Set(sddp.WHOLE_EXTENT(), 0, shape[0] - 1, 0, shape[1] - 1, 0, shape[2] - 1)
+        info.Set(vtkDataObject.SPACING(), *sp)
+        info.Set(vtkDataObject.ORIGIN(), *org)
+        return 1
+
+    def RequestData(self, request, in_info, out_info):
+        from vtkmodules.util.numpy_support import numpy_to_vtk
+        from vtkmodules.vtkCommonCore import vtkStringArray
+        from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
+
+        try:
+            header = self._header()
+            shape = decode_shape(header, self._resolution)
+            img, poly, lut = decode_image(self._filename, shape, self._device or None)
+        except ReaderError as e:
+            print(f"warpgauss reader: {e}")
+            return 0
+        rgb, opacity, name = transfer_function_points(header, lut)
+        for key, values in (("warpgauss_rgb_points", rgb), ("warpgauss_opacity_points", opacity)):
+            if values:
+                a = numpy_to_vtk(np.asarray(values, np.float64), deep=1)
+                a.SetName(key)
+                img.GetFieldData().AddArray(a)
+        s = vtkStringArray()
+        s.SetName("warpgauss_colormap")
+        s.InsertNextValue(name)
+        img.GetFieldData().AddArray(s)
+        vtkImageData.GetData(out_info.GetInformationObject(0)).ShallowCopy(img)
+        vtkPolyData.GetData(out_info.GetInformationObject(1)).ShallowCopy(poly)
+        return 1
+
+
+def apply_default_transfer_function(source=None, view=None):
+    """In ParaView (pvpython or its Python shell): show ``source`` (default: the active source) as
+    a volume with the header's transfer function; returns the display."""
+    from paraview import servermanager
+    from paraview import simple as pvs
+
+    source = source or pvs.GetActiveSource()
+    view = view or pvs.GetActiveViewOrCreate("RenderView")
+    data = servermanager.Fetch(source)
+    if data.IsA("vtkMultiBlockDataSet"):
+        data = data.GetBlock(0)
+    fd = data.GetFieldData()
+    name = data.GetPointData().GetScalars().GetName()
+    display = pvs.Show(source, view)
+    pvs.ColorBy(display, ("POINTS", name))
+    display.SetRepresentationType("Volume")
+    lut = pvs.GetColorTransferFunction(name)
+    pwf = pvs.GetOpacityTransferFunction(name)
+    rgb = fd.GetArray("warpgauss_rgb_points")
+    if rgb is not None and rgb.GetNumberOfTuples() > 0:
+        lut.RGBPoints = [rgb.GetValue(i) for i in range(rgb.GetNumberOfTuples())]
+    else:
+        cmap = fd.GetAbstractArray("warpgauss_colormap")
+        preset = PARAVIEW_PRESETS.get(cmap.GetValue(0) if cmap is not None else "viridis", "Viridis (matplotlib)")
+        lut.ApplyPreset(preset, True)
+    op = fd.GetArray("warpgauss_opacity_points")
+    if op is not None:
+        pwf.Points = [op.GetValue(i) for i in range(op.GetNumberOfTuples())]
+    return display

@@ -1,0 +1,227 @@
+"""`warpgauss serve`: a web page (Kitware's trame) showing a model rendered on the server by our own
+renderers, streamed to the browser as images (trame-rca), with ParaView's colour/opacity editor
+(trame-color-opacity-editor), colormap presets, shading, density, a time slider for a series and
+a "compare with volume" toggle.
+
+Everything a frame depends on lives in a :class:`warpgauss.viewer.Viewer`; this module only maps
+the page's widgets and mouse events onto it. The page shows the frame time, the model's facts and
+the ``warpgauss render`` command that draws the same view.
+
+The trame packages are an optional extra: ``pip install "warpgauss[serve]"``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+from .errors import WarpgaussError
+from .viewer import PRESETS, Viewer
+
+READY_PREFIX = "warpgauss serve: "  # the line printed once the page is served (tests read its URL)
+
+
+def _require_trame():
+    try:
+        import trame  # noqa: F401
+        import trame_color_opacity_editor  # noqa: F401
+        import trame_rca  # noqa: F401
+        import trame_vuetify  # noqa: F401
+    except ImportError as e:
+        raise WarpgaussError(f'warpgauss serve needs the trame packages ({e.name} is missing): pip install "warpgauss[serve]"') from None
+
+
+class _Area:
+    """The image source trame-rca asks for frames (its RemoteControlledAreaProtocol): renders the
+    viewer's current state once per change, and turns mouse events into orbit and zoom."""
+
+    def __init__(self, viewer: Viewer, on_frame):
+        self.viewer = viewer
+        self.on_frame = on_frame
+        self._key = None
+        self._img = None
+        self._press = None  # (x, y) of the last left-button position while dragging
+
+    @property
+    def img_cols_rows(self):
+        key = json.dumps(self.viewer.state.__dict__, sort_keys=True)
+        if key != self._key:  # the still-quality pass asks again for the same state: no re-render
+            self._img = self.viewer.frame()
+            self._key = key
+            self.on_frame(self.viewer.last_seconds)
+        h, w = self._img.shape[:2]
+        return self._img, w, h
+
+    def process_resize_event(self, width, height):
+        self.viewer.resize(width, height)
+
+    def process_interaction_event(self, event):
+        kind = event.get("type", "")
+        if kind == "LeftButtonPress":
+            self._press = (event.get("x", 0), event.get("y", 0))
+        elif kind == "LeftButtonRelease":
+            self._press = None
+        elif kind == "MouseMove" and self._press is not None and event.get("buttonLeft", 1):
+            x, y = event.get("x", 0), event.get("y", 0)
+            self.viewer.orbit(x - self._press[0], y - self._press[1])  # y counts up from the bottom
+            self._press = (x, y)
+            return True
+        elif kind == "MouseWheel":
+            self.viewer.zoom_by(-float(event.get("spinY", 0.0)))
+            return True
+        return False
+
+
+def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = None):
+    """The trame server of a viewer's page (not started)."""
+    _require_trame()
+    from trame.app import get_server
+    from trame.ui.vuetify3 import SinglePageLayout
+    from trame.widgets import color_opacity_editor as coe
+    from trame.widgets import html, rca
+    from trame.widgets import vuetify3 as v3
+
+    server = get_server(name, client_type="vue3")
+    state, ctrl = server.state, server.controller
+    s = viewer.state
+    facts = viewer.facts()
+    state.update(
+        {
+            "method": s.method,
+            "colormap": s.colormap,
+            "colors": viewer.color_nodes(),
+            "opacities": s.opacity,
+            "shading": s.shading,
+            "density_log": 0.0,
+            "time": s.time,
+            "steps": len(viewer.models),
+            "compare": s.compare,
+            "has_volume": viewer.volumes is not None,
+            "frame_ms": 0.0,
+            "facts": _facts_text(facts),
+            "command": viewer.render_command(),
+            "hist": [[i / 32, 1.0] for i in range(33)],
+        }
+    )
+    handler = None
+
+    def on_frame(seconds: float) -> None:
+        with state:
+            state.frame_ms = round(1000.0 * seconds, 1)
+            state.command = viewer.render_command()
+            state.facts = _facts_text(viewer.facts())
+
+    area = _Area(viewer, on_frame)
+
+    class _Forward:  # mouse events re-render at once; the rest of the protocol goes to the area
+        img_cols_rows = property(lambda self: area.img_cols_rows)
+
+        def process_resize_event(self, w, h):
+            area.process_resize_event(w, h)
+            if handler is not None:
+                handler.update()
+
+        def process_interaction_event(self, event):
+            if area.process_interaction_event(event) and handler is not None:
+                handler.update()
+
+    @state.change("method", "colormap", "shading", "density_log", "time", "compare")
+    def _settings(method, colormap, shading, density_log, time, compare, **_):
+        viewer.state.method = method
+        if colormap != viewer.state.colormap:
+            viewer.set_colormap(colormap)
+            state.colors = viewer.color_nodes()
+        viewer.state.shading = bool(shading)
+        viewer.state.density_scale = float(10.0 ** float(density_log))
+        viewer.state.time = int(time)
+        viewer.state.compare = bool(compare) and viewer.volumes is not None
+        if handler is not None:
+            handler.update()
+
+    @state.change("opacities", "colors")
+    def _tf(opacities, colors, **_):
+        viewer.set_opacity(opacities)
+        if colors != viewer.color_nodes():
+            viewer.set_colors(colors)
+        if handler is not None:
+            handler.update()
+
+    with SinglePageLayout(server) as layout:
+        layout.title.set_text(title or "warpgauss")
+        with layout.content:
+            with html.Div(style="display:flex;gap:16px;padding:24px 8px 8px 8px;height:calc(100vh - 80px)"):
+                with html.Div(id="view", style="flex:1;min-width:256px;position:relative;"):
+                    view = rca.RemoteControlledArea(name="view", display="image", send_mouse_move=True, style="width:100%;height:100%;")
+                with html.Div(style="width:380px;overflow-y:auto;font-size:13px"):
+                    html.Div("{{ facts }}", id="facts", style="white-space:pre-line;margin-bottom:8px")
+                    html.Div("frame {{ frame_ms }} ms", id="frame_ms", style="margin-bottom:8px")
+                    v3.VSelect(
+                        label="renderer", v_model=("method",), items=("['cached', 'march', 'splat']",), density="compact", id="method"
+                    )
+                    v3.VSelect(
+                        label="colormap",
+                        v_model=("colormap",),
+                        items=("[" + ", ".join(f"'{p}'" for p in PRESETS) + "]",),
+                        density="compact",
+                        id="colormap",
+                    )
+                    coe.ColorOpacityEditor(
+                        v_model_colorNodes=("colors",),
+                        v_model_opacityNodes=("opacities",),
+                        scalar_range=("[0, 1]",),
+                        histograms=("hist",),
+                        histograms_range=("[0, 1]",),
+                        style="width:100%;height:200px;",
+                        id="coe",
+                    )
+                    v3.VSwitch(label="shading", v_model=("shading",), density="compact", hide_details=True, id="shading")
+                    v3.VSlider(
+                        label="density (log10)", v_model=("density_log",), min=-1.5, max=1.5, step=0.1, hide_details=True, id="density"
+                    )
+                    v3.VSlider(
+                        label="time step",
+                        v_model=("time",),
+                        min=0,
+                        max=("steps - 1",),
+                        step=1,
+                        v_show=("steps > 1",),
+                        hide_details=True,
+                        id="time",
+                    )
+                    v3.VSwitch(
+                        label="compare with volume",
+                        v_model=("compare",),
+                        v_show=("has_volume",),
+                        density="compact",
+                        hide_details=True,
+                        id="compare",
+                    )
+                    html.Div("the same view on the command line:", style="margin-top:8px")
+                    html.Code("{{ command }}", id="command", style="display:block;word-break:break-all;font-size:11px")
+
+    handler = view.create_view_handler(_Forward(), encoder="png", interactive_quality=90, still_quality=100)
+    ctrl.view_update = handler.update
+    return server
+
+
+def _facts_text(f: dict) -> str:
+    size = "-" if f["bytes"] is None else f"{f['bytes']:,} bytes"
+    ratio = "-" if f["ratio"] is None else f"{f['ratio']:.1f}:1"
+    psnr = "-" if f["psnr_db"] is None else f"{f['psnr_db']:.2f} dB"
+    steps = f"\ntimesteps {f['steps']}" if f["steps"] > 1 else ""
+    return f"N {f['n']:,} Gaussians on {f['grid']}\nfile {size}, CR {ratio}\nPSNR {psnr}{steps}"
+
+
+def serve(viewer: Viewer, *, host: str = "127.0.0.1", port: int = 8080, title: str | None = None, on_ready=None) -> None:
+    """Serve a viewer's page until interrupted (``port`` 0: any free port; the URL is printed)."""
+    server = make_app(viewer, title=title)
+    t0 = time.perf_counter()
+
+    @server.controller.add("on_server_ready")
+    def _ready(**_):
+        url = f"http://{host}:{server.port}/"
+        print(f"{READY_PREFIX}{url} (ready in {time.perf_counter() - t0:.1f} s; Ctrl-C stops)", flush=True)
+        if on_ready is not None:
+            on_ready(url)
+
+    server.start(host=host, port=port, open_browser=False, show_connection_info=False, disable_logging=True)
