@@ -47,6 +47,27 @@ class KernelBenchConfig:
     atomic_baseline: bool = True  # also time the point-major atomic scatter (the pre-sort baseline)
 
 
+def result_header(benchmark: str, script: str, argv, device: str) -> dict:
+    """The fields every benchmark's JSON starts with: what it measures, the command that produced it
+    (``script``: the benchmark's ``__file__``; ``argv``: its arguments, None: ``sys.argv[1:]``), the
+    device, its name, the Warp version and the date (UTC)."""
+    import datetime as dt
+    import sys
+    from pathlib import Path
+
+    parts = Path(script).resolve().parts
+    rel = "/".join(parts[parts.index("benchmarks") :]) if "benchmarks" in parts else Path(script).name
+    args = list(sys.argv[1:] if argv is None else argv)
+    return {
+        "benchmark": benchmark,
+        "command": " ".join(["python", rel, *args]),
+        "device": device,
+        "device_name": device_name(device),
+        "warp_version": warp().config.version,
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
 def bench_field(size: int):
     """A smooth, fully occupied field of size^3 voxels in [0.1, 0.9] (cheap to make at 1024^3)."""
     c = ((np.arange(size, dtype=np.float32) + 0.5) / size) * np.float32(2 * math.pi)

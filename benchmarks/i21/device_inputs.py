@@ -9,15 +9,14 @@ per-call cost an Encoder pays outside refinement, cold and warm.
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
 import warpgauss
-from warpgauss._warp import device_name, resolve_device, warp
+from warpgauss._warp import resolve_device, warp
+from warpgauss.bench import result_header
 from warpgauss.synthetic import generate_series
 
 
@@ -58,12 +57,7 @@ def main(argv=None) -> dict:
     except ImportError:
         pass
     result = {
-        "benchmark": "device arrays into encode (no host copy) and the Encoder's per-call cost",
-        "command": "python benchmarks/i21/device_inputs.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "device": dev,
-        "device_name": device_name(dev),
-        "warp_version": wp.config.version,
-        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        **result_header("device arrays into encode (no host copy) and the Encoder's per-call cost", __file__, argv, dev),
         "size": args.size,
         "budget": args.budget,
         "inputs": [],

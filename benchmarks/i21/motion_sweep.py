@@ -13,14 +13,14 @@ Each row records the start PSNR (the moved model before refinement) and the fina
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import sys
 from pathlib import Path
 
 import warpgauss
 from warpgauss import motion
-from warpgauss._warp import device_name, resolve_device, warp
+from warpgauss._warp import resolve_device, warp
+from warpgauss.bench import result_header
 from warpgauss.synthetic import generate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -96,17 +96,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    wp = warp()
     dev = resolve_device(args.device)
     kw = dict(budget=args.budget, device=dev, format="full")
     warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64, format="full")  # compile
     result = {
-        "benchmark": "motion-compensation variants along warm chains",
-        "command": "python benchmarks/i21/motion_sweep.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "device": dev,
-        "device_name": device_name(dev),
-        "warp_version": wp.config.version,
-        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        **result_header("motion-compensation variants along warm chains", __file__, argv, dev),
         "size": args.size,
         "budget": args.budget,
         "turn_degrees": args.turn,

@@ -19,16 +19,15 @@ For each field, timestep 0 is encoded cold; then for t = 1 .. steps-1:
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import warpgauss
 from warpgauss import motion
-from warpgauss._warp import device_name, resolve_device, warp
+from warpgauss._warp import resolve_device
+from warpgauss.bench import result_header
 from warpgauss.synthetic import generate
 
 
@@ -85,19 +84,13 @@ def main(argv=None) -> dict:
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    wp = warp()
     dev = resolve_device(args.device)
     if args.no_turn:
         motion.TURN = False
     kw = dict(budget=args.budget, device=dev, format="full")
     warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64, format="full")  # compile, self-test
     result = {
-        "benchmark": "warm vs cold start on the evolving examples (format full, defaults otherwise)",
-        "command": "python benchmarks/i21/warm_vs_cold.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "device": dev,
-        "device_name": device_name(dev),
-        "warp_version": wp.config.version,
-        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        **result_header("warm vs cold start on the evolving examples (format full, defaults otherwise)", __file__, argv, dev),
         "size": args.size,
         "budget": args.budget,
         "turn_degrees": args.turn,

@@ -14,17 +14,16 @@ the frame cost does not depend on how well it fits).
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import io
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 import warpgauss
-from warpgauss._warp import device_name, resolve_device, warp
+from warpgauss._warp import resolve_device
+from warpgauss.bench import result_header
 from warpgauss.synthetic import generate
 from warpgauss.viewer import Viewer
 
@@ -48,7 +47,6 @@ def main(argv=None) -> dict:
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    wp = warp()
     dev = resolve_device(args.device)
     t0 = time.perf_counter()
     model = warpgauss.encode(generate(args.field, args.size), budget=args.budget, iterations=0, device=dev, format="full")
@@ -99,12 +97,7 @@ def main(argv=None) -> dict:
             flush=True,
         )
     result = {
-        "benchmark": "warpgauss serve: server-side frames (Viewer.frame) and encodings",
-        "command": "python benchmarks/i22/serve_frames.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "device": dev,
-        "device_name": device_name(dev),
-        "warp_version": wp.config.version,
-        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        **result_header("warpgauss serve: server-side frames (Viewer.frame) and encodings", __file__, argv, dev),
         "field": args.field,
         "size": args.size,
         "n": int(model.n),
