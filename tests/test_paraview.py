@@ -106,7 +106,7 @@ import inspect  # Debian 12's ParaView 5.11 imports inspect.getargspec, gone in 
 inspect.getargspec = getattr(inspect, "getargspec", inspect.getfullargspec)
 import importlib.util, json, sys
 import numpy as np
-from paraview.simple import LoadPlugin, GetActiveViewOrCreate
+from paraview.simple import LoadPlugin, GetActiveViewOrCreate, Show
 from paraview import servermanager
 plugin, model, out = sys.argv[1:4]
 LoadPlugin(plugin, ns=globals())
@@ -117,12 +117,13 @@ if img.IsA("vtkMultiBlockDataSet"):
     img = img.GetBlock(0)
 from vtkmodules.util.numpy_support import vtk_to_numpy
 np.save(out + ".npy", vtk_to_numpy(img.GetPointData().GetScalars()))
+default = str(Show(r, GetActiveViewOrCreate("RenderView")).GetPropertyValue("Representation"))
 spec = importlib.util.spec_from_file_location("wg_pv", plugin)
 mod = importlib.util.module_from_spec(spec); spec.loader.exec_module(mod)
 disp = mod.apply_default_transfer_function(r)
 from paraview.simple import GetColorTransferFunction
 lut = GetColorTransferFunction(img.GetPointData().GetScalars().GetName())
-json.dump({"dims": list(img.GetDimensions()), "rgb_points": len(lut.RGBPoints), "representation": str(disp.GetPropertyValue("Representation"))}, open(out, "w"))
+json.dump({"dims": list(img.GetDimensions()), "rgb_points": len(lut.RGBPoints), "representation": str(disp.GetPropertyValue("Representation")), "default": default}, open(out, "w"))
 """
 
 
@@ -144,5 +145,6 @@ def test_the_plugin_in_pvpython(model_file, tmp_path):
     got = json.loads(out.read_text())
     # no LUT in this header: the colours come from ParaView's magma preset
     assert got["dims"] == [16, 16, 16] and got["representation"].strip("'") == "Volume" and got["rgb_points"] > 0
+    assert got["default"].strip("'") == "Volume"  # the reader's hint: a model opens as a volume
     m = warpgauss.Model.load(model_file)
     np.testing.assert_array_equal(np.load(str(out) + ".npy"), m.decode((16, 16, 16), device="cpu").ravel())

@@ -221,6 +221,7 @@ def decode_image(path: str, shape, device: str | None = None):
 
 
 @smproxy.reader(name="WarpgaussReader", label="warpgauss model", extensions="wgs", file_description="warpgauss Gaussian models")
+@smhint.xml('<RepresentationType view="RenderView" type="Volume" port="0" />')
 class WarpgaussReader(VTKPythonAlgorithmBase):
     """Reads a ``.wgs`` model: output 0 the decoded image data, output 1 the primitives."""
 
