@@ -376,6 +376,16 @@ wp.overload(march, {"src": DenseVolume})
 
 
 @wp.kernel
+def to_rgb8(image: wp.array2d(dtype=wp.vec4), out: wp.array3d(dtype=wp.uint8)):
+    """RGB8 of a frame on the device (as ``Image.rgb8``: clamp to [0, 1], x 255, + 0.5, truncate),
+    so a frame crosses to the host as 3 bytes a pixel and is not converted there."""
+    i, j = wp.tid()
+    c = image[i, j]
+    for k in range(3):
+        out[i, j, k] = wp.uint8(int(wp.clamp(c[k], 0.0, 1.0) * 255.0 + 0.5))
+
+
+@wp.kernel
 def sample_points(
     src: typing.Any,  # BinnedPrimitives or DenseVolume
     points: wp.array(dtype=wp.vec3),  # [M] model voxel coordinates

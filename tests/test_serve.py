@@ -220,3 +220,24 @@ def test_the_page_in_a_real_browser(model_file, tmp_path):
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+def test_a_frame_converted_to_rgb8_on_the_device_equals_the_host_conversion(model_file):
+    """The marcher converts its frame to RGB8 on the device (kernels/render.py to_rgb8); that must
+    be Image.rgb8's host conversion bit for bit, edge values included."""
+    from warpgauss._warp import warp
+    from warpgauss.kernels import render as kr
+    from warpgauss.raymarch import Image
+    from warpgauss.render import render_model
+
+    wp = warp()
+    rgba = np.random.default_rng(0).uniform(-0.2, 1.2, (7, 9, 4)).astype(np.float32)
+    rgba[0, :4, 0] = [0.0, 1.0, 0.5 / 255.0, 254.5 / 255.0]
+    out = wp.empty((7, 9, 3), dtype=wp.uint8, device="cpu")
+    wp.launch(kr.to_rgb8, dim=(7, 9), inputs=[wp.array(rgba, dtype=wp.vec4, device="cpu")], outputs=[out], device="cpu")
+    np.testing.assert_array_equal(out.numpy(), Image(rgba).rgb8())
+    img = render_model(
+        warpgauss.Model.load(model_file), method="cached", device="cpu", settings=warpgauss.render.RenderSettings(width=40, height=30)
+    )
+    assert img.rgb8_device is not None
+    np.testing.assert_array_equal(img.rgb8(), Image(img.rgba).rgb8())

@@ -259,6 +259,7 @@ class Image:
     seconds: float = 0.0
     method: str = "march"
     stats: dict = field(default_factory=dict)
+    rgb8_device: np.ndarray | None = field(default=None, repr=False)  # the same RGB8, converted on the device
 
     @property
     def rgb(self) -> np.ndarray:
@@ -266,6 +267,8 @@ class Image:
 
     def rgb8(self, alpha: bool = False) -> np.ndarray:
         """(H, W, 3) (or 4 with ``alpha``) uint8, clamped and rounded."""
+        if not alpha and self.rgb8_device is not None:
+            return self.rgb8_device
         c = self.rgba if alpha else self.rgba[..., :3]
         return (np.clip(c, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
@@ -370,5 +373,8 @@ class _Marcher:
         wp.launch(kr.march, dim=(h, w), inputs=[src, view.struct(), prm, lut, self.occ], outputs=[image, evals], device=dev)
         wp.synchronize_device(dev)
         seconds = time.perf_counter() - t0
+        rgb8 = wp.empty((h, w, 3), dtype=wp.uint8, device=dev)
+        wp.launch(kr.to_rgb8, dim=(h, w), inputs=[image], outputs=[rgb8], device=dev)
         ev = evals.numpy()
-        return Image(image.numpy(), seconds, method, {"evaluations_per_pixel": float(ev.mean()), "max_evaluations": int(ev.max())})
+        stats = {"evaluations_per_pixel": float(ev.mean()), "max_evaluations": int(ev.max())}
+        return Image(image.numpy(), seconds, method, stats, rgb8_device=rgb8.numpy())
