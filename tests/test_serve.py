@@ -25,7 +25,7 @@ def model_file(tmp_path_factory):
     d = tmp_path_factory.mktemp("serve")
     path = d / "vortex.wgs"
     warpgauss.encode(
-        generate("vortex", 24), budget=300, iterations=30, samples=256, device="cpu", self_test=False, output=path, format="full"
+        generate("vortex", 64), budget=1000, iterations=30, samples=512, device="cpu", self_test=False, output=path, format="full"
     )
     return path
 
@@ -140,7 +140,7 @@ def _psnr(a, b) -> float:
 def test_the_page_in_a_real_browser(model_file, tmp_path):
     """Start `warpgauss serve`, open it in headless Chromium, drag the camera, pull the opacity
     curve's top node down, and compare the page's image with `warpgauss render` of the view the
-    page reports (image PSNR >= 35 dB); a frame on the CPU within 2 s."""
+    page reports (image PSNR >= 35 dB); a 64^3 model's frame on the CPU within 2 s."""
     if CHROMIUM is None:
         pytest.fail("Chromium is not installed: `apt-get install chromium` (Debian) is needed for the browser test; .ci/run installs it")
     try:
@@ -215,7 +215,7 @@ def test_the_page_in_a_real_browser(model_file, tmp_path):
         assert r.exit_code == 0, r.output
         ref = np.asarray(Image.open(out).convert("RGB"))
         assert shown.shape == ref.shape
-        print(f"page vs warpgauss render: {_psnr(shown, ref):.2f} dB, {command}")
+        print(f"page vs warpgauss render: {_psnr(shown, ref):.2f} dB; first frame {ms:.0f} ms; {command}")
         assert _psnr(shown, ref) >= 35.0
     finally:
         proc.terminate()
