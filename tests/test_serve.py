@@ -87,6 +87,17 @@ def test_the_render_command_draws_the_same_view(model_file, tmp_path):
     from warpgauss.render import image_psnr
 
     assert got.shape == img.shape and image_psnr(got / 255.0, img / 255.0) > 50.0  # printed to 4-6 digits
+    # edited colours travel as a --tf file (what the page offers to download)
+    v.set_colors([[0.0, [0.1, 0.2, 0.9]], [0.6, [1.0, 1.0, 1.0]], [1.0, [0.9, 0.1, 0.1]]])
+    img = v.frame()
+    tf_file = tmp_path / "tf.json"
+    tf_file.write_text(v.tf_json())
+    args = shlex.split(v.render_command(str(out), str(tf_file)))[1:] + ["--device", "cpu", "--force"]
+    assert "--tf" in args and "--colormap" not in args
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0, r.output
+    got = np.asarray(Image.open(out).convert("RGB"))
+    assert image_psnr(got / 255.0, img / 255.0) > 50.0
 
 
 def test_a_series_steps_in_time_and_compares_with_its_volume(tmp_path):

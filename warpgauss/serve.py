@@ -16,7 +16,7 @@ import json
 import time
 
 from .errors import WarpgaussError
-from .viewer import PRESETS, Viewer
+from .viewer import PRESETS, TF_FILE, Viewer
 
 READY_PREFIX = "warpgauss serve: "  # the line printed once the page is served (tests read its URL)
 
@@ -100,6 +100,9 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
             "frame_ms": 0.0,
             "facts": _facts_text(facts),
             "command": viewer.render_command(),
+            "tf_json": viewer.tf_json(),
+            "custom_colors": False,
+            "tf_file": TF_FILE,
             "hist": [[i / 32, 1.0] for i in range(33)],
         }
     )
@@ -109,6 +112,8 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
         with state:
             state.frame_ms = round(1000.0 * seconds, 1)
             state.command = viewer.render_command()
+            state.tf_json = viewer.tf_json()
+            state.custom_colors = viewer.state.colors is not None
             state.facts = _facts_text(viewer.facts())
 
     area = _Area(viewer, on_frame)
@@ -198,6 +203,13 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
                     )
                     html.Div("the same view on the command line:", style="margin-top:8px")
                     html.Code("{{ command }}", id="command", style="display:block;word-break:break-all;font-size:11px")
+                    html.A(
+                        "download {{ tf_file }} (the edited colours, for --tf)",
+                        v_show=("custom_colors",),
+                        href=("'data:application/json;charset=utf-8,' + encodeURIComponent(tf_json)",),
+                        download=("tf_file",),
+                        id="tf_download",
+                    )
 
     handler = view.create_view_handler(_Forward(), encoder="png", interactive_quality=90, still_quality=100)
     ctrl.view_update = handler.update

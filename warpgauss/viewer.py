@@ -29,6 +29,7 @@ ORBIT_DEGREES_PER_PIXEL = 0.4  # a drag across a 512-pixel view turns the camera
 WHEEL_ZOOM = 1.1  # one wheel notch
 PRESETS = ("viridis", "magma", "inferno", "plasma", "cividis", "turbo", "coolwarm", "jet", "grayscale")
 COLOR_NODES = 9  # colour nodes a preset gives the editor
+TF_FILE = "view_tf.json"  # where the page's download and the render command put edited colours
 
 
 @dataclass
@@ -225,15 +226,23 @@ class Viewer:
             "steps": len(self.models),
         }
 
-    def render_command(self, output: str = "view.png") -> str:
-        """The ``warpgauss render`` command that draws the current view (model half only)."""
+    def tf_json(self) -> str:
+        """The current transfer function as our ``.json`` (what ``warpgauss render --tf`` reads)."""
+        s = self.state
+        colors = [[x, *rgb] for x, rgb in self.color_nodes()]
+        return json.dumps({"name": "warpgauss serve view", "colors": colors, "opacity": s.opacity})
+
+    def render_command(self, output: str = "view.png", tf_file: str = TF_FILE) -> str:
+        """The ``warpgauss render`` command that draws the current view (model half only); with
+        edited colours it reads them from ``tf_file`` (write :meth:`tf_json` there)."""
         s = self.state
         path = self.paths[s.time] or "MODEL.wgs"
         args = ["warpgauss", "render", path, "-o", output, "--method", s.method, "--size", f"{s.width}x{s.height}"]
         args += ["--azimuth", f"{s.azimuth:.4f}", "--elevation", f"{s.elevation:.4f}", "--zoom", f"{s.zoom:.6f}"]
         if s.colors is None:
-            args += ["--colormap", s.colormap]
-        args += ["--opacity", ",".join(f"{x:.6g}:{a:.6g}" for x, a in s.opacity)]
+            args += ["--colormap", s.colormap, "--opacity", ",".join(f"{x:.6g}:{a:.6g}" for x, a in s.opacity)]
+        else:
+            args += ["--tf", tf_file]
         if s.density_scale != 1.0:
             from .raymarch import DEFAULT_DENSITY, Scene
 
