@@ -540,7 +540,6 @@ def _encode_series(
         total += len(items)
         for t in range(len(items)):
             check_writable(name.format(t=t, var=var or "") + ".report.json", force=force)
-    done = []
     status = None if as_json else err_console.status("starting", spinner="dots")
     if status is not None:
         status.start()
@@ -553,28 +552,45 @@ def _encode_series(
         if status is not None:
             status.console.print(f"series: {where}", highlight=False)
 
+    rows: list[dict] = []
+
     def step(t: int, steps: int, m) -> None:
         rep = m.report
         rep["report"] = rep["output"] + ".report.json"
         atomic_write_bytes(rep["report"], json_text(rep).encode())
-        done.append(t)
-        if status is not None:
-            status.update(f"[bold]series[/] {len(done)}/{total} timesteps encoded")
-
-    try:
-        models = warpgauss.encode_series(
-            pattern,
-            variables=variables or None,
-            output_pattern=name,
-            cold=cold,
-            warm_iterations=warm_iterations,
-            keyframe_drift=KEYFRAME_DRIFT_DB if keyframe_drift is None else keyframe_drift,
-            force=force,
-            read=read,
-            on_step=step,
-            client=client,
-            **kw,
+        rows.append(
+            {
+                "variable": rep["series"]["variable"],
+                "step": rep["series"]["step"],
+                "source": rep["series"]["source"],
+                "warm_start": rep["series"]["warm_start"],
+                "keyframe": "keyframe" in rep["series"],
+                "n": m.n,
+                "iterations": rep["refinement"].get("iterations", 0),
+                "psnr_db": rep["psnr_db"],
+                "seconds": rep.get("total_seconds"),
+                "output": rep["output"],
+            }
         )
+        if status is not None:
+            status.update(f"[bold]series[/] {len(rows)}/{total} timesteps encoded")
+
+    args = dict(
+        variables=variables or None,
+        output_pattern=name,
+        cold=cold,
+        warm_iterations=warm_iterations,
+        keyframe_drift=KEYFRAME_DRIFT_DB if keyframe_drift is None else keyframe_drift,
+        force=force,
+        read=read,
+        **kw,
+    )
+    try:
+        if client is None:  # one model at a time: a long series holds two models, not all
+            for m in warpgauss.series.iter_series(pattern, **args):
+                step(m.report["series"]["step"], total, m)
+        else:
+            warpgauss.encode_series(pattern, on_step=step, client=client, **args)
     finally:
         if status is not None:
             status.stop()
@@ -583,21 +599,7 @@ def _encode_series(
             client.close()
             if own is not None and scheduler is None:
                 own.close()
-    rows = [
-        {
-            "variable": m.report["series"]["variable"],
-            "step": m.report["series"]["step"],
-            "source": m.report["series"]["source"],
-            "warm_start": m.report["series"]["warm_start"],
-            "keyframe": "keyframe" in m.report["series"],
-            "n": m.n,
-            "iterations": m.report["refinement"].get("iterations", 0),
-            "psnr_db": m.report["psnr_db"],
-            "seconds": m.report.get("total_seconds"),
-            "output": m.report["output"],
-        }
-        for m in models
-    ]
+    rows.sort(key=lambda r: (variables.index(r["variable"]) if r["variable"] in variables else 0, r["step"]))
     if as_json:
         print_json({"series": rows})
         return

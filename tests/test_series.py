@@ -256,3 +256,26 @@ def test_a_key_frame_that_scores_below_the_warm_timestep_is_dropped():
     kf = series[2]["keyframe"]
     assert kf["kept"] == "warm" and kf["cold_psnr_db"] < kf["warm_psnr_db"] == models[2].report["psnr_db"]
     assert "keyframe" not in series[3]
+
+
+def test_iter_series_yields_what_encode_series_returns_holding_one_model_at_a_time(tmp_path):
+    """iter_series (what the CLI runs without a cluster) gives the same models as encode_series,
+    each written as it is yielded, and checks every input before the first encode."""
+    import gc
+    import weakref
+
+    from warpgauss.series import encode_series, iter_series
+
+    vols = list(generate_series("bubbles", 16, 4))
+    kw = dict(budget=100, iterations=10, warm_iterations=4, samples=128, device="cpu", self_test=False, format="full")
+    want = encode_series(vols, **kw)
+    alive = []
+    for t, m in enumerate(iter_series(vols, output_pattern=str(tmp_path / "i_{t}.wgs"), **kw)):
+        np.testing.assert_array_equal(m.params, want[t].params)
+        assert (tmp_path / f"i_{t}.wgs").is_file() and not (tmp_path / f"i_{t + 1}.wgs").exists()
+        alive.append(weakref.ref(m))
+        del m
+        gc.collect()
+        assert sum(r() is not None for r in alive) <= 2  # this one and the warm start of the next
+    with pytest.raises(WarpgaussError, match="different grids"):
+        next(iter_series([vols[0], generate("bubbles", 12)], **kw))

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import glob as _glob
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ from .errors import WarpgaussError
 from .model import Model
 from .readers.timesteps import TimeStep, _arrays, time_steps
 
-__all__ = ["TimeStep", "encode_series", "series_chains", "series_sources", "time_steps"]
+__all__ = ["TimeStep", "encode_series", "iter_series", "series_chains", "series_sources", "time_steps"]
 
 # A warm timestep this many dB below the best warm one since the last cold timestep is re-encoded
 # cold. 16-step chains at 512^3, N 400k, 375 warm iterations (i21_series512_*_stay_h100.json):
@@ -147,6 +148,52 @@ def encode_series(
         The models, variable by variable, each in time order (each with its report;
         ``report["series"]`` says which variable and step, and whether it was warm-started).
     """
+    plan = _plan(
+        sources,
+        variables=variables,
+        budget=budget,
+        ratio=ratio,
+        output_pattern=output_pattern,
+        cold=cold,
+        warm_iterations=warm_iterations,
+        keyframe_drift=keyframe_drift,
+        force=force,
+        read=read,
+        **encode_kwargs,
+    )
+    if client is None:
+        models: list[Model] = []
+        for seg in plan:
+            models += encode_segment(seg, on_step)
+        return models
+    return _on_cluster(plan, client, on_step)
+
+
+def iter_series(sources, **kwargs: Any) -> Iterator[Model]:
+    """:func:`encode_series` in this process, one model at a time: each is yielded (written, when
+    ``output_pattern`` is given) as soon as it is encoded, and only the previous timestep's model
+    is held, so a long series needs the memory of two models, not of all. Takes
+    :func:`encode_series`'s arguments except ``client`` and ``on_step``; every input is checked
+    before the first timestep is encoded."""
+    for seg in _plan(sources, **kwargs):
+        yield from iter_segment(seg)
+
+
+def _plan(
+    sources,
+    *,
+    variables=None,
+    budget: int | None = None,
+    ratio: float | None = None,
+    output_pattern: str | None = None,
+    cold: bool = False,
+    warm_iterations: int | None = None,
+    keyframe_drift: float | None = KEYFRAME_DRIFT_DB,
+    force: bool = False,
+    read=None,
+    **encode_kwargs: Any,
+) -> list[Segment]:
+    """Check a series' inputs before any work and lay out one :class:`Segment` per variable."""
     from ._fs import check_writable
 
     chains = series_chains(sources, variables, read)
@@ -170,7 +217,7 @@ def encode_series(
             check_writable(o, force=force)
     if warm_iterations is not None and warm_iterations < 0:
         raise WarpgaussError(f"warm iterations must be >= 0, got {warm_iterations}")
-    plan = [
+    return [
         Segment(
             var,
             opts,
@@ -190,12 +237,6 @@ def encode_series(
         )
         for c, (var, items, opts) in enumerate(chains)
     ]
-    if client is None:
-        models: list[Model] = []
-        for seg in plan:
-            models += encode_segment(seg, on_step)
-        return models
-    return _on_cluster(plan, client, on_step)
 
 
 @dataclass
@@ -242,16 +283,25 @@ class Segment:
 
 def encode_segment(seg: Segment, on_step=None) -> list[Model]:
     """Encode a :class:`Segment`'s timesteps in order (in this process or on a Dask worker)."""
+    chain: list[Model] = []
+    for m in iter_segment(seg):
+        chain.append(m)
+        if on_step is not None:
+            on_step(m.report["series"]["step"], seg.total, m)
+    return chain
+
+
+def iter_segment(seg: Segment) -> Iterator[Model]:
+    """A :class:`Segment`'s models in time order, each yielded once encoded (only the previous one held)."""
     from .pipeline import encode
 
-    chain: list[Model] = []
+    before, first_n = seg.start, seg.n
     best = None  # the best warm PSNR since the last cold timestep (the key-frame rule)
     drift = seg.keyframe_drift if seg.keyframe_drift is not None and seg.keyframe_drift > 0 else None
     for k, (t, src) in enumerate(zip(seg.steps, seg.items)):
-        before = chain[-1] if chain else seg.start
         warm = before is not None and not seg.cold
         kw = dict(seg.kwargs)
-        n = seg.n if seg.n is not None else (chain[0].n if chain else None)
+        n = first_n
         if n is None:
             kw.update(budget=seg.budget, ratio=seg.ratio)
         else:
@@ -293,10 +343,10 @@ def encode_segment(seg: Segment, on_step=None) -> list[Model]:
         }
         if keyframe is not None:
             m.report["series"]["keyframe"] = keyframe
-        chain.append(m)
-        if on_step is not None:
-            on_step(t, seg.total, m)
-    return chain
+        if first_n is None:
+            first_n = m.n  # timestep 0 fixes N for the rest of the chain
+        before = m
+        yield m
 
 
 def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
