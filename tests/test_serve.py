@@ -116,6 +116,10 @@ def test_a_series_steps_in_time_and_compares_with_its_volume(tmp_path):
     v.state.time = 1
     b = v.frame()
     assert not np.array_equal(a, b) and v.facts()["steps"] == 2 and v.facts()["n"] == 80
+    h = v.histogram()  # of timestep 1's volume: log-scaled shares, the fullest bin 1
+    counts, _ = np.histogram(np.clip(vols[1], 0, 1), bins=32, range=(0, 1))
+    np.testing.assert_allclose([c for _, c in h], np.log1p(counts) / np.log1p(counts).max())
+    assert len(Viewer(models[:1], device="cpu").histogram()) == 32  # without a volume: from a decode
     v.state.compare = True
     c = v.frame()
     assert c.shape == (32, 40, 3) and not np.array_equal(c[:, :20], c[:, 20:])

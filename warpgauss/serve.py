@@ -103,7 +103,7 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
             "tf_json": viewer.tf_json(),
             "custom_colors": False,
             "tf_file": TF_FILE,
-            "hist": [[i / 32, 1.0] for i in range(33)],
+            "hist": viewer.histogram(),
         }
     )
     handler = None
@@ -138,7 +138,9 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
             state.colors = viewer.color_nodes()
         viewer.state.shading = bool(shading)
         viewer.state.density_scale = float(10.0 ** float(density_log))
-        viewer.state.time = int(time)
+        if int(time) != viewer.state.time:
+            viewer.state.time = int(time)
+            state.hist = viewer.histogram()
         viewer.state.compare = bool(compare) and viewer.volumes is not None
         if handler is not None:
             handler.update()
@@ -176,6 +178,7 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
                         scalar_range=("[0, 1]",),
                         histograms=("hist",),
                         histograms_range=("[0, 1]",),
+                        show_histograms=True,
                         style="width:100%;height:200px;",
                         id="coe",
                     )

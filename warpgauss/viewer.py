@@ -29,6 +29,7 @@ ORBIT_DEGREES_PER_PIXEL = 0.4  # a drag across a 512-pixel view turns the camera
 WHEEL_ZOOM = 1.1  # one wheel notch
 PRESETS = ("viridis", "magma", "inferno", "plasma", "cividis", "turbo", "coolwarm", "jet", "grayscale")
 COLOR_NODES = 9  # colour nodes a preset gives the editor
+HISTOGRAM_BINS = 32  # bins of the editor's histogram
 TF_FILE = "view_tf.json"  # where the page's download and the render command put edited colours
 
 
@@ -94,6 +95,8 @@ class Viewer:
         )
         self._renderers: dict = {}
         self._reference: dict = {}
+        self._hist: dict = {}
+        self._facts: dict = {}
         self.last_seconds = 0.0
 
     # -- interaction ------------------------------------------------------------------------
@@ -205,10 +208,33 @@ class Viewer:
         return np.ascontiguousarray(img)
 
     # -- what the page shows beside the frame -----------------------------------------------------
+    def histogram(self, bins: int = HISTOGRAM_BINS) -> list:
+        """The editor's histogram: [[x, log-scaled share], ...] of the normalised values of the
+        source volume if given, else of the model decoded at up to 64 voxels along its longest axis."""
+        t = self.state.time
+        if t not in self._hist:
+            if self.volumes is not None:
+                v = np.asarray(self.volumes[t], np.float32)
+            else:
+                m = self.models[t]
+                k = min(1.0, 64.0 / max(m.shape_xyz))
+                v = m.decode(tuple(max(1, round(n * k)) for n in m.shape_xyz), device=self.device, normalised=True)
+            counts, _ = np.histogram(np.clip(v, 0.0, 1.0), bins=bins, range=(0.0, 1.0))
+            h = np.log1p(counts.astype(np.float64))
+            h = h / h.max() if h.max() > 0 else h
+            self._hist[t] = [[float((i + 0.5) / bins), float(c)] for i, c in enumerate(h)]
+        return self._hist[t]
+
     def facts(self) -> dict:
         """N, file bytes, compression ratio and PSNR (from the model's report file, if beside it)."""
-        m = self.models[self.state.time]
-        path = self.paths[self.state.time]
+        t = self.state.time
+        if t not in self._facts:
+            self._facts[t] = self._read_facts(t)
+        return self._facts[t]
+
+    def _read_facts(self, t: int) -> dict:
+        m = self.models[t]
+        path = self.paths[t]
         src = m.source_bytes
         size = Path(path).stat().st_size if path and Path(path).is_file() else None
         psnr = None
