@@ -34,7 +34,13 @@ class CudaArrayOnly:
 
     def __init__(self, a: np.ndarray):
         self.a = a
-        self.__cuda_array_interface__ = {"shape": a.shape, "typestr": a.dtype.str, "data": (a.ctypes.data, True), "strides": None, "version": 3}
+        self.__cuda_array_interface__ = {
+            "shape": a.shape,
+            "typestr": a.dtype.str,
+            "data": (a.ctypes.data, True),
+            "strides": None,
+            "version": 3,
+        }
 
 
 @pytest.fixture(scope="module")
@@ -85,6 +91,11 @@ def test_a_device_array_encodes_as_its_numpy_copy(wp):
         assert m.report["psnr_db"] == ref.report["psnr_db"]
     cai = CudaArrayOnly(v)  # the __cuda_array_interface__ path, pointed at host memory for the CPU device
     np.testing.assert_array_equal(warpgauss.encode(cai, device="cpu", **FAST).params, ref.params)
+    cai.__cuda_array_interface__["stream"] = 1  # a producer's stream: waited for on CUDA, nothing to wait for here
+    np.testing.assert_array_equal(warpgauss.encode(cai, device="cpu", **FAST).params, ref.params)
+    cai.__cuda_array_interface__["stream"] = 0
+    with pytest.raises(WarpgaussError, match="stream 0"):
+        warpgauss.encode(cai, device="cpu", **FAST)
     padded = np.zeros((22, 22, 22), np.float32)  # a simulation array with ghost cells: a strided view
     padded[1:-1, 1:-1, 1:-1] = v
     m = warpgauss.encode(wp.array(padded, device="cpu")[1:-1, 1:-1, 1:-1], **FAST)

@@ -72,8 +72,17 @@ def _from_cuda_array_interface(wp, desc: dict, owner, device: str):
         dtype = wp.dtype_from_numpy(np_dtype.newbyteorder("="))
     except TypeError:
         raise WarpgaussError(f"the array's dtype {np_dtype} is not one warpgauss reads; pass float32") from None
+    stream = desc.get("stream")
+    if stream is not None and int(stream) == 0:
+        raise WarpgaussError(
+            "the array's __cuda_array_interface__ names stream 0, which the protocol disallows (ambiguous); its producer must say 1, 2 or a stream handle"
+        )
     a = wp.array(ptr=int(desc["data"][0]), dtype=dtype, shape=shape, strides=tuple(int(s) for s in strides), device=device)
     a._ref = owner  # the producer's memory lives as long as this view
+    if stream is not None and a.device.is_cuda:
+        # the producer may still be writing on its stream: ours waits for it (no host synchronisation),
+        # as DLPack's exchange does (protocol v3: 1 legacy default, 2 per-thread default, else a handle)
+        wp.get_stream(a.device).wait_stream(wp.Stream(a.device, cuda_stream=int(stream)))
     return a
 
 
