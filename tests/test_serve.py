@@ -256,3 +256,44 @@ def test_a_frame_converted_to_rgb8_on_the_device_equals_the_host_conversion(mode
     )
     assert img.rgb8_device is not None
     np.testing.assert_array_equal(img.rgb8(), Image(img.rgba).rgb8())
+
+
+def test_the_page_keeps_showing_the_last_frame_while_a_new_one_renders(model_file):
+    """After the first frame, the page's image source renders a new state in a worker thread from
+    a snapshot and answers at once with the last frame; when the render is done it asks for an
+    update and then serves the new frame (the one Viewer.frame draws for that state)."""
+    import asyncio
+
+    from warpgauss.serve import _Area
+    from warpgauss.viewer import Viewer
+
+    v = Viewer([warpgauss.Model.load(model_file)], [str(model_file)], device="cpu")
+    v.resize(48, 40)
+    frames, updates = [], []
+
+    async def run():
+        done = asyncio.Event()
+
+        def update():
+            updates.append(1)
+            done.set()
+
+        area = _Area(v, frames.append, update)
+        first, w, h = area.img_cols_rows  # the first frame is drawn at once
+        assert (w, h) == (48, 40) and len(frames) == 1
+        v.orbit(60, 10)
+        want = v.frame(v.snapshot())
+        again, _, _ = area.img_cols_rows  # a new state: the last frame meanwhile
+        assert again is first
+        v.orbit(5, 0)  # a change during the render: the next render draws it
+        await asyncio.wait_for(done.wait(), 60)
+        got, _, _ = area.img_cols_rows
+        np.testing.assert_array_equal(got, want)  # the snapshot taken when the render started
+        done.clear()
+        await asyncio.wait_for(done.wait(), 60)
+        latest, _, _ = area.img_cols_rows
+        np.testing.assert_array_equal(latest, v.frame())
+        assert latest is area.img_cols_rows[0]  # settled: nothing more to render
+
+    asyncio.run(run())
+    assert len(updates) == 2 and len(frames) == 3

@@ -32,25 +32,66 @@ def _require_trame():
 
 
 class _Area:
-    """The image source trame-rca asks for frames (its RemoteControlledAreaProtocol): renders the
-    viewer's current state once per change, and turns mouse events into orbit and zoom."""
+    """The image source trame-rca asks for frames (its RemoteControlledAreaProtocol).
 
-    def __init__(self, viewer: Viewer, on_frame):
+    trame-rca asks on the server's event loop; a frame that takes long (exact marching, a large
+    model on the CPU) would block the page meanwhile. So after the first frame, a frame for a new
+    state is rendered in a worker thread from a snapshot of the state, the last finished frame is
+    shown until it is done, and then the page is told (``request_update``) to fetch it; a state
+    changed meanwhile starts the next render. Mouse events turn into orbit and zoom."""
+
+    def __init__(self, viewer: Viewer, on_frame, request_update=None):
+        from concurrent.futures import ThreadPoolExecutor
+
         self.viewer = viewer
         self.on_frame = on_frame
-        self._key = None
+        self.request_update = request_update
+        self._key = None  # the state the shown frame draws
+        self._failed = None  # a state whose frame failed (not retried)
         self._img = None
+        self._busy = False
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="warpgauss-frame")
         self._press = None  # (x, y) of the last left-button position while dragging
 
     @property
     def img_cols_rows(self):
+        import asyncio
+
         key = json.dumps(self.viewer.state.__dict__, sort_keys=True)
-        if key != self._key:  # the still-quality pass asks again for the same state: no re-render
-            self._img = self.viewer.frame()
-            self._key = key
+        if self._img is None:  # the first frame: nothing to show meanwhile
+            self._img, self._key = self.viewer.frame(), key
             self.on_frame(self.viewer.last_seconds)
+        elif key not in (self._key, self._failed) and not self._busy:
+            try:
+                loop = asyncio.get_running_loop()
+            except RuntimeError:
+                loop = None
+            if loop is None:  # no event loop (a direct call): render here
+                self._img, self._key = self.viewer.frame(), key
+                self.on_frame(self.viewer.last_seconds)
+            else:
+                self._busy = True
+                self._pool.submit(self._render, loop, key, self.viewer.snapshot())
         h, w = self._img.shape[:2]
         return self._img, w, h
+
+    def _render(self, loop, key, state) -> None:
+        try:
+            img, err = self.viewer.frame(state), None
+        except Exception as e:  # noqa: BLE001 - shown in one line; the page keeps the last frame
+            img, err = None, e
+        loop.call_soon_threadsafe(self._done, key, img, err)
+
+    def _done(self, key, img, err) -> None:
+        self._busy = False
+        if img is None:
+            self._failed = key
+            print(f"warpgauss serve: a frame failed ({err}); the page keeps the last one", flush=True)
+        else:
+            self._img, self._key = img, key
+            self.on_frame(self.viewer.last_seconds)
+        if self.request_update is not None:
+            self.request_update()  # trame-rca asks again: the new frame, or a render of a newer state
 
     def process_resize_event(self, width, height):
         self.viewer.resize(width, height)
@@ -116,7 +157,7 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
             state.custom_colors = viewer.state.colors is not None
             state.facts = _facts_text(viewer.facts())
 
-    area = _Area(viewer, on_frame)
+    area = _Area(viewer, on_frame, lambda: handler.update() if handler is not None else None)
 
     class _Forward:  # mouse events re-render at once; the rest of the protocol goes to the area
         img_cols_rows = property(lambda self: area.img_cols_rows)

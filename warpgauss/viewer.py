@@ -137,8 +137,8 @@ class Viewer:
         return [[float(x), [float(c) for c in lut[i]]] for x, i in zip(xs, idx)]
 
     # -- rendering ----------------------------------------------------------------------------
-    def transfer_function(self) -> TransferFunction:
-        s = self.state
+    def transfer_function(self, state: ViewState | None = None) -> TransferFunction:
+        s = state or self.state
         if s.colors is None:
             tf = TransferFunction(colormap(s.colormap), np.zeros(LUT_SIZE), s.colormap, {"colormap": s.colormap})
         else:
@@ -150,26 +150,23 @@ class Viewer:
             )
         return tf.with_opacity([tuple(p) for p in s.opacity])
 
-    def _renderer(self):
+    def _renderer(self, s: ViewState):
         from .render import make_renderer
 
-        key = (self.state.time, self.state.method)
+        key = (s.time, s.method)
         if key not in self._renderers:
             if len(self._renderers) >= 4:  # keep a few timesteps' caches, not a whole series
                 self._renderers.pop(next(iter(self._renderers)))
             self._renderers[key] = make_renderer(
-                self.models[self.state.time],
-                self.state.method,
-                self.device,
-                cache_res=self.cache_res if self.state.method == "cached" else None,
+                self.models[s.time], s.method, self.device, cache_res=self.cache_res if s.method == "cached" else None
             )
         return self._renderers[key]
 
-    def _reference_renderer(self):
+    def _reference_renderer(self, s: ViewState):
         from .raymarch import Scene
         from .render import VolumeRenderer
 
-        t = self.state.time
+        t = s.time
         if t not in self._reference:
             self._reference.clear()
             self._reference[t] = VolumeRenderer(
@@ -177,33 +174,43 @@ class Viewer:
             )
         return self._reference[t]
 
-    def settings(self, width: int | None = None):
+    def settings(self, width: int | None = None, state: ViewState | None = None):
         from .raymarch import DEFAULT_DENSITY, RenderSettings, Scene
 
-        s = self.state
+        s = state or self.state
         scene = Scene.from_header(self.models[s.time].header)
         return RenderSettings(
             width=width or s.width, height=s.height, shading=s.shading, density=s.density_scale * DEFAULT_DENSITY / scene.extent
         )
 
-    def camera(self):
+    def camera(self, state: ViewState | None = None):
         from .raymarch import Camera
 
-        return Camera(azimuth=self.state.azimuth, elevation=self.state.elevation, zoom=self.state.zoom)
+        s = state or self.state
+        return Camera(azimuth=s.azimuth, elevation=s.elevation, zoom=s.zoom)
 
-    def frame(self) -> np.ndarray:
-        """The current view as (H, W, 3) uint8; with ``compare`` (and a volume) the model's half
-        beside the volume's, each half the width."""
+    def snapshot(self) -> ViewState:
+        """A copy of the current state (what a frame rendered elsewhere, e.g. in a thread, draws)."""
+        return replace(
+            self.state,
+            colors=None if self.state.colors is None else [list(c) for c in self.state.colors],
+            opacity=[list(p) for p in self.state.opacity],
+        )
+
+    def frame(self, state: ViewState | None = None) -> np.ndarray:
+        """The view as (H, W, 3) uint8 (``state``: a :meth:`snapshot`, default the current state);
+        with ``compare`` (and a volume) the model's half beside the volume's, each half the width."""
         t0 = time.perf_counter()
-        tf = self.transfer_function()
-        s = self.state
+        s = state or self.state
+        tf = self.transfer_function(s)
+        cam = self.camera(s)
         if s.compare and self.volumes is not None:
             half = max(8, s.width // 2)
-            a = self._renderer().render(self.camera(), tf, self.settings(half)).rgb8()
-            b = self._reference_renderer().render(self.camera(), tf, self.settings(s.width - half)).rgb8()
+            a = self._renderer(s).render(cam, tf, self.settings(half, s)).rgb8()
+            b = self._reference_renderer(s).render(cam, tf, self.settings(s.width - half, s)).rgb8()
             img = np.concatenate([a, b], axis=1)
         else:
-            img = self._renderer().render(self.camera(), tf, self.settings()).rgb8()
+            img = self._renderer(s).render(cam, tf, self.settings(None, s)).rgb8()
         self.last_seconds = time.perf_counter() - t0
         return np.ascontiguousarray(img)
 
