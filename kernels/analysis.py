@@ -9,6 +9,8 @@ Spirakis): the k smallest keys are a weighted sample of k distinct voxels. Keys 
 by log2 so that only the voxels in the lowest bins are compacted and sorted.
 """
 
+from typing import Any
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
@@ -158,8 +160,9 @@ def seed_key_compact(
 
 
 @wp.func
-def trilinear(vol: wp.array3d(dtype=float), p: wp.vec3) -> float:
-    """Trilinear interpolation at p = (x, y, z) voxel units, clamped to the grid."""
+def trilinear(vol: wp.array3d(dtype=Any), p: wp.vec3):
+    """Trilinear interpolation at p = (x, y, z) voxel units, clamped to the grid (a scalar volume,
+    or a grid of vectors such as the motion's block displacements)."""
     x = wp.clamp(p[0], 0.0, float(vol.shape[2] - 1))
     y = wp.clamp(p[1], 0.0, float(vol.shape[1] - 1))
     z = wp.clamp(p[2], 0.0, float(vol.shape[0] - 1))

@@ -10,33 +10,13 @@ displacement interpolated at its centre (``shift_centres``): structure at x at t
 timestep is at x + d now (a primitive it would carry out of the grid stays).
 """
 
-from typing import Any
-
 import warp as wp
+
+from .analysis import trilinear
 
 wp.set_module_options({"enable_backward": False})
 
 MAX_STEP = wp.constant(2.0)  # voxels one Gauss-Newton step may move a block (at its level)
-
-
-@wp.func
-def sample(f: wp.array3d(dtype=Any), p: wp.vec3):
-    """Trilinear value at p = (x, y, z) in cells, edges held (a scalar volume, or the block
-    displacements in block coordinates, block centres at integers)."""
-    nz, ny, nx = f.shape[0], f.shape[1], f.shape[2]
-    x = wp.clamp(p[0], 0.0, float(nx - 1))
-    y = wp.clamp(p[1], 0.0, float(ny - 1))
-    z = wp.clamp(p[2], 0.0, float(nz - 1))
-    i0 = wp.min(int(x), wp.max(nx - 2, 0))
-    j0 = wp.min(int(y), wp.max(ny - 2, 0))
-    k0 = wp.min(int(z), wp.max(nz - 2, 0))
-    i1, j1, k1 = wp.min(i0 + 1, nx - 1), wp.min(j0 + 1, ny - 1), wp.min(k0 + 1, nz - 1)
-    fx, fy, fz = x - float(i0), y - float(j0), z - float(k0)
-    c00 = wp.lerp(f[k0, j0, i0], f[k0, j0, i1], fx)
-    c01 = wp.lerp(f[k0, j1, i0], f[k0, j1, i1], fx)
-    c10 = wp.lerp(f[k1, j0, i0], f[k1, j0, i1], fx)
-    c11 = wp.lerp(f[k1, j1, i0], f[k1, j1, i1], fx)
-    return wp.lerp(wp.lerp(c00, c01, fy), wp.lerp(c10, c11, fy), fz)
 
 
 @wp.kernel
@@ -78,11 +58,11 @@ def lk_step(
                         i = bi * block + di
                         if i < nx:
                             p = wp.vec3(float(i), float(j), float(k)) + d
-                            c = sample(cur, p)
+                            c = trilinear(cur, p)
                             g = wp.vec3(
-                                0.5 * (sample(cur, p + wp.vec3(1.0, 0.0, 0.0)) - sample(cur, p - wp.vec3(1.0, 0.0, 0.0))),
-                                0.5 * (sample(cur, p + wp.vec3(0.0, 1.0, 0.0)) - sample(cur, p - wp.vec3(0.0, 1.0, 0.0))),
-                                0.5 * (sample(cur, p + wp.vec3(0.0, 0.0, 1.0)) - sample(cur, p - wp.vec3(0.0, 0.0, 1.0))),
+                                0.5 * (trilinear(cur, p + wp.vec3(1.0, 0.0, 0.0)) - trilinear(cur, p - wp.vec3(1.0, 0.0, 0.0))),
+                                0.5 * (trilinear(cur, p + wp.vec3(0.0, 1.0, 0.0)) - trilinear(cur, p - wp.vec3(0.0, 1.0, 0.0))),
+                                0.5 * (trilinear(cur, p + wp.vec3(0.0, 0.0, 1.0)) - trilinear(cur, p - wp.vec3(0.0, 0.0, 1.0))),
                             )
                             a += wp.outer(g, g)
                             b += g * (ref[k, j, i] - c)
@@ -120,7 +100,7 @@ def upsample_blocks(coarse: wp.array3d(dtype=wp.vec3), coarse_block: int, fine_b
     """A finer level's blocks start from twice the coarser level's displacement at their centre."""
     bk, bj, bi = wp.tid()
     centre = (wp.vec3(float(bi), float(bj), float(bk)) + wp.vec3(0.5)) * float(fine_block) * 0.5  # coarse voxels
-    fine[bk, bj, bi] = 2.0 * sample(coarse, centre / float(coarse_block) - wp.vec3(0.5))
+    fine[bk, bj, bi] = 2.0 * trilinear(coarse, centre / float(coarse_block) - wp.vec3(0.5))
 
 
 @wp.kernel
@@ -136,7 +116,7 @@ def shift_centres(
     t = wp.tid()
     mu = wp.vec3(params[t, 0], params[t, 1], params[t, 2])
     q = (mu + wp.vec3(0.5)) / float(block) - wp.vec3(0.5)
-    d = sample(disp, q)
+    d = trilinear(disp, q)
     to = mu + d
     for a in range(3):
         if to[a] < -0.5 or to[a] > size[a] - 0.5:
@@ -149,9 +129,9 @@ def shift_centres(
         return
     # the local rotation of the motion (half its curl, small angles) turns the primitive's frame too
     h = 0.5
-    ex = (sample(disp, q + wp.vec3(h, 0.0, 0.0)) - sample(disp, q - wp.vec3(h, 0.0, 0.0))) / (2.0 * h * float(block))
-    ey = (sample(disp, q + wp.vec3(0.0, h, 0.0)) - sample(disp, q - wp.vec3(0.0, h, 0.0))) / (2.0 * h * float(block))
-    ez = (sample(disp, q + wp.vec3(0.0, 0.0, h)) - sample(disp, q - wp.vec3(0.0, 0.0, h))) / (2.0 * h * float(block))
+    ex = (trilinear(disp, q + wp.vec3(h, 0.0, 0.0)) - trilinear(disp, q - wp.vec3(h, 0.0, 0.0))) / (2.0 * h * float(block))
+    ey = (trilinear(disp, q + wp.vec3(0.0, h, 0.0)) - trilinear(disp, q - wp.vec3(0.0, h, 0.0))) / (2.0 * h * float(block))
+    ez = (trilinear(disp, q + wp.vec3(0.0, 0.0, h)) - trilinear(disp, q - wp.vec3(0.0, 0.0, h))) / (2.0 * h * float(block))
     omega = 0.5 * wp.vec3(ey[2] - ez[1], ez[0] - ex[2], ex[1] - ey[0])
     angle = wp.length(omega)
     if angle > 1.0e-6:

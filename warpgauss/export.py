@@ -108,13 +108,22 @@ def primitive_arrays(model, *, voxel_units: bool = False) -> dict[str, np.ndarra
 
 def write_vtp(model, path: str | os.PathLike, *, voxel_units: bool = False, force: bool = False) -> int:
     """Write the primitives as a ``.vtp`` point cloud (atomic); returns the number of points."""
-    import pyvista as pv
-
     from ._fs import atomic_path, check_writable
 
     if not str(path).lower().endswith(".vtp"):
         raise WarpgaussError(f"{path}: primitives are exported as VTK PolyData; give a .vtp file name")
     check_writable(path, force=force)
+    cloud = primitives_polydata(model, voxel_units=voxel_units)
+    with atomic_path(path) as tmp:
+        cloud.save(str(tmp), binary=True)
+    return int(cloud.n_points)
+
+
+def primitives_polydata(model, *, voxel_units: bool = False):
+    """The primitives as a VTK point cloud (pyvista PolyData, one vertex a point) with the arrays of
+    :func:`primitive_arrays` (float32), ``value`` active; what :func:`write_vtp` writes."""
+    import pyvista as pv
+
     arr = primitive_arrays(model, voxel_units=voxel_units)
     cloud = pv.PolyData(arr["points"].astype(np.float32))
     for key in ("scale", "orientation", "rotation", "value", "value_normalised", "weight"):
@@ -123,6 +132,4 @@ def write_vtp(model, path: str | os.PathLike, *, voxel_units: bool = False, forc
     cloud.field_data["warpgauss_units"] = np.array(["voxel" if voxel_units else "physical"])
     cloud.field_data["orientation_order"] = np.array(["x y z w"])
     cloud.field_data["value_range"] = np.asarray(model.value_range, np.float64)
-    with atomic_path(path) as tmp:
-        cloud.save(str(tmp), binary=True)
-    return int(arr["points"].shape[0])
+    return cloud

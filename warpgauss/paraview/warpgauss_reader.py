@@ -186,36 +186,16 @@ def decode_image(path: str, shape, device: str | None = None):
             img.DeepCopy(ri.GetOutput())
             pts.DeepCopy(rp.GetOutput())
         return img, pts, None
-    from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
-    from vtkmodules.vtkCommonCore import vtkPoints
-    from vtkmodules.vtkCommonDataModel import vtkCellArray
-
     import warpgauss
-    from warpgauss.export import primitive_arrays
+    from warpgauss.export import primitives_polydata
+    from warpgauss.readers.write import image_data
     from warpgauss.transfer import from_header
 
     m = warpgauss.Model.load(path)
-    values = m.decode(tuple(shape), device=device)
-    img = vtkImageData()
-    img.SetDimensions(*shape)
-    img.SetSpacing(*m.decoded_spacing(tuple(shape)))
-    img.SetOrigin(*m.decoded_origin(tuple(shape)))
-    arr = numpy_to_vtk(np.ascontiguousarray(values).ravel(), deep=1)
-    arr.SetName(str(m.header.get("name") or "value"))
-    img.GetPointData().SetScalars(arr)
-    cols = primitive_arrays(m)
-    poly = vtkPolyData()
-    points = vtkPoints()
-    points.SetData(numpy_to_vtk(np.ascontiguousarray(cols.pop("points"), np.float32), deep=1))
-    poly.SetPoints(points)
-    verts = vtkCellArray()  # one vertex cell per point
-    ids = np.arange(m.n + 1, dtype=np.int64)
-    verts.SetData(numpy_to_vtkIdTypeArray(ids, deep=1), numpy_to_vtkIdTypeArray(ids[:-1].copy(), deep=1))
-    poly.SetVerts(verts)
-    for name, a in cols.items():
-        va = numpy_to_vtk(np.ascontiguousarray(a, np.float32), deep=1)
-        va.SetName(name)
-        poly.GetPointData().AddArray(va)
+    shape = tuple(shape)
+    name = str(m.header.get("name") or "value")  # as warpgauss decode names it
+    img = image_data(m.decode(shape, device=device), m.decoded_spacing(shape), m.decoded_origin(shape), name)
+    poly = primitives_polydata(m)  # as warpgauss export writes it
     tf = from_header(m.header)
     return img, poly, tf.rgba
 

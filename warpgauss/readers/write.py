@@ -17,7 +17,8 @@ from .common import _check_dtype, _check_shape, _match_suffix
 # --------------------------------------------------------------------------------------------------
 
 
-def _write_vti(tmp: Path, data: np.ndarray, spacing, origin, name: str) -> None:
+def image_data(data: np.ndarray, spacing, origin, name: str):
+    """A (nz, ny, nx) grid as VTK ImageData (pyvista) with point array ``name`` (x fastest)."""
     import pyvista as pv
 
     if data.dtype == np.float16:  # VTK has no half-precision arrays
@@ -25,7 +26,11 @@ def _write_vti(tmp: Path, data: np.ndarray, spacing, origin, name: str) -> None:
     nz, ny, nx = data.shape
     grid = pv.ImageData(dimensions=(nx, ny, nz), spacing=spacing, origin=origin)
     grid.point_data[name] = data.transpose(2, 1, 0).ravel(order="F")  # x fastest
-    grid.save(tmp)
+    return grid
+
+
+def _write_vti(tmp: Path, data: np.ndarray, spacing, origin, name: str) -> None:
+    image_data(data, spacing, origin, name).save(tmp)
 
 
 def _write_npy(tmp: Path, data: np.ndarray, spacing, origin, name: str) -> None:
