@@ -172,3 +172,34 @@ def test_the_encoder_keeps_to_a_time_budget(wp, tmp_path):
         warpgauss.Encoder()
     with pytest.raises(WarpgaussError, match="warm_start="):
         warpgauss.Encoder(budget=10, warm_start=None)
+
+
+class TorchOnStream:
+    """A PyTorch CUDA tensor offered only through ``__cuda_array_interface__`` version 3, naming the
+    stream it was written on (as CuPy and Numba do; PyTorch's own dict names none)."""
+
+    def __init__(self, t, stream):
+        self.t = t
+        self.__cuda_array_interface__ = {**t.__cuda_array_interface__, "version": 3, "stream": int(stream.cuda_stream)}
+
+
+def test_a_producer_stream_is_waited_for_on_cuda(wp):
+    """The field is written on a side stream behind a long GPU sleep; the encode reads it through
+    __cuda_array_interface__ (which names that stream) without any host synchronisation, and must
+    still see the finished field: the model equals the encode of the same field from the host."""
+    torch = pytest.importorskip("torch")
+    if not (wp.is_cuda_available() and torch.cuda.is_available()):
+        pytest.skip("needs CUDA and PyTorch with CUDA (runs on the GPU machine, not in CI)")
+    v = generate("vortex", 48)
+    ref = warpgauss.encode(v, device="cuda:0", **FAST)
+    src = torch.from_numpy(v).cuda()
+    torch.cuda.synchronize()
+    side = torch.cuda.Stream()
+    with torch.cuda.stream(side):
+        dst = torch.zeros_like(src)
+        torch.cuda._sleep(200_000_000)  # ~0.1 s of GPU clock cycles before the field is written
+        dst.copy_(src)
+    arr = TorchOnStream(dst, side)
+    assert arr.__cuda_array_interface__["stream"] not in (0, 1, 2)  # the side stream's handle
+    m = warpgauss.encode(arr, device="cuda:0", **FAST)
+    np.testing.assert_array_equal(m.params, ref.params)
