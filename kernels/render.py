@@ -82,6 +82,7 @@ class MarchParams:
     specular: float
     shininess: float
     light: wp.vec3  # unit direction towards the light (world); zero vector: headlight
+    tile: int  # the launch goes over the image in tile x tile squares of pixels (1: row by row)
 
 
 @wp.struct
@@ -102,6 +103,8 @@ class DenseVolume:
 
     values: wp.array3d(dtype=float)  # [nz, ny, nx]
     scale: wp.vec3  # volume voxels per model voxel along x, y, z
+    grad: wp.array3d(dtype=wp.vec4h)  # [nz, ny, nx] (gx, gy, gz, 0) per model voxel at the grid points (half precision)
+    has_grad: int  # 1: shade from ``grad`` (8 taps), 0: by central differences of the values (6 trilinear samples)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -172,12 +175,52 @@ def dense_gradient(src: DenseVolume, p: wp.vec3) -> wp.vec3:
 
 
 @wp.func
+def grid_gradient(src: DenseVolume, p: wp.vec3) -> wp.vec3:
+    """The shading gradient of the grid at p (model voxel units): from the gradient grid when there
+    is one (one trilinear fetch of 8 half-precision vectors; :func:`dense_gradient` up to the
+    half precision where the grid is the model's, since a central difference of the trilinear
+    interpolant over one voxel is the trilinear interpolant of the grid's central differences),
+    else by central differences of the values."""
+    if src.has_grad != 0:
+        q = wp.cw_mul(p + wp.vec3(0.5), src.scale) - wp.vec3(0.5)
+        return trilinear_half(src.grad, q)
+    return dense_gradient(src, p)
+
+
+@wp.func
+def half3(v: wp.vec4h) -> wp.vec3:
+    return wp.vec3(float(v[0]), float(v[1]), float(v[2]))
+
+
+@wp.func
+def trilinear_half(vol: wp.array3d(dtype=wp.vec4h), p: wp.vec3) -> wp.vec3:
+    """:func:`trilinear` of a half-precision vector grid (first three lanes), in single precision."""
+    x = wp.clamp(p[0], 0.0, float(vol.shape[2] - 1))
+    y = wp.clamp(p[1], 0.0, float(vol.shape[1] - 1))
+    z = wp.clamp(p[2], 0.0, float(vol.shape[0] - 1))
+    i0 = wp.min(int(wp.floor(x)), vol.shape[2] - 1)
+    j0 = wp.min(int(wp.floor(y)), vol.shape[1] - 1)
+    k0 = wp.min(int(wp.floor(z)), vol.shape[0] - 1)
+    i1 = wp.min(i0 + 1, vol.shape[2] - 1)
+    j1 = wp.min(j0 + 1, vol.shape[1] - 1)
+    k1 = wp.min(k0 + 1, vol.shape[0] - 1)
+    tx = x - float(i0)
+    ty = y - float(j0)
+    tz = z - float(k0)
+    c00 = wp.lerp(half3(vol[k0, j0, i0]), half3(vol[k0, j0, i1]), tx)
+    c01 = wp.lerp(half3(vol[k0, j1, i0]), half3(vol[k0, j1, i1]), tx)
+    c10 = wp.lerp(half3(vol[k1, j0, i0]), half3(vol[k1, j0, i1]), tx)
+    c11 = wp.lerp(half3(vol[k1, j1, i0]), half3(vol[k1, j1, i1]), tx)
+    return wp.lerp(wp.lerp(c00, c01, ty), wp.lerp(c10, c11, ty), tz)
+
+
+@wp.func
 def field_sample(src: DenseVolume, p: wp.vec3, want_grad: int) -> wp.vec4:
-    """(V, gradient) of the trilinear grid at p; gradient by central differences of one model voxel."""
+    """(V, gradient) of the trilinear grid at p, the gradient as the marcher shades with it."""
     v = dense_value(src, p)
     if want_grad == 0:
         return wp.vec4(v, 0.0, 0.0, 0.0)
-    g = dense_gradient(src, p)
+    g = grid_gradient(src, p)
     return wp.vec4(v, g[0], g[1], g[2])
 
 
@@ -202,8 +245,8 @@ def sample_gradient(src: BinnedPrimitives, p: wp.vec3, s: wp.vec4) -> wp.vec3:
 
 @wp.func
 def sample_gradient(src: DenseVolume, p: wp.vec3, s: wp.vec4) -> wp.vec3:
-    """The gradient for shading a visible sample of the grid, evaluated now (six taps)."""
-    return dense_gradient(src, p)
+    """The gradient for shading a visible sample of the grid, evaluated now."""
+    return grid_gradient(src, p)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -313,12 +356,21 @@ def march(
     image: wp.array2d(dtype=wp.vec4),  # [H, W] out: rgb over the background, alpha = 1 - T
     samples: wp.array2d(dtype=int),  # [H, W] out: field evaluations spent on the pixel
 ):
-    """Emission-absorption ray marching, one thread per pixel.
+    """Emission-absorption ray marching, one thread per pixel, launched over ``prm.tile`` x
+    ``prm.tile`` tiles of the image (``dim`` = tiles x tile^2; tile 1: row by row).
 
     Args:
         src: The field: mixture model or dense grid.
     """
-    j, i = wp.tid()
+    tid = wp.tid()
+    tt = prm.tile * prm.tile
+    tile = tid // tt
+    within = tid - tile * tt
+    tiles_x = (cam.width + prm.tile - 1) // prm.tile
+    i = (tile % tiles_x) * prm.tile + within % prm.tile
+    j = (tile // tiles_x) * prm.tile + within // prm.tile
+    if i >= cam.width or j >= cam.height:
+        return
     o_w, d_w = camera_ray(cam, i, j)
     o = wp.cw_mul(o_w, prm.vox_per_world)  # model voxel coordinates, t still in world units
     d = wp.cw_mul(d_w, prm.vox_per_world)
@@ -383,6 +435,43 @@ def to_rgb8(image: wp.array2d(dtype=wp.vec4), out: wp.array3d(dtype=wp.uint8)):
     c = image[i, j]
     for k in range(3):
         out[i, j, k] = wp.uint8(int(wp.clamp(c[k], 0.0, 1.0) * 255.0 + 0.5))
+
+
+@wp.kernel
+def central_gradient(values: wp.array3d(dtype=float), scale: wp.vec3, grad: wp.array3d(dtype=wp.vec4h)):
+    """The gradient grid of a dense volume: half the difference of the two neighbours along each
+    axis (the edge voxel stands in for a missing one, as the clamped trilinear sample does),
+    times ``scale`` (volume voxels per model voxel) so it is per model voxel; stored in half
+    precision (8 bytes a voxel: shading needs directions, not 7 digits)."""
+    k, j, i = wp.tid()
+    nz, ny, nx = values.shape[0], values.shape[1], values.shape[2]
+    gx = values[k, j, wp.min(i + 1, nx - 1)] - values[k, j, wp.max(i - 1, 0)]
+    gy = values[k, wp.min(j + 1, ny - 1), i] - values[k, wp.max(j - 1, 0), i]
+    gz = values[wp.min(k + 1, nz - 1), j, i] - values[wp.max(k - 1, 0), j, i]
+    g = wp.vec3(0.5 * gx * scale[0], 0.5 * gy * scale[1], 0.5 * gz * scale[2])
+    grad[k, j, i] = wp.vec4h(wp.float16(g[0]), wp.float16(g[1]), wp.float16(g[2]), wp.float16(0.0))
+
+
+@wp.kernel
+def row_sums_max(counts: wp.array2d(dtype=int), sums: wp.array(dtype=wp.int64), maxes: wp.array(dtype=int)):
+    """Per row of a (H, W) count image: the exact sum (int64) and the maximum."""
+    i = wp.tid()
+    s = wp.int64(0)
+    m = int(0)
+    for j in range(counts.shape[1]):
+        c = counts[i, j]
+        s += wp.int64(c)
+        m = wp.max(m, c)
+    sums[i] = s
+    maxes[i] = m
+
+
+@wp.kernel
+def count_positive(a: wp.array(dtype=int), out: wp.array(dtype=int)):
+    """out[0] += how many entries of ``a`` are > 0 (integer atomics: the same count every run)."""
+    i = wp.tid()
+    if a[i] > 0:
+        wp.atomic_add(out, 0, 1)
 
 
 @wp.kernel

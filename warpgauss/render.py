@@ -36,6 +36,7 @@ import numpy as np
 from ._warp import resolve_device, warp
 from .errors import WarpgaussError
 from .raymarch import (  # noqa: F401 - the scene, camera and image types are part of this module's API
+    CACHE_MEMORY_SHARE,
     DEFAULT_DENSITY,
     OCCUPANCY_TARGET,
     Camera,
@@ -44,13 +45,13 @@ from .raymarch import (  # noqa: F401 - the scene, camera and image types are pa
     Scene,
     View,
     _Marcher,
+    device_memory_bytes,
     resolve_view,
 )
 from .splat import SplatRenderer
 from .transfer import TransferFunction, make_transfer_function
 
 METHODS = ("march", "cached", "splat")  # how a model is drawn (see the module docstring)
-CACHE_MEMORY_SHARE = 0.5  # a cache may take at most this share of the device's free memory (CPU: of RAM)
 
 
 class ModelRenderer(_Marcher):
@@ -147,19 +148,6 @@ def cache_grid_shape(shape_xyz, cache_res: int | None = None) -> tuple[int, ...]
     return shape
 
 
-def device_memory_bytes(device: str) -> int | None:
-    """Memory a new allocation can use on ``device``: free GPU memory, or the machine's RAM for the
-    CPU (None when unknown)."""
-    wp = warp()
-    d = wp.get_device(device)
-    if d.is_cuda:
-        return int(d.free_memory)
-    try:
-        return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
-    except (AttributeError, ValueError, OSError):
-        return None
-
-
 def check_cache_memory(shape_xyz, device: str) -> None:
     """Refuse a cache larger than :data:`CACHE_MEMORY_SHARE` of the device's memory, before allocating it."""
     need = 4 * math.prod(int(n) for n in shape_xyz)  # float32 voxels; the occupancy adds < 1/8 of that
@@ -176,8 +164,9 @@ class CachedRenderer(_Marcher):
 
     The decode is the model's full-grid decode (bricks no primitive reaches are written 0 without
     evaluation, which is their exact value) straight into device memory; the grid is then marched
-    as a dense volume: trilinear samples, shading from central differences of one model voxel,
-    occupancy from its non-zero voxels. Only camera, transfer function and lighting change between
+    as a dense volume: trilinear samples, shading from central differences of one model voxel
+    (precomputed as a half-precision gradient grid where memory allows: 8 more bytes a voxel for
+    frames 1.2-1.3x faster on an H100), occupancy from its non-zero voxels. Only camera, transfer function and lighting change between
     frames, so the decode is paid once (:attr:`cache_seconds`).
 
     .. note:: trades exactness for speed: the image is the exact march's up to the trilinear
@@ -233,7 +222,10 @@ class CachedRenderer(_Marcher):
 
     @property
     def cache_bytes(self) -> int:
-        return 4 * math.prod(self.cache_shape)
+        """Device bytes of the cache: its values and, when built, its gradient grid."""
+        from .raymarch import GRADIENT_GRID_BYTES
+
+        return (4 + GRADIENT_GRID_BYTES * int(self.gradient_grid)) * math.prod(self.cache_shape)
 
     def render(
         self, camera: Camera | View | None = None, tf: TransferFunction | None = None, settings: RenderSettings | None = None
@@ -242,7 +234,7 @@ class CachedRenderer(_Marcher):
         settings = settings or RenderSettings()
         view = camera if isinstance(camera, View) else resolve_view(camera or Camera(), self.scene, settings.width, settings.height)
         img = self._march(self.volume, view, tf or make_transfer_function(), settings, "cached")
-        img.stats.update(cache_shape=list(self.cache_shape), cache_seconds=self.cache_seconds)
+        img.stats.update(cache_shape=list(self.cache_shape), cache_seconds=self.cache_seconds, gradient_grid=self.gradient_grid)
         return img
 
 

@@ -13,9 +13,7 @@ from __future__ import annotations
 import math
 import time
 
-import numpy as np
-
-from .raymarch import Camera, Image, RenderSettings, Scene, View, _Marcher, resolve_view
+from .raymarch import Camera, Image, RenderSettings, Scene, View, _Marcher, count_stats, resolve_view
 from .transfer import TransferFunction, make_transfer_function
 
 
@@ -119,6 +117,10 @@ class SplatRenderer(_Marcher):
         )
         wp.synchronize_device(dev)
         seconds = time.perf_counter() - t0
-        d = drawn.numpy()
-        stats = {"pairs": pairs, "splats_per_pixel": float(d.mean()), "visible": int(np.count_nonzero(self.count.numpy()))}
-        return Image(image.numpy(), seconds, "splat", stats)
+        rgb8 = wp.empty((h, w, 3), dtype=wp.uint8, device=dev)
+        wp.launch(self._k.to_rgb8, dim=(h, w), inputs=[image], outputs=[rgb8], device=dev)
+        visible = wp.zeros(1, dtype=int, device=dev)
+        wp.launch(self._k.count_positive, dim=n, inputs=[self.count], outputs=[visible], device=dev)
+        per_pixel, _ = count_stats(drawn, dev)
+        stats = {"pairs": pairs, "splats_per_pixel": per_pixel, "visible": int(visible.numpy()[0])}
+        return Image(image, seconds, "splat", stats, rgb8_device=rgb8)
