@@ -216,3 +216,29 @@ def test_seams_are_within_1_db_of_the_interior():
     seam, interior = psnr(err[near]), psnr(err[~near])
     assert seam >= interior - 1.0, (seam, interior)
     assert interior > 35.0
+
+
+def test_a_gpu_cluster_gives_each_worker_its_own_gpu(monkeypatch):
+    """gpu_client starts one worker process per GPU with CUDA_VISIBLE_DEVICES naming its own (the
+    parent's visible list where set); on this CPU machine the bricks then run on the CPU device,
+    and the model equals the serial one (the same paths a GPU cluster takes)."""
+    pytest.importorskip("distributed")
+    from warpgauss.bricked import gpu_client, gpu_ids
+
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5, 7,9")
+    assert gpu_ids(2) == ["5", "7"]
+    with pytest.raises(WarpgaussError, match="only 3 GPUs are visible"):
+        gpu_ids(4)
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
+    assert gpu_ids(3) == ["0", "1", "2"]
+    v = generate("interface", 20)
+    serial = warpgauss.encode(v, budget=150, bricks="2x1x1", halo=2, **FAST)
+    client = gpu_client(2, ids=["3", "8"])
+    try:
+        seen = client.run(lambda: __import__("os").environ.get("CUDA_VISIBLE_DEVICES"))
+        spread = warpgauss.encode(v, budget=150, bricks="2x1x1", halo=2, client=client, **FAST)
+    finally:
+        client.close()
+        client.cluster.close()
+    assert sorted(seen.values()) == ["3", "8"]
+    np.testing.assert_array_equal(serial.params, spread.params)

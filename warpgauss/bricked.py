@@ -524,13 +524,40 @@ def local_client(workers: int):
     return Client(cluster)
 
 
+def gpu_ids(count: int) -> list[str]:
+    """The first ``count`` GPUs this process may use, as CUDA_VISIBLE_DEVICES entries (that
+    variable's own list where it is set, else 0, 1, ...)."""
+    import os
+
+    visible = [g.strip() for g in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if g.strip()]
+    ids = visible if visible else [str(i) for i in range(count)]
+    if len(ids) < count:
+        raise WarpgaussError(f"{count} GPU workers asked for, but only {len(ids)} GPUs are visible ({','.join(ids)})")
+    return ids[:count]
+
+
+def gpu_client(gpus: int, ids: list[str] | None = None):
+    """A local Dask cluster of one single-threaded worker process per GPU, and its client.
+
+    Each worker is started with CUDA_VISIBLE_DEVICES naming its own GPU, so in it "cuda:0" is that
+    GPU and a brick task (device None: CUDA when present) runs there; what dask-cuda's
+    LocalCUDACluster does for this, without its other machinery (UCX, RMM) or the dependency.
+    Only Dask's own transports are used. ``ids``: the GPUs (default: :func:`gpu_ids`)."""
+    from distributed import Client, Nanny, Scheduler, SpecCluster
+
+    ids = gpu_ids(gpus) if ids is None else [str(i) for i in ids]
+    workers = {f"gpu-{g}": {"cls": Nanny, "options": {"nthreads": 1, "env": {"CUDA_VISIBLE_DEVICES": g}, "name": f"gpu-{g}"}} for g in ids}
+    cluster = SpecCluster(workers=workers, scheduler={"cls": Scheduler, "options": {"dashboard_address": None}}, name="warpgauss-gpus")
+    return Client(cluster)
+
+
 def default_client(workers: int | None, scheduler: str | None, device: str | None):
     """The cluster a bricked encode runs on, and a note of why.
 
     ``scheduler``: connect to that running cluster. ``workers`` 0: this process. Otherwise a local
-    cluster: one worker per GPU through dask-cuda where it is installed and several GPUs exist;
-    this process on a single GPU (the bricks share it anyway); on the CPU ``workers`` processes
-    (default: up to 4, one per core).
+    cluster: one worker per GPU (:func:`gpu_client`; ``workers`` of them at most) where several
+    GPUs exist; this process on a single GPU (the bricks share it anyway); on the CPU ``workers``
+    processes (default: up to 4, one per core).
     """
     import os
 
@@ -546,14 +573,8 @@ def default_client(workers: int | None, scheduler: str | None, device: str | Non
     if dev.startswith("cuda"):
         gpus = warp().get_cuda_device_count()
         if gpus > 1:
-            try:
-                from dask_cuda import LocalCUDACluster
-                from distributed import Client
-            except ImportError:
-                return None, f"this process: {gpus} GPUs but dask-cuda is not installed (pip install dask-cuda)"
-            return Client(
-                LocalCUDACluster(n_workers=workers or gpus, threads_per_worker=1)
-            ), f"a local cluster of {workers or gpus} GPU workers (dask-cuda)"
+            k = min(workers or gpus, gpus)
+            return gpu_client(k), f"a local cluster of {k} GPU workers (one GPU each)"
         return None, "this process (one GPU: the bricks share it)"
     k = workers or max(1, min(4, os.cpu_count() or 1))
     return local_client(k), f"a local cluster of {k} CPU processes"

@@ -1,0 +1,156 @@
+"""Multi-GPU scaling of the bricked encode and of a series (issue #23), against the same work on
+one GPU of the same machine in the same run.
+
+For each size: an example field generated here, encoded with the same bricking and seed on a local
+Dask cluster of 1 GPU worker, then of 2 (``--gpus``), each worker a process with its own GPU
+(``warpgauss.bricked.gpu_client``: CUDA_VISIBLE_DEVICES per worker, Dask's own TCP transport).
+Each row: gpus, seconds, speedup against gpus=1, PSNR, and whether the model equals the one-GPU
+model bit for bit (same seed, same bricking: it must). Then ``--series`` timesteps of an evolving
+example encoded across the workers: timesteps per second against one GPU.
+
+Every cluster first encodes a small field (kernels compiled in each worker, then cached on disk);
+only the later encodes are timed. On the CPU (``--device cpu``) the workers are CPU processes
+(``local_client``): the same encode paths, for a check on a machine without GPUs.
+
+    python benchmarks/i23/multi_gpu.py --sizes 1024 --gpus 1,2 --series 8 --out $OUT/i23_multi_gpu_1024.json
+    python benchmarks/i23/multi_gpu.py --sizes 2048 --budget 4000000 --gpus 1,2 --series 0 --out $OUT/i23_multi_gpu_2048.json
+    python benchmarks/i23/multi_gpu.py --sizes 32 --budget 400 --bricks 2x2x1 --gpus 1,2 --series 4 --series-size 24 --device cpu --out /tmp/i23_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+import warpgauss
+from warpgauss._warp import resolve_device
+from warpgauss.bench import result_header
+from warpgauss.bricked import gpu_client, local_client
+from warpgauss.series import encode_series
+from warpgauss.synthetic import generate, generate_series
+
+os.environ.setdefault("NCCL_NVLS_ENABLE", "0")  # NVLink multicast stays off (nothing here uses NCCL; kept for any child)
+
+
+logging.getLogger("distributed").setLevel(logging.WARNING)  # the workers' start and stop, line by line, otherwise
+
+
+def cluster(k: int, device: str):
+    client = gpu_client(k) if device.startswith("cuda") else local_client(k)
+    client.wait_for_workers(k, timeout=300)
+    return client
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--field", default="vortex")
+    ap.add_argument("--sizes", default="1024")
+    ap.add_argument("--budget", type=int, default=None, help="N (default: 1,000,000 at 1024^3, scaled with the voxel count)")
+    ap.add_argument("--bricks", default="4x4x4")
+    ap.add_argument("--gpus", default="1,2")
+    ap.add_argument("--iterations", type=int, default=None, help="refinement iterations (default: the preset's)")
+    ap.add_argument("--series", type=int, default=8, help="timesteps of the series part (0: none)")
+    ap.add_argument("--series-size", type=int, default=512)
+    ap.add_argument("--series-budget", type=int, default=400_000)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args(argv)
+    dev = resolve_device(args.device)
+    counts = [int(g) for g in args.gpus.split(",")]
+    assert counts[0] == 1, "the first --gpus entry is the one-GPU baseline (1)"
+    extra = {} if args.iterations is None else {"iterations": args.iterations}
+    common = dict(self_test=False, format="full", seed=0, device=dev, **extra)
+    result = {
+        **result_header("bricked encode and series across GPUs (Dask, one worker per GPU)", __file__, argv, dev),
+        "field": args.field,
+        "bricks": args.bricks,
+        "environment": {k: os.environ.get(k) for k in ("CUDA_VISIBLE_DEVICES", "NCCL_NVLS_ENABLE")},
+        "rows": [],
+    }
+    clients = {}
+    try:
+        for k in counts:
+            t0 = time.perf_counter()
+            clients[k] = cluster(k, dev)
+            warm = warpgauss.encode(generate(args.field, 48), budget=400, bricks="2x1x1", client=clients[k], **{**common, "iterations": 20})
+            print(
+                f"cluster of {k}: up and compiled in {time.perf_counter() - t0:.1f} s ({warm.report['bricking']['scheduler']})", flush=True
+            )
+        for size in (int(s) for s in args.sizes.split(",")):
+            budget = args.budget or int(1_000_000 * (size / 1024) ** 3)
+            t0 = time.perf_counter()
+            vol = generate(args.field, size)
+            gen = time.perf_counter() - t0
+            base = None
+            for k in counts:
+                t0 = time.perf_counter()
+                m = warpgauss.encode(vol, budget=budget, bricks=args.bricks, client=clients[k], **common)
+                sec = time.perf_counter() - t0
+                devices = sorted({b["device"] for b in m.report["bricking"]["bricks"]})
+                row = {
+                    "what": "bricked encode",
+                    "size": size,
+                    "n": int(m.n),
+                    "gpus": k,
+                    "seconds": sec,
+                    "psnr_db": m.report["psnr_db"],
+                    "worker_devices": devices,
+                    "generate_seconds": gen,
+                }
+                if base is None:
+                    base = (sec, m)
+                row["speedup"] = base[0] / sec
+                row["identical_to_one_gpu"] = bool(np.array_equal(m.params, base[1].params))
+                result["rows"].append(row)
+                print(
+                    f"{size}^3 N {m.n:,} on {k} GPU(s): {sec:.1f} s, speed-up {row['speedup']:.2f}x, PSNR {row['psnr_db']:.2f} dB, "
+                    f"same model as one GPU: {row['identical_to_one_gpu']}",
+                    flush=True,
+                )
+            del vol, base
+        if args.series > 0:
+            steps = list(generate_series(args.field, args.series_size, args.series))
+            base_rate = None
+            for k in counts:
+                t0 = time.perf_counter()
+                models = encode_series(steps, budget=args.series_budget, client=clients[k], **common)
+                sec = time.perf_counter() - t0
+                rate = len(steps) / sec
+                base_rate = base_rate or rate
+                result["rows"].append(
+                    {
+                        "what": "series",
+                        "size": args.series_size,
+                        "timesteps": len(steps),
+                        "n": int(models[0].n),
+                        "gpus": k,
+                        "seconds": sec,
+                        "timesteps_per_second": rate,
+                        "speedup": rate / base_rate,
+                        "psnr_db": [m.report["psnr_db"] for m in models],
+                        "warm": [bool(m.report["series"]["warm_start"]) for m in models],
+                    }
+                )
+                print(
+                    f"series of {len(steps)} at {args.series_size}^3 on {k} GPU(s): {sec:.1f} s, {rate:.3f} timesteps/s, "
+                    f"speed-up {rate / base_rate:.2f}x, PSNR {min(m.report['psnr_db'] for m in models):.2f}-"
+                    f"{max(m.report['psnr_db'] for m in models):.2f} dB",
+                    flush=True,
+                )
+    finally:
+        for c in clients.values():
+            c.close()
+            c.cluster.close()
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=2))
+    return result
+
+
+if __name__ == "__main__":
+    main()
