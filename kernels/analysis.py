@@ -160,21 +160,21 @@ def seed_key_compact(
 
 
 @wp.func
+def trilinear_axis(x: float, n: int):
+    """Along one axis of n samples: the two samples around x (clamped to the grid) and the weight
+    of the second."""
+    c = wp.clamp(x, 0.0, float(n - 1))
+    i0 = wp.min(int(wp.floor(c)), n - 1)
+    return i0, wp.min(i0 + 1, n - 1), c - float(i0)
+
+
+@wp.func
 def trilinear(vol: wp.array3d(dtype=Any), p: wp.vec3):
     """Trilinear interpolation at p = (x, y, z) voxel units, clamped to the grid (a scalar volume,
     or a grid of vectors such as the motion's block displacements)."""
-    x = wp.clamp(p[0], 0.0, float(vol.shape[2] - 1))
-    y = wp.clamp(p[1], 0.0, float(vol.shape[1] - 1))
-    z = wp.clamp(p[2], 0.0, float(vol.shape[0] - 1))
-    i0 = wp.min(int(wp.floor(x)), vol.shape[2] - 1)
-    j0 = wp.min(int(wp.floor(y)), vol.shape[1] - 1)
-    k0 = wp.min(int(wp.floor(z)), vol.shape[0] - 1)
-    i1 = wp.min(i0 + 1, vol.shape[2] - 1)
-    j1 = wp.min(j0 + 1, vol.shape[1] - 1)
-    k1 = wp.min(k0 + 1, vol.shape[0] - 1)
-    tx = x - float(i0)
-    ty = y - float(j0)
-    tz = z - float(k0)
+    i0, i1, tx = trilinear_axis(p[0], vol.shape[2])
+    j0, j1, ty = trilinear_axis(p[1], vol.shape[1])
+    k0, k1, tz = trilinear_axis(p[2], vol.shape[0])
     c00 = wp.lerp(vol[k0, j0, i0], vol[k0, j0, i1], tx)
     c01 = wp.lerp(vol[k0, j1, i0], vol[k0, j1, i1], tx)
     c10 = wp.lerp(vol[k1, j0, i0], vol[k1, j0, i1], tx)

@@ -15,7 +15,8 @@ grid marks its cells the same way from its non-zero voxels (:func:`mark_voxels`)
 
 Shading needs the gradient only where a sample is visible: the mixture computes it in the same
 pass as the value when shading is on (one traversal of the binned primitives serves both), the
-dense grid only for samples of non-zero opacity (six more trilinear taps, none for the rest).
+dense grid only for samples of non-zero opacity (one trilinear fetch of its half-precision
+gradient grid, or six more trilinear taps where there is none; nothing for the rest).
 
 Render space ("world") is the model's voxel grid scaled by spacing / min(spacing), so one world
 unit is one voxel along the finest axis; t is measured in world units.
@@ -32,7 +33,7 @@ import typing
 
 import warp as wp
 
-from .analysis import trilinear
+from .analysis import trilinear, trilinear_axis
 from .field import RHO0, BinnedPrimitives, binned_sums, level_cell, neighbour_range, truncated_kernel
 
 wp.set_module_options({"enable_backward": False})
@@ -195,18 +196,9 @@ def half3(v: wp.vec4h) -> wp.vec3:
 @wp.func
 def trilinear_half(vol: wp.array3d(dtype=wp.vec4h), p: wp.vec3) -> wp.vec3:
     """:func:`trilinear` of a half-precision vector grid (first three lanes), in single precision."""
-    x = wp.clamp(p[0], 0.0, float(vol.shape[2] - 1))
-    y = wp.clamp(p[1], 0.0, float(vol.shape[1] - 1))
-    z = wp.clamp(p[2], 0.0, float(vol.shape[0] - 1))
-    i0 = wp.min(int(wp.floor(x)), vol.shape[2] - 1)
-    j0 = wp.min(int(wp.floor(y)), vol.shape[1] - 1)
-    k0 = wp.min(int(wp.floor(z)), vol.shape[0] - 1)
-    i1 = wp.min(i0 + 1, vol.shape[2] - 1)
-    j1 = wp.min(j0 + 1, vol.shape[1] - 1)
-    k1 = wp.min(k0 + 1, vol.shape[0] - 1)
-    tx = x - float(i0)
-    ty = y - float(j0)
-    tz = z - float(k0)
+    i0, i1, tx = trilinear_axis(p[0], vol.shape[2])
+    j0, j1, ty = trilinear_axis(p[1], vol.shape[1])
+    k0, k1, tz = trilinear_axis(p[2], vol.shape[0])
     c00 = wp.lerp(half3(vol[k0, j0, i0]), half3(vol[k0, j0, i1]), tx)
     c01 = wp.lerp(half3(vol[k0, j1, i0]), half3(vol[k0, j1, i1]), tx)
     c10 = wp.lerp(half3(vol[k1, j0, i0]), half3(vol[k1, j0, i1]), tx)
