@@ -185,3 +185,16 @@ def test_turbulence_large_scales_agree_across_resolutions():
     coarse = lowpass(generate("turbulence", 32, seed=7), 4)
     fine = lowpass(block_mean(generate("turbulence", 64, seed=7)), 4)
     assert np.corrcoef(coarse.ravel(), fine.ravel())[0, 1] > 0.9
+
+
+def test_the_vortex_slabs_on_several_threads_equal_the_serial_field(monkeypatch):
+    """The vortex field's slabs are computed on threads; the field is the one-thread field bit for
+    bit (here 4 slabs, small ones, on up to 3 threads)."""
+    import warpgauss.synthetic as sy
+
+    monkeypatch.setattr(sy, "SLAB_VOXELS", 40 * 40 * 10)
+    monkeypatch.setattr(sy, "SLAB_THREADS", 1)
+    serial = sy.generate("vortex", 40)
+    monkeypatch.setattr(sy, "SLAB_THREADS", 3)
+    np.testing.assert_array_equal(sy.generate("vortex", 40), serial)
+    assert len(list(sy._slabs(serial.shape))) == 4
