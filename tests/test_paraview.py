@@ -32,7 +32,7 @@ def model_file(tmp_path_factory):
     return path
 
 
-def _read(path, resolution, monkeypatch=None, cli=False):
+def _read(path, resolution, monkeypatch=None, cli=False, tf_file=None):
     from vtkmodules.util.numpy_support import vtk_to_numpy
 
     from warpgauss.paraview import WarpgaussReader
@@ -43,6 +43,8 @@ def _read(path, resolution, monkeypatch=None, cli=False):
     r = WarpgaussReader()
     r.SetFileName(str(path))
     r.SetResolution(resolution)
+    if tf_file is not None:
+        r.SetTransferFunctionFile(str(tf_file))
     r.SetDevice("cpu")
     r.Update()
     img, pts = r.GetOutputDataObject(0), r.GetOutputDataObject(1)
@@ -89,6 +91,51 @@ def test_without_warp_the_reader_runs_the_command_line_and_reads_the_same(model_
     assert img2.GetFieldData().GetArray("warpgauss_opacity_points") is not None
 
 
+def test_the_colours_edited_in_the_browser_travel_to_paraview(model_file, tmp_path, monkeypatch, capsys):
+    """TransferFunctionFile: the file warpgauss serve offers after an edit (Viewer.tf_json) replaces
+    the header's transfer function in the field data, in process and through the command line
+    alike (there parsed without warpgauss); the header's stays when it is empty; a bad file is
+    refused in one line."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from warpgauss.paraview import transfer_function_points
+    from warpgauss.transfer import load_transfer_function
+    from warpgauss.viewer import Viewer
+
+    m = warpgauss.Model.load(model_file)
+    v = Viewer([m], [str(model_file)], device="cpu")
+    v.set_colors([(0.0, (0.1, 0.2, 0.9)), (0.6, (0.9, 0.9, 0.1)), (1.0, (0.8, 0.1, 0.1))])
+    v.set_opacity([(0.0, 0.0), (0.35, 0.05), (1.0, 0.7)])
+    tf_file = tmp_path / "view_tf.json"
+    tf_file.write_text(v.tf_json())
+
+    def points(img):
+        fd = img.GetFieldData()
+        return vtk_to_numpy(fd.GetArray("warpgauss_rgb_points")), vtk_to_numpy(fd.GetArray("warpgauss_opacity_points"))
+
+    want_rgb, want_op, _ = transfer_function_points(m.header, load_transfer_function(tf_file, m.value_range).rgba, own=True)
+    for cli in (False, True):
+        img, _, _, _ = _read(model_file, 12, monkeypatch, cli=cli, tf_file=tf_file)
+        rgb, op = points(img)
+        np.testing.assert_allclose(rgb, want_rgb, atol=1e-9)
+        np.testing.assert_allclose(op, want_op, atol=1e-9)
+        assert img.GetFieldData().GetAbstractArray("warpgauss_colormap").GetValue(0) == "custom"
+    assert np.asarray(want_op).reshape(-1, 4)[-1, 1] == pytest.approx(0.7)
+    plain = _read(model_file, 12, monkeypatch)[0].GetFieldData()  # no file: the header's (magma, its own opacity)
+    assert plain.GetAbstractArray("warpgauss_colormap").GetValue(0) == "magma"
+    assert not np.allclose(vtk_to_numpy(plain.GetArray("warpgauss_opacity_points")), want_op)
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"colormap": "magma"}')  # fine in process, not without warpgauss
+    from warpgauss.paraview import WarpgaussReader
+
+    monkeypatch.setenv("WARPGAUSS_PARAVIEW_CLI", "1")
+    r = WarpgaussReader()
+    r.SetFileName(str(model_file))
+    r.SetTransferFunctionFile(str(bad))
+    r.Update()
+    assert "what warpgauss serve writes" in capsys.readouterr().out and r.GetOutputDataObject(0).GetNumberOfPoints() == 0
+
+
 def test_a_bad_file_is_refused_with_a_message(tmp_path, monkeypatch, capsys):
     from warpgauss.paraview import WarpgaussReader
 
@@ -108,7 +155,7 @@ import importlib.util, json, sys
 import numpy as np
 from paraview.simple import LoadPlugin, GetActiveViewOrCreate, Show
 from paraview import servermanager
-plugin, model, out = sys.argv[1:4]
+plugin, model, out, tf_file = sys.argv[1:5]
 LoadPlugin(plugin, ns=globals())
 r = warpgaussmodel(FileName=model, Resolution=16, Device="cpu")
 r.UpdatePipeline()
@@ -123,7 +170,10 @@ mod = importlib.util.module_from_spec(spec); spec.loader.exec_module(mod)
 disp = mod.apply_default_transfer_function(r)
 from paraview.simple import GetColorTransferFunction
 lut = GetColorTransferFunction(img.GetPointData().GetScalars().GetName())
-json.dump({"dims": list(img.GetDimensions()), "rgb_points": len(lut.RGBPoints), "representation": str(disp.GetPropertyValue("Representation")), "default": default}, open(out, "w"))
+edited = warpgaussmodel(FileName=model, Resolution=8, Device="cpu", TransferFunctionFile=tf_file)
+edited.UpdatePipeline()
+mod.apply_default_transfer_function(edited)
+json.dump({"dims": list(img.GetDimensions()), "rgb_points": len(lut.RGBPoints), "representation": str(disp.GetPropertyValue("Representation")), "default": default, "edited_rgb_points": list(GetColorTransferFunction(img.GetPointData().GetScalars().GetName()).RGBPoints)}, open(out, "w"))
 """
 
 
@@ -132,14 +182,23 @@ json.dump({"dims": list(img.GetDimensions()), "rgb_points": len(lut.RGBPoints), 
 )
 def test_the_plugin_in_pvpython(model_file, tmp_path):
     import warpgauss.paraview as plugin
+    from warpgauss.paraview import file_transfer_function, read_header, transfer_function_points
 
     script = tmp_path / "drive.py"
     script.write_text(PV_SCRIPT)
+    tf_file = tmp_path / "view_tf.json"  # as warpgauss serve writes it after an edit
+    tf_file.write_text(
+        json.dumps({"name": "warpgauss serve view", "colors": [[0, 0, 0, 1], [1, 1, 0.5, 0]], "opacity": [[0, 0], [1, 0.6]]})
+    )
     out = tmp_path / "pv.json"
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
     env.update(WARPGAUSS_CLI=CLI)
     r = subprocess.run(
-        ["pvpython", str(script), plugin.PLUGIN, str(model_file), str(out)], capture_output=True, text=True, env=env, timeout=300
+        ["pvpython", str(script), plugin.PLUGIN, str(model_file), str(out), str(tf_file)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
     )
     assert r.returncode == 0, r.stdout + r.stderr
     got = json.loads(out.read_text())
@@ -148,3 +207,6 @@ def test_the_plugin_in_pvpython(model_file, tmp_path):
     assert got["default"].strip("'") == "Volume"  # the reader's hint: a model opens as a volume
     m = warpgauss.Model.load(model_file)
     np.testing.assert_array_equal(np.load(str(out) + ".npy"), m.decode((16, 16, 16), device="cpu").ravel())
+    header = read_header(str(model_file))  # the edited colours reached ParaView's colour map (through the CLI path there)
+    want, _, _ = transfer_function_points(header, file_transfer_function(str(tf_file), header), own=True)
+    np.testing.assert_allclose(got["edited_rgb_points"], want, atol=1e-9)

@@ -16,6 +16,7 @@ from .warpgauss_reader import (
     WarpgaussReader,
     apply_default_transfer_function,
     decode_shape,
+    file_transfer_function,
     read_header,
     transfer_function_points,
 )
@@ -29,6 +30,7 @@ __all__ = [
     "WarpgaussReader",
     "apply_default_transfer_function",
     "decode_shape",
+    "file_transfer_function",
     "read_header",
     "transfer_function_points",
 ]

@@ -4,7 +4,8 @@
 Opening a ``.wgs`` gives two outputs: the model decoded as image data at a chosen resolution
 (values in the source's units, the header's spacing and origin) and the primitives as a point
 cloud (as ``warpgauss export`` writes it: scales, orientation, value and weight per point). The
-header's default transfer function travels with the image as field data
+header's default transfer function (or the one in ``TransferFunctionFile``, e.g. the colours edited
+in ``warpgauss serve``) travels with the image as field data
 (``warpgauss_rgb_points``, ``warpgauss_opacity_points``, ParaView's layouts) and
 :func:`apply_default_transfer_function` applies it (in pvpython, or in ParaView's Python shell:
 ``apply_default_transfer_function()``, defined by this file once loaded; or import it by path).
@@ -112,12 +113,13 @@ def _spacing_origin(header: dict, shape) -> tuple[list[float], list[float]]:
     return sp, org
 
 
-def transfer_function_points(header: dict, lut: np.ndarray | None = None) -> tuple[list[float], list[float], str]:
+def transfer_function_points(header: dict, lut: np.ndarray | None = None, own: bool = False) -> tuple[list[float], list[float], str]:
     """ParaView's RGBPoints (x, r, g, b, ...) and opacity points (x, a, 0.5, 0, ...) in the
     source's units, from the header's LUT (or ``lut``: (K, 4) RGBA in [0, 1]); and the colormap
     name. Without a LUT (coded files) the colours come from the named preset and only the opacity
-    points are exact."""
-    t = header.get("transfer_function") or {}
+    points are exact. ``own``: ``lut`` is a transfer function of its own (a file's), not the
+    header's: its opacity is kept and its name is "custom"."""
+    t = {"colormap": "custom"} if own else header.get("transfer_function") or {}
     vmin, vmax = float(header["values"]["min"]), float(header["values"]["max"])
     name = str(t.get("colormap") or "viridis")
     if lut is None and isinstance(t.get("lut_rgba8"), str):
@@ -139,6 +141,43 @@ def transfer_function_points(header: dict, lut: np.ndarray | None = None) -> tup
         alpha = xs.copy()
     opacity_points = [v for x, a in zip(xs, alpha) for v in (vmin + x * (vmax - vmin), float(a), 0.5, 0.0)]
     return rgb_points, opacity_points, name
+
+
+def file_transfer_function(path: str, header: dict) -> np.ndarray:
+    """(K, 4) RGBA in [0, 1] over the normalised values of a transfer-function file: any that
+    ``warpgauss render --tf`` reads where warpgauss is importable; else (ParaView's Python without
+    Warp) our JSON with ``"colors"`` and ``"opacity"``, as ``warpgauss serve`` writes it."""
+    vmin, vmax = float(header["values"]["min"]), float(header["values"]["max"])
+    if not _use_cli():
+        from warpgauss.errors import WarpgaussError
+        from warpgauss.transfer import load_transfer_function
+
+        try:
+            return load_transfer_function(path, (vmin, vmax)).rgba
+        except WarpgaussError as e:
+            raise ReaderError(str(e)) from None
+    try:
+        with open(path, encoding="utf-8") as f:
+            doc = json.load(f)
+        colors = np.asarray(doc["colors"], np.float64)
+        opacity = np.asarray(doc["opacity"], np.float64)
+        if colors.ndim != 2 or colors.shape[1] != 4 or opacity.ndim != 2 or opacity.shape[1] != 2:
+            raise ValueError("shape")
+    except OSError as e:
+        raise ReaderError(f"cannot open {path}: {e.strerror}") from None
+    except (ValueError, KeyError, TypeError):
+        raise ReaderError(
+            f"{path}: without warpgauss in this Python the reader takes a transfer function as"
+            ' {"colors": [[x, r, g, b], ...], "opacity": [[x, a], ...]} (what warpgauss serve writes)'
+        ) from None
+    if str(doc.get("space", "normalised")).lower() == "data":
+        span = vmax - vmin or 1.0
+        colors[:, 0] = (colors[:, 0] - vmin) / span
+        opacity[:, 0] = (opacity[:, 0] - vmin) / span
+    colors, opacity = colors[np.argsort(colors[:, 0], kind="stable")], opacity[np.argsort(opacity[:, 0], kind="stable")]
+    x = np.linspace(0.0, 1.0, 256)
+    rgb = [np.interp(x, colors[:, 0], np.clip(colors[:, c], 0.0, 1.0)) for c in (1, 2, 3)]
+    return np.stack([*rgb, np.interp(x, opacity[:, 0], np.clip(opacity[:, 1], 0.0, 1.0))], axis=1)
 
 
 def _cli() -> list[str]:
@@ -210,6 +249,7 @@ class WarpgaussReader(VTKPythonAlgorithmBase):
         self._filename = None
         self._resolution = 0
         self._device = ""
+        self._tf_file = ""
 
     def FillOutputPortInformation(self, port, info):
         from vtkmodules.vtkCommonDataModel import vtkDataObject
@@ -238,6 +278,16 @@ class WarpgaussReader(VTKPythonAlgorithmBase):
         """Warp device for the decode (empty: CUDA when present, else CPU)."""
         if device != self._device:
             self._device = device
+            self.Modified()
+
+    @smproperty.stringvector(name="TransferFunctionFile", default_values="")
+    @smdomain.filelist()
+    @smhint.filechooser(extensions="json", file_description="transfer function")
+    def SetTransferFunctionFile(self, path):
+        """A transfer function to carry instead of the header's (empty: the header's): the file
+        ``warpgauss serve`` offers after the colours are edited, or any ``warpgauss render --tf`` reads."""
+        if path != self._tf_file:
+            self._tf_file = path or ""
             self.Modified()
 
     def _header(self) -> dict:
@@ -271,10 +321,13 @@ class WarpgaussReader(VTKPythonAlgorithmBase):
             header = self._header()
             shape = decode_shape(header, self._resolution)
             img, poly, lut = decode_image(self._filename, shape, self._device or None)
+            own = bool(self._tf_file)
+            if own:
+                lut = file_transfer_function(self._tf_file, header)
         except ReaderError as e:
             print(f"warpgauss reader: {e}")
             return 0
-        rgb, opacity, name = transfer_function_points(header, lut)
+        rgb, opacity, name = transfer_function_points(header, lut, own)
         for key, values in (("warpgauss_rgb_points", rgb), ("warpgauss_opacity_points", opacity)):
             if values:
                 a = numpy_to_vtk(np.asarray(values, np.float64), deep=1)
