@@ -266,8 +266,8 @@ class FrameEncoder:
 
     trame-rca encodes a frame at its "interactive" quality and again at its "still" quality when
     nothing changed meanwhile; with one format for both, a lossless PNG of a 1024^2 frame at PIL's
-    default compression took 230 ms on the H100 machine's CPU (JPEG 90: 5 ms), four times our
-    render, so the page could not follow a drag at 30 frames a second."""
+    default compression took 220-250 ms on the H100 machine's CPU (JPEG 90: 4-6 ms), five to eight
+    times our render, so the page could not follow a drag at 30 frames a second."""
 
     STILL = 100  # the still quality: PNG; anything below is a JPEG quality
 
