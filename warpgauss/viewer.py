@@ -98,7 +98,6 @@ class Viewer:
         self._hist: dict = {}
         self._facts: dict = {}
         self.last_seconds = 0.0  # the last frame's wall time (render, RGB8, copy to the host)
-        self.last_render_seconds = 0.0  # of which the render kernels (launch to synchronisation)
 
     # -- interaction ------------------------------------------------------------------------
     def orbit(self, dx: float, dy: float) -> None:
@@ -207,14 +206,11 @@ class Viewer:
         cam = self.camera(s)
         if s.compare and self.volumes is not None:
             half = max(8, s.width // 2)
-            a = self._renderer(s).render(cam, tf, self.settings(half, s))
-            b = self._reference_renderer(s).render(cam, tf, self.settings(s.width - half, s))
-            img = np.concatenate([a.rgb8(), b.rgb8()], axis=1)
-            self.last_render_seconds = a.seconds + b.seconds
+            a = self._renderer(s).render(cam, tf, self.settings(half, s)).rgb8()
+            b = self._reference_renderer(s).render(cam, tf, self.settings(s.width - half, s)).rgb8()
+            img = np.concatenate([a, b], axis=1)
         else:
-            one = self._renderer(s).render(cam, tf, self.settings(None, s))
-            img = one.rgb8()
-            self.last_render_seconds = one.seconds
+            img = self._renderer(s).render(cam, tf, self.settings(None, s)).rgb8()
         self.last_seconds = time.perf_counter() - t0
         return np.ascontiguousarray(img)
 
