@@ -381,7 +381,7 @@ class _ReadVolume(ReadOptions):
 
     volume: object = None
 
-    def read(self, path):
+    def read(self, path, lazy=False):
         vol, s = self.volume, self.stride
         if s == 1:
             return vol

@@ -242,3 +242,21 @@ def eval_brick_lists(
     for q in range(4):
         if k0 + q < out.shape[0]:
             out[k0 + q, j, i] = num[q] / wp.max(den[q], RHO0)
+
+
+@wp.kernel
+def clamp_unit(
+    out: wp.array3d(dtype=float),  # [h, ny, nx] decoded values (normalised), clamped in place
+    clamped: wp.array(dtype=wp.int64),  # [1] out: += voxels moved into [0, 1]
+):
+    """Clamp decoded values to [0, 1], the source's [min, max] (one thread per voxel): a sum of
+    Gaussians can overshoot a sharp edge or undershoot into empty space, where no source value
+    lies. Integer atomics: the count does not depend on the threads' order."""
+    k, j, i = wp.tid()
+    v = out[k, j, i]
+    if v < 0.0:
+        out[k, j, i] = 0.0
+        wp.atomic_add(clamped, 0, wp.int64(1))
+    elif v > 1.0:
+        out[k, j, i] = 1.0
+        wp.atomic_add(clamped, 0, wp.int64(1))

@@ -1,6 +1,14 @@
 """Stratified training samples (SPEC section 3): 35 % from V > 0.4, 40 % from occupied mid-range
-voxels, 25 % uniform over the grid, each jittered off-grid by up to half a voxel, with targets
-from trilinear interpolation and a partner point about a voxel away for the smoothness term.
+voxels, 25 % uniform, each at a voxel centre moved by up to ``jitter`` voxels along each axis, with
+its target the trilinear interpolation there (the voxel's own value at jitter 0) and a partner
+point about a voxel away for the smoothness term.
+
+With ``importance`` each sample is weighted by 1 / (D q(v)), q(v) the probability that the draw
+picks its voxel v (the three strata's shares over their sizes, summed over the strata v belongs
+to) and D about the number of voxels the draw can reach: the weighted value loss is then, in
+expectation, the mean squared error over every voxel, the full-grid MSE that EV reports, while
+the strata still decide where the samples fall (more samples where the field is busy, each
+counting for less). The mean weight is about 1.
 
 When empty samples carry no loss (value-loss weight of empty samples 0, the paper's setting) the
 uniform 25 % are drawn among the occupied voxels instead of the whole grid: a sample where
@@ -242,6 +250,51 @@ def corners_usable(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8
     return 1.0
 
 
+@wp.func
+def sample_weight(
+    vol: wp.array3d(dtype=float),
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    k: int,
+    j: int,
+    i: int,
+    m: int,
+    m_high: int,
+    m_mid: int,
+    n_high: int,
+    n_mid: int,
+    occ_total: int,
+    use_support: int,
+    support: wp.array(dtype=int),
+    support_bricks: wp.array3d(dtype=int),
+    support_everything: wp.array(dtype=int),
+) -> float:
+    """1 / (D q(v)) for voxel v = (k, j, i): q(v) the probability that :func:`draw_samples` picks
+    it, D about the number of voxels it can pick (the larger of the uniform domain and the two
+    strata together), so that the mean weight is about 1."""
+    st = stratum_of(vol, mask, has_mask, k, j, i)
+    n_occ = float(n_high + n_mid)
+    q = float(0.0)
+    if st == 0:
+        q += float(m_high) / (float(m) * float(n_high))
+    elif st == 1:
+        q += float(m_mid) / (float(m) * float(n_mid))
+    m_uni = float(m - m_high - m_mid)
+    n_uni = float(vol.shape[0] * vol.shape[1] * vol.shape[2])
+    in_uni = float(1.0)
+    if occ_total > 0:  # uniform among the occupied voxels
+        n_uni = float(occ_total)
+        in_uni = wp.where(st >= 0, 1.0, 0.0)
+    elif use_support != 0 and support[support.shape[0] - 1] > 0:  # uniform over the support bricks
+        n_uni = float(support[support.shape[0] - 1])
+        if support_everything[0] == 0 and support_bricks[k / BRICK, j / BRICK, i / BRICK] == 0:
+            in_uni = 0.0
+    q += in_uni * m_uni / (float(m) * n_uni)
+    if q <= 0.0:
+        return 1.0
+    return 1.0 / (wp.max(n_uni, n_occ) * q)
+
+
 @wp.kernel
 def draw_samples(
     vol: wp.array3d(dtype=float),
@@ -260,9 +313,13 @@ def draw_samples(
     stream: wp.array(dtype=int),  # [1] RNG stream of this iteration
     partner_min: float,  # partner distance range in voxels
     partner_max: float,
+    jitter: float,  # largest offset from the voxel centre along each axis, in voxels (0: the centre)
+    importance: int,  # 1: weight each sample by 1 / (D q(v)) (see the module docstring)
+    support_bricks: wp.array3d(dtype=int),  # [bz, by, bx] support_counts' output (use_support only)
+    support_everything: wp.array(dtype=int),  # [1] mark_support's "everything" flag (use_support only)
     points: wp.array(dtype=wp.vec3),  # [2M] out: samples, then their partners
     target: wp.array(dtype=float),  # [M] out: trilinear V at the sample
-    weight: wp.array(dtype=float),  # [M] out: 0 where the interpolation touches a masked voxel
+    weight: wp.array(dtype=float),  # [M] out: the importance weight; 0 where the target reads a masked voxel
     occupied: wp.array(dtype=float),  # [M] out: 1 if target > 0.02
 ):
     """One training sample and its partner (one thread per sample)."""
@@ -289,19 +346,47 @@ def draw_samples(
     i = idx % nx
     j = (idx / nx) % ny
     k = idx / (nx * ny)
-    p = wp.vec3(float(i) + wp.randf(state) - 0.5, float(j) + wp.randf(state) - 0.5, float(k) + wp.randf(state) - 0.5)
+    # three draws whatever the jitter, so every setting consumes the same random numbers
+    jx = (wp.randf(state) - 0.5) * (2.0 * jitter)
+    jy = (wp.randf(state) - 0.5) * (2.0 * jitter)
+    jz = (wp.randf(state) - 0.5) * (2.0 * jitter)
+    p = wp.vec3(float(i) + jx, float(j) + jy, float(k) + jz)
     d = wp.vec3(wp.randn(state), wp.randn(state), wp.randn(state))
     dl = wp.length(d)
     if dl < 1.0e-6:
         d = wp.vec3(1.0, 0.0, 0.0)
         dl = 1.0
     r = partner_min + (partner_max - partner_min) * wp.randf(state)
-    t = trilinear(vol, p)
+    t = float(0.0)
+    ok = float(1.0)
+    if jitter > 0.0:
+        t = trilinear(vol, p)
+        ok = corners_usable(vol, mask, has_mask, p)
+    else:  # the voxel itself: no neighbour is read
+        t = vol[k, j, i]
     points[s] = p
     points[m + s] = p + d * (r / dl)
     target[s] = t
-    ok = corners_usable(vol, mask, has_mask, p)
     if not usable(vol, mask, has_mask, k, j, i):
         ok = 0.0
+    if importance != 0 and ok > 0.0:
+        ok = ok * sample_weight(
+            vol,
+            mask,
+            has_mask,
+            k,
+            j,
+            i,
+            m,
+            m_high,
+            m_mid,
+            n_high,
+            n_mid,
+            occ_total,
+            use_support,
+            support,
+            support_bricks,
+            support_everything,
+        )
     weight[s] = ok
     occupied[s] = wp.where(t > OCCUPIED, 1.0, 0.0)

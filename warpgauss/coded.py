@@ -328,7 +328,14 @@ SHRINK_ORDER = ("w", "mu", "a", "log_s", "q")
 GROW_ORDER = ("q", "log_s", "a", "mu", "w")
 _MIN_BITS = {"mu": 0, "log_s": 1, "q": 3, "a": 3, "w": 2}
 _MAX_BITS = {"mu": 8, "log_s": 8, "q": 10, "a": 12, "w": 10}
-PRUNE_SHARE = 0.03  # an excess up to this share of the budget is pruned, beyond it bits are dropped first
+# an excess up to this share of the budget is pruned (the least important primitives), beyond it
+# bits are dropped first. Measured on an H100 (benchmarks/results/accuracy/sweep_mri_vortex256_h100.json,
+# three head MRIs and vortex 256^3 at ratios 30 and 300): pruning up to a 10 % excess instead lost
+# 0.6-2.7 dB on the MRIs and 21.7 dB on vortex at 300 (a 71 dB model with holes); up to 50 % with
+# a short refit from fresh Adam moments (see warpgauss.pipeline.REFIT_SHARE) was mixed on the MRIs
+# (-4.0 to +1.7 dB) and lost 10-21 dB on vortex. Too large an N is re-planned during refinement
+# instead, where the rest of the run fills in (warpgauss.pipeline.REPLAN_AT)
+PRUNE_SHARE = 0.03
 FILL_SHARE = 0.002  # the prune search stops once the model is within this share under the budget
 SEARCH_CODINGS = 12  # codings the prune search may spend after the first fit (to within one primitive)
 GROW_MARGIN = 0.5  # a bit is tried when half its predicted bytes fit (its lowest bits may compress)
@@ -347,11 +354,13 @@ def _bit_bytes(n: int, k: str) -> float:
     return n * _BIT_COLUMNS[k] / 8.0
 
 
-def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = None, size_of=None) -> tuple[np.ndarray, dict, dict]:
+def fit_bytes(
+    params: np.ndarray, budget: int, bits: dict[str, int] | None = None, size_of=None, prune_share: float | None = None
+) -> tuple[np.ndarray, dict, dict]:
     """The coded model that fits ``budget`` bytes, as closely as bit depths and primitives allow.
 
     From ``bits`` (default :data:`CODED_BITS`): while the size exceeds the budget by more than
-    :data:`PRUNE_SHARE`, drop bits of the attributes in :data:`SHRINK_ORDER` in turn; then prune
+    ``prune_share`` (default :data:`PRUNE_SHARE`), drop bits of the attributes in :data:`SHRINK_ORDER` in turn; then prune
     the primitives that add least (:func:`importance`) until it fits (a primitive is the finest
     step there is, about 8 bytes). Then add bits in :data:`GROW_ORDER` while they still fit, so
     the budget buys precision when the primitives alone leave it unspent.
@@ -369,13 +378,18 @@ def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = Non
         bits: Starting bit depths.
         size_of: ``size_of(params, bits)`` -> bytes (default: the coded payload alone; a model
             passes its whole file, header included).
+        prune_share: See above.
 
     Returns:
         ``(stored, bits, info)``: the parameters as the file will hold them (projected, Morton
-        order), the bit depths, and what was done (steps, pruned count, bytes, codings).
+        order), the bit depths, and what was done (steps, pruned count, bytes, codings, the size
+        at the starting depths as ``first_bytes``, and ``kept``: the rows of ``params`` kept, in
+        their order, for a refit of the pruned model).
     """
     b = _check_bits(dict(CODED_BITS if bits is None else bits))
     p = np.asarray(params, np.float32)
+    share = PRUNE_SHARE if prune_share is None else float(prune_share)
+    keep = np.arange(len(p))
     codings = 0
 
     def size(pp, bb) -> int:
@@ -384,12 +398,12 @@ def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = Non
         return (size_of or (lambda q, c: len(encode_coded(q, c)[0])))(pp, bb)
 
     steps: list[str] = []
-    cur = size(p, b)
+    cur = first = size(p, b)
     turn = 0
     pred: float  # the predicted size: less a bit's (fractional) bytes at each drop
-    while cur > budget * (1.0 + PRUNE_SHARE):
+    while cur > budget * (1.0 + share):
         pred, dropped = cur, 0
-        while pred > budget * (1.0 + PRUNE_SHARE):
+        while pred > budget * (1.0 + share):
             for _ in range(len(SHRINK_ORDER)):
                 k = SHRINK_ORDER[turn % len(SHRINK_ORDER)]
                 turn += 1
@@ -436,6 +450,7 @@ def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = Non
             else:
                 lo, lo_size = mid, s
         p, pruned, cur = kept(hi), hi, hi_size
+        keep = np.sort(rank[: len(rank) - hi])
     grown = True
     while grown:
         grown = False
@@ -446,7 +461,8 @@ def fit_bytes(params: np.ndarray, budget: int, bits: dict[str, int] | None = Non
                 if t <= budget:
                     b, cur, grown = trial, t, True
                     steps.append(f"{k}+1")
-    return as_stored(p, b), b, {"steps": steps, "pruned": pruned, "bytes": cur, "codings": codings}
+    info = {"steps": steps, "pruned": pruned, "bytes": cur, "first_bytes": first, "codings": codings, "prune_share": share, "kept": keep}
+    return as_stored(p, b), b, info
 
 
 def bits_for_psnr(psnr_db: float | None) -> tuple[dict[str, int], int]:

@@ -2,7 +2,9 @@
 
 PSNR = 10 log10(1 / MSE) on the normalised field at 500,000 voxel centres drawn uniformly with a
 fixed evaluation seed, or on the full grid (on request, and always when the grid has no more
-voxels than that). Masked (NaN/Inf/fill) voxels are left out of every metric.
+voxels than that). Masked (NaN/Inf/fill) voxels are left out of every metric. The model's values
+are clamped to [0, 1], the source's range, as every decode clamps them; ``clamped_voxels`` counts
+the voxels (or sampled points) that moved.
 """
 
 from __future__ import annotations
@@ -77,6 +79,7 @@ def evaluate_field(gf: GaussianField, f: Field, *, full: bool = False, progress=
                 progress(z1, nz)
         res = acc.result("full grid")
         res["bricks_evaluated_share"] = gf.active_fraction  # the rest no primitive reaches: written 0
+        res["clamped_voxels"] = gf.clamped_voxels  # decoded values outside the source's range, clamped
         return res
     idx = np.random.default_rng(EVAL_SEED).integers(0, f.n_voxels, EVAL_POINTS, dtype=np.int64)
     nz, ny, nx = f.values.shape
@@ -87,10 +90,14 @@ def evaluate_field(gf: GaussianField, f: Field, *, full: bool = False, progress=
     else:
         truth = f.values.reshape(-1)[idx]
         valid = None if f.mask is None else f.mask.reshape(-1)[idx]
-    acc.add(gf.evaluate(pts), truth, valid)
+    pred = gf.evaluate(pts)
+    outside = (pred < 0.0) | (pred > 1.0)
+    acc.add(np.clip(pred, 0.0, 1.0), truth, valid)  # as a decode clamps (GaussianField.decode_slab)
     if progress is not None:
         progress(1, 1)
-    return acc.result(f"{EVAL_POINTS} sampled voxel centres (seed {EVAL_SEED})")
+    res = acc.result(f"{EVAL_POINTS} sampled voxel centres (seed {EVAL_SEED})")
+    res["clamped_voxels"] = int(np.count_nonzero(outside))  # of the sampled points
+    return res
 
 
 def evaluate_against(model, volume, *, full: bool = False, device: str | None = None, read=None, fill_value=None) -> dict:

@@ -279,6 +279,7 @@ class GaussianField:
         self.plan: BinPlan | None = None
         self._active: tuple[Any, float] | None = None  # (brick grid or None: every brick, active share)
         self._decode_bufs: dict = {}  # int scratch of the brick-list decode, kept between slabs
+        self._clamped: Any = None  # [1] int64: decoded voxels clamped into [0, 1] (decode_slab)
         self.update(replan=True)
 
     def update(self, replan: bool = False) -> None:
@@ -365,7 +366,8 @@ class GaussianField:
             yield z0, view.numpy()
 
     def decode_slab(self, out, z0: int, scale) -> None:
-        """Evaluate one (h, ny, nx) device slab starting at output slice ``z0`` (no host copy).
+        """Evaluate one (h, ny, nx) device slab starting at output slice ``z0`` (no host copy),
+        clamped to [0, 1] (the source's value range; :attr:`clamped_voxels` counts the voxels moved).
 
         Each 8^3 brick lists the primitives whose box meets it, then its voxels stream through
         the list (:mod:`warpgauss.kernels.decode`); one read-back of the list's length per slab.
@@ -388,7 +390,21 @@ class GaussianField:
         total = int(ends[nb - 1 : nb].numpy()[0])
         if total > MAX_BRICK_LIST:
             self._decode_walk(out, z0, scale)
-            return
+        else:
+            self._decode_lists(out, z0, scale, common, ends, counts, nb, bricks, total)
+        if self._clamped is None:
+            self._clamped = wp.zeros(1, dtype=wp.int64, device=dev)
+        wp.launch(kd.clamp_unit, dim=out.shape, inputs=[out], outputs=[self._clamped], device=dev)
+
+    @property
+    def clamped_voxels(self) -> int:
+        """Decoded voxels clamped into [0, 1] by :meth:`decode_slab` so far (reads back from the device)."""
+        return 0 if self._clamped is None else int(self._clamped.numpy()[0])
+
+    def _decode_lists(self, out, z0: int, scale, common, ends, counts, nb: int, bricks, total: int) -> None:
+        from .kernels import decode as kd
+
+        wp, dev = self._wp, self.device
         items = self._decode_scratch("items", max(total, 1))
         wp.launch(kd.list_bricks, dim=nb, inputs=[*common, 1, ends, counts, items], device=dev)
         wp.launch(

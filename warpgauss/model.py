@@ -175,6 +175,7 @@ class Model:
         self.report: dict | None = None  # filled by warpgauss.encode
         self.coded_bits: dict | None = None  # bit depths a coded save uses (None: the format's default)
         self.format: str | None = None  # the format it was encoded for or read from (save's default)
+        self.kept_rows: np.ndarray | None = None  # fit_bytes: the rows of the model it was fitted from that it keeps
 
     # -- description -----------------------------------------------------------------------
     @property
@@ -225,17 +226,19 @@ class Model:
         m.report, m.coded_bits, m.format = self.report, self.coded_bits, "coded"
         return m
 
-    def fit_bytes(self, total_bytes: int) -> tuple[Model, dict]:
-        """This model coded to fit ``total_bytes`` (header included): see :func:`warpgauss.coded.fit_bytes`."""
+    def fit_bytes(self, total_bytes: int, prune_share: float | None = None) -> tuple[Model, dict]:
+        """This model coded to fit ``total_bytes`` (header included): see :func:`warpgauss.coded.fit_bytes`.
+        The rows of this model that the result keeps are its ``kept_rows`` (for a refit)."""
         from .coded import fit_bytes
         from .wgs import wgs_bytes
 
         def size_of(params, bits) -> int:
             return len(wgs_bytes(params, self.header, encoding="coded", bits=bits))
 
-        stored, bits, info = fit_bytes(self.params, total_bytes, self.coded_bits, size_of)
+        stored, bits, info = fit_bytes(self.params, total_bytes, self.coded_bits, size_of, prune_share)
         m = Model(stored, self.header)
         m.report, m.coded_bits, m.format = self.report, bits, "coded"
+        m.kept_rows = info.pop("kept")
         return m, {**info, "bits": bits}
 
     # -- file I/O --------------------------------------------------------------------------
@@ -294,11 +297,13 @@ class Model:
             normalised: Return [0, 1] values instead of the source's units.
             progress: Optional callback(done, total).
             info: Optional dict that receives ``bricks_evaluated_share``: the share of 8^3
-                bricks of the model grid some Gaussian reaches (the rest are written 0 unevaluated).
+                bricks of the model grid some Gaussian reaches (the rest are written 0 unevaluated),
+                and ``clamped_voxels``: voxels whose value fell outside the source's range.
 
         Returns:
             (nz, ny, nx) float32 array (float64 where float32 cannot hold the value range, see
-            :func:`warpgauss.analysis.denormalise`).
+            :func:`warpgauss.analysis.denormalise`), within the source's [min, max]: a value the
+            Gaussians put outside it (an overshoot at a sharp edge) is clamped.
         """
         from .analysis import denormalise
 
@@ -307,10 +312,14 @@ class Model:
         v = gf.decode(shape, progress=progress)
         if info is not None:
             info["bricks_evaluated_share"] = gf.active_fraction
+            info["clamped_voxels"] = gf.clamped_voxels
         if normalised:
             return v
         lo, hi = self.value_range
-        return denormalise(v, lo, hi)
+        out = denormalise(v, lo, hi)
+        if np.isfinite(lo) and np.isfinite(hi):  # float rounding of lo + v (hi - lo) stays in the source's range too
+            np.clip(out, min(lo, hi), max(lo, hi), out=out)
+        return out
 
     def decoded_spacing(self, shape: tuple[int, int, int] | None = None) -> tuple[float, ...]:
         """Physical voxel spacing of a decode at ``shape`` (same extent as the encoded grid)."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import math
 import os
 import platform
 import time
@@ -177,6 +178,37 @@ CODED_REFINE_GROWTH = 1.15
 # default depths (907,190) refined to 70.2 dB in float and 55.9 dB once fitted (mu at 0 bits);
 # the float model at half that N scores 71.2 dB (benchmarks/results/i18_sizing_h100.json)
 CODED_REFINE_GAIN_DB = 12.0
+# a refined model pruned to fit its byte budget (coded.fit_bytes) may be refined again, the rest
+# filling what the pruned ones carried: for this share of the iterations (at least
+# REFIT_MIN_ITERATIONS), at REFIT_LR x the learning rate, when more than REFIT_MIN_PRUNED of the
+# primitives went; then fitted once more. Off (0): measured on an H100 (benchmarks/results/accuracy/),
+# a refit from fresh Adam moments moves every parameter by about the learning rate in its first
+# steps and wrecks an accurate model (vortex 256^3 at ratio 300: 68.6 dB coded without, 43.6 with
+# a refit at 0.3x, 47.7 at 0.02x); dropping bits beyond a 3 % excess (coded.PRUNE_SHARE) paid more
+REFIT_SHARE = 0.0
+# a coded byte budget's N is re-planned once the model's accuracy is known: after this share of the
+# iterations the model is coded at the depths its expected final sample PSNR needs (extrapolated
+# from the sample PSNR half-way there and now, at least REPLAN_REST_GAIN_DB more); where that,
+# times REPLAN_GROWTH (how much larger the model codes by the end), exceeds the budget by more
+# than REPLAN_TOLERANCE, the least important primitives are taken out and the rest refine on. The pilot's N (CODED_REFINE_GAIN_DB) under-predicts the depths
+# of a model trained at voxel centres by 1-4 bits: refined models coded 1.2-2.3x their budget and
+# lost 1-13 dB to the bits the rate control then dropped (benchmarks/results/accuracy/rd_*.json)
+REPLAN_AT = 0.25
+REPLAN_REST_GAIN_DB = 2.0
+# the sample PSNR grows faster than linearly in log(iterations) as the learning rate decays: from
+# K = T / 4 to T it gained 1.4-7.5x its gain from K / 2 to K (median 2.8, three MRIs at CR 10-1000,
+# H100), on vortex and interface 256^3 about 2x (rd_*_replan_h100.json): 1.25 x log2(T / K)
+REPLAN_EXTRAPOLATE = 1.25
+REPLAN_MAX_GAIN_DB = 30.0
+REPLAN_GROWTH = 1.05
+REPLAN_TOLERANCE = 0.01
+REPLAN_MIN_ITERATIONS = 100
+# the bit depths a refined model is coded at: "accuracy" (bits_for_psnr of its sample PSNR) or
+# "sizing" (those N was sized for; more only where the budget leaves room)
+REFINED_BITS = "accuracy"
+REFIT_MIN_ITERATIONS = 30
+REFIT_LR = 0.3
+REFIT_MIN_PRUNED = 0.01
 
 
 DEFAULT_FORMAT = "coded"
@@ -274,7 +306,7 @@ def coded_budget(dv, f: Field, opts: EncodeOptions, header: dict, total: int, n_
     }
 
 
-def _coded_choice(sizing: dict | None, fit: dict | None, note: dict | None) -> str | None:
+def _coded_choice(sizing: dict | None, fit: dict | None, note: dict | None, replan: dict | None = None) -> str | None:
     """One sentence on how a coded file met its budget: primitives against precision."""
     if sizing is None and note is None:
         return None
@@ -292,11 +324,28 @@ def _coded_choice(sizing: dict | None, fit: dict | None, note: dict | None) -> s
             f"N {sizing['n']:,} from a pilot of {sizing['pilot_n']:,} at {sizing['pilot_bytes_per_primitive']:.2f} B x "
             f"{sizing['refine_growth']:.2f} (refined models code larger); {grids}"
         )
+    if replan is not None:
+        took = replan["n_before"] - replan["n_after"]
+        parts.append(
+            f"at iteration {replan['iteration']} the model scored {replan['sample_psnr_db']:.1f} dB on its samples and "
+            + (
+                f"would code at {replan['predicted_bytes']:,.0f} bytes on the grids that accuracy needs: its {took:,} least "
+                "important Gaussians were taken out and the rest refined on"
+                if took
+                else "fitted its budget on the grids that accuracy needs"
+            )
+        )
     if note is not None and note["bits_added"]:
         parts.append(f"{note['bits_added']} bit(s) more on every attribute for a {note['sample_psnr_db']:.1f} dB model")
     if fit is not None:
         did = ", ".join(fit["steps"]) or "no depth changed"
-        parts.append(f"rate control: {did}; {fit['pruned']:,} least important Gaussians pruned")
+        pruned = f"{fit['pruned']:,} least important Gaussians pruned"
+        if fit.get("refit"):
+            pruned += f", the rest refined again for {fit['refit']['iterations']} iterations"
+        parts.append(
+            f"rate control: {did}; {pruned} (an excess up to {fit.get('prune_share', 0):.0%} is pruned, beyond it bits "
+            "are dropped first: a pruned model keeps holes that cost more, benchmarks/results/accuracy/)"
+        )
     return "; ".join(parts)
 
 
@@ -431,6 +480,8 @@ class _EncodeRun:
         self.refined_fit: dict | None = None
         self.coded_bits_note: dict | None = None
         self.refinement: dict = {"iterations": 0}
+        self.replan: dict | None = None  # the re-plan of N during refinement (coded byte budgets)
+        self.replan_half: float | None = None  # the sample PSNR half-way to the re-plan
         self.early_eval: dict | None = None
         self.start_eval: dict | None = None  # a warm start scored before refinement (to choose warm or cold)
         self.start_choice: dict | None = None
@@ -611,14 +662,26 @@ class _EncodeRun:
             if opts.time_budget is not None and not opts.resume:  # 5 % reserve for the export
                 deadline = stage_start + 0.95 * opts.time_budget
             ckpt.start(t0)
+            after_step = ckpt.maybe_save
+            replan_at = self._replan_iteration(deadline)
+            if replan_at is not None:
+
+                def after_step(r, save=ckpt.maybe_save, at=replan_at):
+                    if r.iteration == at // 2:
+                        self.replan_half = float(r.losses()["sample_psnr_db"])
+                    elif r.iteration == at:
+                        self._replan(r)
+                    save(r)
+
             with _stop_on_sigint(refiner):
-                history = refiner.run(progress=on_progress, log_every=log_every, deadline=deadline, after_step=ckpt.maybe_save)
+                history = refiner.run(progress=on_progress, log_every=log_every, deadline=deadline, after_step=after_step)
             seconds = time.perf_counter() - t0
             if refiner.interrupted:
                 ckpt.save(refiner)
-            refined = Model(refiner.model_params(), self.header)
-            if self.enc == "coded" and history:  # finer grids for a more accurate model
-                from .coded import bits_for_psnr
+            params = refiner.model_params()
+            refined = Model(params[: refiner.n_live], self.header)  # without those the re-plan took out
+            if self.enc == "coded" and history and not (REFINED_BITS == "sizing" and self.sizing is not None):
+                from .coded import bits_for_psnr  # finer grids for a more accurate model
 
                 refined.coded_bits, extra = bits_for_psnr(history[-1].get("sample_psnr_db"))
                 self.coded_bits_note = {
@@ -627,6 +690,8 @@ class _EncodeRun:
                     "bits": refined.coded_bits,
                 }
             self.model, self.refined_fit = self.stored(refined)
+            if self.refined_fit is not None and not refiner.interrupted:
+                self._refit(refined, cap, deadline)
         sessions = ckpt.sessions + [{"from_iteration": ckpt.start_iteration, "to_iteration": refiner.iteration, "seconds": seconds}]
         total = sum(x["seconds"] for x in sessions)
         refinement.update(
@@ -672,6 +737,97 @@ class _EncodeRun:
         if refiner.interrupted:
             self.do_evaluate = False
             self.skip("EV evaluation", f"interrupted at iteration {refiner.iteration}")
+
+    def _replan_iteration(self, deadline: float | None) -> int | None:
+        """The iteration after which a coded byte budget's N is re-planned (see :data:`REPLAN_AT`),
+        or None where it is not: no coded byte budget, a warm start, a time budget."""
+        cfg = self.opts.refine
+        if self.enc != "coded" or self.budget_bytes is None or REPLAN_AT <= 0 or self.opts.init is not None:
+            return None
+        if deadline is not None or cfg.iterations < REPLAN_MIN_ITERATIONS:
+            return None
+        return max(1, int(round(REPLAN_AT * cfg.iterations)))
+
+    def _replan(self, refiner) -> None:
+        """N for the bit depths the model's accuracy needs: at :data:`REPLAN_AT` of the iterations
+        the current model is coded at the depths of its expected final sample PSNR;
+        where that (times :data:`REPLAN_GROWTH`) exceeds the budget, the least important
+        primitives are taken out (:meth:`Refiner.silence`) and the others refine on to fill in."""
+        from .coded import bits_for_psnr, importance
+        from .wgs import payload_size, wgs_bytes
+
+        assert self.budget_bytes is not None
+        at = float(refiner.losses()["sample_psnr_db"])
+        # the sample PSNR grows about linearly in log(iterations): what it gained from K/2 to K,
+        # times log2(T / K), is what the rest of the run adds (at least REPLAN_REST_GAIN_DB)
+        half = self.replan_half if self.replan_half is not None and math.isfinite(self.replan_half) else at
+        t_total, k = self.opts.refine.iterations, refiner.iteration
+        rest = max(REPLAN_REST_GAIN_DB, (at - half) * REPLAN_EXTRAPOLATE * math.log2(t_total / k))
+        expected = at + min(rest, REPLAN_MAX_GAIN_DB)
+        bits, extra = bits_for_psnr(expected)
+        params = refiner.model_params()
+        n = len(params)
+        data = wgs_bytes(params, self.header, encoding="coded", bits=bits)
+        payload = payload_size(data)
+        head = len(data) - payload
+        predicted = head + payload * REPLAN_GROWTH
+        keep = n
+        if predicted > self.budget_bytes * (1.0 + REPLAN_TOLERANCE):
+            keep = max(1, int(n * (self.budget_bytes - head) / (payload * REPLAN_GROWTH)))
+            order = np.argsort(importance(params), kind="stable")  # least important first
+            refiner.silence(order[: n - keep])
+        self.replan = {
+            "iteration": refiner.iteration,
+            "sample_psnr_db": at,
+            "sample_psnr_db_at_half": half,
+            "expected_psnr_db": expected,
+            "bits": bits,
+            "bits_added": extra,
+            "coded_bytes_now": len(data),
+            "predicted_bytes": predicted,
+            "n_before": n,
+            "n_after": keep,
+        }
+
+    def _refit(self, refined: Model, cap: float, deadline: float | None) -> None:
+        """A model pruned to its byte budget, refined again briefly without the pruned primitives
+        (see :data:`REFIT_SHARE`) and fitted once more; the report's ``coded_fit.refit`` says so."""
+        from .refine import Refiner
+
+        fit, kept = self.refined_fit, self.model.kept_rows
+        assert fit is not None
+        cfg = self.opts.refine
+        if kept is None or fit["pruned"] <= REFIT_MIN_PRUNED * refined.n or REFIT_SHARE <= 0:
+            return
+        if deadline is not None and time.perf_counter() >= deadline:
+            self.skip("refit of the pruned model", "the time budget is spent", pruned=fit["pruned"])
+            return
+        iterations = max(REFIT_MIN_ITERATIONS, int(round(REFIT_SHARE * cfg.iterations)))
+        rcfg = dataclasses.replace(
+            cfg, iterations=iterations, lr=cfg.lr * REFIT_LR, target_psnr=None, plateau_db=None, budget_samples=False
+        )
+        t0 = time.perf_counter()
+        refiner = Refiner(self.dv, refined.params[kept], rcfg, self.opts.seed, self.opts.allocation.scale_min, cap)
+        history = refiner.run(log_every=max(iterations, 1), deadline=deadline)
+        again = Model(refiner.model_params(), self.header)
+        again.coded_bits = fit["bits"]
+        self.model, refit = self.stored(again)
+        assert refit is not None
+        first = {k: fit[k] for k in ("steps", "pruned", "bytes", "first_bytes", "bits")}
+        self.refined_fit = {
+            **refit,
+            "pruned": fit["pruned"] + refit["pruned"],
+            "steps": fit["steps"] + refit["steps"],
+            "first_bytes": fit["first_bytes"],
+            "refit": {
+                "iterations": refiner.iteration,
+                "lr_scale": REFIT_LR,
+                "seconds": time.perf_counter() - t0,
+                "first_fit": first,
+                "pruned_after": refit["pruned"],
+                "sample_psnr_db": history[-1].get("sample_psnr_db") if history else None,
+            },
+        }
 
     def _sampling_skips(self, refiner) -> None:
         """Where the refiner draws no samples, and why (recorded before it runs)."""
@@ -787,9 +943,10 @@ class _EncodeRun:
                 "requested_bytes": self.budget_bytes,
                 "budget_used": None if self.budget_bytes is None else size / self.budget_bytes,
                 "coded_sizing": self.sizing,
+                "coded_replan": self.replan,
                 "coded_fit": fit,
                 "coded_bits_from_accuracy": note,
-                "coded_choice": _coded_choice(self.sizing, fit, note),
+                "coded_choice": _coded_choice(self.sizing, fit, note, None if is_analytic else self.replan),
                 "n_max": seed_limit(f.eligible, f.occupied),
                 "format": self.enc,
                 "bytes": size,

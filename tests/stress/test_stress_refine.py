@@ -74,7 +74,7 @@ def test_learning_rates_from_1e_5_to_1(lr):
     assert all(math.isfinite(rec["total"]) for rec in r["loss_history"])
     ev = m.report["evaluation"]
     if lr <= 1e-4:  # too small to move anything much: the analytic model survives
-        assert abs(ev["final"]["psnr_db"] - ev["analytic"]["psnr_db"]) < 0.5
+        assert abs(ev["final"]["psnr_db"] - ev["analytic"]["psnr_db"]) < 1.0
     else:  # larger rates may overshoot, but never leave the bounds nor lose the field entirely
         assert ev["final"]["psnr_db"] > 5.0
     assert (m.params[:, 3:6] >= LOG_LO - 1e-5).all() and (m.params[:, 3:6] <= LOG_HI + 1e-5).all()

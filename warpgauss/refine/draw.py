@@ -1,7 +1,9 @@
 """Stage "draw": the iteration's training samples (SPEC section 3) and their per-sample buffers.
 
-35 % from V > 0.4, 40 % from occupied mid-range voxels, 25 % uniform, each jittered off-grid, with
-a partner point for the smoothness term (:func:`warpgauss.kernels.sampling.draw_samples`). The
+35 % from V > 0.4, 40 % from occupied mid-range voxels, 25 % uniform, at voxel centres (the paper
+jitters them by up to half a voxel, with trilinear targets), weighted so that the value loss
+estimates the full-grid MSE, with a partner point for the smoothness term
+(:func:`warpgauss.kernels.sampling.draw_samples`). The
 strata are indexed once (prefix sums of per-brick counts); the uniform stratum's support (the
 bricks some primitive reaches) is re-marked after every re-bin.
 """
@@ -35,12 +37,23 @@ class Sampler:
         value_empty: Value-loss weight of empty samples: at 0 the uniform stratum is drawn among
             the occupied voxels (an empty sample would add nothing to any loss term).
         partner_distance: Range of the partner offset in voxels.
+        jitter: Largest offset of a sample from its voxel centre along each axis (voxels).
+        importance: Weight samples so that the value loss estimates the full-grid MSE.
     """
 
-    def __init__(self, dv: DeviceVolume, uniform_support: bool, value_empty: float, partner_distance: tuple[float, float]):
+    def __init__(
+        self,
+        dv: DeviceVolume,
+        uniform_support: bool,
+        value_empty: float,
+        partner_distance: tuple[float, float],
+        jitter: float = 0.5,
+        importance: bool = False,
+    ):
         self._wp = wp = warp()
         self.dv, self.device = dv, dv.device
         self.partner_distance = partner_distance
+        self.jitter, self.importance = float(jitter), bool(importance)
         self._build_strata()
         self.uniform_occupied = value_empty == 0 and self.n_high + self.n_mid > 0
         self.uniform_support = uniform_support and not self.uniform_occupied
@@ -55,8 +68,10 @@ class Sampler:
             )
             self.support = wp.zeros(int(np.prod(shape)), dtype=int, device=dev)
         else:
-            self.marks = None
             self.support = wp.zeros(1, dtype=int, device=dev)  # unused by the sampler
+            unused = wp.zeros((1, 1, 1), dtype=int, device=dev)
+            self.marks = None
+            self._no_marks = (unused, wp.zeros(1, dtype=int, device=dev))
         self.m = 0
 
     def _build_strata(self) -> None:
@@ -90,6 +105,7 @@ class Sampler:
         wp, dv = self._wp, self.dv
         m_high, m_mid, _ = self.strata
         pmin, pmax = self.partner_distance
+        bricks, everything = (self.marks[2], self.marks[1]) if self.marks is not None else self._no_marks
         wp.launch(
             ks.draw_samples,
             dim=self.m,
@@ -110,6 +126,10 @@ class Sampler:
                 stream,
                 float(pmin),
                 float(pmax),
+                self.jitter,
+                int(self.importance),
+                bricks,
+                everything,
             ],
             outputs=[self.points, self.target, self.weight, self.occupied],
             device=self.device,

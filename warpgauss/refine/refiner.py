@@ -63,6 +63,9 @@ def load_kernels(device: str) -> None:
         wp.load_module(module, device=device)
 
 
+SILENT_LOGIT = 1.0e4  # sigmoid(-1e4) is exactly 0 in float32: a silenced (frozen) primitive's weight
+
+
 class Refiner:
     """N primitives under refinement on one device.
 
@@ -99,7 +102,9 @@ class Refiner:
         self.n = self.state.n
         self.quant = _quant_grid(config.quantise)
         self.binner = Binner(self.state, dv.field.shape_xyz, self.quant)
-        self.sampler = Sampler(dv, config.uniform_support, config.weights.value_empty, config.partner_distance)
+        self.sampler = Sampler(
+            dv, config.uniform_support, config.weights.value_empty, config.partner_distance, config.jitter, config.importance
+        )
         split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
         # partners serve only the smoothness term: with its weight 0 they are not evaluated
         self.passes = PairPasses(self.state, self.sampler, dv.field.shape_xyz, split, config.weights.smooth > 0)
@@ -351,6 +356,43 @@ class Refiner:
         """Current primitives as model parameters (unit quaternion, weight in (0, 1)), primitive order."""
         return self.state.model_params()
 
+    def silence(self, ids: np.ndarray) -> None:
+        """Take primitives (model indices) out of the model for the rest of the run: their weight
+        becomes exactly 0 (a weight logit of -SILENT_LOGIT) and they are frozen (never stepped,
+        so nothing brings them back), adding nothing to any value or density. The count stays N
+        (the binned state is unchanged), but the model order changes: the primitives kept come
+        first, in their order, the silenced ones last, and :attr:`n_live` counts the first, so
+        ``model_params()[:n_live]`` is the model without them."""
+        s = self.state
+        ids = np.unique(np.asarray(ids, np.int64))
+        if ids.size == 0:
+            return
+        if s.n_train != s.n:
+            raise WarpgaussError("primitives can only be taken out of a run without frozen primitives")
+        gone = np.zeros(s.n, bool)
+        gone[ids] = True
+        label = np.empty(s.n, np.int64)  # old model index -> new: the kept in order, then the silenced
+        label[~gone] = np.arange(s.n - ids.size)
+        label[gone] = np.arange(s.n - ids.size, s.n)
+        slot_ids = s.ids.numpy().astype(np.int64)
+        slots = gone[slot_ids]
+        raw = s.raw.numpy().reshape(s.n, 12)
+        raw[slots, 11] = -SILENT_LOGIT
+        s.raw.assign(raw)
+        for moments in (s.m1, s.m2):
+            arr = moments.numpy().reshape(s.n, 12)
+            arr[slots] = 0.0
+            moments.assign(arr)
+        s.ids.assign(label[slot_ids].astype(np.int32))
+        s.n_train = s.n - ids.size
+        self.rebin(replan=True)
+        self._graph = None
+
+    @property
+    def n_live(self) -> int:
+        """Primitives not taken out by :meth:`silence` (the first ``n_live`` of :meth:`model_params`)."""
+        return self.state.n_train
+
     # -- validation (target PSNR, plateau) ---------------------------------------------------
 
     def set_validation(self, f, points: int = VALIDATION_POINTS) -> None:
@@ -399,6 +441,7 @@ class Refiner:
             "touch_scale": self.touch_scale,
             "contacts": self.contacts,
             "rebins": self.rebins,
+            "n_train": self.state.n_train,
             "split": self.split,
             "support_everything": int(smp.marks[1].numpy()[0]) if smp.uniform_support else 0,
             "plan": {
@@ -469,6 +512,7 @@ class Refiner:
         self.schedule.touch.fill_(self.touch_scale)
         self.contacts = scalars["contacts"]
         self.binner.rebins = int(scalars["rebins"])
+        self.state.n_train = int(scalars.get("n_train", self.state.n_train))  # after a silence()
         self._graph = None
 
     # -- reports -----------------------------------------------------------------------------

@@ -1,0 +1,157 @@
+"""Training and rate-control variants at fixed ratios (issue #32): what the samples, their weights
+and the rate control buy, on the three head/brain volumes of ``../shared/data`` and example fields.
+
+For each volume, ratio and variant: the default coded encode (``warpgauss encode VOL --ratio R``
+with the variant's settings), its full-grid PSNR (decode of the coded model, normalised, masked
+voxels out), the end-of-training sample PSNR, N, the rate control's steps and the encode time;
+with ``--float`` also a float32 model of the same N and variant (``--format full --budget N``),
+the reference the coded file is held to (within 0.5 dB).
+
+Variants (``--variants``, comma list):
+    paper      samples jittered by up to half a voxel, trilinear targets, equal weights, and the
+               old rate control (bits dropped beyond a 3 % excess, no refit)
+    jitter     jittered samples, equal weights, new rate control
+    centres    voxel centres, equal weights, new rate control
+    default    voxel centres, importance weights, new rate control (the library's defaults)
+    jitter-iw  jittered samples with importance weights, new rate control
+    quarter    samples within a quarter voxel, importance weights, new rate control
+    norefit    the defaults without the refit after pruning
+    oldfit     the defaults with the old rate control
+    prune10    up to a 10 % excess pruned (no refit), beyond it bits dropped
+    keepbits   the refined model coded at the depths N was sized for (no refit)
+    refit-lo   pruning up to a 50 % excess, refit for 20 % of the iterations at 0.02 x the rate
+
+    python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
+        --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import bench_rd  # noqa: E402  (the volumes and the full-grid PSNR every RD figure uses)
+
+from warpgauss import coded, pipeline  # noqa: E402
+from warpgauss.allocate import AllocationConfig  # noqa: E402
+from warpgauss.bench import result_header  # noqa: E402
+from warpgauss.pipeline import EncodeOptions, encode_field, load_field  # noqa: E402
+from warpgauss.profiling import StageRecorder  # noqa: E402
+from warpgauss.refine import RefineConfig  # noqa: E402
+
+HEAD_MRIS = "mean_reg2mean.nii.gz,mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz,inia19-t1-brain.nii.gz"
+# name: (RefineConfig fields, (prune share, refit share)[, refined bits from, refit learning-rate scale])
+VARIANTS: dict[str, tuple] = {
+    "paper": ({"jitter": 0.5, "importance": False}, (0.03, 0.0)),
+    "jitter": ({"jitter": 0.5, "importance": False}, (None, None)),
+    "centres": ({"jitter": 0.0, "importance": False}, (None, None)),
+    "default": ({}, (None, None)),
+    "jitter-iw": ({"jitter": 0.5, "importance": True}, (None, None)),
+    "quarter": ({"jitter": 0.25, "importance": True}, (None, None)),
+    "norefit": ({}, (None, 0.0)),
+    "oldfit": ({}, (0.03, 0.0)),
+    "prune10": ({}, (0.10, 0.0)),
+    "keepbits": ({}, (None, 0.0), "sizing"),
+    "refit-lo": ({}, (None, 0.2), "accuracy", 0.02),
+}
+
+
+def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
+    fields, (prune, refit), *more = VARIANTS[variant]
+    saved = coded.PRUNE_SHARE, pipeline.REFIT_SHARE, pipeline.REFINED_BITS, pipeline.REFIT_LR
+    if prune is not None:
+        coded.PRUNE_SHARE = prune
+    if refit is not None:
+        pipeline.REFIT_SHARE = refit
+    if more:
+        pipeline.REFINED_BITS = more[0]
+        pipeline.REFIT_LR = more[1] if len(more) > 1 else pipeline.REFIT_LR
+    try:
+        cfg = dataclasses.replace(RefineConfig(), **fields)
+        opts = EncodeOptions(ratio=None if budget else ratio, budget=budget, seed=0, allocation=AllocationConfig(), refine=cfg, format=fmt)
+        t0 = time.perf_counter()
+        model = encode_field(f, opts, device=dev, timer=StageRecorder(), input_info=info, evaluate=False)
+        seconds = time.perf_counter() - t0
+    finally:
+        coded.PRUNE_SHARE, pipeline.REFIT_SHARE, pipeline.REFINED_BITS, pipeline.REFIT_LR = saved
+    return model, seconds
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--fields", default="vortex,interface")
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--real", default=HEAD_MRIS, help="files in --data-dir (comma list) or 'none'")
+    ap.add_argument("--data-dir", type=Path, default=bench_rd.DATA_DIR)
+    ap.add_argument("--volume-dir", type=Path, default=None)
+    ap.add_argument("--max-voxels", type=int, default=100_000_000)
+    ap.add_argument("--ratios", type=bench_rd._floats, default=(30.0, 300.0))
+    ap.add_argument("--variants", default="paper,default")
+    ap.add_argument("--float", action="store_true", help="also a float32 model of the coded file's N")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--out", default="benchmarks/results/accuracy_sweep_cpu.json")
+    args = ap.parse_args(argv)
+    from warpgauss._warp import warp
+
+    warp().init()
+    result = {**result_header("training and rate-control variants at fixed ratios (issue #32)", __file__, argv, args.device)}
+    result["rows"] = rows = []
+    out = Path(args.out)
+    for label, src, raw, _ in bench_rd.volumes(args):
+        f, info = load_field(src["source"], src.get("read"))
+        truth = bench_rd.Truth(raw, f.vmin, f.vmax, f.mask)
+        encode(f, info, min(args.ratios), "default", args.device)  # warm-up: kernels compiled, self-test done
+        for r in args.ratios:
+            for v in args.variants.split(","):
+                model, secs = encode(f, info, r, v, args.device)
+                rep = model.report
+                dec = model.decode(device=args.device, normalised=True)
+                hist = rep["refinement"].get("loss_history") or [{}]
+                row = {
+                    "volume": label,
+                    "target_ratio": r,
+                    "variant": v,
+                    "n": model.n,
+                    "bytes": rep["budget"]["bytes"],
+                    "ratio": rep["budget"]["compression_ratio"],
+                    "psnr_db": truth.psnr(dec, normalised=True),
+                    "sample_psnr_db": hist[-1].get("sample_psnr_db"),
+                    "encode_s": secs,
+                    "refinement_s": rep["refinement"].get("seconds"),
+                    "coded_sizing": rep["budget"]["coded_sizing"],
+                    "coded_fit": rep["budget"]["coded_fit"],
+                    "bits_note": rep["budget"]["coded_bits_from_accuracy"],
+                    "coded_replan": rep["budget"].get("coded_replan"),
+                    "history": [(h["iteration"], h.get("sample_psnr_db")) for h in rep["refinement"].get("loss_history") or []],
+                }
+                if args.float:
+                    fm, fsecs = encode(f, info, r, v, args.device, budget=model.n, fmt="full")
+                    row["float_same_n_psnr_db"] = truth.psnr(fm.decode(device=args.device, normalised=True), normalised=True)
+                    row["float_encode_s"] = fsecs
+                    row["coded_minus_float_db"] = row["psnr_db"] - row["float_same_n_psnr_db"]
+                rows.append(row)
+                print(
+                    f"{label:44s} R {r:6g} {v:9s} N {model.n:8d} CR {row['ratio']:7.1f} psnr {row['psnr_db']:6.2f} "
+                    f"sample {row['sample_psnr_db'] or float('nan'):6.2f} "
+                    + (f"float {row['float_same_n_psnr_db']:6.2f} " if args.float else "")
+                    + f"{secs:6.1f} s pruned {(row['coded_fit'] or {}).get('pruned')} steps {(row['coded_fit'] or {}).get('steps')}",
+                    flush=True,
+                )
+                tmp = out.with_name(out.name + ".tmp")
+                out.parent.mkdir(parents=True, exist_ok=True)
+                tmp.write_text(json.dumps(result, indent=1, default=float))
+                os.replace(tmp, out)
+    return result
+
+
+if __name__ == "__main__":
+    main()

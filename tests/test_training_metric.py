@@ -1,0 +1,192 @@
+"""Training for the grid we score (issue #32): samples at voxel centres with the voxel values as
+targets, importance weights whose weighted value loss estimates the full-grid MSE, the paper's
+sampling kept by its presets, decodes clamped to the source's range, the rate control's knobs."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from warpgauss.analysis import DeviceVolume, normalise
+from warpgauss.optimize import PRESETS, RefineConfig, Refiner
+from warpgauss.pipeline import resolve_refine
+
+
+def _toy_params(f, n=20):
+    rng = np.random.default_rng(0)
+    p = np.zeros((n, 12), np.float32)
+    p[:, :3] = rng.uniform(0, 1, (n, 3)) * (np.array(f.shape_xyz) - 1)
+    p[:, 3:6] = 0.3
+    p[:, 9] = 1.0
+    p[:, 10] = 0.5
+    p[:, 11] = 0.5
+    return p
+
+
+def _field():
+    from warpgauss.synthetic import generate
+
+    f = normalise(generate("interface", 20, seed=1))
+    occupied = f.values > 0.02
+    assert 0.05 < occupied.mean() < 0.8  # strata of very different sizes: the weights matter
+    return f
+
+
+def test_samples_at_voxel_centres_take_the_voxel_values(cpu):
+    """At jitter 0 every sample sits on a voxel centre and its target is that voxel's value,
+    exactly (no trilinear blur); at the paper's 0.5 the samples leave the centres."""
+    f = _field()
+    r = Refiner(DeviceVolume(f, cpu), _toy_params(f), RefineConfig(iterations=1, samples=3000, jitter=0.0), 0, 0.3, 4.0)
+    r.sample()
+    pts = r.points.numpy()[: r.m].astype(np.float64)
+    np.testing.assert_array_equal(pts, np.rint(pts))
+    ijk = pts.astype(int)
+    np.testing.assert_array_equal(r.target.numpy(), f.values[ijk[:, 2], ijk[:, 1], ijk[:, 0]])
+    r = Refiner(DeviceVolume(f, cpu), _toy_params(f), RefineConfig(iterations=1, samples=3000, jitter=0.5), 0, 0.3, 4.0)
+    r.sample()
+    off = np.abs(r.points.numpy()[: r.m] - np.rint(r.points.numpy()[: r.m]))
+    assert off.max() <= 0.5 and off.mean() > 0.1
+
+
+@pytest.mark.parametrize("uniform_support", [False, True])
+def test_importance_weights_make_the_value_loss_the_full_grid_mse(cpu, uniform_support):
+    """The weighted mean of any per-voxel quantity over the samples estimates its mean over the
+    whole grid (float64 numpy reference), where the unweighted strata mix does not: here the
+    squared error of a model that predicts 0 everywhere (the value loss of an empty model)."""
+    f = _field()
+    truth = float(np.mean(f.values.astype(np.float64) ** 2))  # full-grid MSE of the all-zero model
+    cfg = RefineConfig(iterations=1, samples=60_000, jitter=0.0, importance=True, uniform_support=uniform_support)
+    r = Refiner(DeviceVolume(f, cpu), _toy_params(f, 400), cfg, 0, 0.3, 4.0)
+    r.sample()
+    w = r.weight.numpy().astype(np.float64)
+    t2 = r.target.numpy().astype(np.float64) ** 2
+    assert 0.5 < w.mean() < 2.0  # about 1, so the learning rates keep their meaning
+    weighted = float(np.sum(w * t2) / np.sum(w))
+    plain = float(np.mean(t2))
+    assert abs(weighted - truth) < 0.05 * truth, (weighted, truth)
+    assert abs(plain - truth) > 0.1 * truth  # the strata alone over-weight the high values
+    cfg = dataclasses.replace(cfg, importance=False)
+    r = Refiner(DeviceVolume(f, cpu), _toy_params(f, 400), cfg, 0, 0.3, 4.0)
+    r.sample()
+    np.testing.assert_array_equal(r.weight.numpy(), 1.0)  # the paper's equal weights (nothing masked)
+
+
+def test_presets_keep_the_papers_sampling():
+    """--preset paper and --preset fast train as the paper does: jittered samples, trilinear
+    targets, equal weights; the library default samples voxel centres with importance weights."""
+    for name in ("paper", "fast"):
+        cfg = resolve_refine(None, name, None, None)
+        assert (cfg.jitter, cfg.importance) == (0.5, False)
+        assert {k: getattr(cfg, k) for k in PRESETS[name]} == PRESETS[name]
+    assert (RefineConfig().jitter, RefineConfig().importance) == (0.0, True)
+    with pytest.raises(Exception, match="jitter must be in"):
+        RefineConfig(jitter=2.0).validate()
+
+
+def test_decoded_values_stay_within_the_source_range(cpu):
+    """A Gaussian that overshoots (a value far above the field's maximum) and one below its
+    minimum: the decode, the full-grid evaluation and the sampled one all clamp to [min, max] and
+    count the voxels clamped."""
+    import warpgauss
+    from warpgauss.evaluate import evaluate_field
+
+    vol = np.zeros((12, 12, 12), np.float32)
+    vol[4:8, 4:8, 4:8] = 250.0
+    vol[0, 0, 0] = -10.0
+    model = warpgauss.encode(vol, budget=20, iterations=0, device=cpu, evaluate=False)
+    p = model.params.copy()
+    p[0, :3] = (6.0, 6.0, 6.0)
+    p[0, 3:6] = np.log(1.5)
+    p[0, 10] = 3.0  # normalised value 3: three times the maximum
+    p[1, :3] = (2.0, 9.0, 9.0)
+    p[1, 3:6] = np.log(1.5)
+    p[1, 10] = -2.0
+    m = warpgauss.Model(p, model.header)
+    info: dict = {}
+    dec = m.decode(device=cpu, info=info)
+    assert dec.min() >= -10.0 and dec.max() <= 250.0
+    assert info["clamped_voxels"] > 0 and (dec == 250.0).any() and (dec == -10.0).any()
+    f = normalise(vol)
+    full = evaluate_field(m.field(cpu), f, full=True)
+    assert full["clamped_voxels"] > 0
+    raw = m.field(cpu).evaluate(np.argwhere(np.ones_like(vol, bool))[:, ::-1].astype(np.float32))
+    ref = np.clip(raw, 0.0, 1.0).astype(np.float64) - f.values.reshape(-1).astype(np.float64)
+    assert full["mse"] == pytest.approx(float(np.mean(ref**2)), rel=1e-5)
+
+
+def test_fit_bytes_prunes_within_its_share_and_reports_the_rows_kept():
+    """Up to ``prune_share`` excess the least important primitives go and no depth changes; the
+    rows kept are reported in order; beyond it bits are dropped first."""
+    from test_wgs import realistic_params
+
+    from warpgauss import coded
+
+    p = realistic_params(np.random.default_rng(9), 3000)
+    full = len(coded.encode_coded(p)[0])
+    small, bits, info = coded.fit_bytes(p, int(full * 0.8), prune_share=0.5)
+    assert info["steps"] == [] and bits == coded.CODED_BITS and info["pruned"] > 0
+    kept = info["kept"]
+    assert len(kept) == 3000 - info["pruned"] and np.all(np.diff(kept) > 0)
+    dropped = np.setdiff1d(np.arange(3000), kept)
+    imp = coded.importance(p)
+    assert imp[dropped].max() <= imp[kept].min()  # the least important went
+    _, bits, info = coded.fit_bytes(p, int(full * 0.8), prune_share=0.03)
+    assert any(s.endswith("-1") for s in info["steps"])
+
+
+def test_silenced_primitives_stay_out_and_come_last(cpu):
+    """Refiner.silence: the primitives taken out get weight exactly 0 and are never stepped again
+    (their weight stays 0 over later steps and re-bins); the rest keep their parameters and order
+    as the first ``n_live`` rows of the model; a checkpoint carries the count."""
+    from warpgauss.allocate import AllocationConfig, allocate
+    from warpgauss.profiling import StageRecorder
+    from warpgauss.synthetic import generate
+
+    f = normalise(generate("bubbles", 24, seed=1))
+    dv = DeviceVolume(f, cpu)
+    p, _ = allocate(dv, 200, 0, AllocationConfig(), StageRecorder())
+    r = Refiner(dv, p, RefineConfig(iterations=40, samples=512, rebin_every=5), 0, 0.3, 4.0)
+    for _ in range(10):
+        r.step()
+    before = r.model_params()
+    gone = np.arange(0, 200, 7)
+    r.silence(gone)
+    kept = np.setdiff1d(np.arange(200), gone)
+    after = r.model_params()
+    assert r.n_live == len(kept)
+    np.testing.assert_array_equal(after[: r.n_live], before[kept])
+    assert (after[r.n_live :, 11] == 0.0).all()
+    frozen = after[r.n_live :].copy()
+    for _ in range(12):  # across two re-bins
+        r.step()
+    later = r.model_params()
+    np.testing.assert_array_equal(later[r.n_live :], frozen)
+    assert not np.array_equal(later[: r.n_live], after[: r.n_live])  # the rest trains on
+    assert r.state_arrays()[1]["n_train"] == len(kept)
+
+
+def test_a_coded_budget_re_plans_n_for_the_depths_its_accuracy_needs(tmp_path, cpu):
+    """--ratio R: at a quarter of the iterations the model is coded at the depths of its expected
+    accuracy; where that would not fit, the least important Gaussians are taken out and the file
+    holds the rest. The file fits its budget, the report says what was done, and the same seed
+    gives the same file."""
+    import warpgauss
+
+    from warpgauss.synthetic import generate
+
+    vol = generate("vortex", 24, seed=0)
+    kw = dict(ratio=20, iterations=120, samples=1024, device=cpu, self_test=False, seed=3)
+    a = warpgauss.encode(vol, **kw, output=tmp_path / "a.wgs")
+    b = warpgauss.encode(vol, **kw, output=tmp_path / "b.wgs")
+    assert (tmp_path / "a.wgs").read_bytes() == (tmp_path / "b.wgs").read_bytes()
+    bud = a.report["budget"]
+    rp = bud["coded_replan"]
+    assert rp["iteration"] == 30 and rp["n_before"] == bud["coded_sizing"]["n"]
+    assert rp["n_after"] < rp["n_before"]  # a smooth field outgrows the pilot's depths
+    assert a.n <= rp["n_after"] and a.n >= 0.95 * rp["n_after"]
+    assert (a.params[:, 11] > 0).all()  # nothing taken out reaches the file
+    size = (tmp_path / "a.wgs").stat().st_size
+    assert 0.95 * bud["requested_bytes"] <= size <= bud["requested_bytes"]
+    assert "taken out" in bud["coded_choice"]
