@@ -8,21 +8,11 @@ import dataclasses
 
 import numpy as np
 import pytest
+from test_refine import _toy_params
 
 from warpgauss.analysis import DeviceVolume, normalise
 from warpgauss.optimize import PRESETS, RefineConfig, Refiner
 from warpgauss.pipeline import resolve_refine
-
-
-def _toy_params(f, n=20):
-    rng = np.random.default_rng(0)
-    p = np.zeros((n, 12), np.float32)
-    p[:, :3] = rng.uniform(0, 1, (n, 3)) * (np.array(f.shape_xyz) - 1)
-    p[:, 3:6] = 0.3
-    p[:, 9] = 1.0
-    p[:, 10] = 0.5
-    p[:, 11] = 0.5
-    return p
 
 
 def _field():
@@ -173,7 +163,6 @@ def test_a_coded_budget_re_plans_n_for_the_depths_its_accuracy_needs(tmp_path, c
     holds the rest. The file fits its budget, the report says what was done, and the same seed
     gives the same file."""
     import warpgauss
-
     from warpgauss.synthetic import generate
 
     vol = generate("vortex", 24, seed=0)
