@@ -179,3 +179,27 @@ def test_a_coded_budget_re_plans_n_for_the_depths_its_accuracy_needs(tmp_path, c
     size = (tmp_path / "a.wgs").stat().st_size
     assert 0.95 * bud["requested_bytes"] <= size <= bud["requested_bytes"]
     assert "taken out" in bud["coded_choice"]
+
+
+def test_the_measured_alternatives_still_run(tmp_path, cpu, monkeypatch):
+    """The rate-control variants benchmarks/accuracy/sweep.py measured against the defaults (off
+    by default): pruning up to half the excess with a refit of the rest, and coding at the
+    sizing's depths. Each still fits its budget and says what it did."""
+    import warpgauss
+    from warpgauss import coded, pipeline
+    from warpgauss.synthetic import generate
+
+    vol = generate("vortex", 24, seed=0)
+    kw = dict(ratio=20, iterations=40, samples=512, device=cpu, self_test=False, seed=1)
+    monkeypatch.setattr(coded, "PRUNE_SHARE", 0.5)
+    monkeypatch.setattr(pipeline, "REFIT_SHARE", 0.5)
+    monkeypatch.setattr(pipeline, "REPLAN_AT", 0.0)  # no re-plan: the export has the excess to prune
+    m = warpgauss.encode(vol, **kw, output=tmp_path / "refit.wgs")
+    fit = m.report["budget"]["coded_fit"]
+    assert fit["refit"]["iterations"] == 30 and fit["pruned"] > 0 and fit["refit"]["first_fit"]["pruned"] > 0
+    assert (tmp_path / "refit.wgs").stat().st_size <= m.report["budget"]["requested_bytes"]
+    monkeypatch.setattr(pipeline, "REFIT_SHARE", 0.0)
+    monkeypatch.setattr(pipeline, "REFINED_BITS", "sizing")
+    m = warpgauss.encode(vol, **kw, output=tmp_path / "sizing.wgs")
+    assert m.report["budget"]["coded_bits_from_accuracy"] is None  # the depths N was sized for
+    assert (tmp_path / "sizing.wgs").stat().st_size <= m.report["budget"]["requested_bytes"]
