@@ -525,3 +525,20 @@ def test_error_messages_are_one_line(tmp_path, params):
         read_wgs(bad)
     msg = str(e.value)
     assert "\n" not in msg and "payload checksum mismatch: the file is damaged" in msg and str(bad) in msg
+
+
+@pytest.mark.parametrize("alias, encoding", [("full", "float32"), ("compact", "compact96"), ("float32", "float32")])
+def test_format_aliases_are_one_table(tmp_path, params, alias, encoding):
+    """The names the command line takes ("full", "compact") are the file API's too: one table
+    (wgs.FORMAT_ALIASES) serves warpgauss.encode, Model.save and write_wgs; an unknown name is
+    refused in one line naming the choices."""
+    from warpgauss.model import Model
+
+    path = tmp_path / "m.wgs"
+    write_wgs(path, params, make_header(), encoding=alias)
+    assert read_wgs(path)[1]["payload"]["encoding"] == encoding
+    m = Model(params, {**make_header(), "values": {"min": 0.0, "max": 1.0}})
+    m.save(tmp_path / "s.wgs", encoding=alias)
+    assert read_wgs(tmp_path / "s.wgs")[1]["payload"]["encoding"] == encoding
+    with pytest.raises(WarpgaussError, match="unknown model format 'jpeg'; use coded, full"):
+        write_wgs(tmp_path / "x.wgs", params, make_header(), encoding="jpeg")

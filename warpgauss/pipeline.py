@@ -212,7 +212,6 @@ REFIT_MIN_PRUNED = 0.01
 
 
 DEFAULT_FORMAT = "coded"
-FORMAT_ALIASES = {"full": "float32", "compact": "compact96"}
 
 
 def encoding_of(opts: EncodeOptions) -> str:
@@ -222,8 +221,7 @@ def encoding_of(opts: EncodeOptions) -> str:
 
     if opts.format is None and not opts.compact:
         return DEFAULT_FORMAT
-    fmt = FORMAT_ALIASES.get(opts.format, opts.format) if opts.format is not None else None
-    return _encoding(opts.compact, fmt)
+    return _encoding(opts.compact, opts.format)
 
 
 def sizing_bpp(encoding: str) -> int:

@@ -187,9 +187,14 @@ def header_size(header: dict, n: int, *, compact: bool = False, encoding: str | 
     return _reserved_size(header, _encoding(compact, encoding))
 
 
+FORMAT_ALIASES = {"full": "float32", "compact": "compact96"}  # the names the command line and the API take
+
+
 def _encoding(compact: bool, encoding: str | None) -> str:
+    """The payload encoding of a format name or alias (:data:`FORMAT_ALIASES`), else of ``compact``."""
     if encoding is None:
         return "compact96" if compact else "float32"
+    encoding = FORMAT_ALIASES.get(encoding, encoding)
     if encoding not in ENCODINGS:
         raise WarpgaussError(f"unknown model format {encoding!r}; use coded, full (float32) or compact (compact96)")
     return encoding
