@@ -200,6 +200,13 @@ def test_the_measured_alternatives_still_run(tmp_path, cpu, monkeypatch):
     assert (tmp_path / "refit.wgs").stat().st_size <= m.report["budget"]["requested_bytes"]
     monkeypatch.setattr(pipeline, "REFIT_SHARE", 0.0)
     monkeypatch.setattr(pipeline, "REFINED_BITS", "sizing")
+    monkeypatch.setattr(pipeline, "CODED_REFINE_GAIN_DB", 30.0)  # sized for finer grids than the default
     m = warpgauss.encode(vol, **kw, output=tmp_path / "sizing.wgs")
-    assert m.report["budget"]["coded_bits_from_accuracy"] is None  # the depths N was sized for
+    bud = m.report["budget"]
+    assert bud["coded_sizing"]["bits_added"] > 0
+    assert bud["coded_bits_from_accuracy"] is None  # the depths N was sized for
+    bits = dict(bud["coded_sizing"]["bits"])
+    for step in bud["coded_fit"]["steps"]:  # the rate control started from them
+        bits[step[:-2]] += 1 if step.endswith("+1") else -1
+    assert bits == bud["coded_fit"]["bits"]
     assert (tmp_path / "sizing.wgs").stat().st_size <= m.report["budget"]["requested_bytes"]

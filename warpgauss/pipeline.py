@@ -678,7 +678,9 @@ class _EncodeRun:
                 ckpt.save(refiner)
             params = refiner.model_params()
             refined = Model(params[: refiner.n_live], self.header)  # without those the re-plan took out
-            if self.enc == "coded" and history and not (REFINED_BITS == "sizing" and self.sizing is not None):
+            if REFINED_BITS == "sizing" and self.sizing is not None:  # the depths N was sized for
+                refined.coded_bits = dict(self.sizing["bits"])
+            elif self.enc == "coded" and history:
                 from .coded import bits_for_psnr  # finer grids for a more accurate model
 
                 refined.coded_bits, extra = bits_for_psnr(history[-1].get("sample_psnr_db"))

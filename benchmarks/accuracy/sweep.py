@@ -18,7 +18,8 @@ Variants (``--variants``, comma list):
     norefit    the defaults without the refit after pruning
     oldfit     the defaults with the old rate control
     prune10    up to a 10 % excess pruned (no refit), beyond it bits dropped
-    keepbits   the refined model coded at the depths N was sized for (no refit)
+    keepbits   the refined model coded at the depths N was sized for (no refit; rows measured
+               before a fix started from the default grids)
     refit-lo   pruning up to a 50 % excess, refit for 20 % of the iterations at 0.02 x the rate
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\

@@ -390,7 +390,8 @@ class Refiner:
 
     @property
     def n_live(self) -> int:
-        """Primitives not taken out by :meth:`silence` (the first ``n_live`` of :meth:`model_params`)."""
+        """The rows of :meth:`model_params` that are the model: the first ``n_live``; after them come
+        the primitives :meth:`silence` took out, or a bricked run's frozen neighbours."""
         return self.state.n_train
 
     # -- validation (target PSNR, plateau) ---------------------------------------------------
