@@ -250,6 +250,22 @@ def corners_usable(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8
     return 1.0
 
 
+UNIFORM_OCCUPIED = wp.constant(0)  # where the uniform stratum is drawn (uniform_domain)
+UNIFORM_SUPPORT = wp.constant(1)
+UNIFORM_GRID = wp.constant(2)
+
+
+@wp.func
+def uniform_domain(occ_total: int, use_support: int, support: wp.array(dtype=int)) -> int:
+    """Where :func:`draw_samples` draws the uniform stratum: among the occupied voxels (when
+    ``occ_total`` > 0), over the support bricks (when used and not empty), else the whole grid."""
+    if occ_total > 0:
+        return UNIFORM_OCCUPIED
+    if use_support != 0 and support[support.shape[0] - 1] > 0:
+        return UNIFORM_SUPPORT
+    return UNIFORM_GRID
+
+
 @wp.func
 def sample_weight(
     vol: wp.array3d(dtype=float),
@@ -282,10 +298,11 @@ def sample_weight(
     m_uni = float(m - m_high - m_mid)
     n_uni = float(vol.shape[0] * vol.shape[1] * vol.shape[2])
     in_uni = float(1.0)
-    if occ_total > 0:  # uniform among the occupied voxels
+    domain = uniform_domain(occ_total, use_support, support)
+    if domain == UNIFORM_OCCUPIED:
         n_uni = float(occ_total)
         in_uni = wp.where(st >= 0, 1.0, 0.0)
-    elif use_support != 0 and support[support.shape[0] - 1] > 0:  # uniform over the support bricks
+    elif domain == UNIFORM_SUPPORT:
         n_uni = float(support[support.shape[0] - 1])
         if support_everything[0] == 0 and support_bricks[k / BRICK, j / BRICK, i / BRICK] == 0:
             in_uni = 0.0
@@ -329,17 +346,18 @@ def draw_samples(
     nx = vol.shape[2]
     ny = vol.shape[1]
     idx = int(0)
+    domain = uniform_domain(occ_total, use_support, support)
     if s < m_high:
         idx = stratum_voxel(vol, mask, has_mask, high, 0, wp.randi(state, 0, n_high))
     elif s < m_high + m_mid:
         idx = stratum_voxel(vol, mask, has_mask, mid, 1, wp.randi(state, 0, n_mid))
-    elif occ_total > 0:  # uniform over the occupied voxels (empty samples carry no gradient)
+    elif domain == UNIFORM_OCCUPIED:  # among the occupied voxels (empty samples carry no gradient)
         rank = wp.randi(state, 0, occ_total)
         if rank < occ_high:
             idx = stratum_voxel(vol, mask, has_mask, high, 0, rank)
         else:
             idx = stratum_voxel(vol, mask, has_mask, mid, 1, rank - occ_high)
-    elif use_support != 0 and support[support.shape[0] - 1] > 0:  # over the model's support
+    elif domain == UNIFORM_SUPPORT:  # over the model's support
         idx = support_voxel(vol.shape[0], ny, nx, support, wp.randi(state, 0, support[support.shape[0] - 1]))
     else:
         idx = wp.randi(state, 0, nx * ny * vol.shape[0])
