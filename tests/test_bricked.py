@@ -244,3 +244,33 @@ def test_a_gpu_cluster_gives_each_worker_its_own_gpu(monkeypatch):
         client.cluster.close()
     assert sorted(seen.values()) == ["3", "8"]
     np.testing.assert_array_equal(serial.params, spread.params)
+
+
+def test_the_bricks_of_a_wave_stepping_side_by_side_give_each_brick_its_own_model():
+    """Same seed, same device => same model: a wave's bricks interleaved (a CUDA stream each on a
+    GPU, turns on the CPU) give what each brick gives alone, bit for bit."""
+    from warpgauss.bricked import encode_brick, encode_bricks
+
+    _, _, tasks = _tasks(size=32, n=240, counts=(4, 1, 1))
+    assert sorted({brick_colour(t.brick) for t in tasks}) == [0, 1]  # two waves of two bricks
+    alone = run_bricks(tasks, fn=encode_brick)
+    side_by_side = run_bricks(tasks, at_once=2)
+    for a, b in zip(alone, side_by_side):
+        assert a["iterations"] == b["iterations"] == 15
+        np.testing.assert_array_equal(a["params"], b["params"])
+    wave = wave_tasks(tasks, {}, [0, 2])
+    together = encode_bricks(wave, at_once=2)
+    for t, r in zip(wave, together):
+        np.testing.assert_array_equal(r["params"], encode_brick(t)["params"])
+
+
+def test_a_wave_is_split_into_groups_of_equal_work_one_per_worker():
+    from warpgauss.bricked import brick_groups
+
+    _, _, tasks = _tasks(size=32, n=240, counts=(4, 2, 1))
+    groups = brick_groups(tasks, 3)
+    assert len(groups) == 3 and sorted(t.index for g in groups for t in g) == list(range(8))
+    assert all([t.index for t in g] == sorted(t.index for t in g) for g in groups)
+    sizes = [sum(int(np.prod([hi - lo for lo, hi in t.brick.box])) for t in g) for g in groups]
+    assert max(sizes) - min(sizes) <= max(int(np.prod([hi - lo for lo, hi in t.brick.box])) for t in tasks)
+    assert [len(g) for g in brick_groups(tasks[:2], 4)] == [1, 1]

@@ -31,7 +31,9 @@ and settings between our own workers; no model or checkpoint is ever loaded thro
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
+from collections.abc import Generator
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,6 +43,7 @@ from .allocate import AllocationConfig
 from .analysis import OCCUPIED, Field, count_seed_candidates, seed_limit, split_budget
 from .errors import WarpgaussError
 from .refine.config import RefineConfig
+from .together import finish
 
 DEFAULT_HALO = 4  # voxels on each side at least (see default_halo)
 CAP_SPACING = 1.25  # a brick's sigma cap in units of the mean primitive spacing (see brick_cap)
@@ -302,7 +305,30 @@ def stand_in_count(fields: BrickFields, rates: tuple[float, float]) -> int:
 
 
 def encode_brick(task: BrickTask) -> dict:
-    """Allocate and refine one brick; its own primitives in the volume's voxel coordinates.
+    """Allocate and refine one brick; its own primitives in the volume's voxel coordinates (every
+    step of :func:`brick_job`)."""
+    return finish(brick_job(task))
+
+
+def encode_bricks(tasks: list[BrickTask], at_once: int | None = None, limit: int | None = None) -> list[dict]:
+    """Several bricks (of one wave: they share no box) on one device, ``at_once`` of them stepping
+    side by side (:func:`warpgauss.together.run_together`; default: as many as
+    :func:`bricks_at_once` lets ``limit`` bytes of the device hold, one at a time on the CPU). Each brick's result is
+    the one :func:`encode_brick` gives, bit for bit. Runs wherever it is called (a Dask worker
+    takes a group of a wave's bricks this way)."""
+    from ._warp import resolve_device
+    from .together import run_together
+
+    if not tasks:
+        return []
+    dev = resolve_device(tasks[0].device)
+    if at_once is None:
+        at_once = bricks_at_once(tasks, dev, limit)
+    return [r | {"at_once": at_once} for r in run_together([functools.partial(brick_job, t) for t in tasks], dev, at_once)]
+
+
+def brick_job(task: BrickTask) -> Generator[None, None, dict]:
+    """One brick's encode, a refinement iteration per ``next()``; its result as the return value.
 
     The brick's own seeds are drawn in its interior; stand-ins for the pending neighbours in their
     part of the halo, and the finished neighbours' primitives, are refined beside them (the
@@ -346,8 +372,10 @@ def encode_brick(task: BrickTask) -> dict:
             task.allocation.scale_cap,
             frozen=len(frozen),
         )
-        refiner.run()
+        t1 = time.perf_counter()
+        yield from refiner.steps()
         params = refiner.model_params()[: task.n]
+        done["setup_seconds"], done["refine_seconds"] = t1 - t0, time.perf_counter() - t1
         done.update(iterations=refiner.iteration, stand_ins=k, frozen=len(frozen), samples=cfg.samples)
     out = np.array(params, np.float32, copy=True)
     out[:, :3] += _origin_xyz(task.brick)
@@ -452,12 +480,15 @@ def wave_tasks(tasks: list[BrickTask], finished: dict[int, np.ndarray], wave: li
     return out
 
 
-def run_bricks(tasks: list[BrickTask], client=None, progress=None, fn=None) -> list[dict]:
+def run_bricks(
+    tasks: list[BrickTask], client=None, progress=None, fn=None, at_once: int | None = None, limit: int | None = None
+) -> list[dict]:
     """Every brick's result, in brick order, wave by wave (:func:`brick_colour`): in this process
-    (``client`` None) or on a Dask cluster, where a failed brick is retried once and a brick that
-    fails twice fails the run. ``fn``: what runs a task (default :func:`encode_brick`; tests
-    inject failures)."""
-    fn = encode_brick if fn is None else fn
+    (``client`` None), the bricks of a wave stepping side by side on the device (``at_once`` of
+    them, default :func:`bricks_at_once` under ``limit`` bytes of device memory), or on a Dask cluster, a wave's bricks split into one
+    group per worker, each group run side by side there (:func:`encode_bricks`); a failed task is
+    retried once and one that fails twice fails the run. ``fn``: what runs one task (tests inject
+    failures; a task at a time then)."""
     waves: dict[int, list[int]] = {}
     for t in tasks:
         waves.setdefault(brick_colour(t.brick), []).append(t.index)
@@ -465,29 +496,82 @@ def run_bricks(tasks: list[BrickTask], client=None, progress=None, fn=None) -> l
     results: dict[int, dict] = {}
     for colour in sorted(waves):
         batch = wave_tasks(tasks, finished, waves[colour])
-        for r in _run_wave(fn, batch, client, progress, len(results), len(tasks)):
+        for r in _run_wave(fn, batch, client, progress, len(results), len(tasks), at_once, limit):
             results[r["index"]] = r
             finished[r["index"]] = r["params"]
     return [results[t.index] for t in tasks]
 
 
-def _run_wave(fn, batch: list[BrickTask], client, progress, done: int, total: int) -> list[dict]:
+MAX_AT_ONCE = 8  # bricks stepping side by side on one device at most
+
+
+def bricks_at_once(tasks: list[BrickTask], device: str, limit: int | None) -> int:
+    """How many of ``tasks`` may step side by side on ``device``: 1 on the CPU (its kernels run one
+    after another anyway); on CUDA as many of the largest as ``limit`` bytes hold (default
+    :func:`default_device_limit`, by :func:`brick_device_bytes`), at most :data:`MAX_AT_ONCE`."""
+    from ._warp import warp
+
+    if not tasks or not warp().get_device(device).is_cuda:
+        return 1
+    limit = default_device_limit(device) if limit is None else limit
+    need = max(brick_device_bytes(int(np.prod([hi - lo for lo, hi in t.brick.box])), 1.5 * t.n) for t in tasks)
+    return int(max(1, min(MAX_AT_ONCE, len(tasks), (limit or 0) // need)))
+
+
+def brick_groups(batch: list[BrickTask], groups: int) -> list[list[BrickTask]]:
+    """``batch`` in at most ``groups`` groups of nearly equal work (largest box first, each to the
+    group with the fewest voxels so far), each group in brick order."""
+    out: list[list[BrickTask]] = [[] for _ in range(max(1, min(groups, len(batch))))]
+    load = [0] * len(out)
+    for t in sorted(batch, key=lambda t: (-int(np.prod([hi - lo for lo, hi in t.brick.box])), t.index)):
+        g = int(np.argmin(load))
+        out[g].append(t)
+        load[g] += int(np.prod([hi - lo for lo, hi in t.brick.box]))
+    return [sorted(g, key=lambda t: t.index) for g in out if g]
+
+
+def _run_wave(
+    fn, batch: list[BrickTask], client, progress, done: int, total: int, at_once: int | None = None, limit: int | None = None
+) -> list[dict]:
+    def after(n: int, i: int, r) -> None:
+        if progress is not None:
+            progress(done + n, total)
+
     if client is None:
+        if fn is None:
+            count = [0]
+
+            def one_done(i: int, r) -> None:
+                count[0] += 1
+                after(count[0], i, r)
+
+            from ._warp import resolve_device
+            from .together import run_together
+
+            dev = resolve_device(batch[0].device) if batch else "cpu"
+            k = bricks_at_once(batch, dev, limit) if at_once is None else at_once
+            return [r | {"at_once": k} for r in run_together([functools.partial(brick_job, t) for t in batch], dev, k, on_done=one_done)]
         out = []
         for t in batch:
             out.append(fn(t))
-            if progress is not None:
-                progress(done + len(out), total)
+            after(len(out), len(out) - 1, out[-1])
         return out
-    return map_on_cluster(
-        client,
-        fn,
-        batch,
-        [f"warpgauss-brick-{t.index}-{id(t)}" for t in batch],
-        "a brick",
-        tail="; no model written",
-        after=None if progress is None else (lambda n, i, r: progress(done + n, total)),
-    )
+    tail = "; no model written"
+    if fn is None:
+        workers = max(1, len(client.scheduler_info().get("workers", {})))
+        groups = brick_groups(batch, workers)
+        keys = [f"warpgauss-bricks-{'-'.join(str(t.index) for t in g)}-{id(g)}" for g in groups]
+        seen = [0]
+
+        def group_done(n: int, i: int, r) -> None:
+            seen[0] += len(r)
+            after(seen[0], i, r)
+
+        run = functools.partial(encode_bricks, at_once=at_once, limit=limit)
+        parts = map_on_cluster(client, run, groups, keys, "a group of bricks", tail=tail, after=group_done)
+        return [r for part in parts for r in part]
+    keys = [f"warpgauss-brick-{t.index}-{id(t)}" for t in batch]
+    return map_on_cluster(client, fn, batch, keys, "a brick", tail=tail, after=after)
 
 
 def map_on_cluster(client, fn, items: list, keys: list[str], what: str, tail: str = "", after=None) -> list:

@@ -1092,6 +1092,7 @@ def encode_bricked(
     evaluate: bool = True,
     full_eval: bool = False,
     on_progress: Callable[[int, int], None] | None = None,
+    max_device_memory: int | None = None,
 ) -> Model:
     """The bricked encode (see :mod:`warpgauss.bricked`): the budget split over ``bricks`` (counts
     x, y, z) before any refinement, each brick encoded in this process (``client`` None) or on a
@@ -1135,7 +1136,7 @@ def encode_bricked(
     tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n)
     t0 = time.perf_counter()
     with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
-        results = run_bricks(tasks, client, on_progress)
+        results = run_bricks(tasks, client, on_progress, limit=max_device_memory)
     wall = time.perf_counter() - t0
     params = np.concatenate([r["params"] for r in results]) if results else np.zeros((0, 12), np.float32)
     merged = Model(params, header)
@@ -1165,6 +1166,9 @@ def encode_bricked(
             "samples": r["samples"],
             "stand_ins": r["stand_ins"],
             "frozen": r["frozen"],
+            "at_once": r.get("at_once", 1),
+            "setup_seconds": r.get("setup_seconds"),
+            "refine_seconds": r.get("refine_seconds"),
         }
         for b, st, r in zip(plan, stats, results)
     ]
@@ -1472,6 +1476,7 @@ def encode(
             evaluate=evaluate,
             full_eval=full_eval,
             on_progress=on_bricks,
+            max_device_memory=limit,
         )
         model.report["bricking"].update(
             chosen="by the device and host limits" if auto else "given",

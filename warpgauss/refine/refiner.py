@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Generator
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,7 @@ import numpy as np
 from .._warp import warp
 from ..analysis import DeviceVolume
 from ..errors import WarpgaussError
+from ..together import finish
 from .bins import Binner
 from .config import RefineConfig
 from .draw import Sampler
@@ -547,7 +549,15 @@ class Refiner:
     def run(
         self, progress=None, log_every: int = 25, deadline: float | None = None, clock=time.perf_counter, after_step=None
     ) -> list[dict]:
-        """Run the iterations; ``progress(it, total, losses)`` every ``log_every`` iterations.
+        """Run the iterations (every step of :meth:`steps`); the logged loss records."""
+        return finish(self.steps(progress, log_every, deadline, clock, after_step))
+
+    def steps(
+        self, progress=None, log_every: int = 25, deadline: float | None = None, clock=time.perf_counter, after_step=None
+    ) -> Generator[None, None, list[dict]]:
+        """The iterations, one per ``next()``: a caller can interleave several refiners on one
+        device (:func:`warpgauss.together.run_together`); ``progress(it, total, losses)`` every
+        ``log_every`` iterations.
 
         Args:
             progress: Optional callback.
@@ -586,6 +596,7 @@ class Refiner:
             if deadline is not None and not plan.before_step(it):
                 break
             self.step()
+            yield
             it += 1
             done = self.iteration
             if done % log_every == 0 or done == self.cfg.iterations:

@@ -1,0 +1,202 @@
+"""A bricked encode on one GPU against the monolithic encode of the same field, N and settings, in
+the same run (issue #35, part 1: bricked <= 1.5x the monolithic time, PSNR within 0.2 dB).
+
+For each field and size: the monolithic encode, then each bricking with the bricks of a wave
+stepping side by side on the device (the default: ``warpgauss.bricked.bricks_at_once``), and, with
+``--serial``, the same bricking with one brick at a time (``MAX_AT_ONCE = 1``): both must give the
+same model bit for bit. Rows: ``size``, ``bricks``, ``at_once``, ``seconds``,
+``bricked_over_monolithic`` (time ratio, same run), ``psnr_db`` and ``dpsnr_db`` (full grid,
+against the monolithic), the per-brick setup and refinement seconds. ``--profile`` times one
+brick's iteration phase by phase (sample, forward, backward, update, re-bin) with the device
+synchronised around each, and a captured iteration, to show where a brick's time goes.
+
+    python benchmarks/bricks/one_gpu.py --sizes 512 --fields vortex,interface --bricks 2x2x2,4x4x4 --out $OUT/bricks_one_gpu_512.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+import warpgauss
+import warpgauss.bricked as wb
+from warpgauss._warp import resolve_device, warp
+from warpgauss.analysis import normalise
+from warpgauss.bench import result_header
+from warpgauss.synthetic import generate
+
+
+def psnr(f, m, dev) -> float:
+    d = m.decode(device=dev, normalised=True)
+    err = (d.astype(np.float64) - f.values) ** 2
+    return float(10 * np.log10(err.size / max(float(err.sum()), 1e-30)))
+
+
+def commit() -> str | None:
+    """The checkout's commit, or $WARPGAUSS_COMMIT outside a git work tree (the device machine's copy)."""
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip() or None
+    except (OSError, subprocess.CalledProcessError):
+        return os.environ.get("WARPGAUSS_COMMIT")
+
+
+def default_budget(size: int) -> int:
+    return int(round(400_000 * (size / 512) ** 3 if size <= 512 else 1_400_000 * (size / 1024) ** 3))
+
+
+def profile_brick(v: np.ndarray, n: int, bricks: str, dev: str, steps: int = 60) -> dict:
+    """One brick of the first wave, set up as the bricked encode does, its iteration timed phase by phase."""
+    from warpgauss.allocate import AllocationConfig, allocate
+    from warpgauss.analysis import DeviceVolume
+    from warpgauss.profiling import StageRecorder
+    from warpgauss.refine import RefineConfig, Refiner, load_kernels
+
+    wp = warp()
+    f = normalise(v)
+    alloc = AllocationConfig()
+    alloc = AllocationConfig(scale_cap=wb.brick_cap(alloc.resolved_cap(f.shape_xyz), f.shape_xyz, n))
+    plan = wb.plan_bricks(f.shape_xyz, wb.parse_bricks(bricks), wb.default_halo(alloc.scale_cap))
+    _, stats = wb.split_bricks(f, plan, n)
+    tasks = wb.brick_tasks(f, plan, stats, 0, alloc, RefineConfig(), dev, n)
+    task = wb.wave_tasks(tasks, {}, [0])[0]
+    t0 = time.perf_counter()
+    values, valid = task.box_arrays()
+    from warpgauss.analysis import Field
+
+    bf = wb.brick_fields(
+        Field(values, valid, **task.field_meta),
+        wb.dataclasses.replace(task.brick, interior=wb._local(task.brick), box=wb._whole(task.brick)),
+        task.pending,
+    )
+    params, _ = allocate(DeviceVolume(bf.interior, dev), task.n, task.seed, task.allocation, StageRecorder())
+    wp.synchronize_device(dev)
+    t_alloc = time.perf_counter() - t0
+    load_kernels(dev)
+    k = wb.stand_in_count(bf, task.rates)
+    stand, _ = allocate(DeviceVolume(bf.halo, dev), k, task.seed + 1, task.allocation, StageRecorder())
+    r = Refiner(
+        DeviceVolume(bf.train, dev),
+        np.concatenate([params, stand]).astype(np.float32),
+        task.refine,
+        task.seed,
+        alloc.scale_min,
+        alloc.scale_cap,
+    )
+    wp.synchronize_device(dev)
+    t_setup = time.perf_counter() - t0
+    for _ in range(20):
+        r.step()
+    wp.synchronize_device(dev)
+
+    def timed(fn, count=steps) -> float:
+        wp.synchronize_device(dev)
+        t = time.perf_counter()
+        for _ in range(count):
+            fn()
+        wp.synchronize_device(dev)
+        return (time.perf_counter() - t) / count * 1e3
+
+    out = {
+        "bricks": bricks,
+        "box": [hi - lo for lo, hi in task.brick.box],
+        "n": task.n,
+        "stand_ins": k,
+        "samples": task.refine.samples,
+        "allocation_s": t_alloc,
+        "setup_s": t_setup,
+        "step_ms": timed(r.step),
+        "rebin_ms": timed(r.rebin, 20),
+    }
+    r.use_graph = False
+    r._graph = None
+    out["step_nograph_ms"] = timed(r.step)
+    for name in ("sample", "forward", "backward", "update"):
+        out[f"{name}_ms"] = timed(getattr(r, name))
+    print("profile", out, flush=True)
+    return out
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", default="512")
+    ap.add_argument("--fields", default="vortex,interface")
+    ap.add_argument("--bricks", default="2x2x2,4x4x4")
+    ap.add_argument("--budget", type=int, default=None, help="N (default 400,000 at 512^3, 1,400,000 at 1024^3, by voxels between)")
+    ap.add_argument("--serial", action="store_true", help="also each bricking one brick at a time (the model must be the same)")
+    ap.add_argument("--profile", default="", help="brickings whose first brick is profiled phase by phase")
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args(argv)
+    dev = resolve_device(args.device)
+    warpgauss.encode(generate("vortex", 24), budget=60, device=dev, iterations=3, samples=64, format="full", self_test=False)
+    warpgauss.encode(
+        generate("vortex", 24), budget=60, device=dev, iterations=3, samples=64, format="full", bricks="2x1x1", self_test=False
+    )
+    result = result_header("bricked encode on one GPU against the monolithic (format full, defaults otherwise)", __file__, argv, dev)
+    result["commit"] = commit()
+    result["rows"], result["profiles"] = [], []
+    for size in [int(s) for s in args.sizes.split(",")]:
+        n = args.budget or default_budget(size)
+        for name in filter(None, args.fields.split(",")):
+            t = time.perf_counter()
+            v = generate(name, size)
+            f = normalise(v)
+            print(f"{name} {size}^3 generated in {time.perf_counter() - t:.1f} s", flush=True)
+            kw = dict(budget=n, device=dev, format="full", self_test=False, evaluate=False)
+            t = time.perf_counter()
+            mono = warpgauss.encode(v, **kw)
+            mono_s = time.perf_counter() - t
+            base = psnr(f, mono, dev)
+            row = {"field": name, "size": size, "n": n, "mode": "monolithic", "seconds": mono_s, "psnr_db": base}
+            result["rows"].append(row)
+            print(row, flush=True)
+            del mono
+            for bricks in filter(None, args.bricks.split(",")):
+                if bricks in args.profile.split(","):
+                    result["profiles"].append({"field": name, "size": size, **profile_brick(v, n, bricks, dev)})
+                models = {}
+                for mode in ["side by side", "serial"] if args.serial else ["side by side"]:
+                    wb.MAX_AT_ONCE = 1 if mode == "serial" else 8
+                    t = time.perf_counter()
+                    m = warpgauss.encode(v, bricks=bricks, **kw)
+                    secs = time.perf_counter() - t
+                    p = psnr(f, m, dev)
+                    br = m.report["bricking"]
+                    row = {
+                        "field": name,
+                        "size": size,
+                        "n": n,
+                        "mode": "bricked",
+                        "bricks": bricks,
+                        "at_once": max(b.get("at_once", 1) for b in br["bricks"]),
+                        "seconds": secs,
+                        "bricked_over_monolithic": secs / mono_s,
+                        "psnr_db": p,
+                        "dpsnr_db": p - base,
+                        "halo": br["halo"],
+                        "bricks_wall_s": br["wall_seconds"],
+                        "brick_setup_s_sum": float(sum(b.get("setup_seconds") or 0 for b in br["bricks"])),
+                        "brick_refine_s_sum": float(sum(b.get("refine_seconds") or 0 for b in br["bricks"])),
+                        "brick_samples": sorted({b["samples"] for b in br["bricks"]}),
+                    }
+                    models[mode] = m.params
+                    if "serial" in models and "side by side" in models:
+                        row["same_model_as_side_by_side"] = bool(np.array_equal(models["serial"], models["side by side"]))
+                    result["rows"].append(row)
+                    print(row, flush=True)
+                    args.out.write_text(json.dumps(result, indent=1))
+                wb.MAX_AT_ONCE = 8
+            del v, f
+    args.out.write_text(json.dumps(result, indent=1))
+    print(f"wrote {args.out}")
+    return result
+
+
+if __name__ == "__main__":
+    main()
