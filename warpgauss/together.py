@@ -89,7 +89,6 @@ class _on:
             self.scope.__enter__()
         return self
 
-    def __exit__(self, *exc) -> bool:
+    def __exit__(self, *exc) -> None:
         if self.scope is not None:
             self.scope.__exit__(*exc)
-        return False
