@@ -58,6 +58,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--series", type=int, default=8, help="timesteps of the series part (0: none)")
     ap.add_argument("--series-size", type=int, default=512)
     ap.add_argument("--series-budget", type=int, default=400_000)
+    ap.add_argument("--monolithic", action="store_true", help="also the monolithic encode on one GPU (this process), per size")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -88,6 +89,15 @@ def main(argv=None) -> dict:
             vol = generate(args.field, size)
             gen = time.perf_counter() - t0
             base = None
+            if args.monolithic:  # the whole field on one GPU in this process: what bricks on several GPUs must beat
+                t0 = time.perf_counter()
+                m = warpgauss.encode(vol, budget=budget, **common)
+                sec = time.perf_counter() - t0
+                result["rows"].append(
+                    {"what": "monolithic encode", "size": size, "n": int(m.n), "gpus": 1, "seconds": sec, "psnr_db": m.report["psnr_db"]}
+                )
+                print(f"{size}^3 N {m.n:,} monolithic on one GPU: {sec:.1f} s, PSNR {m.report['psnr_db']:.2f} dB", flush=True)
+                del m
             for k in counts:
                 t0 = time.perf_counter()
                 m = warpgauss.encode(vol, budget=budget, bricks=args.bricks, client=clients[k], **common)
