@@ -274,3 +274,21 @@ def test_a_wave_is_split_into_groups_of_equal_work_one_per_worker():
     sizes = [sum(int(np.prod([hi - lo for lo, hi in t.brick.box])) for t in g) for g in groups]
     assert max(sizes) - min(sizes) <= max(int(np.prod([hi - lo for lo, hi in t.brick.box])) for t in tasks)
     assert [len(g) for g in brick_groups(tasks[:2], 4)] == [1, 1]
+
+
+def test_a_wave_split_into_groups_over_two_workers_gives_the_model_of_one_process():
+    """Same seed => same model: a wave's bricks go out as one group per worker and finish in any
+    order; the frozen neighbours are gathered in brick order, so the merged model does not change."""
+    pytest.importorskip("distributed")
+    from warpgauss.bricked import encode_brick, local_client
+
+    _, _, tasks = _tasks(size=32, n=240, counts=(4, 2, 1))
+    alone = run_bricks(tasks, fn=encode_brick)
+    client = local_client(2)
+    try:
+        grouped = run_bricks(tasks, client)
+    finally:
+        client.close()
+        client.cluster.close()
+    for a, b in zip(alone, grouped):
+        np.testing.assert_array_equal(a["params"], b["params"])

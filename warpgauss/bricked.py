@@ -471,7 +471,8 @@ def _pending_regions(brick: Brick, others: list[Brick]) -> tuple:
 def wave_tasks(tasks: list[BrickTask], finished: dict[int, np.ndarray], wave: list[int]) -> list[BrickTask]:
     """This wave's tasks, given the finished bricks' primitives (volume coordinates, by index): each
     with the finished primitives that reach its box frozen and the rest of its neighbours pending."""
-    done = np.concatenate(list(finished.values())) if finished else np.zeros((0, 12), np.float32)
+    # in brick order, whatever order the bricks finished in (the frozen rows' order is part of the result)
+    done = np.concatenate([finished[i] for i in sorted(finished)]) if finished else np.zeros((0, 12), np.float32)
     out = []
     for i in wave:
         t = tasks[i]
