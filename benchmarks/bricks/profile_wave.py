@@ -1,0 +1,162 @@
+"""Where a bricked encode's time goes on one GPU: one refinement step of a brick against the
+monolithic refiner's, by samples per step, and the bricks of one wave stepped one after another
+against side by side (a CUDA stream each).
+
+For the field at ``--size`` and N: the monolithic refiner and the first wave's bricks of each
+bricking, set up as the encode sets them up; then
+- ``samples``: ms per step (device synchronised) of the monolithic refiner and of the first brick of
+  each bricking at several samples per step (the cost as fixed + per-sample parts);
+- ``host``: ms the host takes to enqueue one captured step (no synchronisation);
+- ``wave``: the first wave's bricks, ``--steps`` steps each, one brick after another and then side
+  by side (round robin, a stream each): ms per step of the wave.
+
+    python benchmarks/bricks/profile_wave.py --size 512 --bricks 2x2x2,4x4x4,1x1x4 --out $OUT/bricks_profile_wave.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+import warpgauss
+import warpgauss.bricked as wb
+from warpgauss._warp import resolve_device, warp
+from warpgauss.allocate import AllocationConfig, allocate
+from warpgauss.analysis import DeviceVolume, Field, normalise
+from warpgauss.bench import result_header
+from warpgauss.profiling import StageRecorder
+from warpgauss.refine import RefineConfig, Refiner, load_kernels
+from warpgauss.synthetic import generate
+
+
+def brick_refiner(task, dev: str) -> Refiner:
+    """The refiner :func:`warpgauss.bricked.brick_job` builds for ``task``."""
+    values, valid = task.box_arrays()
+    local = dataclasses.replace(task.brick, interior=wb._local(task.brick), box=wb._whole(task.brick))
+    bf = wb.brick_fields(Field(values, valid, **task.field_meta), local, task.pending)
+    a = task.allocation
+    own, _ = allocate(DeviceVolume(bf.interior, dev), task.n, task.seed, a, StageRecorder())
+    parts = [np.asarray(own, np.float32)]
+    k = wb.stand_in_count(bf, task.rates)
+    if k:
+        parts.append(np.asarray(allocate(DeviceVolume(bf.halo, dev), k, task.seed + 1, a, StageRecorder())[0], np.float32))
+    return Refiner(DeviceVolume(bf.train, dev), np.concatenate(parts), task.refine, task.seed, a.scale_min, a.scale_cap)
+
+
+def scoped(wp, stream):
+    """``stream`` current for a block (nothing on the CPU)."""
+    return contextlib.nullcontext() if stream is None else wp.ScopedStream(stream, sync_enter=False)
+
+
+def ms_per_step(wp, dev, steppers, steps: int) -> float:
+    """Wall ms per round of ``steppers`` (each a callable doing one step), device synchronised."""
+    wp.synchronize_device(dev)
+    t = time.perf_counter()
+    for _ in range(steps):
+        for s in steppers:
+            s()
+    wp.synchronize_device(dev)
+    return (time.perf_counter() - t) / steps * 1e3
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--field", default="vortex")
+    ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--budget", type=int, default=400_000)
+    ap.add_argument("--bricks", default="2x2x2,4x4x4,1x1x4")
+    ap.add_argument("--samples", default="3000,10000,20000,40000,80000,131072")
+    ap.add_argument("--steps", type=int, default=60)
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args(argv)
+    wp = warp()
+    dev = resolve_device(args.device)
+    load_kernels(dev)
+    warpgauss.encode(generate("vortex", 24), budget=60, device=dev, iterations=3, samples=64, format="full", self_test=False)
+    out = result_header("one brick's step against the monolithic step, and a wave side by side", __file__, argv, dev)
+    out.update(field=args.field, size=args.size, n=args.budget, samples=[], host=[], waves=[])
+    f = normalise(generate(args.field, args.size))
+    n = args.budget
+    sweep = [int(s) for s in args.samples.split(",")]
+
+    def samples_rows(label: str, r: Refiner, box) -> None:
+        for _ in range(12):
+            r.step()
+        for m in sweep:
+            r.set_samples(m)
+            for _ in range(3):
+                r.step()
+            row = {"what": label, "box": box, "primitives": r.n, "samples": m, "ms": ms_per_step(wp, dev, [r.step], args.steps)}
+            out["samples"].append(row)
+            print(row, flush=True)
+        wp.synchronize_device(dev)
+        t = time.perf_counter()
+        for _ in range(args.steps):
+            r.step()
+        host = (time.perf_counter() - t) / args.steps * 1e3
+        wp.synchronize_device(dev)
+        out["host"].append({"what": label, "host_ms_per_step": host})
+        print(out["host"][-1], flush=True)
+        args.out.write_text(json.dumps(out, indent=1))
+
+    a = AllocationConfig()
+    dv = DeviceVolume(f, dev)
+    params, _ = allocate(dv, n, 0, a, StageRecorder())
+    cfg = RefineConfig().for_budget(n, int(np.prod(f.shape_xyz)), dev)
+    mono = Refiner(dv, np.asarray(params, np.float32), cfg, 0, a.scale_min, a.resolved_cap(f.shape_xyz))
+    samples_rows("monolithic", mono, list(f.shape_xyz))
+    del mono, dv
+    for bricks in filter(None, args.bricks.split(",")):
+        alloc = AllocationConfig(scale_cap=wb.brick_cap(a.resolved_cap(f.shape_xyz), f.shape_xyz, n))
+        plan = wb.plan_bricks(f.shape_xyz, wb.parse_bricks(bricks), wb.default_halo(alloc.scale_cap))
+        _, stats = wb.split_bricks(f, plan, n)
+        tasks = wb.brick_tasks(f, plan, stats, 0, alloc, RefineConfig(), dev, n)
+        wave = [t.index for t in tasks if wb.brick_colour(t.brick) == 0]
+        batch = wb.wave_tasks(tasks, {}, wave)
+        first = brick_refiner(batch[0], dev)
+        samples_rows(f"brick of {bricks}", first, [hi - lo for lo, hi in batch[0].brick.box])
+        del first
+        cuda = wp.get_device(dev).is_cuda
+        streams = [wp.Stream(dev) if cuda else None for _ in batch]
+        refiners = []
+        for t, s in zip(batch, streams):
+            with scoped(wp, s):
+                refiners.append(brick_refiner(t, dev))
+                for _ in range(12):
+                    refiners[-1].step()
+        wp.synchronize_device(dev)
+
+        def on(r, s):
+            def step():
+                with scoped(wp, s):
+                    r.step()
+
+            return step
+
+        serial = sum(ms_per_step(wp, dev, [on(r, s)], args.steps) for r, s in zip(refiners, streams))
+        side = ms_per_step(wp, dev, [on(r, s) for r, s in zip(refiners, streams)], args.steps)
+        row = {
+            "bricks": bricks,
+            "wave_bricks": len(batch),
+            "samples": [t.refine.samples for t in batch],
+            "one_after_another_ms": serial,
+            "side_by_side_ms": side,
+            "gain": serial / side,
+        }
+        out["waves"].append(row)
+        print(row, flush=True)
+        args.out.write_text(json.dumps(out, indent=1))
+        del refiners
+    args.out.write_text(json.dumps(out, indent=1))
+    return out
+
+
+if __name__ == "__main__":
+    main()
