@@ -75,6 +75,11 @@ def main(argv=None) -> dict:
         "rows": [],
     }
     clients = {}
+
+    def save() -> None:  # after every row: a run cut short keeps what it measured
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=2))
+
     try:
         for k in counts:
             t0 = time.perf_counter()
@@ -97,6 +102,7 @@ def main(argv=None) -> dict:
                     {"what": "monolithic encode", "size": size, "n": int(m.n), "gpus": 1, "seconds": sec, "psnr_db": m.report["psnr_db"]}
                 )
                 print(f"{size}^3 N {m.n:,} monolithic on one GPU: {sec:.1f} s, PSNR {m.report['psnr_db']:.2f} dB", flush=True)
+                save()
                 del m
             for k in counts:
                 t0 = time.perf_counter()
@@ -118,6 +124,7 @@ def main(argv=None) -> dict:
                 row["speedup"] = base[0] / sec
                 row["identical_to_one_gpu"] = bool(np.array_equal(m.params, base[1].params))
                 result["rows"].append(row)
+                save()
                 print(
                     f"{size}^3 N {m.n:,} on {k} GPU(s): {sec:.1f} s, speed-up {row['speedup']:.2f}x, PSNR {row['psnr_db']:.2f} dB, "
                     f"same model as one GPU: {row['identical_to_one_gpu']}",
@@ -153,6 +160,7 @@ def main(argv=None) -> dict:
                     f"{max(m.report['psnr_db'] for m in models):.2f} dB",
                     flush=True,
                 )
+                save()
     finally:
         for c in clients.values():
             c.close()
