@@ -47,6 +47,22 @@ class KernelBenchConfig:
     atomic_baseline: bool = True  # also time the point-major atomic scatter (the pre-sort baseline)
 
 
+def source_commit(where) -> str | None:
+    """The commit the benchmark ran from: $WARPGAUSS_COMMIT where set (a copy of the work tree, as
+    on a lent GPU machine, has no or a stale git directory), else ``git rev-parse HEAD`` in
+    ``where``; None when neither says."""
+    import os
+    import subprocess
+
+    if os.environ.get("WARPGAUSS_COMMIT"):
+        return os.environ["WARPGAUSS_COMMIT"]
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=where, capture_output=True, text=True, check=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
 def result_header(benchmark: str, script: str, argv, device: str) -> dict:
     """The fields every benchmark's JSON starts with: what it measures, the command that produced it
     (``script``: the benchmark's ``__file__``; ``argv``: its arguments, None: ``sys.argv[1:]``), the
@@ -61,6 +77,7 @@ def result_header(benchmark: str, script: str, argv, device: str) -> dict:
     return {
         "benchmark": benchmark,
         "command": " ".join(["python", rel, *args]),
+        "commit": source_commit(Path(script).resolve().parent),
         "device": device,
         "device_name": device_name(device),
         "warp_version": warp().config.version,

@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import time
 from pathlib import Path
 
@@ -36,14 +34,6 @@ def psnr(f, m, dev) -> float:
     d = m.decode(device=dev, normalised=True)
     err = (d.astype(np.float64) - f.values) ** 2
     return float(10 * np.log10(err.size / max(float(err.sum()), 1e-30)))
-
-
-def commit() -> str | None:
-    """The checkout's commit, or $WARPGAUSS_COMMIT outside a git work tree (the device machine's copy)."""
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip() or None
-    except (OSError, subprocess.CalledProcessError):
-        return os.environ.get("WARPGAUSS_COMMIT")
 
 
 def default_budget(size: int) -> int:
@@ -139,7 +129,6 @@ def main(argv=None) -> dict:
         generate("vortex", 24), budget=60, device=dev, iterations=3, samples=64, format="full", bricks="2x1x1", self_test=False
     )
     result = result_header("bricked encode on one GPU against the monolithic (format full, defaults otherwise)", __file__, argv, dev)
-    result["commit"] = commit()
     result["rows"], result["profiles"] = [], []
     for size in [int(s) for s in args.sizes.split(",")]:
         n = args.budget or default_budget(size)
