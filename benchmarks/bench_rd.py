@@ -91,7 +91,7 @@ from warpgauss.allocate import AllocationConfig
 from warpgauss.analysis import seed_limit
 from warpgauss.errors import WarpgaussError
 from warpgauss.model import Model
-from warpgauss.pipeline import EncodeOptions, ReadOptions, encode_field, encoding_of, load_field, resolve_refine
+from warpgauss.driver import EncodeOptions, ReadOptions, encode_field, encoding_of, load_field, resolve_refine
 from warpgauss.profiling import StageRecorder
 from warpgauss.synthetic import EXAMPLES, generate
 

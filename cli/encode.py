@@ -232,8 +232,8 @@ def encode(
     """Encode a volume into N anisotropic Gaussians, evaluate it and write the model and a report."""
     import warpgauss
     from warpgauss._fs import atomic_write_bytes, check_writable
+    from warpgauss.io import ReadOptions
     from warpgauss.optimize import LossWeights, RefineConfig
-    from warpgauss.pipeline import ReadOptions
 
     if (input is None) == (example is None):
         fail("give a volume file or --example NAME (one of them)")

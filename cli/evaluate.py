@@ -27,8 +27,8 @@ def evaluate(
 ) -> None:
     """PSNR, occupied-only PSNR and max abs error on the normalised field (SPEC section 7)."""
     from warpgauss.evaluate import evaluate_against
+    from warpgauss.io import ReadOptions
     from warpgauss.model import Model
-    from warpgauss.pipeline import ReadOptions
 
     m = Model.load(model)
     s = stride if stride is not None else int(m.header.get("encoding", {}).get("stride", 1))

@@ -147,7 +147,7 @@ def render(
 ) -> None:
     """Render a model or a volume with a transfer function, camera and lighting; compare a model with its volume."""
     from warpgauss._fs import check_writable
-    from warpgauss.pipeline import ReadOptions
+    from warpgauss.io import ReadOptions
     from warpgauss.render import Camera, RenderSettings
 
     check_png(output)

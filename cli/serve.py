@@ -36,7 +36,7 @@ def serve(
     """Serve a page that shows the model: orbit and zoom with the mouse, edit the colour and opacity
     curves, switch colormap, renderer, shading and density, step through a series, compare with the
     source volume."""
-    from warpgauss.pipeline import ReadOptions
+    from warpgauss.io import ReadOptions
     from warpgauss.serve import _require_trame
     from warpgauss.serve import serve as run
     from warpgauss.viewer import Viewer, load_models

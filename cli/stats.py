@@ -29,8 +29,9 @@ def stats(
 ) -> None:
     """Occupancy, gradient top-10 %, S(1)/S(16), the seed limit N_max and the bytes and compression
     ratio of a ladder of budgets (full precision and compact), with a one-line reading."""
+    from warpgauss.driver import load_field
     from warpgauss.errors import WarpgaussError
-    from warpgauss.pipeline import ReadOptions, load_field
+    from warpgauss.io import ReadOptions
     from warpgauss.stats import DEFAULT_BUDGETS, field_stats
 
     if (input is None) == (example is None):

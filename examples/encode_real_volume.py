@@ -29,7 +29,7 @@ class Example:
 
     def step(self, out_dir: Path) -> dict:
         from warpgauss.io import write_volume
-        from warpgauss.pipeline import ReadOptions
+        from warpgauss.io import ReadOptions
 
         model = warpgauss.encode(
             self.path,

@@ -70,7 +70,7 @@ def test_ratio_and_stride_and_fill_value(tmp_path):
         device=None,
         iterations=60,
         samples=512,
-        read=warpgauss.pipeline.ReadOptions(stride=2, fill_value=-1.0e30),
+        read=warpgauss.io.ReadOptions(stride=2, fill_value=-1.0e30),
         format="full",
     )
     src = 24**3 * 8  # float64 source at the evaluated (strided) resolution
@@ -84,7 +84,7 @@ def test_ratio_and_stride_and_fill_value(tmp_path):
 def test_iterations_zero_is_the_analytic_model_and_presets_resolve(interface32):
     m = warpgauss.encode(interface32, budget=100, iterations=0, device=None, evaluate=False)
     assert any(s["what"] == "S2 refinement" for s in m.report["skipped"])
-    from warpgauss.pipeline import resolve_refine
+    from warpgauss.driver import resolve_refine
     from warpgauss.refine import config
 
     assert (resolve_refine(None, "fast", None, None).iterations, resolve_refine(None, "fast", None, None).samples) == (300, 3072)
@@ -128,7 +128,7 @@ def test_a_refinement_that_loses_to_the_analytic_model_is_discarded():
 
 def test_large_budgets_get_more_samples_by_default_and_presets_keep_theirs(monkeypatch):
     from warpgauss.optimize import AUTO_BATCH_PRIMITIVES, PRESETS, RefineConfig
-    from warpgauss.pipeline import resolve_refine
+    from warpgauss.driver import resolve_refine
     from warpgauss.refine import config
 
     cfg = RefineConfig()

@@ -1,4 +1,4 @@
-"""The dependency picture flows one way: cli -> pipeline -> stages -> kernels, with no import
+"""The dependency picture flows one way: cli -> driver -> stages -> kernels, with no import
 circles among the package's modules (imports inside functions count too)."""
 
 from __future__ import annotations

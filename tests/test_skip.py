@@ -49,7 +49,7 @@ def test_plateau_stops_when_the_gain_over_the_window_is_small(cpu):
 
 def test_self_test_runs_once_per_process_and_device(cpu, monkeypatch):
     monkeypatch.setattr(refine, "SELF_TESTS", {})
-    import warpgauss.pipeline  # noqa: F401  (the pipeline imports the dict at call time)
+    import warpgauss.driver  # noqa: F401  (the driver imports the dict at call time)
 
     a = warpgauss.encode(**KW, iterations=5)
     b = warpgauss.encode(**KW, iterations=5)

@@ -43,7 +43,7 @@ def test_stats_json_equals_numpy(tmp_path, cpu):
 
 
 def test_stats_readings_tell_the_example_fields_apart(cpu):
-    from warpgauss.pipeline import load_field
+    from warpgauss.driver import load_field
     from warpgauss.stats import field_stats
 
     read = {}

@@ -12,7 +12,7 @@ from test_refine import _toy_params
 
 from warpgauss.analysis import DeviceVolume, normalise
 from warpgauss.optimize import PRESETS, RefineConfig, Refiner
-from warpgauss.pipeline import resolve_refine
+from warpgauss.driver import resolve_refine
 
 
 def _field():
@@ -186,21 +186,22 @@ def test_the_measured_alternatives_still_run(tmp_path, cpu, monkeypatch):
     by default): pruning up to half the excess with a refit of the rest, and coding at the
     sizing's depths. Each still fits its budget and says what it did."""
     import warpgauss
-    from warpgauss import coded, pipeline
+    from warpgauss import coded
+    from warpgauss.driver import replan, sizing
     from warpgauss.synthetic import generate
 
     vol = generate("vortex", 24, seed=0)
     kw = dict(ratio=20, iterations=40, samples=512, device=cpu, self_test=False, seed=1)
     monkeypatch.setattr(coded, "PRUNE_SHARE", 0.5)
-    monkeypatch.setattr(pipeline, "REFIT_SHARE", 0.5)
-    monkeypatch.setattr(pipeline, "REPLAN_AT", 0.0)  # no re-plan: the export has the excess to prune
+    monkeypatch.setattr(replan, "REFIT_SHARE", 0.5)
+    monkeypatch.setattr(replan, "REPLAN_AT", 0.0)  # no re-plan: the export has the excess to prune
     m = warpgauss.encode(vol, **kw, output=tmp_path / "refit.wgs")
     fit = m.report["budget"]["coded_fit"]
     assert fit["refit"]["iterations"] == 30 and fit["pruned"] > 0 and fit["refit"]["first_fit"]["pruned"] > 0
     assert (tmp_path / "refit.wgs").stat().st_size <= m.report["budget"]["requested_bytes"]
-    monkeypatch.setattr(pipeline, "REFIT_SHARE", 0.0)
-    monkeypatch.setattr(pipeline, "REFINED_BITS", "sizing")
-    monkeypatch.setattr(pipeline, "CODED_REFINE_GAIN_DB", 30.0)  # sized for finer grids than the default
+    monkeypatch.setattr(replan, "REFIT_SHARE", 0.0)
+    monkeypatch.setattr(replan, "REFINED_BITS", "sizing")
+    monkeypatch.setattr(sizing, "CODED_REFINE_GAIN_DB", 30.0)  # sized for finer grids than the default
     m = warpgauss.encode(vol, **kw, output=tmp_path / "sizing.wgs")
     bud = m.report["budget"]
     assert bud["coded_sizing"]["bits_added"] > 0

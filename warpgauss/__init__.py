@@ -4,10 +4,10 @@ The package imports Warp lazily: reading, validating and refusing a request cost
 """
 
 from ._version import __version__
+from .driver import encode, encode_ladder  # noqa: E402
 from .encoder import Encoder  # noqa: E402
 from .errors import WarpgaussError  # noqa: E402
 from .model import Model  # noqa: E402
-from .pipeline import encode, encode_ladder  # noqa: E402
 from .series import encode_series  # noqa: E402
 
 

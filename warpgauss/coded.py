@@ -332,9 +332,9 @@ _MAX_BITS = {"mu": 8, "log_s": 8, "q": 10, "a": 12, "w": 10}
 # bits are dropped first. Measured on an H100 (benchmarks/results/accuracy/sweep_mri_vortex256_h100.json,
 # three head MRIs and vortex 256^3 at ratios 30 and 300): pruning up to a 10 % excess instead lost
 # 0.6-2.7 dB on the MRIs and 21.7 dB on vortex at 300 (a 71 dB model with holes); up to 50 % with
-# a short refit from fresh Adam moments (see warpgauss.pipeline.REFIT_SHARE) was mixed on the MRIs
+# a short refit from fresh Adam moments (see warpgauss.driver.replan.REFIT_SHARE) was mixed on the MRIs
 # (-4.0 to +1.7 dB) and lost 10-21 dB on vortex. Too large an N is re-planned during refinement
-# instead, where the rest of the run fills in (warpgauss.pipeline.REPLAN_AT)
+# instead, where the rest of the run fills in (warpgauss.driver.replan.REPLAN_AT)
 PRUNE_SHARE = 0.03
 FILL_SHARE = 0.002  # the prune search stops once the model is within this share under the budget
 SEARCH_CODINGS = 12  # codings the prune search may spend after the first fit (to within one primitive)

@@ -145,7 +145,7 @@ class Encoder:
             call_kwargs: Further :func:`warpgauss.encode` arguments for this call only (e.g.
                 ``on_progress``).
         """
-        from .pipeline import encode
+        from .driver import encode
 
         t0 = time.perf_counter()
         budget_s = self.time_budget if time_budget is None else time_budget

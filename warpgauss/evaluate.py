@@ -108,7 +108,7 @@ def evaluate_against(model, volume, *, full: bool = False, device: str | None = 
         volume: File path or (nz, ny, nx) array on the model's grid.
         full: Full grid instead of 500,000 sampled voxels.
         device: Warp device.
-        read: :class:`warpgauss.pipeline.ReadOptions` for a file (stride defaults to the model's).
+        read: :class:`warpgauss.io.ReadOptions` for a file (stride defaults to the model's).
         fill_value: Source value marking missing data.
     """
     from .analysis import normalise

@@ -293,7 +293,7 @@ def encode_segment(seg: Segment, on_step=None) -> list[Model]:
 
 def iter_segment(seg: Segment) -> Iterator[Model]:
     """A :class:`Segment`'s models in time order, each yielded once encoded (only the previous one held)."""
-    from .pipeline import encode
+    from .driver import encode
 
     before, first_n = seg.start, seg.n
     best = None  # the best warm PSNR since the last cold timestep (the key-frame rule)

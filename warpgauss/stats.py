@@ -70,7 +70,7 @@ def field_stats(f: Field, device: str | None = None, budgets=DEFAULT_BUDGETS) ->
     """Statistics of a normalised field (stage P output) with the budget table and the reading."""
     from ._warp import device_name, resolve_device
     from .analysis import DeviceVolume, structure_stats
-    from .pipeline import EncodeOptions, _header_for
+    from .driver import EncodeOptions, header_for
 
     if not budgets or min(int(b) for b in budgets) < 1:
         raise WarpgaussError("--budgets must be positive integers")
@@ -78,7 +78,7 @@ def field_stats(f: Field, device: str | None = None, budgets=DEFAULT_BUDGETS) ->
     t0 = time.perf_counter()
     st = structure_stats(DeviceVolume(f, dev))
     n_max = seed_limit(f.eligible, f.occupied)
-    header = _header_for(f, EncodeOptions())
+    header = header_for(f, EncodeOptions())
     return {
         "name": f.name,
         "shape_xyz": list(f.shape_xyz),

@@ -36,16 +36,16 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import bench_rd  # noqa: E402  (the volumes and the full-grid PSNR every RD figure uses)
 
-from warpgauss import coded, pipeline  # noqa: E402
+from warpgauss import coded  # noqa: E402
+from warpgauss.driver import replan  # noqa: E402 - the rate-control constants
 from warpgauss.allocate import AllocationConfig  # noqa: E402
 from warpgauss.bench import result_header  # noqa: E402
-from warpgauss.pipeline import EncodeOptions, encode_field, load_field  # noqa: E402
+from warpgauss.driver import EncodeOptions, encode_field, load_field  # noqa: E402
 from warpgauss.profiling import StageRecorder  # noqa: E402
 from warpgauss.refine import RefineConfig  # noqa: E402
 
@@ -68,14 +68,14 @@ VARIANTS: dict[str, tuple] = {
 
 def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
     fields, (prune, refit), *more = VARIANTS[variant]
-    saved = coded.PRUNE_SHARE, pipeline.REFIT_SHARE, pipeline.REFINED_BITS, pipeline.REFIT_LR
+    saved = coded.PRUNE_SHARE, replan.REFIT_SHARE, replan.REFINED_BITS, replan.REFIT_LR
     if prune is not None:
         coded.PRUNE_SHARE = prune
     if refit is not None:
-        pipeline.REFIT_SHARE = refit
+        replan.REFIT_SHARE = refit
     if more:
-        pipeline.REFINED_BITS = more[0]
-        pipeline.REFIT_LR = more[1] if len(more) > 1 else pipeline.REFIT_LR
+        replan.REFINED_BITS = more[0]
+        replan.REFIT_LR = more[1] if len(more) > 1 else replan.REFIT_LR
     try:
         cfg = dataclasses.replace(RefineConfig(), **fields)
         opts = EncodeOptions(ratio=None if budget else ratio, budget=budget, seed=0, allocation=AllocationConfig(), refine=cfg, format=fmt)
@@ -83,7 +83,7 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
         model = encode_field(f, opts, device=dev, timer=StageRecorder(), input_info=info, evaluate=False)
         seconds = time.perf_counter() - t0
     finally:
-        coded.PRUNE_SHARE, pipeline.REFIT_SHARE, pipeline.REFINED_BITS, pipeline.REFIT_LR = saved
+        coded.PRUNE_SHARE, replan.REFIT_SHARE, replan.REFINED_BITS, replan.REFIT_LR = saved
     return model, seconds
 
 

@@ -18,7 +18,7 @@ import pytest
 import warpgauss
 from warpgauss.analysis import normalise
 from warpgauss.errors import WarpgaussError
-from warpgauss.pipeline import ReadOptions
+from warpgauss.io import ReadOptions
 
 ITER, SAMPLES = 20, 128  # a short refinement: every stage runs, CPU time stays small
 

@@ -1,0 +1,192 @@
+"""The bricked encode's driver (:func:`encode_bricked`, see :mod:`warpgauss.bricked`) and the choice
+of whether a file is bricked and read on demand (:func:`bricking`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import os
+import platform
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from .._version import __version__
+from ..analysis import Field, seed_limit
+from ..errors import WarpgaussError
+from ..io import ReadOptions
+from ..model import Model
+from ..profiling import StageRecorder
+from .load import available_memory
+from .options import EncodeOptions, encoding_of, header_for
+from .sizing import coded_budget, resolve_budget, target_bytes
+
+
+def encode_bricked(
+    f: Field,
+    opts: EncodeOptions,
+    bricks,
+    *,
+    halo: int | None = None,
+    device: str | None = None,
+    client=None,
+    timer: StageRecorder | None = None,
+    input_info: dict | None = None,
+    evaluate: bool = True,
+    full_eval: bool = False,
+    on_progress: Callable[[int, int], None] | None = None,
+    max_device_memory: int | None = None,
+) -> Model:
+    """The bricked encode (see :mod:`warpgauss.bricked`): the budget split over ``bricks`` (counts
+    x, y, z) before any refinement, each brick encoded in this process (``client`` None) or on a
+    Dask cluster, the primitives merged into one model of exactly N (then stored in the format,
+    coded budgets fitted as in the monolithic encode).
+    """
+    from .._warp import device_name, resolve_device, warp
+    from ..analysis import DeviceVolume
+    from ..bricked import brick_cap, brick_tasks, default_halo, parse_bricks, plan_bricks, run_bricks, split_bricks
+    from ..wgs import header_size
+
+    counts_xyz = parse_bricks(bricks)
+    if opts.resume or opts.time_budget is not None or opts.refine.target_psnr is not None or opts.refine.plateau_db is not None:
+        raise WarpgaussError("--bricks does not combine with --resume, --time-budget, --target-psnr or --plateau yet")
+    enc = encoding_of(opts)
+    budget_bytes = target_bytes(f, opts)
+    header = header_for(f, opts)
+    n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
+    plan_bricks(f.shape_xyz, counts_xyz, 0 if halo is None else halo)  # a bad bricking is refused before the device starts
+    wp = warp()
+    dev = resolve_device(device)
+    timer = timer or StageRecorder()
+    timer.device = dev
+    sizing = None
+    dv = None
+    if enc == "coded" and budget_bytes is not None:
+        from ..lazy import is_lazy
+
+        if is_lazy(f.values):
+            raise WarpgaussError(
+                "a volume read brick by brick takes its budget as --budget N (the coded size pilot of --bytes/--ratio needs the whole volume on the device)"
+            )
+        with timer.stage("S1p", "coded size pilot"):
+            dv = DeviceVolume(f, dev)
+            n, sizing = coded_budget(dv, f, opts, header, budget_bytes, n)
+    allocation = dataclasses.replace(opts.allocation, scale_cap=brick_cap(opts.allocation.resolved_cap(f.shape_xyz), f.shape_xyz, n))
+    halo = default_halo(allocation.scale_cap) if halo is None else int(halo)
+    plan = plan_bricks(f.shape_xyz, counts_xyz, halo)
+    with timer.stage("Sb", "budget split over the bricks"):
+        counts, stats = split_bricks(f, plan, n)
+    tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n)
+    t0 = time.perf_counter()
+    with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
+        results = run_bricks(tasks, client, on_progress, limit=max_device_memory)
+    wall = time.perf_counter() - t0
+    params = np.concatenate([r["params"] for r in results]) if results else np.zeros((0, 12), np.float32)
+    merged = Model(params, header)
+    merged.coded_bits = None if sizing is None else sizing["bits"]
+    fit = None
+    if enc == "coded" and budget_bytes is not None:
+        model, fit = merged.fit_bytes(budget_bytes)
+    else:
+        model = merged.stored(enc)
+        model.format = enc
+    evaluation: dict = {}
+    if evaluate:
+        from ..evaluate import evaluate_field
+
+        with timer.stage("EV", "evaluation"):
+            evaluation["final"] = evaluate_field(model.field(dev), f, full=full_eval)
+    size, payload = model.file_sizes(encoding=enc)
+    bricks_report = [
+        {
+            "index": list(b.index),
+            "interior_zyx": [list(x) for x in b.interior],
+            "box_zyx": [list(x) for x in b.box],
+            **st,
+            "seconds": r["seconds"],
+            "device": r["device"],
+            "iterations": r["iterations"],
+            "samples": r["samples"],
+            "stand_ins": r["stand_ins"],
+            "frozen": r["frozen"],
+            "at_once": r.get("at_once", 1),
+            "setup_seconds": r.get("setup_seconds"),
+            "refine_seconds": r.get("refine_seconds"),
+        }
+        for b, st, r in zip(plan, stats, results)
+    ]
+    model.report = {
+        "warpgauss_version": __version__,
+        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "device": dev,
+        "device_name": device_name(dev),
+        "warp_version": wp.config.version,
+        "host": platform.node(),
+        "input": input_info or {"name": f.name, "shape_xyz": list(f.shape_xyz)},
+        "budget": {
+            "n": model.n,
+            "requested_budget": opts.budget,
+            "requested_ratio": opts.ratio if opts.budget is None and opts.bytes is None else None,
+            "requested_bytes": budget_bytes,
+            "budget_used": None if budget_bytes is None else size / budget_bytes,
+            "coded_sizing": sizing,
+            "coded_fit": fit,
+            "n_max": seed_limit(f.eligible, f.occupied),
+            "format": enc,
+            "bytes": size,
+            "bytes_per_primitive": payload / max(model.n, 1),
+            "compression_ratio": model.source_bytes / size,
+        },
+        "bricking": {
+            "bricks_xyz": list(counts_xyz),
+            "halo": halo,
+            "scale_cap": allocation.scale_cap,
+            "scheduler": "this process" if client is None else str(client.scheduler.address),
+            "wall_seconds": wall,
+            "bricks": bricks_report,
+            "rule": "detail share by interior sum of |grad V|, coverage share by occupied voxels, largest remainders, seed limits",
+        },
+        "seed": opts.seed,
+        "refinement": {"iterations": opts.refine.iterations, "per_brick": True},
+        "evaluation": evaluation,
+        "psnr_db": evaluation.get("final", {}).get("psnr_db"),
+        "interrupted": False,
+        "skipped": [],
+    }
+    return model
+
+
+AUTO_BRICK_FLOOR = 2 * 2**30  # an encode estimated below this is never bricked by the default limit
+LAZY_SUFFIXES = (".raw", ".bin", ".npy", ".h5", ".hdf5", ".hdf", ".nc", ".cdf", ".zarr")
+
+
+def bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory=None):
+    """(bricks, read lazily, device limit, bricks chosen here) of an encode: given bricks are kept;
+    otherwise a file whose monolithic encode would not fit the device or host limit (or the
+    kernels' voxel index) is bricked by :func:`~warpgauss.bricked.choose_bricks`. Only a format
+    that can be read on demand is looked at before it is read."""
+    from .._warp import resolve_device
+    from ..bricked import HOST_SHARE, brick_cap, brick_device_bytes, choose_bricks, default_device_limit, default_halo, parse_memory
+
+    limit = None if max_device_memory is None else parse_memory(max_device_memory, "--max-device-memory")
+    host = None if max_host_memory is None else parse_memory(max_host_memory, "--max-host-memory", 2**20)
+    is_file = example is None and isinstance(source, (str, os.PathLike)) and str(source).lower().endswith(LAZY_SUFFIXES)
+    if bricks is not None or not is_file:
+        return bricks, bricks is not None and is_file, limit, False
+    vol = (read or ReadOptions()).read(source, lazy=True)  # the header: nothing is read yet
+    shape_xyz = tuple(int(v) for v in vol.data.shape[::-1])
+    voxels = int(np.prod(shape_xyz, dtype=np.int64))
+    if host is None:
+        free = available_memory()
+        host = None if free is None else int(HOST_SHARE * free)
+    if limit is None and brick_device_bytes(voxels, int(budget or 0)) > AUTO_BRICK_FLOOR:
+        limit = default_device_limit(resolve_device(device))  # None on the CPU
+    if halo is None:  # as the bricked encode will choose it (without a budget: for 1 Gaussian per 300 voxels)
+        n_guess = int(budget) if budget else max(1, voxels // 300)
+        halo = default_halo(brick_cap(max(2.0, max(shape_xyz) / 16.0), shape_xyz, n_guess))
+    counts = choose_bricks(shape_xyz, int(budget or 0), limit, int(halo), host)
+    if counts == (1, 1, 1):
+        return None, False, limit, False
+    return counts, True, limit, True

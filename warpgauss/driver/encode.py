@@ -1,0 +1,289 @@
+"""The encode entry point, :func:`warpgauss.encode`: stage P, then the whole or bricked driver, then
+S3 (export) and the report.
+
+    model = warpgauss.encode("scan.nii.gz", ratio=100)          # or an array, or example="vortex"
+    model.save("scan.wgs"); model.report["evaluation"]["final"]["psnr_db"]
+
+Everything up to the budget check runs without Warp, so an impossible request is refused at once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from ..allocate import AllocationConfig
+from ..devicefield import device_array, is_device_array
+from ..errors import WarpgaussError
+from ..io import ReadOptions
+from ..model import Model
+from ..optimize import RefineConfig
+from ..profiling import StageRecorder
+from .bricked import bricking, encode_bricked
+from .load import load_field
+from .options import EncodeOptions, encoding_of, resolve_refine
+from .run import encode_field
+
+
+def _array_device(arr, device: str | None) -> str:
+    """The device that encodes a device array: its own (``device`` must name it, if given)."""
+    from .._warp import resolve_device
+
+    own = str(arr.device)
+    if device not in (None, "", "auto") and resolve_device(device) != own:
+        raise WarpgaussError(
+            f"the array lives on {own}, the encode was asked to run on {device}; pass device={own!r} (or a copy of the array there)"
+        )
+    return own
+
+
+def _warm_params(warm_start) -> np.ndarray | None:
+    """The (N, 12) float32 parameters of a warm start (a Model or an array), or None."""
+    if warm_start is None:
+        return None
+    p = np.asarray(warm_start.params if isinstance(warm_start, Model) else warm_start, np.float32)
+    if p.ndim != 2 or p.shape[1] != 12 or not np.isfinite(p).all():
+        raise WarpgaussError(f"a warm start is a model or finite (N, 12) parameters, got an array of shape {p.shape}")
+    return p
+
+
+def finish_report(model: Model, timer: StageRecorder) -> dict:
+    """Put the stage table and totals into the model's report."""
+    rep = model.report
+    rep["stages"] = timer.to_list()
+    rep["total_seconds"] = round(sum(s.seconds for s in timer.stages), 6)
+    host = [s.host_peak_bytes for s in timer.stages]
+    dev = [s.device_peak_bytes for s in timer.stages if s.device_peak_bytes is not None]
+    rep["peak_host_bytes"] = max(host) if host else None
+    rep["peak_device_bytes"] = max(dev) if dev else None
+    return rep
+
+
+def encode(
+    source: str | os.PathLike | np.ndarray | None = None,
+    *,
+    budget: int | None = None,
+    ratio: float | None = None,
+    file_bytes: int | None = None,
+    seed: int = 0,
+    device: str | None = None,
+    iterations: int | None = None,
+    samples: int | None = None,
+    preset: str | None = None,
+    refine: RefineConfig | None = None,
+    self_test: bool = True,
+    time_budget: float | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: float = 60.0,
+    resume: bool = False,
+    target_psnr: float | None = None,
+    plateau_db: float | None = None,
+    compact: bool = False,
+    format: str | None = None,
+    example: str | None = None,
+    example_size: int | tuple[int, int, int] = 64,
+    read: ReadOptions | None = None,
+    allocation: AllocationConfig | None = None,
+    evaluate: bool = True,
+    full_eval: bool = False,
+    output: str | os.PathLike | None = None,
+    force: bool = False,
+    analytic_output: str | os.PathLike | None = None,
+    on_stage: Callable[[str, str], None] | None = None,
+    on_stats: Callable[[dict], None] | None = None,
+    on_progress: Callable[[int, int, dict], None] | None = None,
+    bricks=None,
+    halo: int | None = None,
+    client=None,
+    on_bricks: Callable[[int, int], None] | None = None,
+    max_device_memory: int | str | None = None,
+    max_host_memory: int | str | None = None,
+    warm_start=None,
+    motion: bool = True,
+    session=None,
+) -> Model:
+    """Encode a volume into a fixed budget of Gaussians.
+
+    Args:
+        source: File path, 3D numpy array (nz, ny, nx), or a device array: a Warp array or any
+            DLPack / ``__cuda_array_interface__`` producer (CuPy, PyTorch, JAX), any real dtype
+            and strides, normalised and encoded on its device with no host copy of its voxels
+            (``device`` None: the array's own); None with ``example``.
+        budget: Number of primitives N (exact); or give ``ratio``.
+        ratio: Target compression ratio: the file holds at most floor(S_src / R) bytes; N =
+            floor((S_src / R - H) / 48) (12 with ``compact``; measured for ``format="coded"``).
+        file_bytes: The file size budget in bytes instead (header included). A coded file is
+            never larger and uses at least 95 % of it where bit depths allow (see
+            :func:`warpgauss.coded.fit_bytes`; the report's ``budget`` says what was done).
+        seed: Encoding seed; same seed and device give the same model.
+        device: Warp device; None picks CUDA when present, else CPU.
+        iterations: Refinement iterations (default 1,500, the paper's; 0: analytic model only).
+        samples: Samples per iteration (default 3,072, the paper's, times ceil(N / 350,000) for
+            large budgets, 12,288 at 1.4M; on a GPU at least one per 128 voxels as a power of two
+            within 16,384-131,072; see :meth:`RefineConfig.samples_rule`; the report's
+            ``refinement.samples_rule`` says what was chosen).
+        preset: "paper" (1,500 x 3,072 whatever N), "fast" (300 x 3,072, the paper's time-budget
+            mode) or "quality" (1,500 x 12,288); explicit ``iterations``/``samples`` override it.
+        refine: Learning rates, loss weights and schedule (:class:`warpgauss.optimize.RefineConfig`).
+        self_test: Run the binned-vs-dense self-test before refining.
+        time_budget: Seconds refinement may take once its kernels are compiled (set-up, self-test and
+            iterations); spare time goes to more samples per iteration (unless ``samples`` is
+            given) once 1,500 iterations fit, then to iterations (up to 20,000); refinement ends
+            within it, with a valid model at any stop.
+        checkpoint: Where refinement writes checkpoints (atomically, every ``checkpoint_every``
+            seconds and on Ctrl-C); None: ``OUTPUT.ckpt`` when ``output`` is given, else none.
+            Deleted once the model is written.
+        checkpoint_every: Seconds between checkpoints.
+        resume: Continue from the checkpoint (same input and options; the result is the model an
+            uninterrupted run gives, bit-identical on the same CPU). Overwrites ``output``.
+        target_psnr: Skip refinement if the analytic model reaches this PSNR (dB), else stop it
+            once a 65,536-voxel validation PSNR, checked every 100 iterations, does.
+        plateau_db: Stop refinement once that validation PSNR gained less than this (dB) over
+            the last 300 iterations.
+        compact: Size the budget (and the report) for the compact 12-byte format.
+        format: The file format: "coded" (the default: quantised and entropy-coded, about
+            7.5-8.2 B/primitive on real volumes; the returned model is the stored one), "float32"
+            (alias "full", 48 B) or "compact96" (alias "compact", 12 B). Overrides ``compact``.
+        example: Built-in example volume name instead of ``source``.
+        example_size: Size of the example volume.
+        read: Reader options (shape, dtype, endian, dataset, variable, stride, fill value).
+        allocation: Allocation knobs.
+        evaluate: Run stage EV (PSNR).
+        full_eval: EV on the full grid instead of 500,000 sampled voxels.
+        output: If given, write the model there (stage S3; atomic).
+        force: Overwrite ``output`` if it exists.
+        on_stage: Optional callback(name, title) as each stage starts (progress display).
+        on_stats: Optional callback(stats) once the structure statistics exist (before allocation).
+        on_progress: Optional callback(iteration, total, losses) during refinement.
+        analytic_output: Also write the analytic (pre-refinement) model there.
+
+        bricks: Split the grid into bricks (``"2x2x2"``, counts x, y, z) with a halo, the budget
+            over them before refinement, and encode each on its own (see :mod:`warpgauss.bricked`).
+        halo: Voxels of halo around each brick (default :func:`warpgauss.bricked.default_halo`: 4, 16 at 512^3).
+        client: A ``distributed.Client``: the bricks run on its cluster (None: in this process).
+        on_bricks: Optional callback(bricks done, bricks) during a bricked encode.
+        max_device_memory: Bytes (or ``"24GiB"``) one encode may use on the device; default: 90 %
+            of what a CUDA device has free (none on the CPU). Without ``bricks``, a volume whose
+            monolithic encode would not fit it, or that has more voxels than the kernels index, is
+            bricked (:func:`warpgauss.bricked.choose_bricks`), and a file read on demand.
+        max_host_memory: The same for this machine's memory (default: half of what is available
+            now); a bricked encode of a file keeps one brick's box in memory at a time.
+        warm_start: A :class:`Model` (or its ``(N, 12)`` parameters) of the previous timestep of
+            the same grid and budget: refinement starts from it instead of the analytic
+            allocation (stage S1b-S1e is skipped; the report's ``evaluation.analytic`` is the
+            starting model on this timestep).
+        motion: With ``warm_start``, first move every primitive with the motion from the
+            previous model to this timestep (block Lucas-Kanade on a pyramid, see
+            :mod:`warpgauss.motion`; stage S1m); False: start where the previous model was.
+        session: The state a :class:`warpgauss.Encoder` keeps between its calls (device buffers
+            and this call's deadline); not for direct use.
+
+    Returns:
+        The :class:`Model`, with ``model.report`` holding the run report.
+    """
+    from .._fs import check_writable
+
+    if output is not None:
+        check_writable(output, force=force or resume)  # a resume replaces its interrupted model
+    if analytic_output is not None:
+        check_writable(analytic_output, force=force or resume)
+    if checkpoint is None and output is not None:
+        checkpoint = Path(str(output) + ".ckpt")
+    if resume and (checkpoint is None or not Path(checkpoint).is_file()):
+        raise WarpgaussError(f"--resume: no checkpoint at {checkpoint}; encode without --resume")
+    if not checkpoint_every >= 0:
+        raise WarpgaussError(f"--checkpoint-every must be >= 0 seconds, got {checkpoint_every}")
+    refine = resolve_refine(refine, preset, iterations, samples)
+    for name, value in (("--target-psnr", target_psnr), ("--plateau", plateau_db)):
+        if value is not None and not value > 0:
+            raise WarpgaussError(f"{name} must be a positive number of dB, got {value}")
+    refine = dataclasses.replace(refine, target_psnr=target_psnr, plateau_db=plateau_db)
+    if time_budget is not None and not time_budget > 0:
+        raise WarpgaussError(f"--time-budget must be a positive number of seconds, got {time_budget}")
+    opts = EncodeOptions(
+        budget,
+        ratio,
+        seed,
+        compact,
+        allocation or AllocationConfig(),
+        stride=(read or ReadOptions()).stride,
+        refine=refine,
+        self_test=self_test,
+        time_budget=time_budget,
+        checkpoint=checkpoint,
+        checkpoint_every=checkpoint_every,
+        resume=resume,
+        format=format,
+        bytes=file_bytes,
+        init=_warm_params(warm_start),
+        motion=motion,
+    )
+    if opts.init is not None and (bricks is not None or resume):
+        raise WarpgaussError("a warm start does not combine with --bricks or --resume")
+    if session is not None:
+        opts.deadline = session.deadline
+        opts.evaluate_start = session.deadline is None  # a call on a time budget scores only its result
+        opts.cold_start_psnr = session.cold_start_psnr
+    if is_device_array(source):
+        if bricks is not None:
+            raise WarpgaussError("a device array is encoded whole; --bricks takes a file")
+        source = device_array(source, None if device in (None, "", "auto") else device)
+        device = _array_device(source, device)
+    encoding_of(opts)  # an unknown format is refused before any work
+    timer = StageRecorder(on_stage=on_stage)
+    bricks, lazy, limit, auto = bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory)
+    with timer.stage("P", "load and normalise"):
+        buffers = None if session is None else session.buffers
+        f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy, buffers=buffers)
+    if isinstance(warm_start, Model) and tuple(warm_start.shape_xyz) != tuple(f.shape_xyz):
+        raise WarpgaussError(
+            f"the warm-start model is on a {'x'.join(map(str, warm_start.shape_xyz))} grid, this volume {'x'.join(map(str, f.shape_xyz))}; encode cold"
+        )
+    if bricks is not None:
+        if analytic_output is not None:
+            raise WarpgaussError("--bricks does not write an analytic model (--save-analytic)")
+        model = encode_bricked(
+            f,
+            opts,
+            bricks,
+            halo=halo,
+            device=device,
+            client=client,
+            timer=timer,
+            input_info=info,
+            evaluate=evaluate,
+            full_eval=full_eval,
+            on_progress=on_bricks,
+            max_device_memory=limit,
+        )
+        model.report["bricking"].update(
+            chosen="by the device and host limits" if auto else "given",
+            max_device_memory=limit,
+            read_lazily=bool(info.get("read_lazily")),
+        )
+    else:
+        model = encode_field(
+            f,
+            opts,
+            device=device,
+            timer=timer,
+            input_info=info,
+            evaluate=evaluate,
+            full_eval=full_eval,
+            on_stats=on_stats,
+            on_progress=on_progress,
+            analytic_output=analytic_output,
+            force=force or resume,
+        )
+    if output is not None:
+        with timer.stage("S3", "export"):
+            model.save(output, encoding=encoding_of(opts), force=True if resume else force)
+        model.report["output"] = str(Path(output))
+    if checkpoint is not None and not model.report.get("interrupted") and Path(checkpoint).is_file():
+        Path(checkpoint).unlink()  # the run finished: its model replaces the checkpoint
+    finish_report(model, timer)
+    return model

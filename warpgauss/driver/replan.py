@@ -1,0 +1,157 @@
+"""Rate control during refinement: the mid-training re-plan of N for a coded byte budget, and the
+(off by default) refit after pruning, as methods of :class:`Replan` that the encode run mixes in.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ..model import Model
+from .options import EncodeOptions
+
+# a refined model pruned to fit its byte budget (coded.fit_bytes) may be refined again, the rest
+# filling what the pruned ones carried: for this share of the iterations (at least
+# REFIT_MIN_ITERATIONS), at REFIT_LR x the learning rate, when more than REFIT_MIN_PRUNED of the
+# primitives went; then fitted once more. Off (0): measured on an H100 (benchmarks/results/accuracy/),
+# a refit from fresh Adam moments moves every parameter by about the learning rate in its first
+# steps and wrecks an accurate model (vortex 256^3 at ratio 300: 68.6 dB coded without, 43.6 with
+# a refit at 0.3x, 47.7 at 0.02x); dropping bits beyond a 3 % excess (coded.PRUNE_SHARE) paid more
+REFIT_SHARE = 0.0
+# a coded byte budget's N is re-planned once the model's accuracy is known: after this share of the
+# iterations the model is coded at the depths its expected final sample PSNR needs (extrapolated
+# from the sample PSNR half-way there and now, at least REPLAN_REST_GAIN_DB more); where that,
+# times REPLAN_GROWTH (how much larger the model codes by the end), exceeds the budget by more
+# than REPLAN_TOLERANCE, the least important primitives are taken out and the rest refine on. The pilot's N (CODED_REFINE_GAIN_DB) under-predicts the depths
+# of a model trained at voxel centres by 1-4 bits: refined models coded 1.2-2.3x their budget and
+# lost 1-13 dB to the bits the rate control then dropped (benchmarks/results/accuracy/rd_*.json)
+REPLAN_AT = 0.25
+REPLAN_REST_GAIN_DB = 2.0
+# the sample PSNR grows faster than linearly in log(iterations) as the learning rate decays: from
+# K = T / 4 to T it gained 1.4-7.5x its gain from K / 2 to K (median 2.8, three MRIs at CR 10-1000,
+# H100), on vortex and interface 256^3 about 2x (rd_*_replan_h100.json): 1.25 x log2(T / K)
+REPLAN_EXTRAPOLATE = 1.25
+REPLAN_MAX_GAIN_DB = 30.0
+REPLAN_GROWTH = 1.05
+REPLAN_TOLERANCE = 0.01
+REPLAN_MIN_ITERATIONS = 100
+# the bit depths a refined model is coded at: "accuracy" (bits_for_psnr of its sample PSNR) or
+# "sizing" (those N was sized for; more only where the budget leaves room)
+REFINED_BITS = "accuracy"
+REFIT_MIN_ITERATIONS = 30
+REFIT_LR = 0.3
+REFIT_MIN_PRUNED = 0.01
+
+
+class Replan:
+    """The re-plan and refit steps of :class:`~warpgauss.driver.run.EncodeRun` (mixed in: they read
+    and change the run's state)."""
+
+    # the run's state these steps read and change (set by EncodeRun.__init__ and its stages)
+    opts: EncodeOptions
+    enc: str
+    budget_bytes: int | None
+    header: dict
+    dv: Any
+    model: Model | None
+    refined_fit: dict | None
+    replan: dict | None
+    replan_half: float | None
+    skip: Callable[..., None]
+    stored: Callable[[Model], tuple[Model, dict | None]]
+
+    def replan_iteration(self, deadline: float | None) -> int | None:
+        """The iteration after which a coded byte budget's N is re-planned (see :data:`REPLAN_AT`),
+        or None where it is not: no coded byte budget, a warm start, a time budget."""
+        cfg = self.opts.refine
+        if self.enc != "coded" or self.budget_bytes is None or REPLAN_AT <= 0 or self.opts.init is not None:
+            return None
+        if deadline is not None or cfg.iterations < REPLAN_MIN_ITERATIONS:
+            return None
+        return max(1, int(round(REPLAN_AT * cfg.iterations)))
+
+    def replan_n(self, refiner) -> None:
+        """N for the bit depths the model's accuracy needs: at :data:`REPLAN_AT` of the iterations
+        the current model is coded at the depths of its expected final sample PSNR;
+        where that (times :data:`REPLAN_GROWTH`) exceeds the budget, the least important
+        primitives are taken out (:meth:`Refiner.silence`) and the others refine on to fill in."""
+        from ..coded import bits_for_psnr, importance
+        from ..wgs import payload_size, wgs_bytes
+
+        assert self.budget_bytes is not None
+        at = float(refiner.losses()["sample_psnr_db"])
+        # the sample PSNR grows about linearly in log(iterations): what it gained from K/2 to K,
+        # times log2(T / K), is what the rest of the run adds (at least REPLAN_REST_GAIN_DB)
+        half = self.replan_half if self.replan_half is not None and math.isfinite(self.replan_half) else at
+        t_total, k = self.opts.refine.iterations, refiner.iteration
+        rest = max(REPLAN_REST_GAIN_DB, (at - half) * REPLAN_EXTRAPOLATE * math.log2(t_total / k))
+        expected = at + min(rest, REPLAN_MAX_GAIN_DB)
+        bits, extra = bits_for_psnr(expected)
+        params = refiner.model_params()
+        n = len(params)
+        data = wgs_bytes(params, self.header, encoding="coded", bits=bits)
+        payload = payload_size(data)
+        head = len(data) - payload
+        predicted = head + payload * REPLAN_GROWTH
+        keep = n
+        if predicted > self.budget_bytes * (1.0 + REPLAN_TOLERANCE):
+            keep = max(1, int(n * (self.budget_bytes - head) / (payload * REPLAN_GROWTH)))
+            order = np.argsort(importance(params), kind="stable")  # least important first
+            refiner.silence(order[: n - keep])
+        self.replan = {
+            "iteration": refiner.iteration,
+            "sample_psnr_db": at,
+            "sample_psnr_db_at_half": half,
+            "expected_psnr_db": expected,
+            "bits": bits,
+            "bits_added": extra,
+            "coded_bytes_now": len(data),
+            "predicted_bytes": predicted,
+            "n_before": n,
+            "n_after": keep,
+        }
+
+    def refit_pruned(self, refined: Model, cap: float, deadline: float | None) -> None:
+        """A model pruned to its byte budget, refined again briefly without the pruned primitives
+        (see :data:`REFIT_SHARE`) and fitted once more; the report's ``coded_fit.refit`` says so."""
+        from ..refine import Refiner
+
+        fit, kept = self.refined_fit, self.model.kept_rows
+        assert fit is not None
+        cfg = self.opts.refine
+        if kept is None or fit["pruned"] <= REFIT_MIN_PRUNED * refined.n or REFIT_SHARE <= 0:
+            return
+        if deadline is not None and time.perf_counter() >= deadline:
+            self.skip("refit of the pruned model", "the time budget is spent", pruned=fit["pruned"])
+            return
+        iterations = max(REFIT_MIN_ITERATIONS, int(round(REFIT_SHARE * cfg.iterations)))
+        rcfg = dataclasses.replace(
+            cfg, iterations=iterations, lr=cfg.lr * REFIT_LR, target_psnr=None, plateau_db=None, budget_samples=False
+        )
+        t0 = time.perf_counter()
+        refiner = Refiner(self.dv, refined.params[kept], rcfg, self.opts.seed, self.opts.allocation.scale_min, cap)
+        history = refiner.run(log_every=max(iterations, 1), deadline=deadline)
+        again = Model(refiner.model_params(), self.header)
+        again.coded_bits = fit["bits"]
+        self.model, refit = self.stored(again)
+        assert refit is not None
+        first = {k: fit[k] for k in ("steps", "pruned", "bytes", "first_bytes", "bits")}
+        self.refined_fit = {
+            **refit,
+            "pruned": fit["pruned"] + refit["pruned"],
+            "steps": fit["steps"] + refit["steps"],
+            "first_bytes": fit["first_bytes"],
+            "refit": {
+                "iterations": refiner.iteration,
+                "lr_scale": REFIT_LR,
+                "seconds": time.perf_counter() - t0,
+                "first_fit": first,
+                "pruned_after": refit["pruned"],
+                "sample_psnr_db": history[-1].get("sample_psnr_db") if history else None,
+            },
+        }
