@@ -337,7 +337,8 @@ def encode(
     ):
         fail("--halo, --workers and --scheduler apply to a bricked encode: give --bricks XxYxZ (--halo also --max-device-memory)")
     if bricks is not None:
-        from warpgauss.bricked import default_client, parse_bricks
+        from warpgauss.bricked import parse_bricks
+        from warpgauss.cluster import default_client
 
         parse_bricks(bricks)  # refused in one line before a cluster starts
         client, where = default_client(workers, scheduler, device)
@@ -546,7 +547,7 @@ def _encode_series(
     workers, scheduler = cluster
     client = None
     if workers is not None or scheduler is not None:
-        from warpgauss.bricked import default_client
+        from warpgauss.cluster import default_client
 
         client, where = default_client(workers, scheduler, kw.get("device"))
         if status is not None:

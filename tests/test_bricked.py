@@ -73,7 +73,7 @@ def test_bricked_encode_is_exact_and_repeatable():
 
 def test_bricked_encode_on_a_local_dask_cluster_equals_the_serial_one():
     distributed = pytest.importorskip("distributed")
-    from warpgauss.bricked import local_client
+    from warpgauss.cluster import local_client
 
     v = generate("interface", 24)
     serial = warpgauss.encode(v, budget=250, bricks="2x1x2", halo=2, **FAST)
@@ -167,7 +167,7 @@ def test_frozen_primitives_are_evaluated_but_never_moved():
 
 def test_a_killed_worker_is_survived_and_a_brick_failing_twice_fails_the_run(tmp_path):
     pytest.importorskip("distributed")
-    from warpgauss.bricked import local_client
+    from warpgauss.cluster import local_client
 
     _, _, tasks = _tasks(n=150)
     serial = run_bricks(tasks)
@@ -225,7 +225,7 @@ def test_a_gpu_cluster_gives_each_worker_its_own_gpu(monkeypatch):
     parent's visible list where set); on this CPU machine the bricks then run on the CPU device,
     and the model equals the serial one (the same paths a GPU cluster takes)."""
     pytest.importorskip("distributed")
-    from warpgauss.bricked import gpu_client, gpu_ids
+    from warpgauss.cluster import gpu_client, gpu_ids
 
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5, 7,9")
     assert gpu_ids(2) == ["5", "7"]
@@ -280,7 +280,8 @@ def test_a_wave_split_into_groups_over_two_workers_gives_the_model_of_one_proces
     """Same seed => same model: a wave's bricks go out as one group per worker and finish in any
     order; the frozen neighbours are gathered in brick order, so the merged model does not change."""
     pytest.importorskip("distributed")
-    from warpgauss.bricked import encode_brick, local_client
+    from warpgauss.bricked import encode_brick
+    from warpgauss.cluster import local_client
 
     _, _, tasks = _tasks(size=32, n=240, counts=(4, 2, 1))
     alone = run_bricks(tasks, fn=encode_brick)

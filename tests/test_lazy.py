@@ -9,7 +9,8 @@ import pytest
 
 import warpgauss
 from warpgauss.analysis import normalise
-from warpgauss.bricked import DEVICE_FIXED_BYTES, brick_device_bytes, choose_bricks, parse_memory
+from warpgauss.bricked import choose_bricks
+from warpgauss.limits import DEVICE_FIXED_BYTES, brick_device_bytes, parse_memory
 from warpgauss.errors import WarpgaussError
 from warpgauss.io import read_volume
 from warpgauss.lazy import LazyValues, is_lazy
@@ -109,7 +110,7 @@ def test_cli_max_device_memory(tmp_path):
 
 def test_dask_workers_read_their_own_boxes(tmp_path):
     pytest.importorskip("distributed")
-    from warpgauss.bricked import local_client
+    from warpgauss.cluster import local_client
 
     v = generate("interface", 20)
     raw, _, _ = _files(tmp_path, v)

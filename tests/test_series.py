@@ -191,7 +191,7 @@ def test_cli_encodes_a_time_axis_and_several_variables(tmp_path):
 
 def test_a_series_on_a_local_dask_cluster(tmp_path):
     pytest.importorskip("distributed")
-    from warpgauss.bricked import local_client
+    from warpgauss.cluster import local_client
     from warpgauss.series import encode_series
 
     steps = list(generate_series("vortex", 16, 4))

@@ -24,7 +24,7 @@ brick draws the monolithic encode's samples per iteration times its box's share 
 
 Each brick is a pure function of its inputs (sub-volume, its count, the seed, the settings, the
 finished neighbours): the same seed and bricking give the same model whether the bricks run in
-this process or on a Dask cluster (tested bit for bit on the CPU). Dask moves only our own arrays
+this process or on a Dask cluster (tested bit for bit on the CPU). Dask (:mod:`warpgauss.cluster`) moves only our own arrays
 and settings between our own workers; no model or checkpoint is ever loaded through it.
 """
 
@@ -42,6 +42,7 @@ import numpy as np
 from .allocate import AllocationConfig
 from .analysis import OCCUPIED, Field, count_seed_candidates, seed_limit, split_budget
 from .errors import WarpgaussError
+from .limits import HOST_BYTES_PER_VOXEL, brick_device_bytes, default_device_limit
 from .refine.config import RefineConfig
 from .together import finish
 
@@ -557,6 +558,8 @@ def _run_wave(
             out.append(fn(t))
             after(len(out), len(out) - 1, out[-1])
         return out
+    from .cluster import map_on_cluster
+
     tail = "; no model written"
     if fn is None:
         workers = max(1, len(client.scheduler_info().get("workers", {})))
@@ -575,147 +578,7 @@ def _run_wave(
     return map_on_cluster(client, fn, batch, keys, "a brick", tail=tail, after=after)
 
 
-def map_on_cluster(client, fn, items: list, keys: list[str], what: str, tail: str = "", after=None) -> list:
-    """``fn`` over ``items`` on a Dask cluster, results in item order. An item that fails is
-    retried once; one that fails twice cancels the rest and fails the run in one line (``what``
-    names the item, ``tail`` ends the line). ``after(done, index, result)`` as each comes back."""
-    from distributed import as_completed
-
-    futures = client.map(fn, items, retries=1, pure=False, key=keys)
-    index = {f.key: i for i, f in enumerate(futures)}
-    out: list = [None] * len(items)
-    done = 0
-    try:
-        for fut in as_completed(futures):
-            i = index[fut.key]
-            out[i] = fut.result()
-            done += 1
-            if after is not None:
-                after(done, i, out[i])
-    except Exception as e:  # an item that failed twice (its retry included)
-        for fut in futures:
-            fut.cancel()
-        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
-        raise WarpgaussError(f"{what} failed on the Dask cluster twice: {type(e).__name__}: {first}{tail}") from None
-    return out
-
-
-def local_client(workers: int):
-    """A local Dask cluster of ``workers`` single-threaded processes (Warp's CPU device runs a
-    kernel on one thread), and its client."""
-    from distributed import Client, LocalCluster
-
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
-    return Client(cluster)
-
-
-def gpu_ids(count: int) -> list[str]:
-    """The first ``count`` GPUs this process may use, as CUDA_VISIBLE_DEVICES entries (that
-    variable's own list where it is set, else 0, 1, ...)."""
-    import os
-
-    visible = [g.strip() for g in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if g.strip()]
-    ids = visible if visible else [str(i) for i in range(count)]
-    if len(ids) < count:
-        raise WarpgaussError(f"{count} GPU workers asked for, but only {len(ids)} GPUs are visible ({','.join(ids)})")
-    return ids[:count]
-
-
-def gpu_client(gpus: int, ids: list[str] | None = None):
-    """A local Dask cluster of one single-threaded worker process per GPU, and its client.
-
-    Each worker is started with CUDA_VISIBLE_DEVICES naming its own GPU, so in it "cuda:0" is that
-    GPU and a brick task (device None: CUDA when present) runs there; what dask-cuda's
-    LocalCUDACluster does for this, without its other machinery (UCX, RMM) or the dependency.
-    Only Dask's own transports are used. ``ids``: the GPUs (default: :func:`gpu_ids`)."""
-    from distributed import Client, Nanny, Scheduler, SpecCluster
-
-    ids = gpu_ids(gpus) if ids is None else [str(i) for i in ids]
-    workers = {f"gpu-{g}": {"cls": Nanny, "options": {"nthreads": 1, "env": {"CUDA_VISIBLE_DEVICES": g}, "name": f"gpu-{g}"}} for g in ids}
-    cluster = SpecCluster(workers=workers, scheduler={"cls": Scheduler, "options": {"dashboard_address": None}}, name="warpgauss-gpus")
-    return Client(cluster)
-
-
-def default_client(workers: int | None, scheduler: str | None, device: str | None):
-    """The cluster a bricked encode runs on, and a note of why.
-
-    ``scheduler``: connect to that running cluster. ``workers`` 0: this process. Otherwise a local
-    cluster: one worker per GPU (:func:`gpu_client`; ``workers`` of them at most) where several
-    GPUs exist; this process on a single GPU (the bricks share it anyway); on the CPU ``workers``
-    processes (default: up to 4, one per core).
-    """
-    import os
-
-    if scheduler is not None:
-        from distributed import Client
-
-        return Client(scheduler), f"the cluster at {scheduler}"
-    if workers == 0:
-        return None, "this process (--workers 0)"
-    from ._warp import resolve_device, warp
-
-    dev = resolve_device(device)
-    if dev.startswith("cuda"):
-        gpus = warp().get_cuda_device_count()
-        if gpus > 1:
-            k = min(workers or gpus, gpus)
-            return gpu_client(k), f"a local cluster of {k} GPU workers (one GPU each)"
-        return None, "this process (one GPU: the bricks share it)"
-    k = workers or max(1, min(4, os.cpu_count() or 1))
-    return local_client(k), f"a local cluster of {k} CPU processes"
-
-
-# -- choosing the bricking from a device-memory limit ---------------------------------------------
-
-# Peak device memory of one brick's encode, as a linear model of its box voxels and the primitives
-# it refines (own, stand-ins and frozen neighbours, about 1.5 x its share of N). Measured on an
-# H100 (results/i20_out_of_core1536_h100.json): bricks of 966M voxels and about 1.5M primitives
-# peaked at 5.19 GB, 3.5 B/voxel once the per-primitive part is taken off; 5 leaves a margin.
-DEVICE_BYTES_PER_VOXEL = 5.0
-DEVICE_BYTES_PER_PRIMITIVE = 1024.0
-DEVICE_FIXED_BYTES = 256 * 2**20
-DEVICE_MARGIN = 0.9  # the default limit: this share of the free memory
-# Peak host memory of one brick's encode per box voxel: the source's copy and the float32 values,
-# the interior/halo/validity masks and their uint8 uploads, the counting passes' temporaries on
-# every thread. Measured (H100 host, 16 threads, results/i20_out_of_core1536_rss_h100.json): boxes
-# of 499M voxels peaked at 11.0 GB RSS, 22 B/voxel (the first estimate, 14, let it pass an 8 GiB limit).
-HOST_BYTES_PER_VOXEL = 22.0
-HOST_SHARE = 0.5  # the default host limit: this share of the memory available now
-
-_UNITS = {"": 1, "b": 1, "k": 10**3, "kb": 10**3, "kib": 2**10, "m": 10**6, "mb": 10**6, "mib": 2**20}
-_UNITS.update({"g": 10**9, "gb": 10**9, "gib": 2**30, "t": 10**12, "tb": 10**12, "tib": 2**40})
-
-
-def parse_memory(text, option: str = "--max-device-memory", floor: int = DEVICE_FIXED_BYTES) -> int:
-    """'24GiB', '24G', '500MB', '1e9' or a number of bytes -> bytes (more than ``floor``)."""
-    if isinstance(text, (int, np.integer)):
-        value = int(text)
-    else:
-        import re
-
-        m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+(?:e[0-9]+)?)\s*([a-zA-Z]*)\s*", str(text))
-        unit = m.group(2).lower() if m else ""
-        if m is None or unit not in _UNITS:
-            raise WarpgaussError(f"{option} must be a size such as 24GiB, 500MB or a number of bytes, got {text!r}")
-        value = int(float(m.group(1)) * _UNITS[unit])
-    if value <= floor:
-        raise WarpgaussError(f"{option} {text} is too small: a brick needs more than {floor / 2**20:.0f} MiB")
-    return value
-
-
-def brick_device_bytes(box_voxels: int, primitives: float) -> int:
-    """Estimated peak device memory of a brick's encode (see :data:`DEVICE_BYTES_PER_VOXEL`)."""
-    return int(DEVICE_FIXED_BYTES + DEVICE_BYTES_PER_VOXEL * box_voxels + DEVICE_BYTES_PER_PRIMITIVE * primitives)
-
-
-def default_device_limit(device: str) -> int | None:
-    """What a brick may use on ``device``: :data:`DEVICE_MARGIN` of its free memory (None on the CPU)."""
-    from ._warp import warp
-
-    d = warp().get_device(device)
-    if not d.is_cuda:
-        return None
-    return int(DEVICE_MARGIN * d.free_memory)
+# -- choosing the bricking from device and host memory limits (see warpgauss.limits) ------------
 
 
 def choose_bricks(shape_xyz, n: int, limit: int | None, halo: int = DEFAULT_HALO, host_limit: int | None = None) -> tuple[int, int, int]:

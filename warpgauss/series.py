@@ -381,7 +381,7 @@ def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
 
 
 def _gather(client, segments: list[Segment], on_step) -> list[list[Model]]:
-    from .bricked import map_on_cluster
+    from .cluster import map_on_cluster
 
     def after(done: int, i: int, models: list[Model]) -> None:
         if on_step is not None:

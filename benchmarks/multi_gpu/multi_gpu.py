@@ -3,7 +3,7 @@ one GPU of the same machine in the same run.
 
 For each size: an example field generated here, encoded with the same bricking and seed on a local
 Dask cluster of 1 GPU worker, then of 2 (``--gpus``), each worker a process with its own GPU
-(``warpgauss.bricked.gpu_client``: CUDA_VISIBLE_DEVICES per worker, Dask's own TCP transport).
+(``warpgauss.cluster.gpu_client``: CUDA_VISIBLE_DEVICES per worker, Dask's own TCP transport).
 Each row: gpus, seconds, speedup against gpus=1, PSNR, and whether the model equals the one-GPU
 model bit for bit (same seed, same bricking: it must). Then ``--series`` timesteps of an evolving
 example encoded across the workers: timesteps per second against one GPU.
@@ -31,7 +31,7 @@ import numpy as np
 import warpgauss
 from warpgauss._warp import resolve_device
 from warpgauss.bench import result_header
-from warpgauss.bricked import gpu_client, local_client
+from warpgauss.cluster import gpu_client, local_client
 from warpgauss.series import encode_series
 from warpgauss.synthetic import generate, generate_series
 

@@ -168,7 +168,8 @@ def bricking(source, read, example, bricks, halo, budget, device, max_device_mem
     kernels' voxel index) is bricked by :func:`~warpgauss.bricked.choose_bricks`. Only a format
     that can be read on demand is looked at before it is read."""
     from .._warp import resolve_device
-    from ..bricked import HOST_SHARE, brick_cap, brick_device_bytes, choose_bricks, default_device_limit, default_halo, parse_memory
+    from ..bricked import brick_cap, choose_bricks, default_halo
+    from ..limits import HOST_SHARE, brick_device_bytes, default_device_limit, parse_memory
 
     limit = None if max_device_memory is None else parse_memory(max_device_memory, "--max-device-memory")
     host = None if max_host_memory is None else parse_memory(max_host_memory, "--max-host-memory", 2**20)
