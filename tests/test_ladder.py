@@ -49,3 +49,19 @@ def test_ladder_cli_prints_psnr_per_budget(tmp_path, cpu):
         assert r["psnr_db"] > r["psnr_analytic_db"]
     res = CliRunner().invoke(app, [*args[:-1], "--budget", "5"])
     assert res.exit_code == 2 and "does not combine" in res.output
+
+
+def test_ladder_cli_keeps_target_psnr_and_plateau(tmp_path, cpu):
+    """--ladder passes --target-psnr and --plateau on (they were dropped: the header said None)."""
+    from warpgauss import Model
+
+    out = tmp_path / "v.wgs"
+    args = ["encode", "--example", "vortex", "--size", "16", "--ladder", "40,80", "--iterations", "10", "--samples", "128",
+            "--target-psnr", "99", "--plateau", "0.25", "--device", "cpu", "-o", str(out), "--json"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    for n in (40, 80):
+        refinement = Model.load(tmp_path / f"v.n{n}.wgs").header["encoding"]["refinement"]
+        assert refinement["target_psnr"] == 99.0 and refinement["plateau_db"] == 0.25
+    res = CliRunner().invoke(app, [*args[:-3], "--target-psnr=-1", "-o", str(tmp_path / "w.wgs"), "--json"])
+    assert res.exit_code == 2 and "--target-psnr must be a positive number of dB" in res.output

@@ -9,7 +9,6 @@ Everything up to the budget check runs without Warp, so an impossible request is
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -25,7 +24,7 @@ from ..optimize import RefineConfig
 from ..profiling import StageRecorder
 from .bricked import bricking, encode_bricked
 from .load import load_field
-from .options import EncodeOptions, encoding_of, resolve_refine
+from .options import EncodeOptions, encoding_of, resolve_refine, with_stop_rules
 from .run import encode_field
 
 
@@ -198,10 +197,7 @@ def encode(
     if not checkpoint_every >= 0:
         raise WarpgaussError(f"--checkpoint-every must be >= 0 seconds, got {checkpoint_every}")
     refine = resolve_refine(refine, preset, iterations, samples)
-    for name, value in (("--target-psnr", target_psnr), ("--plateau", plateau_db)):
-        if value is not None and not value > 0:
-            raise WarpgaussError(f"{name} must be a positive number of dB, got {value}")
-    refine = dataclasses.replace(refine, target_psnr=target_psnr, plateau_db=plateau_db)
+    refine = with_stop_rules(refine, target_psnr, plateau_db)
     if time_budget is not None and not time_budget > 0:
         raise WarpgaussError(f"--time-budget must be a positive number of seconds, got {time_budget}")
     opts = EncodeOptions(

@@ -17,7 +17,7 @@ from ..optimize import RefineConfig
 from ..profiling import StageRecorder
 from .encode import finish_report
 from .load import load_field
-from .options import EncodeOptions, encoding_of, header_for, resolve_refine
+from .options import EncodeOptions, encoding_of, header_for, resolve_refine, with_stop_rules
 from .run import encode_field
 from .sizing import sizing_bpp
 
@@ -34,6 +34,8 @@ def encode_ladder(
     samples: int | None = None,
     preset: str | None = None,
     refine: RefineConfig | None = None,
+    target_psnr: float | None = None,
+    plateau_db: float | None = None,
     self_test: bool = True,
     compact: bool = False,
     format: str | None = None,
@@ -69,7 +71,7 @@ def encode_ladder(
         paths = [Path(output_pattern.format(n=n)) for n in ladder]
         for p in paths:
             check_writable(p, force=force)
-    refine = resolve_refine(refine, preset, iterations, samples)
+    refine = with_stop_rules(resolve_refine(refine, preset, iterations, samples), target_psnr, plateau_db)
     first = StageRecorder(on_stage=on_stage)
     with first.stage("P", "load and normalise"):
         f, info = load_field(source, read, example=example, example_size=example_size)

@@ -58,6 +58,14 @@ def encoding_of(opts: EncodeOptions) -> str:
     return _encoding(opts.compact, opts.format)
 
 
+def with_stop_rules(refine: RefineConfig, target_psnr: float | None, plateau_db: float | None) -> RefineConfig:
+    """``--target-psnr`` and ``--plateau`` (each a positive number of dB, or None) in the refinement settings."""
+    for name, value in (("--target-psnr", target_psnr), ("--plateau", plateau_db)):
+        if value is not None and not value > 0:
+            raise WarpgaussError(f"{name} must be a positive number of dB, got {value}")
+    return dataclasses.replace(refine, target_psnr=target_psnr, plateau_db=plateau_db)
+
+
 def resolve_refine(refine: RefineConfig | None, preset: str | None, iterations: int | None, samples: int | None) -> RefineConfig:
     """Refinement settings from a preset, overridden by explicit iterations / samples."""
     cfg = refine or RefineConfig()
