@@ -60,8 +60,10 @@ def test_bad_byte_budgets_are_refused(cpu):
         warpgauss.encode(vol, budget=100, file_bytes=5000, device=cpu, **FAST)
     with pytest.raises(WarpgaussError, match="--bytes must be a positive"):
         warpgauss.encode(vol, file_bytes=0, device=cpu, **FAST)
-    with pytest.raises(WarpgaussError, match="no room for a single primitive"):
+    with pytest.raises(WarpgaussError, match=r"no room for a single primitive \(\d+ header bytes, up to 12 per primitive in the coded format\)"):
         warpgauss.encode(vol, file_bytes=500, device=cpu, format="coded", **FAST)
+    with pytest.raises(WarpgaussError, match=r"no room for a single primitive \(\d+ header bytes, 48 per primitive\)"):
+        warpgauss.encode(vol, file_bytes=500, device=cpu, format="full", **FAST)
 
 
 def test_fit_bytes_shrinks_prunes_and_grows():

@@ -387,13 +387,20 @@ def budget_from_ratio(source_bytes: int, ratio: float, header_bytes: int, bytes_
     return budget_from_bytes(source_bytes / ratio, source_bytes, header_bytes, bytes_per_primitive)
 
 
-def budget_from_bytes(total_bytes: float, source_bytes: int, header_bytes: int, bytes_per_primitive: int) -> int:
-    """N = floor((B - H) / bytes per primitive) for a file of B bytes; refused when none fits."""
+def budget_from_bytes(total_bytes: float, source_bytes: int, header_bytes: int, bytes_per_primitive: int, format: str | None = None) -> int:
+    """N = floor((B - H) / bytes per primitive) for a file of B bytes; refused when none fits
+    (``format`` "coded": the bytes per primitive are the most a coded primitive takes in practice)."""
     n = int(np.floor((total_bytes - header_bytes) / bytes_per_primitive))
     if n < 1:
+        per = (
+            f"up to {bytes_per_primitive} per primitive in the coded format"
+            if format == "coded"
+            else f"{bytes_per_primitive} per primitive"
+        )
+        about = "about " if format == "coded" else ""
         raise WarpgaussError(
             f"a budget of {total_bytes:.0f} bytes leaves no room for a single primitive ({header_bytes} header bytes, "
-            f"{bytes_per_primitive} per primitive); the largest possible ratio is {source_bytes / (header_bytes + bytes_per_primitive):.4g}"
+            f"{per}); the largest possible ratio is {about}{source_bytes / (header_bytes + bytes_per_primitive):.4g}"
         )
     return n
 
