@@ -62,14 +62,16 @@ def stats(
     from rich.table import Table
 
     t = Table(show_edge=False, header_style="bold")
-    for col in ("N", "bytes", "ratio", "compact bytes", "compact ratio"):
+    for col in ("N", "coded (default) ~", "ratio ~", "full", "ratio", "compact", "ratio"):
         t.add_column(col, justify="right")
     for b in res["budgets"]:
         t.add_row(
             f"{b['n']:,}" + (" (N_max)" if b["is_n_max"] else ""),
-            f"{b['bytes']:,}",
+            "{}-{}".format(*(human_bytes(v) for v in b["coded_bytes_estimate"])),
+            "{:.1f}-{:.1f}x".format(*b["coded_compression_ratio_estimate"]),
+            human_bytes(b["bytes"]),
             f"{b['compression_ratio']:.2f}x",
-            f"{b['compact_bytes']:,}",
+            human_bytes(b["compact_bytes"]),
             f"{b['compact_compression_ratio']:.2f}x",
         )
     out_console.print(t)

@@ -1,7 +1,8 @@
 """`warpgauss stats`: what a field needs, before encoding it (SPEC section 5).
 
 Occupancy, gradient top-10 % concentration, S(1)/S(16), the seed limit N_max, a table of budgets
-with their exact file sizes and compression ratios (full precision and compact), and a one-line
+with their exact file sizes and compression ratios (full precision and compact; the coded format,
+the default, as the range measured on real models), and a one-line
 reading of what the numbers mean for this field.
 """
 
@@ -43,16 +44,21 @@ def reading(st: dict, n_max: int) -> str:
 
 
 def budget_table(f: Field, header: dict, budgets, n_max: int) -> list[dict]:
-    """Exact bytes and compression ratios of each feasible budget (and of N_max)."""
+    """Exact bytes and compression ratios of each feasible budget (and of N_max) in the full and
+    compact formats, and the coded format's as a range (its size depends on the refined model:
+    :data:`warpgauss.driver.sizing.CODED_BPP_MEASURED` bytes a Gaussian)."""
     from .wgs import header_size
 
     rows = []
     wanted = sorted({int(b) for b in budgets if 1 <= int(b) <= n_max} | ({n_max} if n_max >= 1 else set()))
+    from .driver.sizing import CODED_BPP_MEASURED
+
     h_full = header_size(header, 1, compact=False)
     h_compact = header_size(header, 1, compact=True)
     for n in wanted:
         full = 48 * n + h_full
         compact = 12 * n + h_compact
+        coded = [int(round(b * n)) + header_size(header, n, encoding="coded") for b in CODED_BPP_MEASURED]
         rows.append(
             {
                 "n": n,
@@ -60,6 +66,8 @@ def budget_table(f: Field, header: dict, budgets, n_max: int) -> list[dict]:
                 "compression_ratio": f.source_bytes / full,
                 "compact_bytes": compact,
                 "compact_compression_ratio": f.source_bytes / compact,
+                "coded_bytes_estimate": coded,
+                "coded_compression_ratio_estimate": [f.source_bytes / coded[1], f.source_bytes / coded[0]],
                 "is_n_max": n == n_max,
             }
         )

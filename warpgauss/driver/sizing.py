@@ -13,6 +13,10 @@ from ..model import Model
 from ..profiling import StageRecorder
 from .options import DEFAULT_RATIO, EncodeOptions, encoding_of
 
+# bytes a Gaussian takes in a coded file of a refined model, as measured (README's table, H100,
+# default settings): 7.6-13.0 on the three head MRIs, 10.6-15.2 on 256^3 example fields (more
+# accurate models code on finer grids); what `warpgauss stats` quotes before anything is encoded
+CODED_BPP_MEASURED = (7.6, 15.2)
 CODED_BPP_SIZING = 12  # bytes per primitive a coded file needs at most in practice (the "no room" check)
 CODED_BPP_FLOOR = 4  # and at least: bounds N before its coded size is measured
 # coded bytes per primitive of a refined model over its analytic allocation's: 1.19 / 1.22 / 1.22 /
