@@ -147,11 +147,15 @@ def test_crafted_coded_payloads_rejected(tmp_path):
     payload, quant, _ = coded.encode_coded(p)
     raw = quant["raw_bytes"]
     z = zstandard.ZstdCompressor(level=3)
+    noise = np.random.default_rng(1).integers(0, 256, raw, dtype=np.uint8).tobytes()  # incompressible
     cases = [
-        (z.compress(b"\0" * (raw * 1000)), "frame holds"),  # a bomb: declares far more than the columns
-        (z.compress(b"\0" * (raw - 1)), "frame holds"),
-        (b"not a zstd frame at all", "does not decompress"),
-        (zstandard.ZstdCompressor(write_content_size=False).compress(b"\0" * raw), "frame holds"),
+        # a bomb (far more than the columns, in 38 bytes): refused before it is decompressed, since
+        # 40 primitives cannot fit in fewer than 40 bytes (coded.MIN_PAYLOAD_PER_PRIMITIVE)
+        (z.compress(b"\0" * (raw * 1000)), "claims 40 primitives"),
+        (z.compress(noise + bytes(raw * 1000)), "frame holds"),  # declares far more than the columns
+        (z.compress(noise[: raw - 1]), "frame holds"),
+        (b"not a zstd frame at all but long enough to claim 40 primitives", "does not decompress"),
+        (zstandard.ZstdCompressor(write_content_size=False).compress(noise), "frame holds"),
     ]
     # codes outside their ranges: a rotation index of 7 in an otherwise valid payload
     blob = bytearray(zstandard.ZstdDecompressor().decompress(payload))

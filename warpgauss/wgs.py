@@ -571,6 +571,13 @@ def read_wgs(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
             )
         if n < 1:
             raise bad("the model holds no primitives (n = 0); a model needs at least one, re-encode it")
+        if enc == "coded":  # before the payload is read or anything sized by n is allocated
+            from .coded import check_claim
+
+            try:
+                check_claim(total, n)
+            except WarpgaussError as e:
+                raise bad(str(e)) from None
         payload = f.read(total)
         if len(payload) != total:
             raise bad("the file changed while being read; try again")

@@ -1,0 +1,105 @@
+"""Files that cannot hurt: a model file is refused, in one line and before any large allocation,
+when what it claims cannot fit in its own size (a decompression bomb)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+import time
+import zlib
+
+import numpy as np
+import pytest
+
+import warpgauss
+from warpgauss.errors import WarpgaussError
+from warpgauss.synthetic import generate
+from warpgauss.wgs import _PREFIX, FORMAT_VERSION, MAGIC, PREFIX_SIZE
+
+BOMB_N = 30_000_000
+
+
+def _zeros_frame(raw: int) -> bytes:
+    """A Zstandard frame of ``raw`` zero bytes (its size pledged), made without holding them."""
+    import zstandard
+
+    c = zstandard.ZstdCompressor(level=3, write_checksum=True).compressobj(size=raw)
+    chunk = bytes(1 << 20)
+    out = []
+    left = raw
+    while left:
+        k = min(left, len(chunk))
+        out.append(c.compress(chunk[:k]))
+        left -= k
+    out.append(c.flush())
+    return b"".join(out)
+
+
+def _bomb(real: bytes, n: int) -> bytes:
+    """A coded .wgs with a consistent header and checksums whose payload is a frame of zeros
+    claiming ``n`` primitives (a real coded file's header, edited)."""
+    (hlen,) = _PREFIX.unpack(real[:PREFIX_SIZE])[2:3]
+    header = json.loads(real[PREFIX_SIZE : PREFIX_SIZE + hlen])
+    quant = header["payload"]["quant"]
+    quant["columns"] = [[0, 1] for _ in quant["columns"]]
+    quant["raw_bytes"] = len(quant["columns"]) * n
+    payload = _zeros_frame(quant["raw_bytes"])
+    header["n"] = n
+    header["payload"]["payload_bytes"] = len(payload)
+    header["payload"]["sha256"] = hashlib.sha256(payload).hexdigest()
+    area = json.dumps(header).encode()
+    return _PREFIX.pack(MAGIC, FORMAT_VERSION, len(area), zlib.crc32(area)) + area + payload
+
+
+@pytest.fixture(scope="module")
+def bomb(tmp_path_factory):
+    d = tmp_path_factory.mktemp("crafted")
+    real = d / "real.wgs"
+    warpgauss.encode(generate("vortex", 16), budget=60, iterations=3, samples=64, device="cpu", self_test=False, output=real)
+    path = d / "bomb.wgs"
+    path.write_bytes(_bomb(real.read_bytes(), BOMB_N))
+    return real, path
+
+
+def test_a_crafted_coded_file_claiming_millions_is_refused_at_once(bomb):
+    real, path = bomb
+    assert path.stat().st_size < 64_000  # a 30-million-Gaussian claim in tens of kilobytes
+    t = time.perf_counter()
+    with pytest.raises(WarpgaussError, match=r"claims 30,000,000 primitives .* the file is damaged or crafted"):
+        warpgauss.Model.load(path)
+    assert time.perf_counter() - t < 1.0
+    assert warpgauss.Model.load(real).n == 60  # the real file it was made from still loads
+
+
+@pytest.mark.parametrize("command", ["info", "decode"])
+def test_the_command_line_refuses_it_in_one_line_under_a_memory_limit(bomb, tmp_path, command):
+    """Under a 3 GiB address-space limit (the bomb would need about 10 GB), exit 2, one line,
+    no output file."""
+    pytest.importorskip("resource")
+    _, path = bomb
+    out = tmp_path / "d.npy"
+    args = [str(path)] + (["-o", str(out)] if command == "decode" else [])
+    code = (
+        "import resource, sys; resource.setrlimit(resource.RLIMIT_AS, (3 << 30, resource.getrlimit(resource.RLIMIT_AS)[1])); "
+        "from warpgauss.cli.main import run; sys.argv = ['warpgauss', *sys.argv[1:]]; run()"
+    )
+    t = time.perf_counter()
+    r = subprocess.run([sys.executable, "-c", code, command, *args], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and "claims 30,000,000 primitives" in lines[0] and "Traceback" not in r.stderr
+    assert not out.exists()
+    assert time.perf_counter() - t < 60
+
+
+def test_parameters_that_code_below_the_floor_are_not_written(tmp_path):
+    """No coded file is written that the reader would refuse: 20,000 copies of one primitive."""
+    m = warpgauss.encode(generate("vortex", 16), budget=20, iterations=0, device="cpu", self_test=False, format="full")
+    twins = warpgauss.Model(np.tile(m.params[:1], (20_000, 1)), m.header)
+    with pytest.raises(WarpgaussError, match="save them with --format full"):
+        twins.save(tmp_path / "t.wgs", encoding="coded")
+    assert not (tmp_path / "t.wgs").exists()
+    twins.save(tmp_path / "t.wgs", encoding="full")
+    assert warpgauss.Model.load(tmp_path / "t.wgs").n == 20_000
