@@ -237,6 +237,9 @@ def encode(
 
     if (input is None) == (example is None):
         fail("give a volume file or --example NAME (one of them)")
+    from warpgauss.driver.sizing import check_budget_options
+
+    check_budget_options(budget, ratio, file_bytes)  # what needs no data is checked before any file is looked at
     weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
     variables = list(variable or [])
     one_variable = variables[0] if len(variables) == 1 else None

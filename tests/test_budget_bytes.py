@@ -98,3 +98,30 @@ def test_cli_bytes_budget(tmp_path, cpu):
     assert 0.95 * 6000 <= out.stat().st_size <= 6000
     r = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "24", "--bytes", "6000", "--budget", "10", "--device", "cpu", "-o", str(tmp_path / "w.wgs")])
     assert r.exit_code == 2 and "one of --budget, --ratio and --bytes" in r.output and not (tmp_path / "w.wgs").exists()
+
+
+@pytest.mark.parametrize(
+    "option, value",
+    [("--ratio", "0"), ("--ratio", "-5"), ("--ratio", "inf"), ("--ratio", "nan"), ("--budget", "0"), ("--budget", "-3"), ("--bytes", "0")],
+)
+def test_unusable_budget_values_are_refused_by_name_before_anything_else(tmp_path, option, value):
+    """--ratio 0 used to encode at the default ratio and --ratio inf to say "a budget of 0 bytes";
+    next to an existing output the refusal used to be "already exists". Now: exit 2, one line
+    naming the option and the value, the existing file untouched."""
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+
+    out = tmp_path / "v.wgs"
+    out.write_bytes(b"keep me")
+    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "16", f"{option}={value}", "-o", str(out)])
+    assert res.exit_code == 2, res.output
+    assert option in res.output and "already exists" not in res.output and len(res.output.strip().splitlines()) == 1
+    assert out.read_bytes() == b"keep me"
+
+
+def test_the_api_refuses_a_zero_or_infinite_ratio(cpu):
+    vol = generate("vortex", 16, seed=0)
+    for ratio in (0, 0.0, float("inf"), float("nan"), -1.0):
+        with pytest.raises(WarpgaussError, match="--ratio must be a finite number above 0"):
+            warpgauss.encode(vol, ratio=ratio, device=cpu, **FAST)

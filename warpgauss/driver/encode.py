@@ -26,6 +26,7 @@ from .bricked import bricking, encode_bricked
 from .load import load_field
 from .options import EncodeOptions, encoding_of, resolve_refine, with_stop_rules
 from .run import encode_field
+from .sizing import check_budget_options
 
 
 def _array_device(arr, device: str | None) -> str:
@@ -186,6 +187,7 @@ def encode(
     """
     from .._fs import check_writable
 
+    check_budget_options(budget, ratio, file_bytes)  # before the output check: say what is wrong with the request first
     if output is not None:
         check_writable(output, force=force or resume)  # a resume replaces its interrupted model
     if analytic_output is not None:

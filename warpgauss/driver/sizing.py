@@ -4,6 +4,8 @@ a coded file of a given size (one place for the rules and their refusals).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..allocate import allocate
@@ -41,20 +43,30 @@ def sizing_bpp(encoding: str) -> int:
     return ENCODINGS[encoding] or CODED_BPP_SIZING
 
 
-def target_bytes(f: Field, opts: EncodeOptions) -> int | None:
-    """The file size budget of --bytes or --ratio (floor(S_src / R)); None with --budget."""
-    given = [k for k, v in (("--budget", opts.budget), ("--ratio", opts.ratio), ("--bytes", opts.bytes)) if v is not None]
+def check_budget_options(budget, ratio, file_bytes) -> None:
+    """Refuse, by name and before any work, budget options that cannot be used: more than one of
+    them, a --budget or --bytes that is not a whole number of at least 1, a --ratio that is not a
+    finite number above 0 (0, negative, NaN and infinity are refused, never replaced)."""
+    given = [k for k, v in (("--budget", budget), ("--ratio", ratio), ("--bytes", file_bytes)) if v is not None]
     if len(given) > 1:
         raise WarpgaussError(f"give one of --budget, --ratio and --bytes, not {' and '.join(given)}")
+    for name, value, unit in (("--budget", budget, "Gaussians"), ("--bytes", file_bytes, "bytes")):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1):
+            raise WarpgaussError(f"{name} must be a positive whole number of {unit}, got {value!r}")
+    if ratio is not None:
+        ok = not isinstance(ratio, bool) and isinstance(ratio, (int, float, np.integer, np.floating))
+        if not ok or not math.isfinite(float(ratio)) or not ratio > 0:
+            raise WarpgaussError(f"--ratio must be a finite number above 0 (source bytes over file bytes), got {ratio!r}")
+
+
+def target_bytes(f: Field, opts: EncodeOptions) -> int | None:
+    """The file size budget of --bytes or --ratio (floor(S_src / R)); None with --budget."""
+    check_budget_options(opts.budget, opts.ratio, opts.bytes)
     if opts.budget is not None:
         return None
     if opts.bytes is not None:
-        if isinstance(opts.bytes, bool) or not isinstance(opts.bytes, (int, np.integer)) or opts.bytes < 1:
-            raise WarpgaussError(f"--bytes must be a positive whole number of bytes, got {opts.bytes!r}")
         return int(opts.bytes)
-    ratio = opts.ratio or DEFAULT_RATIO
-    if not ratio > 0:
-        raise WarpgaussError(f"--ratio must be positive, got {ratio}")
+    ratio = DEFAULT_RATIO if opts.ratio is None else float(opts.ratio)
     return int(f.source_bytes // ratio)
 
 
