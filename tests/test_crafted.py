@@ -103,3 +103,23 @@ def test_parameters_that_code_below_the_floor_are_not_written(tmp_path):
     assert not (tmp_path / "t.wgs").exists()
     twins.save(tmp_path / "t.wgs", encoding="full")
     assert warpgauss.Model.load(tmp_path / "t.wgs").n == 20_000
+
+
+def _with_header(real: bytes, edit) -> bytes:
+    """A real file with its header edited (and its checksum made right again)."""
+    (hlen,) = _PREFIX.unpack(real[:PREFIX_SIZE])[2:3]
+    header = json.loads(real[PREFIX_SIZE : PREFIX_SIZE + hlen])
+    edit(header)
+    area = json.dumps(header).encode()
+    return _PREFIX.pack(MAGIC, FORMAT_VERSION, len(area), zlib.crc32(area)) + area + real[PREFIX_SIZE + hlen :]
+
+
+@pytest.mark.parametrize("spacing", [[0.0, 1.0, 1.0], [1.0, -0.5, 1.0]])
+def test_a_header_with_a_spacing_of_zero_or_below_is_refused(bomb, tmp_path, spacing):
+    """Checksums prove a file is as written, not that its fields make sense: a spacing that is 0
+    or negative loaded and decoded before."""
+    real, _ = bomb
+    path = tmp_path / "s.wgs"
+    path.write_bytes(_with_header(real.read_bytes(), lambda h: h["grid"].update(spacing=spacing)))
+    with pytest.raises(WarpgaussError, match="grid spacing .* is not three positive numbers"):
+        warpgauss.Model.load(path)

@@ -134,6 +134,14 @@ def test_npy_rejects_non_volumes(tmp_path, array, match):
 # ------------------------------------------------------------------------------------------ HDF5
 
 
+def test_a_spacing_of_zero_or_below_reaches_no_model(tmp_path):
+    """A file's spacing of 0 (unknown) reads as the stride, a negative one (a flipped axis) as its
+    size: a model file refuses a spacing that is not positive."""
+    data = np.arange(2 * 3 * 4, dtype=np.float32).reshape(2, 3, 4)
+    p = write_volume(tmp_path / "z.h5", data, spacing=(0.0, -2.0, 3.0))
+    assert read_volume(p).spacing == (1.0, 2.0, 3.0)
+
+
 def test_hdf5_round_trip_with_spacing(tmp_path):
     data = ramp((3, 4, 5), np.float32)
     p = write_volume(tmp_path / "v.h5", data, spacing=(0.5, 2.0, 3.0), origin=(1.0, -2.0, 4.0))

@@ -112,6 +112,8 @@ def _header_problem(h: dict) -> str | None:
         x = g.get(key)
         if not (isinstance(x, list) and len(x) == 3 and all(_is_number(c) for c in x)):
             return f"grid {key} {x!r} is not three finite numbers"
+    if not all(c > 0 for c in g["spacing"]):
+        return f"grid spacing {g['spacing']!r} is not three positive numbers"
     if not (isinstance(v, dict) and _is_number(v.get("min")) and _is_number(v.get("max")) and v["min"] < v["max"]):
         return f"value range {v!r} is not two finite numbers min < max"
     if not (isinstance(src, dict) and _is_count(src.get("bytes"), 0)):

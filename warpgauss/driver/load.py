@@ -11,6 +11,7 @@ from ..analysis import Field, normalise
 from ..devicefield import device_array, is_device_array, normalise_on_device
 from ..errors import WarpgaussError
 from ..io import ReadOptions
+from ..readers.common import usable_spacing
 from ..readers.timesteps import TimeStep
 
 
@@ -76,8 +77,8 @@ def load_field(
         return f, {**info, **field_facts(f, s, fill)}
     elif isinstance(source, TimeStep):  # one timestep of a file with a time axis, with its attributes
         data = source.read()[::s, ::s, ::s]
-        (sx, sy, sz), origin, declared_fill = source.meta()
-        spacing = (sx * s, sy * s, sz * s)
+        declared, origin, declared_fill = source.meta()
+        spacing = usable_spacing(declared, s)
         name, dtype, path = f"{Path(source.path).name}:{source.key}[{source.t}]", str(data.dtype), str(source)
         if fill is None:
             fill = declared_fill

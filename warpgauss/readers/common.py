@@ -207,8 +207,9 @@ def _finish(p: Path, suffix: str, got: _Read, stride: int, lazy: bool = False) -
         data = data[::stride, ::stride, ::stride]
     if not data.dtype.isnative and not lazy:
         data = data.astype(data.dtype.newbyteorder("="))
-    # a header's inf/NaN geometry (metadata only) must not reach the model header, which is strict JSON
-    spacing = tuple(float(v) * stride if np.isfinite(v) else float(stride) for v in got.spacing)
+    # a header's inf/NaN geometry (metadata only) must not reach the model header, which is strict
+    # JSON, nor a spacing of 0 (a model file refuses it) or below 0 (a flipped axis: its size kept)
+    spacing = usable_spacing(got.spacing, stride)
     origin = tuple(float(v) if np.isfinite(v) else 0.0 for v in got.origin)
     return Volume(
         data=data,
@@ -258,6 +259,13 @@ def _check_shape(shape: tuple, what: str) -> None:
         raise WarpgaussError(f"{what} is {len(shape)}D (shape {tuple(shape)}); warpgauss encodes 3D volumes")
     if min(shape) < 1:
         raise WarpgaussError(f"{what} has an empty axis (shape z,y,x = {tuple(shape)}); every axis needs at least 1 voxel")
+
+
+def usable_spacing(spacing, stride: int = 1) -> tuple[float, float, float]:
+    """A declared voxel size ``(x, y, z)`` as a model header takes it, times the stride: an
+    infinite, NaN or 0 entry (unknown) becomes the stride, a negative one (a flipped axis) its size."""
+    x, y, z = (abs(float(v)) * stride if np.isfinite(v) and v != 0 else float(stride) for v in spacing)
+    return (x, y, z)
 
 
 def _check_dtype(dtype: np.dtype, what: str) -> None:
