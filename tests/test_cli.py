@@ -113,7 +113,7 @@ def test_bad_input_is_refused_in_one_line(tmp_path, vortex_raw):
     const = tmp_path / "const.npy"
     np.save(const, np.full((8, 8, 8), 2.0, np.float32))
     cases.append((["encode", const, "--budget", "5"], "constant"))
-    cases.append((["encode", vortex_raw, "--budget", "0"], "at least 1"))
+    cases.append((["encode", vortex_raw, "--budget", "0"], "--budget must be a positive whole number"))
     cases.append((["encode", vortex_raw, "--budget", "100000"], "N_max"))
     odd = tmp_path / "volume.xyz"
     odd.write_bytes(b"abc")
@@ -178,7 +178,7 @@ def test_unexpected_failure_is_one_line_and_debug_shows_the_traceback(tmp_path, 
     def broken(*a, **k):
         raise RuntimeError("boom\nsecond line")
 
-    monkeypatch.setattr(warpgauss.model.Model, "load", broken)
+    monkeypatch.setattr(warpgauss.model.Model, "load_header", broken)
     path = tmp_path / "m.wgs"
     path.write_bytes(b"x")
     res = CliRunner().invoke(app, ["info", str(path)])

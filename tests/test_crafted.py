@@ -123,3 +123,21 @@ def test_a_header_with_a_spacing_of_zero_or_below_is_refused(bomb, tmp_path, spa
     path.write_bytes(_with_header(real.read_bytes(), lambda h: h["grid"].update(spacing=spacing)))
     with pytest.raises(WarpgaussError, match="grid spacing .* is not three positive numbers"):
         warpgauss.Model.load(path)
+
+
+def test_info_reads_the_header_only_and_verify_reads_the_payload(bomb, tmp_path):
+    """`warpgauss info` answers from the validated header (a flipped payload byte goes unseen),
+    `info --verify` reads the payload and finds it."""
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+
+    real, _ = bomb
+    data = bytearray(real.read_bytes())
+    data[-5] ^= 0x20
+    path = tmp_path / "flipped.wgs"
+    path.write_bytes(bytes(data))
+    res = CliRunner().invoke(app, ["info", str(path), "--json"])
+    assert res.exit_code == 0 and json.loads(res.stdout)["n"] == 60
+    res = CliRunner().invoke(app, ["info", str(path), "--verify"])
+    assert res.exit_code == 2 and "payload checksum mismatch" in res.output

@@ -139,6 +139,16 @@ def _header_problem(h: dict) -> str | None:
     return None
 
 
+def _check_header(p: Path, header: dict) -> None:
+    """Refuse a header (of the file ``p``) that lacks what a reader uses or holds it unusable."""
+    for key in ("grid", "values", "source"):
+        if key not in header:
+            raise WarpgaussError(f"{p}: the header lacks '{key}'; the file was not written by warpgauss")
+    problem = _header_problem(header)
+    if problem is not None:
+        raise WarpgaussError(f"{p}: the header's {problem}; the file is damaged or was not written by warpgauss")
+
+
 def _check_decode_size(shape) -> None:
     """Refuse a decode grid this machine cannot hold (the result, and a float64 copy on the way to
     source units) before anything is allocated for it."""
@@ -263,17 +273,25 @@ class Model:
         if not p.is_file():
             raise WarpgaussError(f"no such model file: {p}")
         params, header = read_wgs(p)
-        for key in ("grid", "values", "source"):
-            if key not in header:
-                raise WarpgaussError(f"{p}: the header lacks '{key}'; the file was not written by warpgauss")
-        problem = _header_problem(header)
-        if problem is not None:
-            raise WarpgaussError(f"{p}: the header's {problem}; the file is damaged or was not written by warpgauss")
+        _check_header(p, header)
         m = cls(params, header)
         m.format = header["payload"]["encoding"]
         if m.format == "coded":
             m.coded_bits = dict(header["payload"]["quant"]["bits"])  # saved again, it codes to the same bytes
         return m
+
+    @staticmethod
+    def load_header(path: str | os.PathLike) -> dict:
+        """The header of a ``.wgs`` file, validated as :meth:`load` validates it, without reading
+        (or checking the checksum of) its payload: what ``warpgauss info`` shows."""
+        from .wgs import read_wgs_header
+
+        p = Path(path)
+        if not p.is_file():
+            raise WarpgaussError(f"no such model file: {p}")
+        header = read_wgs_header(p)
+        _check_header(p, header)
+        return header
 
     # -- evaluation ------------------------------------------------------------------------
     def field(self, device: str | None = None):

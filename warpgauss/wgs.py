@@ -486,6 +486,18 @@ def read_wgs(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
         ``(params, header)``: (N, 12) float32 parameters (dequantised for ``compact96``) and the
         header dict as stored (including ``"n"`` and ``"payload"``).
     """
+    params, header = _read(path, payload=True)
+    assert params is not None
+    return params, header
+
+
+def read_wgs_header(path: str | os.PathLike) -> dict:
+    """The header of a ``.wgs`` file, validated as :func:`read_wgs` validates it (checksum, sizes,
+    what the payload may claim against its size), without reading the payload."""
+    return _read(path, payload=False)[1]
+
+
+def _read(path: str | os.PathLike, payload: bool) -> tuple[np.ndarray | None, dict]:
     p = Path(path)
     try:
         f = open(p, "rb")
@@ -578,23 +590,25 @@ def read_wgs(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
                 check_claim(total, n)
             except WarpgaussError as e:
                 raise bad(str(e)) from None
-        payload = f.read(total)
-        if len(payload) != total:
+        if not payload:
+            return None, header
+        data = f.read(total)
+        if len(data) != total:
             raise bad("the file changed while being read; try again")
-    if hashlib.sha256(payload).hexdigest() != sha:
+    if hashlib.sha256(data).hexdigest() != sha:
         raise bad("payload checksum mismatch: the file is damaged; restore it or re-encode")
     if enc in ("compact96", "coded"):
         try:
             if enc == "compact96":
-                params = decode_compact(payload, n, info["quant"])
+                params = decode_compact(data, n, info["quant"])
             else:
                 from .coded import decode_coded
 
-                params = decode_coded(payload, n, info["quant"])
+                params = decode_coded(data, n, info["quant"])
         except WarpgaussError as e:
             raise bad(str(e)) from None
     else:
-        params = np.frombuffer(payload, dtype="<f4").reshape(n, 12).astype(np.float32)
+        params = np.frombuffer(data, dtype="<f4").reshape(n, 12).astype(np.float32)
     try:
         _check_finite(params, "invalid model")
     except WarpgaussError as e:

@@ -91,8 +91,8 @@ def assert_valid_model(m, budget, shape_zyx, *, min_psnr=None):
         # an interior spike: central differences are 0 at an isolated maximum, so no detail candidate
         # (N_max = floor(min(0 / 0.55, 1 / 0.45)) = 0, SPEC section 4)
         (np.pad(np.ones((1, 1, 1), np.float32), 4), 1, "too few to place any primitive"),
-        (smooth().astype(np.float32), 0, "at least 1"),
-        (smooth().astype(np.float32), -3, "at least 1"),
+        (smooth().astype(np.float32), 0, "--budget must be a positive whole number"),
+        (smooth().astype(np.float32), -3, "--budget must be a positive whole number"),
         (np.zeros((8, 8, 8), np.bool_), 1, "not a real number type"),
         (np.zeros((8, 8, 8), np.complex64), 1, "not a real number type"),
         (np.zeros((8, 8), np.float32), 1, "3D"),
