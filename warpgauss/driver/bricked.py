@@ -5,22 +5,20 @@ of whether a file is bricked and read on demand (:func:`bricking`).
 from __future__ import annotations
 
 import dataclasses
-import datetime as _dt
 import os
-import platform
 import time
 from collections.abc import Callable
 
 import numpy as np
 
-from .._version import __version__
-from ..analysis import Field, seed_limit
+from ..analysis import Field
 from ..errors import WarpgaussError
 from ..io import ReadOptions
 from ..model import Model
 from ..profiling import StageRecorder
 from .load import available_memory
 from .options import EncodeOptions, encoding_of, header_for
+from .report import budget_facts, run_facts
 from .sizing import coded_budget, resolve_budget, target_bytes
 
 
@@ -44,7 +42,7 @@ def encode_bricked(
     Dask cluster, the primitives merged into one model of exactly N (then stored in the format,
     coded budgets fitted as in the monolithic encode).
     """
-    from .._warp import device_name, resolve_device, warp
+    from .._warp import resolve_device
     from ..analysis import DeviceVolume
     from ..bricked import brick_cap, brick_tasks, default_halo, parse_bricks, plan_bricks, run_bricks, split_bricks
     from ..wgs import header_size
@@ -57,7 +55,6 @@ def encode_bricked(
     header = header_for(f, opts)
     n = resolve_budget(f, opts, header_size(header, 1 << 40, encoding=enc))
     plan_bricks(f.shape_xyz, counts_xyz, 0 if halo is None else halo)  # a bad bricking is refused before the device starts
-    wp = warp()
     dev = resolve_device(device)
     timer = timer or StageRecorder()
     timer.device = dev
@@ -98,7 +95,6 @@ def encode_bricked(
 
         with timer.stage("EV", "evaluation"):
             evaluation["final"] = evaluate_field(model.field(dev), f, full=full_eval)
-    size, payload = model.file_sizes(encoding=enc)
     bricks_report = [
         {
             "index": list(b.index),
@@ -118,27 +114,8 @@ def encode_bricked(
         for b, st, r in zip(plan, stats, results)
     ]
     model.report = {
-        "warpgauss_version": __version__,
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "device": dev,
-        "device_name": device_name(dev),
-        "warp_version": wp.config.version,
-        "host": platform.node(),
-        "input": input_info or {"name": f.name, "shape_xyz": list(f.shape_xyz)},
-        "budget": {
-            "n": model.n,
-            "requested_budget": opts.budget,
-            "requested_ratio": opts.ratio if opts.budget is None and opts.bytes is None else None,
-            "requested_bytes": budget_bytes,
-            "budget_used": None if budget_bytes is None else size / budget_bytes,
-            "coded_sizing": sizing,
-            "coded_fit": fit,
-            "n_max": seed_limit(f.eligible, f.occupied),
-            "format": enc,
-            "bytes": size,
-            "bytes_per_primitive": payload / max(model.n, 1),
-            "compression_ratio": model.source_bytes / size,
-        },
+        **run_facts(dev, input_info, f),
+        "budget": budget_facts(model, opts, f, enc, budget_bytes, sizing, fit),
         "bricking": {
             "bricks_xyz": list(counts_xyz),
             "halo": halo,

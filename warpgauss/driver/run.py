@@ -5,23 +5,21 @@ each stage a method of :class:`EncodeRun`, timed and memory-profiled.
 from __future__ import annotations
 
 import dataclasses
-import datetime as _dt
-import platform
 import time
 from collections.abc import Callable
 
 import numpy as np
 
-from .._version import __version__
 from ..allocate import allocate
-from ..analysis import Field, seed_limit
+from ..analysis import Field
 from ..errors import WarpgaussError
 from ..model import Model
 from ..profiling import StageRecorder
 from . import replan
 from .checkpoints import Checkpoints, stop_on_sigint
 from .options import EncodeOptions, encoding_of, header_for
-from .sizing import coded_budget, coded_choice, resolve_budget, target_bytes
+from .report import budget_facts, run_facts
+from .sizing import coded_budget, resolve_budget, target_bytes
 
 
 def encode_field(
@@ -456,40 +454,15 @@ class EncodeRun(replan.Replan):
 
     # -- the report --------------------------------------------------------------------------
     def result(self, input_info: dict | None) -> Model:
-        from .._warp import device_name
 
         f, opts, model, dev = self.f, self.opts, self.model, self.dev
         is_analytic = model is self.analytic
-        size, payload = model.file_sizes(encoding=self.enc)  # one coding of a coded model gives both
         fit = self.analytic_fit if is_analytic else self.refined_fit
         note = None if is_analytic else self.coded_bits_note
+        replan_facts = None if is_analytic else self.replan
         model.report = {
-            "warpgauss_version": __version__,
-            "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "device": dev,
-            "device_name": device_name(dev),
-            "warp_version": self.wp.config.version,
-            "host": platform.node(),
-            "input": input_info or {"name": f.name, "shape_xyz": list(f.shape_xyz)},
-            "budget": {
-                "n": model.n,
-                "requested_budget": opts.budget,
-                "requested_ratio": opts.ratio if opts.budget is None and opts.bytes is None else None,
-                "requested_bytes": self.budget_bytes,
-                "budget_used": None if self.budget_bytes is None else size / self.budget_bytes,
-                "coded_sizing": self.sizing,
-                "coded_replan": self.replan,
-                "coded_fit": fit,
-                "coded_bits_from_accuracy": note,
-                "coded_choice": coded_choice(self.sizing, fit, note, None if is_analytic else self.replan),
-                "n_max": seed_limit(f.eligible, f.occupied),
-                "format": self.enc,
-                "bytes": size,
-                "bytes_per_primitive": payload / model.n,
-                "compression_ratio": model.source_bytes / size,
-                "full_precision_bytes": model.file_size(False),
-                "compact_bytes": model.file_size(True),
-            },
+            **run_facts(dev, input_info, f),
+            "budget": budget_facts(model, opts, f, self.enc, self.budget_bytes, self.sizing, fit, replan_facts, note),
             "seed": opts.seed,
             "structure": self.stats,
             "allocation": self.facts,
