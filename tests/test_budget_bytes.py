@@ -125,3 +125,21 @@ def test_the_api_refuses_a_zero_or_infinite_ratio(cpu):
     for ratio in (0, 0.0, float("inf"), float("nan"), -1.0):
         with pytest.raises(WarpgaussError, match="--ratio must be a finite number above 0"):
             warpgauss.encode(vol, ratio=ratio, device=cpu, **FAST)
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(tmp_path, monkeypatch):
+    """It was found only after the whole encode, in a message naming a temporary file. (The
+    folder's permission is simulated: the tests may run as root, whom no permission stops.)"""
+    import os
+
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **k: False if str(p) == str(locked) else real_access(p, mode, **k))
+    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "16", "--budget", "50", "-o", str(locked / "v.wgs")])
+    assert res.exit_code == 2 and f"output directory {locked} is not writable" in res.output
+    assert "stage" not in res.output.lower() and not list(locked.iterdir())

@@ -28,6 +28,8 @@ def check_writable(path: str | os.PathLike, *, force: bool = False) -> Path:
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise WarpgaussError(f"output directory {parent} does not exist; create it first")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise WarpgaussError(f"output directory {parent} is not writable; choose another output path")
     return p
 
 
