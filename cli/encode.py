@@ -347,6 +347,8 @@ def encode(
         from warpgauss.cluster import default_client
 
         parse_bricks(bricks)  # refused in one line before a cluster starts
+        if halo is not None and halo < 0:
+            fail(f"--halo must be >= 0 voxels, got {halo}")
         client, where = default_client(workers, scheduler, device)
         if status is not None:
             status.console.print(f"bricks {bricks}: {where}", highlight=False)

@@ -293,3 +293,20 @@ def test_a_wave_split_into_groups_over_two_workers_gives_the_model_of_one_proces
         client.cluster.close()
     for a, b in zip(alone, grouped):
         np.testing.assert_array_equal(a["params"], b["params"])
+
+
+def test_a_tiny_volume_is_refused_for_what_it_is_not_for_bricks_nobody_asked_for(tmp_path):
+    """A 1x1x1 volume said '1 bricks along z leave fewer than 2 voxels'; one brick along an axis
+    is the whole axis. And a negative --halo is refused before any Dask cluster starts."""
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+
+    one = tmp_path / "one.npy"
+    np.save(one, np.ones((1, 1, 1), np.float32))
+    res = CliRunner().invoke(app, ["encode", str(one), "--budget", "1", "-o", str(tmp_path / "o.wgs")])
+    assert res.exit_code == 2 and "constant" in res.output and "bricks" not in res.output
+    assert len(plan_bricks((5, 1, 1), (2, 1, 1), 0)) == 2
+    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "16", "--budget", "10", "--bricks", "2x1x1",
+                                   "--halo=-1", "--workers", "2", "-o", str(tmp_path / "h.wgs")])
+    assert res.exit_code == 2 and "--halo must be >= 0" in res.output and "cluster" not in res.output
