@@ -177,6 +177,11 @@ def read_config(path: Path) -> dict:
     return data
 
 
+def _hint(e) -> str:
+    """What to run for help, after a usage error that names no option."""
+    return "" if isinstance(e, typer.BadParameter) else f" (see warpgauss {e.ctx.command.name} --help)" if e.ctx is not None else ""
+
+
 def config_callback(ctx: typer.Context, param, value: Path | None):
     """Eager ``--config`` callback: the file's values become the command's defaults (click's
     ``default_map``), so options given on the command line still win. Unknown names and values of
@@ -199,6 +204,11 @@ def config_callback(ctx: typer.Context, param, value: Path | None):
             p = params[names[key]]
             if v is None:
                 continue
+            try:
+                if getattr(p, "callback", None) is None:  # the option's own conversion, here to name the file and key
+                    p.process_value(ctx, v)
+            except typer.BadParameter as e:
+                raise WarpgaussError(f"{value}: {key} = {v!r}: {_first_line(Exception(e.format_message()))}") from None
             defaults[p.name] = v  # converted and checked as a default of the option
     except WarpgaussError as e:
         if debugging():
@@ -228,10 +238,34 @@ def resolved_config(ctx: typer.Context) -> dict:
 PANELS = ("Input", "Budget and format", "Refinement", "Loss weights", "Bricks and cluster", "Run control", "Output")  # help order
 
 
+# click's usage errors, as the installed typer raises them (it vendors its own click from 0.29 on)
+_UsageError = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
+
+
+class OneLineUsageError(_UsageError):  # type: ignore[misc,valid-type]
+    """A usage error shown as one line (``error: ...``, exit 2), not click's usage block."""
+
+    def show(self, file=None) -> None:
+        from rich.markup import escape
+
+        err_console.print(f"[bold red]error:[/] {escape(self.format_message())}", soft_wrap=True, highlight=False)
+
+
 class PanelCommand(typer.core.TyperCommand):
     """A command whose plain-text help groups its options under their ``rich_help_panel`` names
     in the order of :data:`PANELS` (others after them); options without a panel (``--help``)
-    close the list."""
+    close the list. A value click cannot take (``--bytes 1.5``) is refused in one line that names
+    the option and the value."""
+
+    def parse_args(self, ctx, args):
+        try:
+            return super().parse_args(ctx, args)
+        except OneLineUsageError:
+            raise
+        except _UsageError as e:
+            if debugging():
+                raise
+            raise OneLineUsageError(_first_line(e.format_message()) + _hint(e), ctx=e.ctx) from None
 
     def format_options(self, ctx, formatter) -> None:
         args: list = []

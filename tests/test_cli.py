@@ -242,3 +242,17 @@ def test_bad_config_file_is_refused_in_one_line(tmp_path, text, message):
     assert not out.exists()
     r = CliRunner().invoke(app, ["encode", "--example", "vortex", "--config", str(tmp_path / "missing.toml")])
     assert r.exit_code == 2 and "no such configuration file" in r.output
+
+
+def test_a_value_of_the_wrong_type_is_refused_in_one_line_naming_where_it_came_from(tmp_path):
+    """A --config file's value of the wrong type, or a non-integer --bytes, printed click's usage
+    block; now one line naming the file and key, or the option (#34)."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text('ratio = "abc"\n')
+    res = CliRunner().invoke(app, ["encode", "--config", str(bad), "--example", "vortex", "--size", "16", "-o", str(tmp_path / "c.wgs")])
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1 and f"{bad}: ratio = 'abc'" in lines[0] and "Usage" not in res.output
+    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "16", "--bytes", "1.5", "-o", str(tmp_path / "c.wgs")])
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1 and "'--bytes'" in lines[0] and "Usage" not in res.output
+    assert not (tmp_path / "c.wgs").exists()
