@@ -25,7 +25,7 @@ def evaluate(
     device: Annotated[str | None, typer.Option(help="Warp device")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON object")] = False,
 ) -> None:
-    """PSNR, occupied-only PSNR and max abs error on the normalised field (SPEC section 7)."""
+    """PSNR, occupied-only PSNR and max abs error on the normalised field (500,000 sampled voxel centres, or the full grid)."""
     from warpgauss.evaluate import evaluate_against
     from warpgauss.io import ReadOptions
     from warpgauss.model import Model
