@@ -42,7 +42,10 @@ def encode(
         ),
     ] = None,
     ratio: Annotated[
-        float | None, typer.Option(rich_help_panel="Budget and format", help="Target compression ratio: a file of at most source bytes / RATIO; default 20")
+        float | None,
+        typer.Option(
+            rich_help_panel="Budget and format", help="Target compression ratio: a file of at most source bytes / RATIO; default 20"
+        ),
     ] = None,
     file_bytes: Annotated[
         int | None,

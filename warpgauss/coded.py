@@ -55,9 +55,9 @@ _MAX_CODE = 1 << 52  # |code| bound: every code and difference is exact in float
 
 
 # The least payload a coded primitive may take. Real models take more: 5.7-6.4 bytes a Gaussian at
-# the coarsest depths (bits_for_psnr(10 dB)) on the analytic models of the four 48^3 examples at
-# N 200-4,000, 7.6-15.2 refined (README's table); the same row repeated 20,000 times codes to
-# 0.0015. A file claiming more primitives than its payload could hold at this floor (a small
+# the coarsest depths bits_for_psnr gives (10 dB) and 2.2-3.4 at the least the rate control ever
+# keeps (_MIN_BITS), on the analytic models of the four 48^3 examples at N 2,000-4,000; 7.6-15.2
+# refined (README's table); the same row repeated 20,000 times codes to 0.0015. A file claiming more primitives than its payload could hold at this floor (a small
 # frame of zeros claiming millions) is refused before anything is decompressed or allocated, and
 # no file is written that this check would refuse.
 MIN_PAYLOAD_PER_PRIMITIVE = 1.0
@@ -69,7 +69,7 @@ def check_claim(payload_bytes: int, n: int) -> None:
     if n > payload_bytes / MIN_PAYLOAD_PER_PRIMITIVE:
         raise WarpgaussError(
             f"the coded payload of {payload_bytes:,} bytes claims {n:,} primitives ({payload_bytes / max(n, 1):.3g} bytes each; "
-            f"real models take more than 5, this reader refuses below {MIN_PAYLOAD_PER_PRIMITIVE:g}): the file is damaged or crafted"
+            f"real models take more than 2, this reader refuses below {MIN_PAYLOAD_PER_PRIMITIVE:g}): the file is damaged or crafted"
         )
 
 
@@ -270,12 +270,6 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tupl
     blob = b"".join(p.tobytes() for p in planes)
     level = ZSTD_LEVEL if raw <= ZSTD_LARGE_RAW else ZSTD_LEVEL_LARGE
     payload = _zstd().ZstdCompressor(level=level, write_checksum=True).compress(blob)
-    if len(payload) < MIN_PAYLOAD_PER_PRIMITIVE * len(params):
-        raise WarpgaussError(
-            f"these {len(params):,} primitives code to {len(payload) / len(params):.3g} bytes each, below the "
-            f"{MIN_PAYLOAD_PER_PRIMITIVE:g} a coded file must hold to be read back (many identical primitives?); "
-            "save them with --format full"
-        )
     # columns: [offset, bytes] in _COLUMNS order (centres delta-coded from the offset, the rest
     # offset-coded), kept terse: at high compression ratios the header is part of the budget
     quant = {"bits": b, "columns": columns, "raw_bytes": raw}

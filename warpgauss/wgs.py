@@ -427,6 +427,15 @@ def write_wgs(
     dest = check_writable(path, force=force)
     encoding = _encoding(compact, encoding)
     data = wgs_bytes(params, header, encoding=encoding, header_size=header_size, bits=bits)
+    if encoding == "coded":  # no file is written that read_wgs would refuse
+        from .coded import MIN_PAYLOAD_PER_PRIMITIVE
+
+        n, payload = len(params), payload_size(data)
+        if payload < MIN_PAYLOAD_PER_PRIMITIVE * n:
+            raise WarpgaussError(
+                f"these {n:,} primitives code to {payload / n:.3g} bytes each, below the {MIN_PAYLOAD_PER_PRIMITIVE:g} "
+                "a coded file must hold to be read back (many identical primitives?); save them with --format full"
+            )
     atomic_write_bytes(dest, data)
     return len(data)
 
