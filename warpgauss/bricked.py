@@ -504,7 +504,12 @@ def run_bricks(
     return [results[t.index] for t in tasks]
 
 
-MAX_AT_ONCE = 8  # bricks stepping side by side on one device at most
+# bricks stepping side by side on one device at most. Measured (one H200, 512^3 vortex, N 400,000,
+# benchmarks/results/bricked/): the 8 bricks of a 4x4x4 wave took 5.0 ms a round side by side
+# against 7.6 one after another when stepped alone, about 6.3 inside the encode; a wave of one
+# brick (2x2x2) gains nothing. The split forward pass fills the GPU with 27 L threads a sample, so
+# streams overlap only what it leaves idle.
+MAX_AT_ONCE = 8
 
 
 def bricks_at_once(tasks: list[BrickTask], device: str, limit: int | None) -> int:
