@@ -569,3 +569,17 @@ def test_real_nifti():
     # the template is left-right (x) mirror-symmetric: a wrong axis order would break this
     d = vol.data.astype(np.float64)
     assert np.abs(d - d[:, :, ::-1]).mean() < 0.1 * np.abs(d - d[:, ::-1, :]).mean()
+
+
+def test_an_empty_or_foreign_zarr_folder_is_refused_in_words(tmp_path):
+    """An empty store showed zarr's own StorePath(LocalStore, ...) (#34)."""
+    pytest.importorskip("zarr")
+    empty = tmp_path / "empty.zarr"
+    empty.mkdir()
+    with pytest.raises(WarpgaussError, match="empty.zarr is an empty folder, not a Zarr store") as e:
+        read_volume(empty)
+    foreign = tmp_path / "foreign.zarr"
+    (foreign / "sub").mkdir(parents=True)
+    with pytest.raises(WarpgaussError, match="cannot open foreign.zarr as a Zarr store: no Zarr array or group metadata") as e:
+        read_volume(foreign)
+    assert "StorePath" not in str(e.value)

@@ -18,10 +18,15 @@ def _read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False,
         import zarr
     except ImportError:
         raise WarpgaussError("reading a .zarr store needs the 'zarr' package: pip install zarr") from None
+    if path.is_dir() and not any(path.iterdir()):
+        raise WarpgaussError(f"{path.name} is an empty folder, not a Zarr store; give a store that holds a 3D array")
     try:
         root: Any = zarr.open(str(path), mode="r")
     except Exception as e:  # zarr raises several types for a store it cannot read
-        raise WarpgaussError(f"cannot open {path.name} as a Zarr store ({_first_line(e)})") from None
+        why = _first_line(e)
+        if "StorePath(" in why:  # zarr names its own objects: say what was looked for instead
+            why = "no Zarr array or group metadata (.zarray, .zgroup or zarr.json) at its top"
+        raise WarpgaussError(f"cannot open {path.name} as a Zarr store: {why}") from None
     key = None
     arr: Any
     if isinstance(root, zarr.Array):
