@@ -262,7 +262,7 @@ class PanelCommand(typer.core.TyperCommand):
             return super().parse_args(ctx, args)
         except OneLineUsageError:
             raise
-        except _UsageError as e:
+        except _UsageError as e:  # type: ignore[misc]  # click's class, as the installed typer has it
             if debugging():
                 raise
             raise OneLineUsageError(_first_line(e.format_message()) + _hint(e), ctx=e.ctx) from None

@@ -294,7 +294,7 @@ def encode(
         return
     if input is not None and not input.exists():
         fail(f"no such file: {input}")
-    stem = example if example is not None else _stem(input)
+    stem = example if example is not None else _stem(input) if input is not None else "volume"
     out = output or Path(f"{stem}.wgs")
     rep_path = report or out.with_name(out.name + ".report.json")
     check_writable(rep_path, force=force or resume)
@@ -338,7 +338,8 @@ def encode(
         status.start()
 
     def progress(it: int, total: int, rec: dict) -> None:
-        status.update(f"[bold]S2[/] refinement {it}/{total}  loss {rec['total']:.3e}  sample PSNR {rec['sample_psnr_db']:.2f} dB")
+        if status is not None:
+            status.update(f"[bold]S2[/] refinement {it}/{total}  loss {rec['total']:.3e}  sample PSNR {rec['sample_psnr_db']:.2f} dB")
 
     client = None
     if bricks is None and (
@@ -406,7 +407,7 @@ def encode(
             client.close()
             if cluster is not None and scheduler is None:
                 cluster.close()
-    rep = model.report
+    rep = model.run_report
     rep["report"] = str(rep_path)
     rep["config"] = resolved_config(ctx)  # warpgauss encode --config REPORT repeats the run
     atomic_write_bytes(rep_path, json_text(rep).encode())
@@ -450,7 +451,7 @@ def _encode_ladder(
     import warpgauss
     from warpgauss._fs import atomic_write_bytes, check_writable
 
-    budgets = parse_int_list(text, "--ladder")
+    budgets = parse_int_list(text, "--ladder") or ()
     pattern = str(out.with_name(f"{out.stem}.n{{n}}{out.suffix or '.wgs'}"))
     for n in sorted(set(budgets)):
         check_writable(Path(pattern.format(n=n) + ".report.json"), force=force)
@@ -485,7 +486,7 @@ def _encode_ladder(
             status.stop()
     rows = []
     for m in models:
-        rep = m.report
+        rep = m.run_report
         rep["report"] = rep["output"] + ".report.json"
         atomic_write_bytes(rep["report"], json_text(rep).encode())
         ev = rep["evaluation"]
@@ -570,7 +571,7 @@ def _encode_series(
     rows: list[dict] = []
 
     def step(t: int, steps: int, m) -> None:
-        rep = m.report
+        rep = m.run_report
         rep["report"] = rep["output"] + ".report.json"
         atomic_write_bytes(rep["report"], json_text(rep).encode())
         rows.append(
@@ -603,7 +604,7 @@ def _encode_series(
     try:
         if client is None:  # one model at a time: a long series holds two models, not all
             for m in warpgauss.series.iter_series(pattern, **args):
-                step(m.report["series"]["step"], total, m)
+                step(m.run_report["series"]["step"], total, m)
         else:
             warpgauss.encode_series(pattern, on_step=step, client=client, **args)
     finally:

@@ -39,4 +39,7 @@ def _parse_size(size: str) -> tuple[int, int, int]:
     if size.isdigit():
         n = int(size)
         return (n, n, n)
-    return parse_shape(size, "--size")
+    shape = parse_shape(size, "--size")
+    if shape is None:
+        raise typer.BadParameter(f"--size must be N or XxYxZ, got {size!r}")
+    return shape

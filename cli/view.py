@@ -20,7 +20,7 @@ import math
 import os
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 import typer
@@ -96,7 +96,9 @@ class Viewer:
             from vtkmodules.vtkCommonCore import vtkLogger
 
             vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_ERROR)
-        self.plotter = pl = pv.Plotter(off_screen=off_screen, window_size=list(size))
+        # pyvista's annotations (Optional windows, decorated key events) do not follow its use here
+        self.plotter: Any = pv.Plotter(off_screen=off_screen, window_size=list(size))
+        pl: Any = self.plotter
         lo, hi = scene.box
         pl.add_mesh(pv.Box(bounds=(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])).outline(), color="white", opacity=0.35)
         view = resolve_view(camera or Camera(), scene, size[0], size[1])

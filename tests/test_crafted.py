@@ -141,3 +141,11 @@ def test_info_reads_the_header_only_and_verify_reads_the_payload(bomb, tmp_path)
     assert res.exit_code == 0 and json.loads(res.stdout)["n"] == 60
     res = CliRunner().invoke(app, ["info", str(path), "--verify"])
     assert res.exit_code == 2 and "payload checksum mismatch" in res.output
+
+
+def test_a_loaded_model_has_no_run_report_and_says_where_it_is(bomb):
+    real, _ = bomb
+    m = warpgauss.Model.load(real)
+    assert m.report is None
+    with pytest.raises(WarpgaussError, match=r"no run report: it was loaded from a file \(its report is the .report.json beside it\)"):
+        _ = m.run_report

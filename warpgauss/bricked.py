@@ -370,7 +370,7 @@ def brick_job(task: BrickTask) -> Generator[None, None, dict]:
             cfg,
             task.seed,
             task.allocation.scale_min,
-            task.allocation.scale_cap,
+            task.allocation.resolved_cap(f.shape_xyz),  # set by the bricked driver (brick_cap)
             frozen=len(frozen),
         )
         t1 = time.perf_counter()

@@ -458,6 +458,7 @@ def fit_bytes(
                 raise WarpgaussError(f"no coded model of one primitive fits {budget} bytes; give a larger byte budget")
             else:
                 lo, lo_size = cut, cur
+        assert hi is not None and hi_size is not None  # the loop ends only where a size fits
         # then fewer pruned while more fit: interpolate between the two, halving when that stalls
         for _ in range(SEARCH_CODINGS):
             if hi - lo <= 1 or budget - hi_size <= FILL_SHARE * budget:

@@ -76,7 +76,7 @@ class Encoder:
             u = solver.step()              # a (z, y, x) Warp / CuPy / PyTorch array on the GPU
             if step % 10 == 0:
                 m = enc.encode(u, output=f"u_{step:05d}.wgs")
-                print(step, m.report["psnr_db"])
+                print(step, m.run_report["psnr_db"])
     """
 
     def __init__(
@@ -168,7 +168,7 @@ class Encoder:
         device = self.device
         model = encode(volume, device=device, output=output, force=force, session=self.session, **kw)
         seconds = time.perf_counter() - t0
-        rep = model.report
+        rep = model.run_report
         warm = warm and rep.get("start_choice", {}).get("warm", True)
         start_eval = (rep.get("evaluation") or {}).get("analytic")
         if not warm and start_eval:

@@ -168,6 +168,7 @@ def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, ...], o
             cost = ROW_COST * float(reach[1] * reach[2]) + rho * float(np.prod(span))
             if best is None or cost < best[0]:
                 best = (cost, f, tuple(int(v) for v in n))
+        assert best is not None  # the first division (1) always counts
         sizes.append(float(best[1]))
         dims.append(best[2])
     return _with_global_level(sizes, dims)
@@ -467,6 +468,7 @@ class GaussianField:
     def active_fraction(self) -> float:
         """Share of the model grid's bricks a decode evaluates (1.0 when every brick does)."""
         self.active_bricks()
+        assert self._active is not None  # active_bricks() set it
         return self._active[1]
 
     def decode(

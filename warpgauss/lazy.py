@@ -61,7 +61,7 @@ class ArraySource:
         if self.kind == "zarr":
             import zarr
 
-            z = zarr.open(self.path, mode="r")
+            z: Any = zarr.open(self.path, mode="r")  # a group (indexed by name) or an array
             return z if self.key is None else z[self.key]
         raise ValueError(f"unknown array source kind {self.kind!r}")
 

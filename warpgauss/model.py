@@ -189,6 +189,14 @@ class Model:
         self.format: str | None = None  # the format it was encoded for or read from (save's default)
         self.kept_rows: np.ndarray | None = None  # fit_bytes: the rows of the model it was fitted from that it keeps
 
+    @property
+    def run_report(self) -> dict:
+        """The report of the encode that made this model (:attr:`report`); a model loaded from a
+        file has none (its run's report is the ``.report.json`` written beside it)."""
+        if self.report is None:
+            raise WarpgaussError("this model has no run report: it was loaded from a file (its report is the .report.json beside it)")
+        return self.report
+
     # -- description -----------------------------------------------------------------------
     @property
     def n(self) -> int:
@@ -217,10 +225,11 @@ class Model:
         from .wgs import ENCODINGS, _encoding, header_size, payload_size, wgs_bytes
 
         enc = _encoding(compact, encoding)
-        if ENCODINGS[enc] is None:
+        per = ENCODINGS[enc]
+        if per is None:
             data = wgs_bytes(self.params, self.header, encoding=enc, bits=self.coded_bits)
             return len(data), payload_size(data)
-        payload = ENCODINGS[enc] * self.n
+        payload = per * self.n
         return payload + header_size(self.header, self.n, encoding=enc), payload
 
     def compression_ratio(self, compact: bool = False, *, encoding: str | None = None) -> float:

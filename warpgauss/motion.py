@@ -87,6 +87,7 @@ def estimate_motion(ref, cur, levels: int | None = None):
         for _ in range(STEPS if level >= FINEST else 0):
             wp.launch(km.lk_step, dim=blocks, inputs=[r, c, disp, block, LAMBDA], outputs=[step, conf], device=dev)
             wp.launch(km.smooth_blocks, dim=blocks, inputs=[step, conf, CONF_FLOOR], outputs=[disp], device=dev)
+    assert disp is not None  # levels >= 1: the loop ran
     for _ in range(SMOOTH):
         wp.launch(km.smooth_blocks, dim=disp.shape, inputs=[disp, conf, CONF_FLOOR], outputs=[step], device=dev)
         disp, step = step, disp

@@ -287,7 +287,7 @@ def encode_segment(seg: Segment, on_step=None) -> list[Model]:
     for m in iter_segment(seg):
         chain.append(m)
         if on_step is not None:
-            on_step(m.report["series"]["step"], seg.total, m)
+            on_step(m.run_report["series"]["step"], seg.total, m)
     return chain
 
 
@@ -314,27 +314,27 @@ def iter_segment(seg: Segment) -> Iterator[Model]:
                 kw["iterations"] = seg.warm_iterations
         m = encode(src, read=seg.read, output=out, force=seg.force, **kw)
         keyframe = None
-        psnr = m.report.get("psnr_db")
+        psnr = m.run_report.get("psnr_db")
         if warm and drift is not None and psnr is not None:
             if best is not None and psnr < best - drift:
                 cold = encode(src, read=seg.read, **cold_kw)
                 keyframe = {
                     "why": f"the warm PSNR {psnr:.2f} dB fell more than {drift:g} dB below the chain's best {best:.2f}",
                     "warm_psnr_db": psnr,
-                    "cold_psnr_db": cold.report.get("psnr_db"),
+                    "cold_psnr_db": cold.run_report.get("psnr_db"),
                     "kept": "warm",
                 }
-                if (cold.report.get("psnr_db") or float("-inf")) > psnr:  # else the field changed: the warm one stays
+                if (cold.run_report.get("psnr_db") or float("-inf")) > psnr:  # else the field changed: the warm one stays
                     if out is not None:
                         cold.save(out, force=True)  # over the warm model this call wrote
-                        cold.report["output"] = str(Path(out))
+                        cold.run_report["output"] = str(Path(out))
                     m, warm, keyframe["kept"] = cold, False, "cold"
                 best = psnr if warm else None  # a new baseline either way
             else:
                 best = psnr if best is None else max(best, psnr)
         elif not warm:
             best = None
-        m.report["series"] = {
+        m.run_report["series"] = {
             "variable": seg.var,
             "step": t,
             "steps": seg.total,
@@ -342,7 +342,7 @@ def iter_segment(seg: Segment) -> Iterator[Model]:
             "source": "array" if isinstance(src, np.ndarray) else str(src),
         }
         if keyframe is not None:
-            m.report["series"]["keyframe"] = keyframe
+            m.run_report["series"]["keyframe"] = keyframe
         if first_n is None:
             first_n = m.n  # timestep 0 fixes N for the rest of the chain
         before = m
@@ -377,7 +377,7 @@ def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
         by_var.setdefault(seg.var, []).extend(head)
     for part, models in zip(parts, done):
         by_var[part.var].extend(models)
-    return [m for seg in plan for m in sorted(by_var[seg.var], key=lambda m: m.report["series"]["step"])]
+    return [m for seg in plan for m in sorted(by_var[seg.var], key=lambda m: m.run_report["series"]["step"])]
 
 
 def _gather(client, segments: list[Segment], on_step) -> list[list[Model]]:
@@ -386,7 +386,7 @@ def _gather(client, segments: list[Segment], on_step) -> list[list[Model]]:
     def after(done: int, i: int, models: list[Model]) -> None:
         if on_step is not None:
             for m in models:
-                on_step(m.report["series"]["step"], segments[i].total, m)
+                on_step(m.run_report["series"]["step"], segments[i].total, m)
 
     keys = [f"warpgauss-series-{i}-{id(s)}" for i, s in enumerate(segments)]
     return map_on_cluster(client, encode_segment, segments, keys, "a series part", after=after) if segments else []

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import time
+from typing import Any
 
 from .errors import WarpgaussError
 from .viewer import PRESETS, TF_FILE, Viewer
@@ -46,12 +47,12 @@ class _Area:
         self.viewer = viewer
         self.on_frame = on_frame
         self.request_update = request_update
-        self._key = None  # the state the shown frame draws
-        self._failed = None  # a state whose frame failed (not retried)
-        self._img = None
+        self._key: str | None = None  # the state the shown frame draws
+        self._failed: str | None = None  # a state whose frame failed (not retried)
+        self._img: Any = None  # the shown frame (an image array)
         self._busy = False
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="warpgauss-frame")
-        self._press = None  # (x, y) of the last left-button position while dragging
+        self._press: tuple[Any, Any] | None = None  # (x, y) of the last left-button position while dragging
 
     @property
     def img_cols_rows(self):

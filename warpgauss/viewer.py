@@ -167,6 +167,7 @@ class Viewer:
         from .render import VolumeRenderer
 
         t = s.time
+        assert self.volumes is not None  # the comparison view exists only with the source volumes
         if t not in self._reference:
             self._reference.clear()
             self._reference[t] = VolumeRenderer(

@@ -58,6 +58,7 @@ import os
 import struct
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -126,7 +127,7 @@ def _header_bytes(header: dict, n: int, payload_info: dict) -> bytes:
 
 
 def _payload_info(encoding: str, sha256: str, quant: dict | None, payload_bytes: int | None = None) -> dict:
-    info = {
+    info: dict[str, Any] = {
         "encoding": encoding,
         "bytes_per_primitive": ENCODINGS[encoding],
         "layout": list(PARAM_NAMES),
@@ -135,7 +136,7 @@ def _payload_info(encoding: str, sha256: str, quant: dict | None, payload_bytes:
     if quant is not None:
         info["quant"] = quant
     if ENCODINGS[encoding] is None:
-        info["payload_bytes"] = int(payload_bytes)
+        info["payload_bytes"] = int(payload_bytes or 0)
     return info
 
 

@@ -70,8 +70,9 @@ def encode_bricked(
         with timer.stage("S1p", "coded size pilot"):
             dv = DeviceVolume(f, dev)
             n, sizing = coded_budget(dv, f, opts, header, budget_bytes, n)
-    allocation = dataclasses.replace(opts.allocation, scale_cap=brick_cap(opts.allocation.resolved_cap(f.shape_xyz), f.shape_xyz, n))
-    halo = default_halo(allocation.scale_cap) if halo is None else int(halo)
+    cap = brick_cap(opts.allocation.resolved_cap(f.shape_xyz), f.shape_xyz, n)
+    allocation = dataclasses.replace(opts.allocation, scale_cap=cap)
+    halo = default_halo(cap) if halo is None else int(halo)
     plan = plan_bricks(f.shape_xyz, counts_xyz, halo)
     with timer.stage("Sb", "budget split over the bricks"):
         counts, stats = split_bricks(f, plan, n)

@@ -53,7 +53,7 @@ def _warm_params(warm_start) -> np.ndarray | None:
 
 def finish_report(model: Model, timer: StageRecorder) -> dict:
     """Put the stage table and totals into the model's report."""
-    rep = model.report
+    rep = model.run_report
     rep["stages"] = timer.to_list()
     rep["total_seconds"] = round(sum(s.seconds for s in timer.stages), 6)
     host = [s.host_peak_bytes for s in timer.stages]
@@ -258,7 +258,7 @@ def encode(
             on_progress=on_bricks,
             max_device_memory=limit,
         )
-        model.report["bricking"].update(
+        model.run_report["bricking"].update(
             chosen="by the device and host limits" if auto else "given",
             max_device_memory=limit,
             read_lazily=bool(info.get("read_lazily")),
@@ -280,8 +280,8 @@ def encode(
     if output is not None:
         with timer.stage("S3", "export"):
             model.save(output, encoding=encoding_of(opts), force=True if resume else force)
-        model.report["output"] = str(Path(output))
-    if checkpoint is not None and not model.report.get("interrupted") and Path(checkpoint).is_file():
+        model.run_report["output"] = str(Path(output))
+    if checkpoint is not None and not model.run_report.get("interrupted") and Path(checkpoint).is_file():
         Path(checkpoint).unlink()  # the run finished: its model replaces the checkpoint
     finish_report(model, timer)
     return model

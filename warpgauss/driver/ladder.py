@@ -68,9 +68,10 @@ def encode_ladder(
         raise WarpgaussError(f"--ladder needs positive budgets, got {list(budgets)}")
     paths: list[Path | None] = [None] * len(ladder)
     if output_pattern is not None:
-        paths = [Path(output_pattern.format(n=n)) for n in ladder]
-        for p in paths:
+        named = [Path(output_pattern.format(n=n)) for n in ladder]
+        for p in named:
             check_writable(p, force=force)
+        paths = list(named)
     refine = with_stop_rules(resolve_refine(refine, preset, iterations, samples), target_psnr, plateau_db)
     first = StageRecorder(on_stage=on_stage)
     with first.stage("P", "load and normalise"):
@@ -108,14 +109,14 @@ def encode_ladder(
             cache=cache,
         )
         if i > 0:
-            model.report["skipped"].insert(0, {"what": "P", "why": "volume loaded once for the ladder", "seconds_saved": load_seconds})
+            model.run_report["skipped"].insert(0, {"what": "P", "why": "volume loaded once for the ladder", "seconds_saved": load_seconds})
             if self_test:
-                model.report["skipped"].append({"what": "self-test", "why": "run once for the ladder, with the first budget"})
+                model.run_report["skipped"].append({"what": "self-test", "why": "run once for the ladder, with the first budget"})
         if path is not None:
             with timer.stage("S3", "export"):
                 model.save(path, encoding=enc, force=force)
-            model.report["output"] = str(path)
+            model.run_report["output"] = str(path)
         finish_report(model, timer)
-        model.report["ladder"] = {"budgets": ladder, "position": i, "shared": ["P", "S1a"] if i else []}
+        model.run_report["ladder"] = {"budgets": ladder, "position": i, "shared": ["P", "S1a"] if i else []}
         models.append(model)
     return models

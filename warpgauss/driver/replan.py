@@ -121,8 +121,8 @@ class Replan:
         (see :data:`REFIT_SHARE`) and fitted once more; the report's ``coded_fit.refit`` says so."""
         from ..refine import Refiner
 
+        assert self.model is not None and self.refined_fit is not None  # refine() stored the refined model
         fit, kept = self.refined_fit, self.model.kept_rows
-        assert fit is not None
         cfg = self.opts.refine
         if kept is None or fit["pruned"] <= REFIT_MIN_PRUNED * refined.n or REFIT_SHARE <= 0:
             return

@@ -409,10 +409,12 @@ class EncodeRun(replan.Replan):
                 self.skip("EV evaluation", "disabled by the caller")
             return
         evaluation = self.evaluation
-        if self.opts.init is not None and not self.opts.evaluate_start and self.model is not self.analytic:
+        model = self.model
+        assert model is not None  # allocate() or the warm start set it
+        if self.opts.init is not None and not self.opts.evaluate_start and model is not self.analytic:
             with self.timer.stage("EV", "evaluation"):
                 evaluation["analytic"] = self.start_eval
-                evaluation["final"] = self._evaluate(self.model)
+                evaluation["final"] = self._evaluate(model)
             evaluation["gain_db"] = None if self.start_eval is None else evaluation["final"]["psnr_db"] - self.start_eval["psnr_db"]
             if self.start_eval is None:
                 self.skip("EV of the starting model", "an Encoder call on a time budget scores only the model it returns")
@@ -423,7 +425,7 @@ class EncodeRun(replan.Replan):
                 evaluation["final"] = evaluation["analytic"]
             else:
                 t0 = time.perf_counter()
-                evaluation["final"] = self._evaluate(self.model)
+                evaluation["final"] = self._evaluate(model)
                 share = evaluation["final"].get("bricks_evaluated_share")
                 if share is not None and 0.0 < share < 1.0:
                     self.skip(
@@ -456,6 +458,7 @@ class EncodeRun(replan.Replan):
     def result(self, input_info: dict | None) -> Model:
 
         f, opts, model, dev = self.f, self.opts, self.model, self.dev
+        assert model is not None  # allocate() or the warm start set it
         is_analytic = model is self.analytic
         fit = self.analytic_fit if is_analytic else self.refined_fit
         note = None if is_analytic else self.coded_bits_note

@@ -77,6 +77,7 @@ def resolve_budget(f: Field, opts: EncodeOptions, header_bytes: int) -> int:
     bpp = sizing_bpp(encoding_of(opts))
     total = target_bytes(f, opts)
     if total is None:
+        assert opts.budget is not None  # target_bytes gives None only for --budget
         n = int(opts.budget)
     else:
         n = budget_from_bytes(total, f.source_bytes, header_bytes, bpp, encoding_of(opts))

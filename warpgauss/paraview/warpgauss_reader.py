@@ -320,7 +320,7 @@ class WarpgaussReader(VTKPythonAlgorithmBase):
         try:
             header = self._header()
             shape = decode_shape(header, self._resolution)
-            img, poly, lut = decode_image(self._filename, shape, self._device or None)
+            img, poly, lut = decode_image(str(self._filename), shape, self._device or None)  # _header() checked it is set
             own = bool(self._tf_file)
             if own:
                 lut = file_transfer_function(self._tf_file, header)

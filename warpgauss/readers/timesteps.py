@@ -96,9 +96,10 @@ def time_steps(path, variable: str | None = None) -> list[TimeStep] | None:
         if len(shapes[key]) != 4:
             return None
     else:
-        key = next((n for n, sh in found if len(sh) == 4 and sh[0] > 1), None)
-        if key is None:
+        first = next((n for n, sh in found if len(sh) == 4 and sh[0] > 1), None)
+        if first is None:
             return None
+        key = first
     steps = int(shapes[key][0])
     return [TimeStep(str(p), key, t, kind, steps) for t in range(steps)]
 

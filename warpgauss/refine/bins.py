@@ -106,7 +106,7 @@ class Binner:
     def global_members(self) -> int:
         """Primitives binned in the last, global level (syncs; normally 0 after a re-plan)."""
         s = self.state
-        c = s.plan.total_cells - 1
+        c = s.binned.total_cells - 1
         p = s.prims
         return int(p.cell_end[c:].numpy()[0] - p.cell_start[c:].numpy()[0])
 
@@ -116,4 +116,4 @@ class Binner:
 
         s = self.state
         p = s.prims
-        self._wp.launch(kf.slot_cells, dim=s.plan.total_cells, inputs=[p.cell_start, p.cell_end], outputs=[s.slot_cell], device=s.device)
+        self._wp.launch(kf.slot_cells, dim=s.binned.total_cells, inputs=[p.cell_start, p.cell_end], outputs=[s.slot_cell], device=s.device)

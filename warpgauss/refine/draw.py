@@ -61,7 +61,7 @@ class Sampler:
         if self.uniform_support:
             shape = self.bricks
             # (coverage counts per brick, "everything" flag, supported voxels per brick)
-            self.marks = (
+            self.marks: tuple | None = (
                 wp.zeros(shape, dtype=int, device=dev),
                 wp.zeros(1, dtype=int, device=dev),
                 wp.zeros(shape, dtype=int, device=dev),
@@ -142,7 +142,7 @@ class Sampler:
         if not self.uniform_support:
             return
         wp, dev = self._wp, self.device
-        marks, everything, _ = self.marks
+        marks, everything, _ = self.support_marks
         marks.zero_()
         everything.zero_()
         wp.launch(ks.mark_support, dim=mu.shape[0], inputs=[mu, ext], outputs=[marks, everything], device=dev)
@@ -151,11 +151,18 @@ class Sampler:
             wp.launch(ks.prefix_sum_axis, dim=lines, inputs=[marks, axis], device=dev)
         self.index_support()
 
+    @property
+    def support_marks(self) -> tuple:
+        """(marks, everything, counts) of the uniform stratum's support (only with a support)."""
+        if self.marks is None:
+            raise RuntimeError("the sampler has no support marks (its uniform stratum draws from every voxel)")
+        return self.marks
+
     def index_support(self) -> None:
         """Prefix sums of the supported voxels per brick, the index the sampler draws from."""
         from ..kernels import sampling as ks
 
-        marks, everything, counts = self.marks
+        marks, everything, counts = self.support_marks
         nz, ny, nx = self.dv.values.shape
         self._wp.launch(ks.support_counts, dim=marks.shape, inputs=[marks, everything, nz, ny, nx], outputs=[counts], device=self.device)
         self._wp.utils.array_scan(counts.flatten(), self.support, inclusive=True)

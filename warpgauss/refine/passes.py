@@ -68,7 +68,7 @@ class PairPasses:
         self._buf = None
 
     def use_partials(self) -> bool:
-        return self.split and self.n_points * 27 * len(self.state.plan.sizes) <= PARTIAL_MAX_ENTRIES
+        return self.split and self.n_points * 27 * len(self.state.binned.sizes) <= PARTIAL_MAX_ENTRIES
 
     def buffers(self) -> dict:
         """Buffers that bin the points of an iteration on every level's point grid and split the
@@ -78,7 +78,7 @@ class PairPasses:
             from ..field import plan_arrays, plan_point_grids
             from ..kernels import backward as kb
 
-            wp, dev, n, plan = self._wp, self.device, self.state.n, self.state.plan
+            wp, dev, n, plan = self._wp, self.device, self.state.n, self.state.binned
             levels, p2 = len(plan.sizes), self.n_points
             k = levels * p2
             gp = plan_point_grids(plan, p2, self.shape_xyz, self.sampler.n_high + self.sampler.n_mid)
@@ -128,7 +128,7 @@ class PairPasses:
 
         wp, dev, b = self._wp, self.device, self.buffers()
         grid, cells = b["grid"], b["grid_plan"].total_cells
-        k = len(self.state.plan.sizes) * count
+        k = len(self.state.binned.sizes) * count
         wp.launch(
             kf.point_keys,
             dim=k,
@@ -153,7 +153,7 @@ class PairPasses:
             outputs=[b["fkeys"], b["forder"]],
             device=dev,
         )
-        wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, max(1, (self.state.plan.total_cells - 1).bit_length()))
+        wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, max(1, (self.state.binned.total_cells - 1).bit_length()))
 
     def forward(self, value_empty: float, density_weight: float, now) -> None:
         """Order the points by cell, evaluate V~ and rho at them, and the per-point loss gradients
@@ -163,7 +163,7 @@ class PairPasses:
 
         wp, dev, m2, s = self._wp, self.device, self.n_points, self.sampler
         self.order_points(m2)
-        b = self._buf
+        b = self.buffers()
         order = b["forder"]
         prims = self.state.prims
         if self.use_partials():
@@ -197,7 +197,7 @@ class PairPasses:
         n = st.n
         count = self.n_points if count is None else int(count)
         self.sort_points(count)
-        k = len(st.plan.sizes) * count
+        k = len(st.binned.sizes) * count
         wp.launch(
             kb.gather_point_state,
             dim=k,

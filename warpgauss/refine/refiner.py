@@ -433,9 +433,9 @@ class Refiner:
             "counts": s.counts.numpy(),
             "reach": s.reach.numpy(),
             # the support as marked at the last re-bin, not as the current primitives would mark it
-            "support": (smp.marks[0].numpy().reshape(-1) != 0).astype(np.uint8) if smp.uniform_support else np.zeros(0, np.uint8),
+            "support": (smp.support_marks[0].numpy().reshape(-1) != 0).astype(np.uint8) if smp.uniform_support else np.zeros(0, np.uint8),
         }
-        plan = s.plan
+        plan = s.binned
         scalars = {
             "n": self.n,
             "iteration": self.iteration,
@@ -446,7 +446,7 @@ class Refiner:
             "rebins": self.rebins,
             "n_train": self.state.n_train,
             "split": self.split,
-            "support_everything": int(smp.marks[1].numpy()[0]) if smp.uniform_support else 0,
+            "support_everything": int(smp.support_marks[1].numpy()[0]) if smp.uniform_support else 0,
             "plan": {
                 "sizes": list(plan.sizes),
                 "dims": [list(d) for d in plan.dims],
@@ -497,7 +497,7 @@ class Refiner:
         s.zero_grads()
         smp = self.sampler
         if smp.uniform_support:
-            marks, everything, _ = smp.marks
+            marks, everything, _ = smp.support_marks
             if arrays["support"].size != marks.size:
                 raise WarpgaussError(f"checkpoint holds {arrays['support'].size} support bricks, this run has {marks.size}")
             marks.assign(arrays["support"].reshape(marks.shape).astype(np.int32))

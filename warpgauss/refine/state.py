@@ -69,6 +69,13 @@ class Primitives:
         self.reach = wp.zeros(n, dtype=float, device=dev)  # binning radius deferred steps ask for
 
     @property
+    def binned(self) -> BinPlan:
+        """The bin plan (:attr:`plan`), which the first re-bin sets."""
+        if self.plan is None:
+            raise RuntimeError("the primitives are used before their first re-bin")
+        return self.plan
+
+    @property
     def pair_grads(self) -> tuple:
         """The per-slot gradient buffers the pair pass writes (mu, log-sigma, R, a, w)."""
         return (self.d_mu, self.d_ls, self.d_rot, self.d_a, self.d_w)
