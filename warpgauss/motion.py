@@ -3,7 +3,7 @@
 A warm start from the previous model pays off only while structures stay where its primitives are:
 refinement moves a primitive only as far as its own footprint sees, so an advected blob that left
 its primitives behind is refitted from scratch (measured on the rotating examples, see
-``benchmarks/i21/README.md``). Here the previous model, decoded on the grid, is matched to the new
+``benchmarks/series/README.md``). Here the previous model, decoded on the grid, is matched to the new
 timestep by block Lucas-Kanade on a pyramid (``kernels/motion.py``), and each primitive's centre
 moves by the displacement found there before refinement starts. Shapes, values and weights are
 kept: the structure moved, it did not change.

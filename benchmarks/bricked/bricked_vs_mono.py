@@ -2,7 +2,7 @@
 settings (issue #20 target: PSNR within 0.2 dB, time within 1.3x), full-grid PSNR, and the PSNR
 on voxels within 2 voxels of an inner brick face against the rest.
 
-    python benchmarks/i20/bricked_vs_mono.py --size 512 --budget 400000 --fields vortex,interface --out $OUT/i20_bricked_h100.json
+    python benchmarks/bricked/bricked_vs_mono.py --size 512 --budget 400000 --fields vortex,interface --out $OUT/i20_bricked_h100.json
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def main(argv=None) -> dict:
     warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64, format="full")  # compile
     result = {
         "benchmark": "bricked vs monolithic encode, same N and settings (format full, defaults otherwise)",
-        "command": "python benchmarks/i20/bricked_vs_mono.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+        "command": "python benchmarks/bricked/bricked_vs_mono.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
         "device": dev,
         "device_name": device_name(dev),
         "warp_version": wp.config.version,

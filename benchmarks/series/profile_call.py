@@ -2,7 +2,7 @@
 call, then warm calls under cProfile at a short time budget; prints the stage table and the
 functions with the largest cumulative time.
 
-    python benchmarks/i21/profile_call.py --size 256 --budget 55000 --time-budget 0.12 --out $OUT/i21_profile_call_h100.json
+    python benchmarks/series/profile_call.py --size 256 --budget 55000 --time-budget 0.12 --out $OUT/i21_profile_call_h100.json
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def main(argv=None) -> dict:
     pstats.Stats(prof, stream=s).sort_stats("cumulative").print_stats(45)
     print(s.getvalue())
     out = {
-        "command": "python benchmarks/i21/profile_call.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "command": "python benchmarks/series/profile_call.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "device_name": device_name(dev),
         "warp_version": wp.config.version,
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),

@@ -1,7 +1,7 @@
 """Seam quality of the bricked encode (issue #20), CPU: full-grid PSNR on voxels within 2 voxels of
 an inner brick face against the rest, 2x2x2 bricks, the default halo and 8, two example fields at 48^3.
 
-    python benchmarks/i20/seam_cpu.py --out benchmarks/results/i20_seam_cpu.json
+    python benchmarks/bricked/seam_cpu.py --out benchmarks/results/bricked/i20_seam_cpu.json
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def main(argv=None) -> dict:
             print(row, flush=True)
     result = {
         "benchmark": "bricked encode seam quality (2x2x2), CPU",
-        "command": "python benchmarks/i20/seam_cpu.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+        "command": "python benchmarks/bricked/seam_cpu.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
         "device": "cpu",
         "warp_version": warp().config.version,
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),

@@ -4,7 +4,7 @@ is chosen from the limit, each brick reads its own box from the file. Reports th
 memory (Warp's pool high-water mark), this process's peak host RSS against the file's size, PSNR
 on 500,000 sampled voxels, and the time of each stage.
 
-    python benchmarks/i20/out_of_core.py --size 2048 --budget 4000000 --max-device-memory 24GiB --dir /tmp --out $OUT/i20_out_of_core_h100.json
+    python benchmarks/bricked/out_of_core.py --size 2048 --budget 4000000 --max-device-memory 24GiB --dir /tmp --out $OUT/i20_out_of_core_h100.json
 """
 
 from __future__ import annotations
@@ -101,7 +101,7 @@ def main(argv=None) -> dict:
     }
     result = {
         "benchmark": "out-of-core bricked encode of a raw float32 volume under a device-memory limit",
-        "command": "python benchmarks/i20/out_of_core.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "command": "python benchmarks/bricked/out_of_core.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "device": dev,
         "device_name": device_name(dev),
         "warp_version": warp().config.version,
