@@ -665,6 +665,8 @@ def _print_summary(rep: dict) -> None:
         f"{b['n']} Gaussians, {human_bytes(b['bytes'])} ({b['bytes']} B, {b['format']}, {b['bytes_per_primitive']:.2f} B/Gaussian), "
         f"compression {b['compression_ratio']:.2f}x on {rep['device_name']}"
     )
+    if b.get("coded_choice"):  # how a coded file met its byte budget: primitives against precision
+        out_console.print(f"size: {b['coded_choice']}", soft_wrap=True)
     an = rep["evaluation"].get("analytic")
     if an and ev and an is not ev and rep["refinement"].get("iterations"):
         r = rep["refinement"]

@@ -256,3 +256,15 @@ def test_a_value_of_the_wrong_type_is_refused_in_one_line_naming_where_it_came_f
     lines = res.output.strip().splitlines()
     assert res.exit_code == 2 and len(lines) == 1 and "'--bytes'" in lines[0] and "Usage" not in res.output
     assert not (tmp_path / "c.wgs").exists()
+
+
+def test_the_summary_says_how_a_coded_file_met_its_size(tmp_path):
+    """The report's coded_choice, printed for people: the sizing, the re-plan and the rate control,
+    in words, without result-file names."""
+    res = CliRunner().invoke(
+        app, ["encode", "--example", "vortex", "--size", "24", "--ratio", "30", "--iterations", "10", "--samples", "256",
+              "--device", "cpu", "-o", str(tmp_path / "v.wgs")]
+    )
+    assert res.exit_code == 0, res.output
+    size = [line for line in res.stdout.splitlines() if line.startswith("size: N ")]
+    assert len(size) == 1 and "rate control:" in size[0] and "benchmarks/" not in size[0]

@@ -128,7 +128,8 @@ def coded_budget(dv, f: Field, opts: EncodeOptions, header: dict, total: int, n_
 
 
 def coded_choice(sizing: dict | None, fit: dict | None, note: dict | None, replan: dict | None = None) -> str | None:
-    """One sentence on how a coded file met its budget: primitives against precision."""
+    """One sentence on how a coded file met its budget: primitives against precision (the
+    measurements behind each rule are beside its constant, not in this user-facing text)."""
     if sizing is None and note is None:
         return None
     parts = []
@@ -136,10 +137,9 @@ def coded_choice(sizing: dict | None, fit: dict | None, note: dict | None, repla
         grids = (
             f"{sizing['bits_added']} bit(s) over the default grids, for the {sizing['expected_psnr_db']:.1f} dB expected "
             f"(pilot {sizing['pilot_psnr_db']:.1f} dB + refinement), since an accurate model that drops bits to fit loses more than "
-            "the Gaussians cost (benchmarks/results/i18_sizing_h100.json)"
+            "the Gaussians cost"
             if sizing["bits_added"]
-            else "the default grids, since each of their bits costs less PSNR than the Gaussians its bytes would buy "
-            "(benchmarks/results/i18_coded_cpu.json)"
+            else "the default grids, since each of their bits costs less PSNR than the Gaussians its bytes would buy"
         )
         parts.append(
             f"N {sizing['n']:,} from a pilot of {sizing['pilot_n']:,} at {sizing['pilot_bytes_per_primitive']:.2f} B x "
@@ -165,6 +165,6 @@ def coded_choice(sizing: dict | None, fit: dict | None, note: dict | None, repla
             pruned += f", the rest refined again for {fit['refit']['iterations']} iterations"
         parts.append(
             f"rate control: {did}; {pruned} (an excess up to {fit.get('prune_share', 0):.0%} is pruned, beyond it bits "
-            "are dropped first: a pruned model keeps holes that cost more, benchmarks/results/accuracy/)"
+            "are dropped first: a pruned model keeps holes that cost more)"
         )
     return "; ".join(parts)
