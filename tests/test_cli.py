@@ -262,7 +262,7 @@ def test_the_summary_says_how_a_coded_file_met_its_size(tmp_path):
     """The report's coded_choice, printed for people: the sizing, the re-plan and the rate control,
     in words, without result-file names."""
     res = CliRunner().invoke(
-        app, ["encode", "--example", "vortex", "--size", "24", "--ratio", "30", "--iterations", "10", "--samples", "256",
+        app, ["encode", "--example", "vortex", "--size", "32", "--ratio", "20", "--iterations", "10", "--samples", "256",
               "--device", "cpu", "-o", str(tmp_path / "v.wgs")]
     )
     assert res.exit_code == 0, res.output
