@@ -268,3 +268,33 @@ def test_the_summary_says_how_a_coded_file_met_its_size(tmp_path):
     assert res.exit_code == 0, res.output
     size = [line for line in res.stdout.splitlines() if line.startswith("size: N ")]
     assert len(size) == 1 and "rate control:" in size[0] and "benchmarks/" not in size[0]
+
+
+# how `warpgauss encode`'s options reach warpgauss.encode: the same name, another name (this
+# table), a part of a settings object, or a command-line matter; a new option on either side must
+# be placed here, so that none is dropped on the way (#33)
+CLI_TO_API = {
+    "input": "source", "size": "example_size", "fmt": "format", "no_self_test": "self_test",
+    "plateau": "plateau_db", "save_analytic": "analytic_output",
+    # parts of the settings objects encode takes
+    "lr": "refine", "w_value_empty": "refine", "w_density": "refine", "w_smooth": "refine",
+    "w_smooth_final": "refine", "w_anchor": "refine", "w_aniso": "refine", "w_cap": "refine",
+    "stride": "read", "shape": "read", "dtype": "read", "endian": "read", "dataset": "read",
+    "variable": "read", "fill_value": "read",
+    "workers": "client", "scheduler": "client",
+}
+CLI_ONLY = {"ctx", "ladder", "report", "as_json", "config", "cold", "warm_iterations", "keyframe_drift"}  # ladder/series paths, output
+API_ONLY = {"allocation", "evaluate", "on_bricks", "on_progress", "on_stage", "on_stats", "session", "warm_start"}  # Python callers
+
+
+def test_every_command_line_option_maps_to_the_api_and_back():
+    import inspect
+
+    import warpgauss
+    from warpgauss.cli.encode import encode as cli_encode
+
+    cli = set(inspect.signature(cli_encode).parameters)
+    api = set(inspect.signature(warpgauss.encode).parameters)
+    mapped = {CLI_TO_API.get(p, p) for p in cli - CLI_ONLY}
+    assert mapped - api == set(), sorted(mapped - api)  # every option reaches an encode argument
+    assert api - mapped == API_ONLY, sorted((api - mapped) ^ API_ONLY)  # and every argument has an option or is for Python

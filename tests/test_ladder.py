@@ -65,3 +65,37 @@ def test_ladder_cli_keeps_target_psnr_and_plateau(tmp_path, cpu):
         assert refinement["target_psnr"] == 99.0 and refinement["plateau_db"] == 0.25
     res = CliRunner().invoke(app, [*args[:-3], "--target-psnr=-1", "-o", str(tmp_path / "w.wgs"), "--json"])
     assert res.exit_code == 2 and "--target-psnr must be a positive number of dB" in res.output
+
+
+# what a ladder does not take from warpgauss.encode, and why (a new encode option must be added to
+# encode_ladder or here, so that no path drops it silently, as --target-psnr once was)
+NOT_FOR_LADDERS = {
+    "budget": "the ladder gives the budgets",
+    "ratio": "the ladder gives the budgets",
+    "file_bytes": "the ladder gives the budgets",
+    "output": "output_pattern names one file per budget",
+    "analytic_output": "one analytic model per budget is not written",
+    "checkpoint": "ladders do not resume",
+    "checkpoint_every": "ladders do not resume",
+    "resume": "ladders do not resume",
+    "time_budget": "a time budget is one encode's",
+    "bricks": "a ladder encodes the whole volume",
+    "halo": "a ladder encodes the whole volume",
+    "client": "a ladder encodes the whole volume",
+    "max_device_memory": "a ladder encodes the whole volume",
+    "max_host_memory": "a ladder encodes the whole volume",
+    "on_bricks": "a ladder encodes the whole volume",
+    "on_stats": "the statistics are shared by the ladder",
+    "warm_start": "warm starts belong to series",
+    "motion": "warm starts belong to series",
+    "session": "an Encoder's state",
+}
+
+
+def test_every_encode_option_reaches_a_ladder_or_says_why_not():
+    import inspect
+
+    encode = set(inspect.signature(warpgauss.encode).parameters)
+    ladder = set(inspect.signature(warpgauss.encode_ladder).parameters)
+    assert encode - ladder == set(NOT_FOR_LADDERS), sorted((encode - ladder) ^ set(NOT_FOR_LADDERS))
+    assert ladder - encode == {"budgets", "output_pattern"}
