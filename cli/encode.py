@@ -353,6 +353,11 @@ def encode(
         parse_bricks(bricks)  # refused in one line before a cluster starts
         if halo is not None and halo < 0:
             fail(f"--halo must be >= 0 voxels, got {halo}")
+        from warpgauss.driver.bricked import check_bricking
+
+        check_bricking(
+            input, ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value), example, size, bricks, halo
+        )
         client, where = default_client(workers, scheduler, device)
         if status is not None:
             status.console.print(f"bricks {bricks}: {where}", highlight=False)

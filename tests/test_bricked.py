@@ -310,3 +310,21 @@ def test_a_tiny_volume_is_refused_for_what_it_is_not_for_bricks_nobody_asked_for
     res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "16", "--budget", "10", "--bricks", "2x1x1",
                                    "--halo=-1", "--workers", "2", "-o", str(tmp_path / "h.wgs")])
     assert res.exit_code == 2 and "--halo must be >= 0" in res.output and "cluster" not in res.output
+
+
+def test_a_bricking_the_volume_cannot_take_is_refused_before_a_cluster_starts(tmp_path, monkeypatch):
+    """Too many bricks along an axis were found only after the Dask cluster had started."""
+    from typer.testing import CliRunner
+
+    import warpgauss.cluster
+    from warpgauss.cli.main import app
+
+    def no_cluster(*a, **k):
+        raise AssertionError("a cluster was started")
+
+    monkeypatch.setattr(warpgauss.cluster, "default_client", no_cluster)
+    vol = tmp_path / "v.npy"
+    np.save(vol, np.random.default_rng(0).random((8, 8, 8)).astype(np.float32))
+    for source in (["--example", "vortex", "--size", "16"], [str(vol)]):
+        res = CliRunner().invoke(app, ["encode", *source, "--budget", "10", "--bricks", "16x1x1", "--workers", "2", "-o", str(tmp_path / "b.wgs")])
+        assert res.exit_code == 2 and "bricks along x leave fewer than 2 voxels" in res.output, res.output

@@ -140,6 +140,24 @@ AUTO_BRICK_FLOOR = 2 * 2**30  # an encode estimated below this is never bricked 
 LAZY_SUFFIXES = (".raw", ".bin", ".npy", ".h5", ".hdf5", ".hdf", ".nc", ".cdf", ".zarr")
 
 
+def check_bricking(source, read, example, example_size, bricks, halo) -> None:
+    """Refuse a bricking that cannot split the volume (too many bricks along an axis), where its
+    shape is known without reading it: an example, or a file whose header gives it (the formats
+    read on demand). Runs before a Dask cluster starts; other inputs are checked once read."""
+    from ..bricked import parse_bricks, plan_bricks
+
+    counts = parse_bricks(bricks)
+    if example is not None:
+        size = example_size
+        shape_xyz = tuple(int(v) for v in size) if isinstance(size, (tuple, list)) else (int(size),) * 3
+    elif isinstance(source, (str, os.PathLike)) and str(source).lower().endswith(LAZY_SUFFIXES):
+        vol = (read or ReadOptions()).read(source, lazy=True)  # the header: nothing is read yet
+        shape_xyz = tuple(int(v) for v in vol.data.shape[::-1])
+    else:
+        return
+    plan_bricks(shape_xyz, counts, 0 if halo is None else int(halo))
+
+
 def bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory=None):
     """(bricks, read lazily, device limit, bricks chosen here) of an encode: given bricks are kept;
     otherwise a file whose monolithic encode would not fit the device or host limit (or the
