@@ -19,9 +19,17 @@ err_console = Console(stderr=True, highlight=False)
 out_console = Console(highlight=False)
 
 
+def print_error(message: str) -> None:
+    """``error: MESSAGE`` on stderr, the message shown as written (text in brackets such as
+    ``'[x]'`` or a list is not taken for rich markup)."""
+    from rich.markup import escape
+
+    err_console.print(f"[bold red]error:[/] {escape(message)}", soft_wrap=True)
+
+
 def fail(message: str) -> None:
     """Print a one-line error and exit 2."""
-    err_console.print(f"[bold red]error:[/] {message}", soft_wrap=True, markup=True)
+    print_error(message)
     raise typer.Exit(2)
 
 
@@ -246,9 +254,7 @@ class OneLineUsageError(_UsageError):  # type: ignore[misc,valid-type]
     """A usage error shown as one line (``error: ...``, exit 2), not click's usage block."""
 
     def show(self, file=None) -> None:
-        from rich.markup import escape
-
-        err_console.print(f"[bold red]error:[/] {escape(self.format_message())}", soft_wrap=True, highlight=False)
+        print_error(self.format_message())
 
 
 class PanelCommand(typer.core.TyperCommand):

@@ -298,3 +298,10 @@ def test_every_command_line_option_maps_to_the_api_and_back():
     mapped = {CLI_TO_API.get(p, p) for p in cli - CLI_ONLY}
     assert mapped - api == set(), sorted(mapped - api)  # every option reaches an encode argument
     assert api - mapped == API_ONLY, sorted((api - mapped) ^ API_ONLY)  # and every argument has an option or is for Python
+
+
+def test_an_error_line_shows_bracketed_text_as_given(tmp_path):
+    """Error lines went through rich markup, which swallowed text such as '[b]' in the value quoted."""
+    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "16", "--budget", "10", "--bricks", "[b]2x2x2",
+                                   "-o", str(tmp_path / "b.wgs")])
+    assert res.exit_code == 2 and "'[b]2x2x2'" in res.output, res.output
