@@ -140,6 +140,17 @@ AUTO_BRICK_FLOOR = 2 * 2**30  # an encode estimated below this is never bricked 
 LAZY_SUFFIXES = (".raw", ".bin", ".npy", ".h5", ".hdf5", ".hdf", ".nc", ".cdf", ".zarr")
 
 
+def _read_on_demand(source, example) -> bool:
+    """Whether ``source`` is a file in a format whose header gives its shape before any reading."""
+    return example is None and isinstance(source, (str, os.PathLike)) and str(source).lower().endswith(LAZY_SUFFIXES)
+
+
+def _header_shape(source, read) -> tuple[int, ...]:
+    """The (x, y, z) shape of such a file, from its header: nothing is read yet."""
+    vol = (read or ReadOptions()).read(source, lazy=True)
+    return tuple(int(v) for v in vol.data.shape[::-1])
+
+
 def check_bricking(source, read, example, example_size, bricks, halo) -> None:
     """Refuse a bricking that cannot split the volume (too many bricks along an axis), where its
     shape is known without reading it: an example, or a file whose header gives it (the formats
@@ -150,9 +161,8 @@ def check_bricking(source, read, example, example_size, bricks, halo) -> None:
     if example is not None:
         size = example_size
         shape_xyz = tuple(int(v) for v in size) if isinstance(size, (tuple, list)) else (int(size),) * 3
-    elif isinstance(source, (str, os.PathLike)) and str(source).lower().endswith(LAZY_SUFFIXES):
-        vol = (read or ReadOptions()).read(source, lazy=True)  # the header: nothing is read yet
-        shape_xyz = tuple(int(v) for v in vol.data.shape[::-1])
+    elif _read_on_demand(source, example):
+        shape_xyz = _header_shape(source, read)
     else:
         return
     plan_bricks(shape_xyz, counts, 0 if halo is None else int(halo))
@@ -169,11 +179,10 @@ def bricking(source, read, example, bricks, halo, budget, device, max_device_mem
 
     limit = None if max_device_memory is None else parse_memory(max_device_memory, "--max-device-memory")
     host = None if max_host_memory is None else parse_memory(max_host_memory, "--max-host-memory", 2**20)
-    is_file = example is None and isinstance(source, (str, os.PathLike)) and str(source).lower().endswith(LAZY_SUFFIXES)
+    is_file = _read_on_demand(source, example)
     if bricks is not None or not is_file:
         return bricks, bricks is not None and is_file, limit, False
-    vol = (read or ReadOptions()).read(source, lazy=True)  # the header: nothing is read yet
-    shape_xyz = tuple(int(v) for v in vol.data.shape[::-1])
+    shape_xyz = _header_shape(source, read)
     voxels = int(np.prod(shape_xyz, dtype=np.int64))
     if host is None:
         free = available_memory()
