@@ -80,6 +80,11 @@ class Brick:
     interior: tuple[tuple[int, int], ...]
     box: tuple[tuple[int, int], ...]
 
+    @property
+    def box_voxels(self) -> int:
+        """Voxels in the halo box."""
+        return int(np.prod([hi - lo for lo, hi in self.box]))
+
     def slices(self, which: str = "box") -> tuple[slice, ...]:
         return tuple(slice(a, b) for a, b in getattr(self, which))
 
@@ -411,7 +416,7 @@ def brick_samples(refine: RefineConfig, n: int, shape_xyz, brick: Brick, device:
         return refine
     total = int(np.prod(shape_xyz))
     whole = refine.for_budget(n, total, device).samples
-    box = int(np.prod([hi - lo for lo, hi in brick.box]))
+    box = brick.box_voxels
     s = max(MIN_BRICK_SAMPLES, int(round(whole * box / total)))
     return dataclasses.replace(refine, samples=s, auto_samples=False)
 
@@ -521,7 +526,7 @@ def bricks_at_once(tasks: list[BrickTask], device: str, limit: int | None) -> in
     if not tasks or not warp().get_device(device).is_cuda:
         return 1
     limit = default_device_limit(device) if limit is None else limit
-    need = max(brick_device_bytes(int(np.prod([hi - lo for lo, hi in t.brick.box])), 1.5 * t.n) for t in tasks)
+    need = max(brick_device_bytes(t.brick.box_voxels, 1.5 * t.n) for t in tasks)
     return int(max(1, min(MAX_AT_ONCE, len(tasks), (limit or 0) // need)))
 
 
@@ -530,10 +535,10 @@ def brick_groups(batch: list[BrickTask], groups: int) -> list[list[BrickTask]]:
     group with the fewest voxels so far), each group in brick order."""
     out: list[list[BrickTask]] = [[] for _ in range(max(1, min(groups, len(batch))))]
     load = [0] * len(out)
-    for t in sorted(batch, key=lambda t: (-int(np.prod([hi - lo for lo, hi in t.brick.box])), t.index)):
+    for t in sorted(batch, key=lambda t: (-t.brick.box_voxels, t.index)):
         g = int(np.argmin(load))
         out[g].append(t)
-        load[g] += int(np.prod([hi - lo for lo, hi in t.brick.box]))
+        load[g] += t.brick.box_voxels
     return [sorted(g, key=lambda t: t.index) for g in out if g]
 
 
@@ -596,7 +601,7 @@ def choose_bricks(shape_xyz, n: int, limit: int | None, halo: int = DEFAULT_HALO
     counts = [1, 1, 1]
     shape = [int(s) for s in shape_xyz]
     while True:
-        boxes = [int(np.prod([hi - lo for lo, hi in b.box])) for b in plan_bricks(shape, counts, halo if counts != [1, 1, 1] else 0)]
+        boxes = [b.box_voxels for b in plan_bricks(shape, counts, halo if counts != [1, 1, 1] else 0)]
         k = int(np.prod(counts))
         need = brick_device_bytes(max(boxes), 1.5 * n / k if k > 1 else n)
         host = HOST_BYTES_PER_VOXEL * max(boxes)
