@@ -344,48 +344,61 @@ def brick_job(task: BrickTask) -> Generator[None, None, dict]:
     CPU).
     """
     from ._warp import resolve_device
-    from .allocate import allocate
-    from .analysis import DeviceVolume
-    from .profiling import StageRecorder
 
     t0 = time.perf_counter()
     dev = resolve_device(task.device)
     done = {"index": task.index, "device": dev, "iterations": 0, "stand_ins": 0, "frozen": 0, "samples": 0}
     if task.n == 0:
         return done | {"params": np.zeros((0, 12), np.float32), "seconds": time.perf_counter() - t0}
-    values, valid = task.box_arrays()
-    f = Field(values, valid, **task.field_meta)
-    fields = brick_fields(f, dataclasses.replace(task.brick, interior=_local(task.brick), box=_whole(task.brick)), task.pending)
-    params, _ = allocate(DeviceVolume(fields.interior, dev), task.n, task.seed, task.allocation, StageRecorder())
-    cfg = task.refine
-    if cfg.iterations > 0:
-        from .refine import Refiner, load_kernels
-
-        parts = [np.asarray(params, np.float32)]
-        k = stand_in_count(fields, task.rates)
-        if k:  # another RNG stream than the brick's own seeds
-            stand_ins, _ = allocate(DeviceVolume(fields.halo, dev), k, task.seed + 1, task.allocation, StageRecorder())
-            parts.append(np.asarray(stand_ins, np.float32))
-        frozen = np.zeros((0, 12), np.float32) if task.frozen is None else task.frozen
-        parts.append(frozen)
-        load_kernels(dev)
-        refiner = Refiner(
-            DeviceVolume(fields.train, dev),
-            np.concatenate(parts),
-            cfg,
-            task.seed,
-            task.allocation.scale_min,
-            task.allocation.resolved_cap(f.shape_xyz),  # set by the bricked driver (brick_cap)
-            frozen=len(frozen),
-        )
+    params, refiner, k = brick_refiner(task, dev)
+    if refiner is not None:
+        cfg, frozen = task.refine, 0 if task.frozen is None else len(task.frozen)
         t1 = time.perf_counter()
         yield from refiner.steps()
         params = refiner.model_params()[: task.n]
         done["setup_seconds"], done["refine_seconds"] = t1 - t0, time.perf_counter() - t1
-        done.update(iterations=refiner.iteration, stand_ins=k, frozen=len(frozen), samples=cfg.samples)
+        done.update(iterations=refiner.iteration, stand_ins=k, frozen=frozen, samples=cfg.samples)
     out = np.array(params, np.float32, copy=True)
     out[:, :3] += _origin_xyz(task.brick)
     return done | {"params": out, "seconds": time.perf_counter() - t0}
+
+
+def brick_refiner(task: BrickTask, dev: str):
+    """A brick's start: ``(own, refiner, stand-ins)``: its own primitives allocated in its interior
+    (box coordinates), and, when it refines, the refiner over its box that holds them, the
+    stand-ins for the pending neighbours (another RNG stream than the brick's own seeds) and the
+    finished neighbours' primitives (frozen), with the number of stand-ins (``refiner`` None and
+    0 without refinement)."""
+    from .allocate import allocate
+    from .analysis import DeviceVolume
+    from .profiling import StageRecorder
+
+    values, valid = task.box_arrays()
+    f = Field(values, valid, **task.field_meta)
+    fields = brick_fields(f, dataclasses.replace(task.brick, interior=_local(task.brick), box=_whole(task.brick)), task.pending)
+    params, _ = allocate(DeviceVolume(fields.interior, dev), task.n, task.seed, task.allocation, StageRecorder())
+    if task.refine.iterations <= 0:
+        return params, None, 0
+    from .refine import Refiner, load_kernels
+
+    parts = [np.asarray(params, np.float32)]
+    k = stand_in_count(fields, task.rates)
+    if k:
+        stand_ins, _ = allocate(DeviceVolume(fields.halo, dev), k, task.seed + 1, task.allocation, StageRecorder())
+        parts.append(np.asarray(stand_ins, np.float32))
+    frozen = np.zeros((0, 12), np.float32) if task.frozen is None else task.frozen
+    parts.append(frozen)
+    load_kernels(dev)
+    refiner = Refiner(
+        DeviceVolume(fields.train, dev),
+        np.concatenate(parts),
+        task.refine,
+        task.seed,
+        task.allocation.scale_min,
+        task.allocation.resolved_cap(f.shape_xyz),  # set by the bricked driver (brick_cap)
+        frozen=len(frozen),
+    )
+    return params, refiner, k
 
 
 def _origin_xyz(b: Brick) -> np.ndarray:

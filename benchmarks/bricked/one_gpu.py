@@ -42,10 +42,8 @@ def default_budget(size: int) -> int:
 
 def profile_brick(v: np.ndarray, n: int, bricks: str, dev: str, steps: int = 60) -> dict:
     """One brick of the first wave, set up as the bricked encode does, its iteration timed phase by phase."""
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.analysis import DeviceVolume
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.refine import RefineConfig, Refiner, load_kernels
+    from warpgauss.allocate import AllocationConfig
+    from warpgauss.refine import RefineConfig, load_kernels
 
     wp = warp()
     f = normalise(v)
@@ -56,28 +54,8 @@ def profile_brick(v: np.ndarray, n: int, bricks: str, dev: str, steps: int = 60)
     tasks = wb.brick_tasks(f, plan, stats, 0, alloc, RefineConfig(), dev, n)
     task = wb.wave_tasks(tasks, {}, [0])[0]
     t0 = time.perf_counter()
-    values, valid = task.box_arrays()
-    from warpgauss.analysis import Field
-
-    bf = wb.brick_fields(
-        Field(values, valid, **task.field_meta),
-        wb.dataclasses.replace(task.brick, interior=wb._local(task.brick), box=wb._whole(task.brick)),
-        task.pending,
-    )
-    params, _ = allocate(DeviceVolume(bf.interior, dev), task.n, task.seed, task.allocation, StageRecorder())
-    wp.synchronize_device(dev)
-    t_alloc = time.perf_counter() - t0
     load_kernels(dev)
-    k = wb.stand_in_count(bf, task.rates)
-    stand, _ = allocate(DeviceVolume(bf.halo, dev), k, task.seed + 1, task.allocation, StageRecorder())
-    r = Refiner(
-        DeviceVolume(bf.train, dev),
-        np.concatenate([params, stand]).astype(np.float32),
-        task.refine,
-        task.seed,
-        alloc.scale_min,
-        alloc.scale_cap,
-    )
+    _, r, k = wb.brick_refiner(task, dev)  # as the bricked encode starts a brick
     wp.synchronize_device(dev)
     t_setup = time.perf_counter() - t0
     for _ in range(20):
@@ -98,7 +76,6 @@ def profile_brick(v: np.ndarray, n: int, bricks: str, dev: str, steps: int = 60)
         "n": task.n,
         "stand_ins": k,
         "samples": task.refine.samples,
-        "allocation_s": t_alloc,
         "setup_s": t_setup,
         "step_ms": timed(r.step),
         "rebin_ms": timed(r.rebin, 20),

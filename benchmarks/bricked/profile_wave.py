@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -28,7 +27,7 @@ import warpgauss
 import warpgauss.bricked as wb
 from warpgauss._warp import resolve_device, warp
 from warpgauss.allocate import AllocationConfig, allocate
-from warpgauss.analysis import DeviceVolume, Field, normalise
+from warpgauss.analysis import DeviceVolume, normalise
 from warpgauss.bench import result_header
 from warpgauss.profiling import StageRecorder
 from warpgauss.refine import RefineConfig, Refiner, load_kernels
@@ -37,16 +36,7 @@ from warpgauss.synthetic import generate
 
 def brick_refiner(task, dev: str) -> Refiner:
     """The refiner :func:`warpgauss.bricked.brick_job` builds for ``task``."""
-    values, valid = task.box_arrays()
-    local = dataclasses.replace(task.brick, interior=wb._local(task.brick), box=wb._whole(task.brick))
-    bf = wb.brick_fields(Field(values, valid, **task.field_meta), local, task.pending)
-    a = task.allocation
-    own, _ = allocate(DeviceVolume(bf.interior, dev), task.n, task.seed, a, StageRecorder())
-    parts = [np.asarray(own, np.float32)]
-    k = wb.stand_in_count(bf, task.rates)
-    if k:
-        parts.append(np.asarray(allocate(DeviceVolume(bf.halo, dev), k, task.seed + 1, a, StageRecorder())[0], np.float32))
-    return Refiner(DeviceVolume(bf.train, dev), np.concatenate(parts), task.refine, task.seed, a.scale_min, a.scale_cap)
+    return wb.brick_refiner(task, dev)[1]
 
 
 def scoped(wp, stream):
