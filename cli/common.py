@@ -243,7 +243,16 @@ def resolved_config(ctx: typer.Context) -> dict:
     return out
 
 
-PANELS = ("Input", "Budget and format", "Refinement", "Loss weights", "Bricks and cluster", "Run control", "Output")  # help order
+PANELS = (
+    "Input",
+    "Budget and format",
+    "Error bound",
+    "Refinement",
+    "Loss weights",
+    "Bricks and cluster",
+    "Run control",
+    "Output",
+)  # help order
 
 
 # click's usage errors, as the installed typer raises them (it vendors its own click from 0.29 on)

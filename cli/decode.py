@@ -18,6 +18,13 @@ def decode(
     normalised: Annotated[bool, typer.Option("--normalised", help="Write [0, 1] values, not source units")] = False,
     device: Annotated[str | None, typer.Option(help="Warp device: cpu, cuda, cuda:N")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite an existing output file")] = False,
+    residual: Annotated[
+        bool | None,
+        typer.Option(
+            "--residual/--no-residual",
+            help="Apply the model's bounded residual (default: where it has one and the grid is the encoded one); --no-residual: the Gaussians alone",
+        ),
+    ] = None,
 ) -> None:
     """Decode a model to a dense grid spanning the encoded extent, at any resolution."""
     from warpgauss._fs import check_writable
@@ -29,7 +36,7 @@ def decode(
     grid = parse_shape(shape)
     with err_console.status(f"decoding {m.n} Gaussians", spinner="dots"):
         info: dict = {}
-        data = m.decode(grid, device=device, normalised=normalised, info=info)
+        data = m.decode(grid, device=device, normalised=normalised, info=info, residual=residual)
     write_volume(
         output,
         data,
@@ -39,6 +46,11 @@ def decode(
         force=force,
     )
     nz, ny, nx = data.shape
-    share = info["bricks_evaluated_share"]
-    skipped = f"; {1 - share:.0%} of it (8^3 bricks no Gaussian reaches) written as 0 without evaluation" if share < 1.0 else ""
-    out_console.print(f"wrote {output} ({nx}x{ny}x{nz} float32){skipped}")
+    if info.get("residual_applied"):
+        note = f"; every voxel within {info['max_error']:.6g} of the source (the residual applied)"
+    else:
+        share = info["bricks_evaluated_share"]
+        note = f"; {1 - share:.0%} of it (8^3 bricks no Gaussian reaches) written as 0 without evaluation" if share < 1.0 else ""
+        if m.residual is not None:
+            note += "; the Gaussians alone (the residual applies on the encoded grid, in source units)"
+    out_console.print(f"wrote {output} ({nx}x{ny}x{nz} {data.dtype}){note}")

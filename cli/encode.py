@@ -55,6 +55,20 @@ def encode(
             help="File size budget in bytes (header included), instead of --budget or --ratio",
         ),
     ] = None,
+    max_error: Annotated[
+        float | None,
+        typer.Option(
+            rich_help_panel="Error bound",
+            help="Every decoded voxel within this of the source (source units): a residual stored after the Gaussians; without a budget the Gaussians get --ratio 200",
+        ),
+    ] = None,
+    max_error_rel: Annotated[
+        float | None,
+        typer.Option(
+            rich_help_panel="Error bound",
+            help="The bound as a share of the source's value range (e.g. 1e-3), instead of --max-error",
+        ),
+    ] = None,
     seed: Annotated[int, typer.Option(rich_help_panel="Refinement", help="Seed: same seed and device give the same model")] = 0,
     device: Annotated[
         str | None, typer.Option(rich_help_panel="Refinement", help="Warp device: cpu, cuda, cuda:N (default: CUDA if present)")
@@ -243,6 +257,13 @@ def encode(
     from warpgauss.driver.sizing import check_budget_options
 
     check_budget_options(budget, ratio, file_bytes)  # what needs no data is checked before any file is looked at
+    bounded = max_error is not None or max_error_rel is not None
+    if bounded:
+        from warpgauss.residual import check_bound_options
+
+        check_bound_options(max_error, max_error_rel)
+        if ladder is not None or bricks is not None or stride > 1:
+            fail("--max-error bounds every source voxel of one whole encode: it does not combine with --ladder, --bricks or --stride")
     weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
     variables = list(variable or [])
     one_variable = variables[0] if len(variables) == 1 else None
@@ -258,8 +279,8 @@ def encode(
     if keyframe_drift is not None and keyframe_drift < 0:
         fail(f"--keyframe-drift must be >= 0 dB (0: never re-encode cold), got {keyframe_drift:g}")
     if series:
-        if ladder is not None or resume or save_analytic is not None or bricks is not None:
-            fail("a series does not combine with --ladder, --resume, --save-analytic or --bricks yet")
+        if ladder is not None or resume or save_analytic is not None or bricks is not None or bounded:
+            fail("a series does not combine with --ladder, --resume, --save-analytic, --bricks or --max-error yet")
         _encode_series(
             str(input),
             variables,
@@ -403,6 +424,8 @@ def encode(
             on_bricks=brick_progress,
             max_device_memory=max_device_memory,
             max_host_memory=max_host_memory,
+            max_error=max_error,
+            max_error_rel=max_error_rel,
         )
     finally:
         if status is not None:
@@ -681,7 +704,18 @@ def _print_summary(rep: dict) -> None:
         )
     if ev:
         occ = ev["psnr_occupied_db"]
-        out_console.print(f"PSNR {ev['psnr_db']:.2f} dB (occupied {occ:.2f} dB), max abs error {ev['max_abs_error']:.4f}, {ev['mode']}")
+        what = "Gaussians alone: " if rep.get("residual") else ""
+        out_console.print(
+            f"{what}PSNR {ev['psnr_db']:.2f} dB (occupied {occ:.2f} dB), max abs error {ev['max_abs_error']:.4f}, {ev['mode']}"
+        )
+    res = rep.get("residual")
+    if res:
+        out_console.print(
+            f"with the residual: every voxel within {res['bound']:.6g} (max abs error {res['max_abs_error']:.6g}), PSNR {res['psnr_db']:.2f} dB; "
+            f"file {human_bytes(res['file_bytes'])} = Gaussians {human_bytes(res['gaussian_bytes'])} + residual {human_bytes(res['residual_bytes'])} "
+            f"({res['predictor']} predictor, {res['literals']} voxels stored exactly), compression {res['compression_ratio']:.2f}x",
+            soft_wrap=True,
+        )
     t = Table(show_edge=False, header_style="bold")
     for col in ("stage", "what", "seconds", "host peak", "device peak"):
         t.add_column(col, justify="right" if col in ("seconds", "host peak", "device peak") else "left")

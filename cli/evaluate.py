@@ -24,6 +24,10 @@ def evaluate(
     fill_value: Annotated[float | None, typer.Option(help="Source value marking missing data")] = None,
     device: Annotated[str | None, typer.Option(help="Warp device")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON object")] = False,
+    residual: Annotated[
+        bool,
+        typer.Option("--residual/--no-residual", help="Score the decode with the model's bounded residual, where it has one (full grid)"),
+    ] = True,
 ) -> None:
     """PSNR, occupied-only PSNR and max abs error on the normalised field (500,000 sampled voxel centres, or the full grid)."""
     from warpgauss.evaluate import evaluate_against
@@ -33,7 +37,7 @@ def evaluate(
     m = Model.load(model)
     s = stride if stride is not None else int(m.header.get("encoding", {}).get("stride", 1))
     read = ReadOptions(parse_shape(shape), dtype, endian, dataset, variable, s, fill_value)
-    r = evaluate_against(m, volume, full=full, device=device, read=read)
+    r = evaluate_against(m, volume, full=full, device=device, read=read, residual=residual)
     r["bytes"] = model.stat().st_size
     r["compression_ratio"] = m.source_bytes / r["bytes"]
     if as_json:
@@ -45,3 +49,6 @@ def evaluate(
         f"max abs error {r['max_abs_error']:.4g}, N {r['n']}, {r['bytes']} bytes, CR {r['compression_ratio']:.2f}x "
         f"({r['mode']})"
     )
+    if "bound" in r:
+        ok = "within" if r["max_abs_error_source"] <= r["bound"] else "BEYOND"
+        out_console.print(f"max abs error {r['max_abs_error_source']:.6g} source units, {ok} the bound {r['bound']:.6g}")

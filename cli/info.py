@@ -20,15 +20,25 @@ def info(
     and the payload is not read (a file of any size answers at once); --verify reads it too."""
     from warpgauss.model import Model
 
-    h = Model.load(model).header if verify else Model.load_header(model)
+    if verify:
+        m = Model.load(model)
+        if m.residual is not None:
+            m.residual.payload()  # its checksum
+        h = m.header
+    else:
+        h = Model.load_header(model)
     n = int(h["n"])
     size = model.stat().st_size
     payload = h.get("payload", {})
+    res = h.get("residual")
+    res_bytes = int(res["payload_bytes"]) if res else 0
     summary = {
         "file": str(model),
         "n": n,
         "bytes": size,
+        "residual_bytes": res_bytes,
         "header_bytes": size
+        - res_bytes
         - (payload["payload_bytes"] if payload.get("bytes_per_primitive") is None else n * int(payload["bytes_per_primitive"])),
         "bytes_per_primitive": (payload["payload_bytes"] / n)
         if payload.get("bytes_per_primitive") is None
@@ -51,5 +61,12 @@ def info(
         f"encoding {h.get('encoding')}",
         f"transfer function {h.get('transfer_function', {}).get('colormap')}",
     ]
+    if res:
+        lines.insert(
+            1,
+            f"Gaussians {size - res_bytes} bytes ({human_bytes(size - res_bytes)}) + bounded residual {res_bytes} bytes "
+            f"({human_bytes(res_bytes)}): every voxel within {res['bound']:.6g} of the source ({res['bound_rel']:.3g} of its range), "
+            f"{res['predictor']} predictor, {res['literals']} voxels stored exactly",
+        )
     for line in lines:
         out_console.print(line, soft_wrap=True)

@@ -192,12 +192,12 @@ def test_unexpected_failure_is_one_line_and_debug_shows_the_traceback(tmp_path, 
 
 
 def test_encode_help_groups_options_in_panels():
-    """The options sit under Input, Budget and format, Refinement, Loss weights, Run control and
+    """The options sit under Input, Budget and format, Error bound, Refinement, Loss weights, Run control and
     Output, in that order, each option under its own panel."""
     r = CliRunner().invoke(app, ["encode", "--help"], env={"COLUMNS": "200"})
     assert r.exit_code == 0, r.output
     heads = [line.rstrip(":") for line in r.output.splitlines() if line and not line.startswith(" ") and line.endswith(":")]
-    assert heads == ["Arguments", "Input", "Budget and format", "Refinement", "Loss weights", "Bricks and cluster", "Run control", "Output", "Time series", "Other options"]
+    assert heads == ["Arguments", "Input", "Budget and format", "Error bound", "Refinement", "Loss weights", "Bricks and cluster", "Run control", "Output", "Time series", "Other options"]
     sections = r.output.split("\n\n")
     where = {s.splitlines()[0].rstrip(":"): s for s in sections if s and s.splitlines()[0].endswith(":")}
     assert "--w-smooth " in where["Loss weights"] and "--bytes" in where["Budget and format"] and "--config" in where["Run control"]

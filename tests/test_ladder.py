@@ -82,6 +82,8 @@ NOT_FOR_LADDERS = {
     "bricks": "a ladder encodes the whole volume",
     "halo": "a ladder encodes the whole volume",
     "client": "a ladder encodes the whole volume",
+    "max_error": "a bounded residual is one encode's (the CLI refuses --ladder with --max-error)",
+    "max_error_rel": "a bounded residual is one encode's",
     "max_device_memory": "a ladder encodes the whole volume",
     "max_host_memory": "a ladder encodes the whole volume",
     "on_bricks": "a ladder encodes the whole volume",

@@ -73,7 +73,7 @@ def check_claim(payload_bytes: int, n: int) -> None:
         )
 
 
-def _zstd():
+def zstandard_module():
     try:
         import zstandard
     except ImportError:  # pragma: no cover - a dependency of the package
@@ -269,7 +269,7 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tupl
         raw += w * len(v)
     blob = b"".join(p.tobytes() for p in planes)
     level = ZSTD_LEVEL if raw <= ZSTD_LARGE_RAW else ZSTD_LEVEL_LARGE
-    payload = _zstd().ZstdCompressor(level=level, write_checksum=True).compress(blob)
+    payload = zstandard_module().ZstdCompressor(level=level, write_checksum=True).compress(blob)
     # columns: [offset, bytes] in _COLUMNS order (centres delta-coded from the offset, the rest
     # offset-coded), kept terse: at high compression ratios the header is part of the budget
     quant = {"bits": b, "columns": columns, "raw_bytes": raw}
@@ -303,7 +303,7 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
     raw = sum(widths) * n
     if quant.get("raw_bytes") != raw:
         raise WarpgaussError(f"coded payload declares {quant.get('raw_bytes')!r} raw bytes, its columns make {raw}; the file is damaged")
-    zstd = _zstd()
+    zstd = zstandard_module()
     try:
         params = zstd.get_frame_parameters(payload)
         if params.content_size != raw:

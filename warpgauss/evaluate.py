@@ -100,7 +100,9 @@ def evaluate_field(gf: GaussianField, f: Field, *, full: bool = False, progress=
     return res
 
 
-def evaluate_against(model, volume, *, full: bool = False, device: str | None = None, read=None, fill_value=None) -> dict:
+def evaluate_against(
+    model, volume, *, full: bool = False, device: str | None = None, read=None, fill_value=None, residual: bool = True
+) -> dict:
     """Evaluate a model against a volume (path or 3D array) normalised by the model's value range.
 
     Args:
@@ -110,6 +112,9 @@ def evaluate_against(model, volume, *, full: bool = False, device: str | None = 
         device: Warp device.
         read: :class:`warpgauss.io.ReadOptions` for a file (stride defaults to the model's).
         fill_value: Source value marking missing data.
+        residual: Score the bounded decode where the model has a residual (on the full grid; the
+            result adds ``bound`` and ``max_abs_error_source``, in source units); False: the
+            Gaussians alone.
     """
     from .analysis import normalise
     from .errors import WarpgaussError
@@ -133,6 +138,16 @@ def evaluate_against(model, volume, *, full: bool = False, device: str | None = 
             f"{'x'.join(map(str, model.shape_xyz))}; use the volume (and --stride) the model was encoded from"
         )
     f = normalise(data, fill_value=fill, value_range=model.value_range, count_candidates=False)
-    result = evaluate_field(model.field(device), f, full=full)
+    if residual and model.residual is not None:
+        lo, hi = model.value_range
+        out = model.decode(device=device, residual=True)
+        acc = _Accumulator()
+        acc.add((out.astype(np.float64) - lo) / (hi - lo), f.values, f.mask)
+        result = acc.result("full grid, Gaussians and residual")
+        err = np.abs(out.astype(np.float64) - data.astype(np.float64))
+        result["max_abs_error_source"] = float(err[f.mask].max() if f.mask is not None else err.max())
+        result["bound"] = float(model.residual.info["bound"])
+    else:
+        result = evaluate_field(model.field(device), f, full=full)
     result["n"] = model.n
     return result

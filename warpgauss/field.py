@@ -416,6 +416,58 @@ class GaussianField:
             device=dev,
         )
 
+    def predict(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The model in float64 at every voxel centre of its grid, the predictor of a bounded
+        residual (:mod:`warpgauss.kernels.predict`: within a few 1e-16 on any device).
+
+        Args:
+            params: The (N, 12) parameters this field was built from (their float32 values are
+                read exactly into float64).
+
+        Returns:
+            ``(values, fragile)``: (nz, ny, nx) float64 V~ clamped to [0, 1], and a bool array
+            marking the voxels where devices could disagree (a pair on the 5-sigma cut).
+        """
+        from .kernels import decode as kd
+        from .kernels import predict as kp
+
+        wp, dev, n = self._wp, self.device, self.n
+        p64 = wp.array(np.asarray(params, np.float32).astype(np.float64), dtype=wp.float64, device=dev)
+        mu = wp.empty(n, dtype=wp.vec3d, device=dev)
+        rot = wp.empty(n, dtype=wp.mat33d, device=dev)
+        inv_s2 = wp.empty(n, dtype=wp.vec3d, device=dev)
+        wa = wp.empty(n, dtype=wp.float64, device=dev)
+        w = wp.empty(n, dtype=wp.float64, device=dev)
+        wp.launch(kp.prepare64, dim=n, inputs=[p64, self.prims.order], outputs=[mu, rot, inv_s2, wa, w], device=dev)
+        nx, ny, nz = self.shape_xyz
+        values = np.empty((nz, ny, nx), np.float64)
+        fragile = np.empty((nz, ny, nx), bool)
+        e = int(kd.BRICK_EDGE)
+        slab = max(e, min(-(-nz // e) * e, (DECODE_SLAB_VOXELS // (nx * ny * 2)) // e * e))  # whole bricks along z
+        scale = wp.vec3(1.0, 1.0, 1.0)
+        for z0 in range(0, nz, slab):
+            h = min(slab, nz - z0)
+            bricks = wp.vec3i(-(-nx // e), -(-ny // e), -(-h // e))
+            nb = int(bricks[0]) * int(bricks[1]) * int(bricks[2])
+            counts, ends = self._decode_scratch("counts", nb), self._decode_scratch("ends", nb)
+            common = [z0, scale, wp.vec3i(nx, ny, h), bricks, self.prims]
+            wp.launch(kd.list_bricks, dim=nb, inputs=[*common, 0, ends, counts, self._decode_scratch("items", 1)], device=dev)
+            wp.utils.array_scan(counts[:nb], ends[:nb], inclusive=True)
+            items = self._decode_scratch("items", max(int(ends[nb - 1 : nb].numpy()[0]), 1))
+            wp.launch(kd.list_bricks, dim=nb, inputs=[*common, 1, ends, counts, items], device=dev)
+            out = wp.empty((h, ny, nx), dtype=wp.float64, device=dev)
+            near = wp.empty((h, ny, nx), dtype=wp.uint8, device=dev)
+            wp.launch(
+                kp.predict_lists,
+                dim=(h, ny, nx),
+                inputs=[z0, bricks, ends, counts, items, mu, rot, inv_s2, wa, w],
+                outputs=[out, near],
+                device=dev,
+            )
+            values[z0 : z0 + h] = out.numpy()
+            fragile[z0 : z0 + h] = near.numpy().astype(bool)
+        return values, fragile
+
     def _decode_scratch(self, name: str, n: int):
         """A device int buffer of at least n entries kept between slabs (grown by half again)."""
         bufs = self._decode_bufs

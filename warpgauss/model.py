@@ -19,6 +19,7 @@ import numpy as np
 
 from ._version import __version__
 from .errors import WarpgaussError
+from .residual import Residual
 
 # viridis at nine evenly spaced stops (RGB 0..255); the default colormap of the header's LUT
 _VIRIDIS = np.array(
@@ -149,6 +150,17 @@ def _check_header(p: Path, header: dict) -> None:
         raise WarpgaussError(f"{p}: the header's {problem}; the file is damaged or was not written by warpgauss")
 
 
+def _residual_of(p: Path, header: dict) -> Residual:
+    """The residual of the file ``p`` (its bytes end the file), its description checked."""
+    from .residual import check_info
+
+    info = header["residual"]
+    problem = check_info(info, math.prod(header["grid"]["shape_xyz"]))
+    if problem is not None:
+        raise WarpgaussError(f"{p}: the header's {problem}; the file is damaged or was not written by warpgauss")
+    return Residual(info, path=p, offset=p.stat().st_size - int(info["payload_bytes"]))
+
+
 def _check_decode_size(shape) -> None:
     """Refuse a decode grid this machine cannot hold (the result, and a float64 copy on the way to
     source units) before anything is allocated for it."""
@@ -188,6 +200,7 @@ class Model:
         self.coded_bits: dict | None = None  # bit depths a coded save uses (None: the format's default)
         self.format: str | None = None  # the format it was encoded for or read from (save's default)
         self.kept_rows: np.ndarray | None = None  # fit_bytes: the rows of the model it was fitted from that it keeps
+        self.residual: Residual | None = None  # a bounded residual (encode --max-error): decode() applies it
 
     @property
     def run_report(self) -> dict:
@@ -221,13 +234,14 @@ class Model:
         return self.file_sizes(compact, encoding=encoding)[0]
 
     def file_sizes(self, compact: bool = False, *, encoding: str | None = None) -> tuple[int, int]:
-        """(file bytes, payload bytes) of this model's file (see :meth:`file_size`)."""
+        """(file bytes, payload bytes) of this model's file (see :meth:`file_size`); a residual's
+        bytes count in both."""
         from .wgs import ENCODINGS, _encoding, header_size, payload_size, wgs_bytes
 
         enc = _encoding(compact, encoding)
         per = ENCODINGS[enc]
-        if per is None:
-            data = wgs_bytes(self.params, self.header, encoding=enc, bits=self.coded_bits)
+        if per is None or self.residual is not None:
+            data = wgs_bytes(self.params, self.header, encoding=enc, bits=self.coded_bits, residual=self.residual)
             return len(data), payload_size(data)
         payload = per * self.n
         return payload + header_size(self.header, self.n, encoding=enc), payload
@@ -245,7 +259,7 @@ class Model:
 
         m = Model(as_stored(self.params, self.coded_bits), self.header)
         m.report, m.coded_bits, m.format = self.report, self.coded_bits, "coded"
-        return m
+        return m  # no residual: it belongs to the exact parameters it was coded against
 
     def fit_bytes(self, total_bytes: int, prune_share: float | None = None) -> tuple[Model, dict]:
         """This model coded to fit ``total_bytes`` (header included): see :func:`warpgauss.coded.fit_bytes`.
@@ -271,7 +285,9 @@ class Model:
 
         if encoding is None and not compact:
             encoding = self.format or "float32"
-        return write_wgs(path, self.params, self.header, compact=compact, encoding=encoding, force=force, bits=self.coded_bits)
+        return write_wgs(
+            path, self.params, self.header, compact=compact, encoding=encoding, force=force, bits=self.coded_bits, residual=self.residual
+        )
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Model:
@@ -287,6 +303,8 @@ class Model:
         m.format = header["payload"]["encoding"]
         if m.format == "coded":
             m.coded_bits = dict(header["payload"]["quant"]["bits"])  # saved again, it codes to the same bytes
+        if "residual" in header:  # its bytes are read (and checked) when a decode applies it
+            m.residual = _residual_of(p, header)
         return m
 
     @staticmethod
@@ -300,6 +318,8 @@ class Model:
             raise WarpgaussError(f"no such model file: {p}")
         header = read_wgs_header(p)
         _check_header(p, header)
+        if "residual" in header:
+            _residual_of(p, header)
         return header
 
     # -- evaluation ------------------------------------------------------------------------
@@ -317,6 +337,7 @@ class Model:
         normalised: bool = False,
         progress: Callable[[int, int], None] | None = None,
         info: dict | None = None,
+        residual: bool | None = None,
     ) -> np.ndarray:
         """Evaluate the model on a grid spanning the model's extent.
 
@@ -327,16 +348,32 @@ class Model:
             progress: Optional callback(done, total).
             info: Optional dict that receives ``bricks_evaluated_share``: the share of 8^3
                 bricks of the model grid some Gaussian reaches (the rest are written 0 unevaluated),
-                and ``clamped_voxels``: voxels whose value fell outside the source's range.
+                ``clamped_voxels``: voxels whose value fell outside the source's range, and
+                ``residual_applied``.
+            residual: Apply the model's bounded residual (:mod:`warpgauss.residual`): True
+                requires one (and the encoded grid); None (default) applies one where present and
+                ``shape`` is the encoded grid; False: the Gaussians alone.
 
         Returns:
             (nz, ny, nx) float32 array (float64 where float32 cannot hold the value range, see
             :func:`warpgauss.analysis.denormalise`), within the source's [min, max]: a value the
-            Gaussians put outside it (an overshoot at a sharp edge) is clamped.
+            Gaussians put outside it (an overshoot at a sharp edge) is clamped. With a residual:
+            the source's dtype, every valid voxel within the residual's bound of the source.
         """
         from .analysis import denormalise
 
         _check_decode_size(shape if shape is not None else self.shape_xyz)
+        on_grid = shape is None or tuple(int(s) for s in shape) == self.shape_xyz
+        if residual and self.residual is None:
+            raise WarpgaussError("this model has no residual (encode with --max-error for one); decode without --residual")
+        if residual and not (on_grid and not normalised):
+            raise WarpgaussError(
+                "a residual applies on the encoded grid in source units; drop --shape (or --normalised), or pass --no-residual"
+            )
+        if residual is not False and self.residual is not None and on_grid and not normalised:
+            return self._decode_bounded(device, info)
+        if info is not None:
+            info["residual_applied"] = False
         gf = self.field(device)
         v = gf.decode(shape, progress=progress)
         if info is not None:
@@ -348,6 +385,16 @@ class Model:
         out = denormalise(v, lo, hi)
         if np.isfinite(lo) and np.isfinite(hi):  # float rounding of lo + v (hi - lo) stays in the source's range too
             np.clip(out, min(lo, hi), max(lo, hi), out=out)
+        return out
+
+    def _decode_bounded(self, device: str | None, info: dict | None) -> np.ndarray:
+        from .residual import apply_residual, prediction
+
+        assert self.residual is not None
+        pred, _ = prediction(self, device)
+        out = apply_residual(self.residual, pred)
+        if info is not None:
+            info.update(residual_applied=True, max_error=self.residual.info["bound"])
         return out
 
     def decoded_spacing(self, shape: tuple[int, int, int] | None = None) -> tuple[float, ...]:

@@ -9,14 +9,17 @@ Layout (little-endian, SPEC section 6)::
                         or N x 3 uint32 ("compact96", 12 bytes per primitive)
                         or a Zstandard frame of quantised columns ("coded", its length in the
                         header's payload description; see :mod:`warpgauss.coded`)
+    residual            optional: a bounded residual's Zstandard frames, described by the header's
+                        ``residual`` entry (:mod:`warpgauss.residual`)
 
 A full-precision file is therefore exactly ``48 N + H`` bytes, and ``H`` is known before the
 parameters exist (:func:`header_size` reserves room for the fields written last), so a budget can
 be derived from a target compression ratio.
 
-The module owns two header keys and overwrites whatever the caller put there:
-``"n"`` and ``"payload"`` (encoding, bytes per primitive, parameter layout, SHA-256 of the payload
-bytes and, for ``compact96``, the ranges needed to dequantise). Everything else in the header is
+The module owns three header keys and overwrites whatever the caller put there:
+``"n"``, ``"payload"`` (encoding, bytes per primitive, parameter layout, SHA-256 of the payload
+bytes and, for ``compact96``, the ranges needed to dequantise) and ``"residual"`` (present only
+with a residual). Everything else in the header is
 the caller's and is written as given (it must be JSON-serialisable; numpy scalars and arrays are
 converted).
 
@@ -65,9 +68,11 @@ import numpy as np
 from ._fs import atomic_write_bytes, check_writable
 from .coded import _Q_RANGE, from_smallest_three, smallest_three  # the three smaller components lie in +-1/sqrt2
 from .errors import WarpgaussError
+from .residual import Residual
 
 MAGIC = b"WGAUSS\x00\x01"
 FORMAT_VERSION = 1
+RESIDUAL_VERSION = 2  # a file with a residual: a reader that predates residuals refuses it by its version
 HEADER_BLOCK = 4096
 PREFIX_SIZE = 20  # magic (8) + version (4) + JSON length (4) + CRC32 (4)
 _PREFIX = struct.Struct("<8sIII")
@@ -110,13 +115,16 @@ def _json_default(obj):
     raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
-def _header_bytes(header: dict, n: int, payload_info: dict) -> bytes:
+def _header_bytes(header: dict, n: int, payload_info: dict, residual_info: dict | None = None) -> bytes:
     """Canonical (sorted keys, compact, deterministic) UTF-8 JSON of ``header`` + the owned keys."""
     if not isinstance(header, dict):
         raise WarpgaussError(f"the model header must be a dict, got {type(header).__name__}")
     h = dict(header)
     h["n"] = int(n)
     h["payload"] = payload_info
+    h.pop("residual", None)
+    if residual_info is not None:
+        h["residual"] = residual_info
     try:
         text = json.dumps(h, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False, default=_json_default)
         return text.encode("utf-8")
@@ -405,6 +413,7 @@ def write_wgs(
     header_size: int | None = None,
     force: bool = False,
     bits: dict | None = None,
+    residual: Residual | None = None,
 ) -> int:
     """Write a ``.wgs`` file atomically (nothing partial is ever left at ``path``).
 
@@ -421,17 +430,19 @@ def write_wgs(
         header_size: Exact ``H`` (prefix + JSON area) to pad to; default: the smallest multiple of
             :data:`HEADER_BLOCK` that fits, which equals :func:`header_size` of this header.
         force: Replace an existing file.
+        residual: A bounded residual (:mod:`warpgauss.residual`), stored after the primitives.
 
     Returns:
-        The file size in bytes: ``48 N + H`` (``12 N + H`` compact, payload + H coded).
+        The file size in bytes: ``48 N + H`` (``12 N + H`` compact, payload + H coded), plus the
+        residual's bytes.
     """
     dest = check_writable(path, force=force)
     encoding = _encoding(compact, encoding)
-    data = wgs_bytes(params, header, encoding=encoding, header_size=header_size, bits=bits)
+    data = wgs_bytes(params, header, encoding=encoding, header_size=header_size, bits=bits, residual=residual)
     if encoding == "coded":  # no file is written that read_wgs would refuse
         from .coded import MIN_PAYLOAD_PER_PRIMITIVE
 
-        n, payload = len(params), payload_size(data)
+        n, payload = len(params), payload_size(data) - (0 if residual is None else residual.nbytes)
         if payload < MIN_PAYLOAD_PER_PRIMITIVE * n:
             raise WarpgaussError(
                 f"these {n:,} primitives code to {payload / n:.3g} bytes each, below the {MIN_PAYLOAD_PER_PRIMITIVE:g} "
@@ -442,16 +453,23 @@ def write_wgs(
 
 
 def payload_size(data: bytes) -> int:
-    """Payload bytes of a whole file's bytes (what follows the prefix and the header)."""
+    """Payload bytes of a whole file's bytes (what follows the prefix and the header, a residual included)."""
     _, _, hlen, _ = _PREFIX.unpack_from(data)
     return len(data) - PREFIX_SIZE - hlen
 
 
 def wgs_bytes(
-    params: np.ndarray, header: dict, *, encoding: str = "float32", header_size: int | None = None, bits: dict | None = None
+    params: np.ndarray,
+    header: dict,
+    *,
+    encoding: str = "float32",
+    header_size: int | None = None,
+    bits: dict | None = None,
+    residual: Residual | None = None,
 ) -> bytes:
     """The bytes :func:`write_wgs` writes (for sizes and in-memory round trips); ``bits``: the
-    coded bit depths (default :data:`warpgauss.coded.CODED_BITS`)."""
+    coded bit depths (default :data:`warpgauss.coded.CODED_BITS`); ``residual``: appended after
+    the primitives, described by the header's ``residual`` entry."""
     p = _validated_params(params)
     n = p.shape[0]
     encoding = _encoding(False, encoding)
@@ -463,7 +481,9 @@ def wgs_bytes(
         payload, quant, _ = encode_coded(p, bits)
     else:
         payload, quant = p.astype("<f4", copy=False).tobytes(), None
-    body = _header_bytes(header, n, _payload_info(encoding, hashlib.sha256(payload).hexdigest(), quant, len(payload)))
+    tail = b"" if residual is None else residual.payload()
+    info = _payload_info(encoding, hashlib.sha256(payload).hexdigest(), quant, len(payload))
+    body = _header_bytes(header, n, info, None if residual is None else residual.info)
     need = PREFIX_SIZE + len(body)
     if header_size is None and ENCODINGS[encoding] is None:
         H = need  # coded: the exact header, no padding (at most header_size(), its widest)
@@ -482,8 +502,9 @@ def wgs_bytes(
     if H - PREFIX_SIZE > 0xFFFFFFFF:
         raise WarpgaussError(f"header of {H} bytes is too large for the format (max 4 GiB); shrink the header")
     area = body + b" " * (H - need)
-    prefix = _PREFIX.pack(MAGIC, FORMAT_VERSION, len(area), zlib.crc32(area))
-    return b"".join([prefix, area, payload])
+    version = FORMAT_VERSION if residual is None else RESIDUAL_VERSION
+    prefix = _PREFIX.pack(MAGIC, version, len(area), zlib.crc32(area))
+    return b"".join([prefix, area, payload, tail])
 
 
 def read_wgs(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
@@ -528,9 +549,9 @@ def _read(path: str | os.PathLike, payload: bool) -> tuple[np.ndarray | None, di
         magic, version, hlen, crc = _PREFIX.unpack(f.read(PREFIX_SIZE))
         if magic != MAGIC:
             raise bad("not a warpgauss model file (bad magic); give a .wgs file written by warpgauss")
-        if version != FORMAT_VERSION:
+        if version not in (FORMAT_VERSION, RESIDUAL_VERSION):
             raise bad(
-                f"unsupported .wgs format version {version} (this warpgauss reads version {FORMAT_VERSION}); "
+                f"unsupported .wgs format version {version} (this warpgauss reads versions {FORMAT_VERSION} and {RESIDUAL_VERSION}); "
                 "upgrade warpgauss or re-encode the volume"
             )
         if hlen > size - PREFIX_SIZE:
@@ -583,13 +604,22 @@ def _read(path: str | os.PathLike, payload: bool) -> tuple[np.ndarray | None, di
         if enc in ("compact96", "coded") and "quant" not in info:
             what = "ranges" if enc == "compact96" else "description"
             raise bad(f"the header lacks the {enc} quantisation {what} ('quant'); the file is damaged")
-        expected = PREFIX_SIZE + hlen + total
+        extra = 0
+        if ("residual" in header) != (version == RESIDUAL_VERSION):
+            raise bad(f"a version {version} file {'without' if version == RESIDUAL_VERSION else 'with'} a residual; the file is damaged")
+        if "residual" in header:  # checked in full by warpgauss.residual.check_info before it is read
+            claimed = header["residual"].get("payload_bytes") if isinstance(header["residual"], dict) else None
+            if isinstance(claimed, bool) or not isinstance(claimed, int) or claimed < 0:
+                raise bad(f"the header's residual payload_bytes {claimed!r} is not a non-negative integer; the file is damaged")
+            extra = claimed
+        expected = PREFIX_SIZE + hlen + total + extra
         if size != expected:
             kind = "truncated" if size < expected else f"{size - expected} trailing bytes"
             what = f"{n} x {bpp}" if bpp is not None else f"{total}-byte coded"
+            more = f" + {extra}-byte residual" if extra else ""
             raise bad(
                 f"file size {size} != expected {expected} (prefix {PREFIX_SIZE} + header {hlen} + "
-                f"{what} payload): {kind}; the file is damaged"
+                f"{what} payload{more}): {kind}; the file is damaged"
             )
         if n < 1:
             raise bad("the model holds no primitives (n = 0); a model needs at least one, re-encode it")

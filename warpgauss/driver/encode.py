@@ -63,6 +63,74 @@ def finish_report(model: Model, timer: StageRecorder) -> dict:
     return rep
 
 
+def check_bounded_request(source, read: ReadOptions | None, bricks, warm_start, session) -> None:
+    """Refuse, before any work, what a bounded residual cannot go with."""
+    if read is not None and read.stride > 1:
+        raise WarpgaussError("--max-error bounds every source voxel; --stride drops voxels, so the two do not combine")
+    if bricks is not None:
+        raise WarpgaussError("--max-error does not combine with --bricks yet; encode the volume whole")
+    if is_device_array(source):
+        raise WarpgaussError("--max-error takes a file or a numpy array, not a device array")
+    if warm_start is not None or session is not None:
+        raise WarpgaussError("--max-error does not combine with a series or an Encoder yet; encode each volume on its own")
+
+
+def attach_residual(model: Model, source, read, example, example_size, max_error, max_error_rel, device) -> None:
+    """Stage S4: code the bounded residual of the (stored) model against the source's own values
+    and attach it to the model; the report's ``residual`` says what it holds."""
+    import time
+
+    from ..lazy import valid_mask
+    from ..residual import code_residual, prediction, resolve_bound, verify
+
+    t0 = time.perf_counter()
+    data, fill = raw_source(source, read, example, example_size)
+    if tuple(reversed(data.shape)) != model.shape_xyz:
+        raise WarpgaussError(f"internal: the source's shape {data.shape} is not the model grid {model.shape_xyz}")
+    lo, hi = model.value_range
+    bound = resolve_bound(max_error, max_error_rel, lo, hi)
+    valid = valid_mask(data, fill)
+    pred, fragile = prediction(model, device)
+    t1 = time.perf_counter()
+    res, facts = code_residual(data, None if valid.all() else valid, pred, fragile, bound, (lo, hi), fill_value=fill)
+    t2 = time.perf_counter()
+    check = verify(res, pred, data, valid)
+    model.residual = res
+    gauss = model.file_size(encoding=model.format or "coded") - res.nbytes
+    model.run_report["residual"] = {
+        **facts,
+        "bound": bound,
+        "bound_rel": res.info["bound_rel"],
+        "gaussian_bytes": gauss,
+        "residual_bytes": res.nbytes,
+        "file_bytes": gauss + res.nbytes,
+        "compression_ratio": model.source_bytes / (gauss + res.nbytes),
+        **check,
+        "predict_seconds": t1 - t0,
+        "code_seconds": t2 - t1,
+    }
+
+
+def raw_source(source, read: ReadOptions | None, example, example_size) -> tuple[np.ndarray, float | None]:
+    """The source's own values (its dtype, in memory) and fill value, for a bounded residual."""
+    from ..readers.timesteps import TimeStep
+
+    read = read or ReadOptions()
+    fill = read.fill_value
+    if example is not None:
+        from ..synthetic import generate
+
+        return generate(example, example_size, seed=0), fill
+    if isinstance(source, np.ndarray):
+        return source, fill
+    if isinstance(source, TimeStep):
+        return source.read(), fill if fill is not None else source.meta()[2]
+    vol = read.read(source, lazy=False)
+    if fill is None and getattr(vol, "fill_value", None) is not None:
+        fill = vol.fill_value
+    return np.asarray(vol.data), fill
+
+
 def encode(
     source: str | os.PathLike | np.ndarray | None = None,
     *,
@@ -104,6 +172,8 @@ def encode(
     max_host_memory: int | str | None = None,
     warm_start=None,
     motion: bool = True,
+    max_error: float | None = None,
+    max_error_rel: float | None = None,
     session=None,
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
@@ -179,6 +249,11 @@ def encode(
         motion: With ``warm_start``, first move every primitive with the motion from the
             previous model to this timestep (block Lucas-Kanade on a pyramid, see
             :mod:`warpgauss.motion`; stage S1m); False: start where the previous model was.
+        max_error: A point-wise bound in source units: a residual stored after the Gaussians
+            makes every valid voxel of ``decode()`` lie within it of the source, on any device
+            (:mod:`warpgauss.residual`; stage S4). The Gaussians keep the budget given, by
+            default ``ratio`` :data:`warpgauss.residual.DEFAULT_RATIO`; render and view use them alone.
+        max_error_rel: The bound as a share of the source's value range instead.
         session: The state a :class:`warpgauss.Encoder` keeps between its calls (device buffers
             and this call's deadline); not for direct use.
 
@@ -188,6 +263,15 @@ def encode(
     from .._fs import check_writable
 
     check_budget_options(budget, ratio, file_bytes)  # before the output check: say what is wrong with the request first
+    bounded = max_error is not None or max_error_rel is not None
+    if bounded:
+        from ..residual import DEFAULT_RATIO as RESIDUAL_RATIO
+        from ..residual import check_bound_options
+
+        check_bound_options(max_error, max_error_rel)
+        check_bounded_request(source, read, bricks, warm_start, session)
+        if budget is None and ratio is None and file_bytes is None:
+            ratio = RESIDUAL_RATIO
     if output is not None:
         check_writable(output, force=force or resume)  # a resume replaces its interrupted model
     if analytic_output is not None:
@@ -277,6 +361,9 @@ def encode(
             analytic_output=analytic_output,
             force=force or resume,
         )
+    if bounded:
+        with timer.stage("S4", "bounded residual"):
+            attach_residual(model, source, read, example, example_size, max_error, max_error_rel, device)
     if output is not None:
         with timer.stage("S3", "export"):
             model.save(output, encoding=encoding_of(opts), force=True if resume else force)

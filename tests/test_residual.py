@@ -1,0 +1,287 @@
+"""The bounded residual (encode --max-error): every valid voxel decodes within the bound, on any
+reader whose float64 prediction differs by less than the margin, bit for bit the same; the float64
+predictor against a numpy float64 reference; the file keeps it strict."""
+
+from __future__ import annotations
+
+import json
+import math
+import zlib
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from typer.testing import CliRunner
+
+import warpgauss
+from warpgauss import residual as R
+from warpgauss.cli.main import app
+from warpgauss.errors import WarpgaussError
+from warpgauss.wgs import _PREFIX, PREFIX_SIZE, read_wgs
+
+
+# -- the float64 predictor -------------------------------------------------------------------
+def _reference_prediction(params: np.ndarray, shape_xyz) -> np.ndarray:
+    """V~ in float64 by numpy, all pairs (the 5-sigma cut on m, the RHO0 floor, clamped to [0, 1])."""
+    p = params.astype(np.float64)
+    nx, ny, nz = shape_xyz
+    z, y, x = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    pts = np.stack([x.ravel(), y.ravel(), z.ravel()], 1).astype(np.float64)
+    num = np.zeros(len(pts))
+    den = np.zeros(len(pts))
+    for r in p:
+        qx, qy, qz, qw = r[6:10] / np.linalg.norm(r[6:10])
+        rot = np.array(
+            [
+                [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
+                [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
+                [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)],
+            ]
+        )
+        s = np.exp(np.clip(r[3:6], -9.0, 12.0))
+        m = (((pts - r[:3]) @ rot) ** 2 / s**2).sum(1)
+        g = np.where(m < 25.0, np.exp(-0.5 * np.minimum(m, 60.0)), 0.0)
+        num += r[11] * r[10] * g
+        den += r[11] * g
+    return np.clip(num / np.maximum(den, 0.05), 0.0, 1.0).reshape(nz, ny, nx)
+
+
+@pytest.fixture(scope="module")
+def small_model():
+    return warpgauss.encode(example="vortex", example_size=16, budget=120, iterations=30, device="cpu", evaluate=False)
+
+
+def test_the_float64_predictor_matches_a_numpy_float64_reference(small_model):
+    from warpgauss.field import GaussianField
+
+    m = small_model
+    values, fragile = GaussianField(m.params, m.shape_xyz, device="cpu").predict(m.params)
+    ref = _reference_prediction(m.params, m.shape_xyz)
+    assert values.dtype == np.float64 and values.shape == ref.shape
+    assert np.abs(values - ref).max() < 1e-12  # float64 rounding only (a float32 decode differs by ~1e-7)
+    assert not fragile.any()  # no pair of this model sits within 1e-9 of the cut
+
+
+def test_a_pair_on_the_cut_marks_its_voxel_fragile():
+    from warpgauss.field import GaussianField
+
+    # one axis-aligned primitive of sigma 1 at the origin: voxel (5, 0, 0) lies at m = 25 exactly
+    p = np.array([[0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0.5, 1.0]], np.float32)
+    values, fragile = GaussianField(p, (8, 8, 8), device="cpu").predict(p)
+    assert fragile[0, 0, 5] and fragile.sum() == np.count_nonzero(np.isclose(_dist2((8, 8, 8)), 25.0, rtol=1e-9, atol=0))
+    assert values[0, 0, 0] == 0.5
+
+
+def _dist2(shape_xyz):
+    nx, ny, nz = shape_xyz
+    z, y, x = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    return (x * x + y * y + z * z).astype(np.float64)
+
+
+# -- the bound, for any volume and bound ------------------------------------------------------
+KINDS = ("float32", "float32-extremes", "constant", "noisy", "masked", "int16", "uint8", "float64")
+
+
+@st.composite
+def volumes(draw):
+    kind = draw(st.sampled_from(KINDS))
+    shape = tuple(draw(st.integers(2, 9)) for _ in range(3))
+    rng = np.random.default_rng(draw(st.integers(0, 2**31)))
+    smooth = np.cumsum(np.cumsum(rng.normal(size=shape), 0), 1)
+    if kind == "float32":
+        v = smooth.astype(np.float32)
+    elif kind == "float32-extremes":
+        v = (smooth / np.abs(smooth).max() * draw(st.sampled_from([3.0e38, 1.0e-30, 1.0e20]))).astype(np.float32)
+    elif kind == "constant":
+        v = np.full(shape, draw(st.sampled_from([0.0, 7.5, -1e6])), np.float32)
+    elif kind == "noisy":
+        v = rng.normal(size=shape).astype(np.float32)
+    elif kind == "masked":
+        v = smooth.astype(np.float32)
+        v[rng.random(shape) < 0.3] = np.nan
+    elif kind == "int16":
+        v = np.clip(smooth * 300, -32768, 32767).astype(np.int16)
+    elif kind == "uint8":
+        v = rng.integers(0, 256, shape).astype(np.uint8)
+    else:
+        v = smooth * 1e3 + 1e9  # float64, a range small against its magnitude
+    rel = 10.0 ** draw(st.floats(-6.0, -1.0))
+    return v, rel, rng
+
+
+def _predict_like_a_model(v: np.ndarray, valid: np.ndarray, rng) -> tuple[np.ndarray, tuple[float, float]]:
+    """A smooth-ish prediction in the source's range (what a model gives), plus the range."""
+    x = v.astype(np.float64)
+    lo, hi = (float(x[valid].min()), float(x[valid].max())) if valid.any() else (0.0, 1.0)
+    base = np.where(valid, x, lo)
+    pred = np.clip(base + rng.normal(0.0, 0.05 * (hi - lo) + 1e-30, v.shape), lo, hi)
+    return pred, (lo, hi)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(volumes())
+def test_every_valid_voxel_decodes_within_the_bound_on_any_reader(case):
+    v, rel, rng = case
+    valid = np.isfinite(v) if v.dtype.kind == "f" else np.ones(v.shape, bool)
+    pred, (lo, hi) = _predict_like_a_model(v, valid, rng)
+    span = hi - lo if hi > lo else max(abs(lo), 1.0)
+    bound = rel * span
+    fragile = rng.random(v.shape) < 0.05
+    res, facts = R.code_residual(v, None if valid.all() else valid, pred, fragile, bound, (lo, hi))
+    out = R.apply_residual(res, pred)
+    err = np.abs(out.astype(np.float64) - v.astype(np.float64))[valid]
+    assert err.size == 0 or err.max() <= bound, (err.max(), bound, res.info)
+    if not valid.all():
+        assert np.isnan(out[~valid]).all()  # masked voxels carry nothing: NaN back (no fill value given)
+    # another reader: its prediction differs by less than the margin everywhere (and arbitrarily at
+    # the fragile voxels, where it may count a pair the encoder did not): the same bits
+    margin = res.info["margin"]
+    other = pred + rng.uniform(-0.9, 0.9, v.shape) * margin
+    other[fragile] += rng.normal(0.0, 0.01 * span, int(fragile.sum()))
+    again = R.apply_residual(res, np.clip(other, lo, hi) if hi > lo else other)
+    assert np.array_equal(out, again, equal_nan=True)
+
+
+def test_a_bound_below_the_dtype_resolution_stores_voxels_exactly():
+    v = np.linspace(1000.0, 1001.0, 8 * 8 * 8, dtype=np.float32).reshape(8, 8, 8)  # ulp 6e-5 at 1000
+    pred = v.astype(np.float64) + 0.01
+    res, facts = R.code_residual(v, None, pred, np.zeros(v.shape, bool), 1e-6, (1000.0, 1001.0))
+    out = R.apply_residual(res, pred)
+    assert np.array_equal(out, v) and facts["literals"] > 0
+
+
+def test_an_integer_source_keeps_its_dtype_on_the_integer_lattice_and_goes_float_where_coarser():
+    rng = np.random.default_rng(1)
+    v = rng.integers(0, 646, (10, 11, 12)).astype(np.int16)
+    pred = v + rng.normal(0, 3, v.shape)
+    none = np.zeros(v.shape, bool)
+    res, _ = R.code_residual(v, None, pred, none, 6.46, (0.0, 646.0))
+    out = R.apply_residual(res, pred)
+    assert out.dtype == np.int16 and res.info["step"] == 13 and np.abs(out.astype(int) - v).max() <= 6
+    res, _ = R.code_residual(v, None, pred, none, 0.646, (0.0, 646.0))  # below 1: the float lattice is coarser than lossless
+    out = R.apply_residual(res, pred)
+    assert out.dtype == np.float32 and np.abs(out.astype(float) - v).max() <= 0.646
+
+
+def test_the_smallest_predictor_is_chosen_and_a_good_prediction_pays():
+    rng = np.random.default_rng(2)
+    v = rng.normal(size=(16, 16, 16)).astype(np.float32)
+    none = np.zeros(v.shape, bool)
+    good = v.astype(np.float64) + rng.normal(0, 1e-3, v.shape)
+    res, facts = R.code_residual(v, None, good, none, 1e-2, (float(v.min()), float(v.max())))
+    assert res.info["predictor"] == min(facts["sizes"], key=facts["sizes"].get) == "gaussians"
+    useless = np.zeros(v.shape)
+    res2, facts2 = R.code_residual(v, None, useless, none, 1e-2, (float(v.min()), float(v.max())))
+    assert res.nbytes < res2.nbytes
+
+
+# -- end to end: encode, file, decode, CLI ----------------------------------------------------
+@pytest.fixture(scope="module")
+def bounded(tmp_path_factory):
+    d = tmp_path_factory.mktemp("bounded")
+    rng = np.random.default_rng(3)
+    z, y, x = np.meshgrid(*(np.linspace(-1, 1, 18),) * 3, indexing="ij")
+    vol = (800 * np.exp(-4 * (x * x + y * y + z * z)) + rng.normal(0, 5, x.shape)).astype(np.int16)
+    np.save(d / "vol.npy", vol)
+    kw = dict(budget=150, iterations=30, device="cpu", max_error=2.0)
+    m = warpgauss.encode(vol, output=d / "v.wgs", **kw)
+    m2 = warpgauss.encode(vol, output=d / "v2.wgs", **kw)
+    return d, vol, m, m2
+
+
+def test_encode_with_max_error_writes_one_file_whose_decode_keeps_the_bound(bounded):
+    d, vol, m, m2 = bounded
+    rep = m.run_report["residual"]
+    assert rep["max_abs_error"] <= 2.0 and rep["bound"] == 2.0
+    assert (d / "v.wgs").stat().st_size == rep["file_bytes"]
+    assert (d / "v.wgs").read_bytes() == (d / "v2.wgs").read_bytes()  # same seed, same device: same file
+    loaded = warpgauss.Model.load(d / "v.wgs")
+    out = loaded.decode(device="cpu")
+    assert out.dtype == np.int16 and np.abs(out.astype(int) - vol).max() <= 2
+    alone = loaded.decode(device="cpu", residual=False)
+    assert alone.dtype == np.float32 and np.abs(alone - vol).max() > 2  # the Gaussians alone do not hold it
+    with pytest.raises(WarpgaussError, match="encoded grid"):
+        loaded.decode((9, 9, 9), device="cpu", residual=True)
+    from warpgauss.evaluate import evaluate_against
+
+    r = evaluate_against(loaded, d / "vol.npy", device="cpu")
+    assert r["max_abs_error_source"] <= 2.0 and r["bound"] == 2.0
+
+
+def test_cli_info_decode_and_eval_show_and_apply_the_residual(bounded):
+    d, vol, m, _ = bounded
+    run = CliRunner()
+    res = run.invoke(app, ["info", str(d / "v.wgs"), "--verify"])
+    assert res.exit_code == 0 and "bounded residual" in res.output and "within 2" in res.output, res.output
+    res = run.invoke(app, ["decode", str(d / "v.wgs"), "-o", str(d / "out.npy"), "--device", "cpu"])
+    assert res.exit_code == 0 and "within 2" in res.output, res.output
+    assert np.abs(np.load(d / "out.npy").astype(int) - vol).max() <= 2
+    res = run.invoke(app, ["decode", str(d / "v.wgs"), "-o", str(d / "alone.npy"), "--device", "cpu", "--no-residual"])
+    assert res.exit_code == 0 and np.load(d / "alone.npy").dtype == np.float32, res.output
+    res = run.invoke(app, ["eval", str(d / "v.wgs"), str(d / "vol.npy"), "--device", "cpu", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output)["max_abs_error_source"] <= 2.0
+
+
+@pytest.mark.parametrize(
+    "args, says",
+    [
+        (["--max-error", "0"], "--max-error must be a positive finite number"),
+        (["--max-error", "nan"], "--max-error must be a positive finite number"),
+        (["--max-error-rel", "-1e-3"], "--max-error-rel must be a positive finite number"),
+        (["--max-error", "1", "--max-error-rel", "1e-3"], "not both"),
+        (["--max-error", "1", "--stride", "2"], "does not combine"),
+        (["--max-error", "1", "--bricks", "2x2x2"], "does not combine"),
+        (["--max-error", "1", "--ladder", "10,20"], "does not combine"),
+    ],
+)
+def test_bound_requests_that_cannot_hold_are_refused_before_any_work(tmp_path, args, says):
+    out = tmp_path / "x.wgs"
+    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "12", "--budget", "20", "-o", str(out), *args])
+    assert res.exit_code == 2 and says in res.output and len(res.output.strip().splitlines()) == 1, res.output
+    assert not out.exists()
+
+
+def _rewrite_header(src, dst, change) -> None:
+    data = src.read_bytes()
+    magic, version, hlen, _ = _PREFIX.unpack_from(data)
+    header = json.loads(data[PREFIX_SIZE : PREFIX_SIZE + hlen])
+    change(header)
+    area = json.dumps(header, sort_keys=True, separators=(",", ":")).encode()
+    rest = data[PREFIX_SIZE + hlen :]
+    dst.write_bytes(_PREFIX.pack(magic, version, len(area), zlib.crc32(area)) + area + rest)
+
+
+def test_a_crafted_residual_is_refused_in_one_line(bounded, tmp_path):
+    d, vol, m, _ = bounded
+    src = d / "v.wgs"
+
+    def wider(h):  # symbols claimed wider than the frame holds
+        h["residual"]["symbol_bytes"] = 8
+
+    _rewrite_header(src, tmp_path / "bomb.wgs", wider)
+    with pytest.raises(WarpgaussError, match="where the header says"):
+        warpgauss.Model.load(tmp_path / "bomb.wgs").decode(device="cpu")
+
+    def lie(h):
+        h["residual"]["literals"] = 10**12
+
+    _rewrite_header(src, tmp_path / "lie.wgs", lie)
+    with pytest.raises(WarpgaussError, match="more literals"):
+        warpgauss.Model.load(tmp_path / "lie.wgs")
+    damaged = bytearray(src.read_bytes())
+    damaged[-3] ^= 0xFF  # inside the residual: its checksum catches it when a decode reads it
+    (tmp_path / "dmg.wgs").write_bytes(bytes(damaged))
+    with pytest.raises(WarpgaussError, match="residual checksum"):
+        warpgauss.Model.load(tmp_path / "dmg.wgs").decode(device="cpu")
+    params, header = read_wgs(src)
+    assert header["residual"]["bound"] == 2.0 and params.shape == (m.n, 12)
+
+
+def test_the_claimed_symbols_are_bounded_by_what_zstandard_can_produce():
+    frame = R._compress(bytes(1000))
+    with pytest.raises(WarpgaussError, match="more than Zstandard can produce"):
+        R._decompress(frame, len(frame) * R.ZSTD_MAX_RATIO * 2, "symbols")
+    assert R._decompress(frame, 1000, "symbols") == bytes(1000)
+    assert math.isfinite(R.MARGIN_REL)
