@@ -1,33 +1,33 @@
 """A bounded residual: the Gaussians as a predictor, plus what makes every decoded voxel lie
 within an absolute bound E of the source (``warpgauss encode --max-error``).
 
-Coding (SZ's linear quantisation, applied as cuSZ does: quantise first, then predict the integers)::
+Coding is SZ's: each voxel is predicted from what a reader already has, the error of that
+prediction quantised with step 2E (error feedback: |error| <= E by construction), and the
+quantisation indices q entropy-coded. Three predictors are tried and the smallest coding kept::
 
-    s   = 2 E (1 - 2^-30)            float sources: the lattice step
-        = 2 floor(E) + 1             integer sources (odd: no ties, |V - s k| <= floor(E) exactly)
-    kV  = round(V / s)               the source on the lattice: decoded value = s kV, cast to its dtype
-    kP  = round(P / s)               P: the Gaussians in float64, source units (kernels/predict.py)
-    symbols, by the predictor that codes smallest (all are tried):
-        "gaussians"          kV - kP
-        "gaussians+lorenzo"  L(kV - kP)     L: 3D Lorenzo (first differences along x, y and z)
-        "lorenzo"            L(kV)          (the Gaussians unused: SZ's own predictor)
+    "gaussians"          P                       P: the Gaussians in float64, source units (kernels/predict.py)
+    "gaussians+interp"   P + I(decoded V - P)    I: SZ3's interpolation (cubic, level by level, along z, y, x)
+    "interp"             I(decoded V)            (the Gaussians unused: SZ3's own predictor)
 
-The decoded value ``s kV`` depends on the prediction only through ``kP``, an integer: a reader
-whose float64 prediction differs from the encoder's by less than ``MARGIN_REL`` of the value range
-(measured differences between the CPU and CUDA are about 1e-15) gets the same kP except where
-P / s lies within that margin of a rounding boundary, or where a pair lies on the 5-sigma cut
-(``fragile``); those voxels are stored outright (*literals*, the source value exactly), as is
-any voxel whose lattice value, cast to the source's dtype, is not within E (a bound below the
-dtype's resolution) or does not fit the lattice. So every valid voxel decodes within E on every
-device, bit for bit the same; masked voxels (NaN, Inf, the fill value) carry no symbol and decode
-to the fill value (NaN where none was given), from a stored mask.
+The interpolation runs on decoded values in float64 numpy (the same operations, so the same bits,
+on every machine) and never on P: a reader's prediction enters only as the final ``P + r``. Where
+a reader's float64 prediction may differ from the encoder's (by less than ``MARGIN_REL`` of the
+value range: CPU against CUDA measured about 1e-15), the step keeps that margin and a voxel is
+checked at both ends of it; a voxel with a pair on the 5-sigma cut (``fragile``: a reader may
+count the term or not), or whose value the decoded dtype cannot hold within E, is stored outright
+(a *literal*, the source value exactly). So every valid voxel decodes within E on every device.
 
-Symbols are zigzag-mapped to the narrowest of 1, 2, 4 or 8 bytes, split into byte planes and
-coded with Zstandard, as the coded model format is (:mod:`warpgauss.coded`).
+An integer source keeps its dtype on the odd integer step 2 floor(E) + 1 (|error| <= floor(E)),
+the prediction rounded to an integer (a prediction within the margin of .5 is a literal), unless
+the float step 2E is coarser (E < 1, or a fraction >= 1/2): then it decodes to float. Masked
+voxels (NaN, Inf, the fill value) carry nothing (q = 0) and decode to the fill value (NaN where
+none was given), from a stored mask.
 
-The payload is a sequence of Zstandard frames (symbols, literal positions, literal values, mask)
-whose lengths the header's ``residual`` entry lists; reading decompresses each into at most its
-declared size and refuses a frame that claims more than Zstandard can produce from its bytes.
+The q's are zigzag-mapped to the narrowest of 1, 2, 4 or 8 bytes, split into byte planes and coded
+with Zstandard, as the coded model format is (:mod:`warpgauss.coded`). The payload is a sequence of
+Zstandard frames (q's, literal positions, literal values, mask) whose lengths the header's
+``residual`` entry lists; reading decompresses each into at most its declared size and refuses a
+frame that claims more than Zstandard can produce from its bytes.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ DEFAULT_RATIO = 200.0  # the Gaussians' share of a bounded file when no budget i
 MARGIN_REL = 1e-9  # of the value range: how far two readers' float64 predictions may differ
 ZSTD_MAX_RATIO = 1 << 16  # Zstandard never expands past ~32,768 : 1 (an RLE block of 128 KiB in 4 bytes)
 ZSTD_LEVEL = 9  # streams up to ZSTD_LARGE_RAW; larger ones level 3 (symbols past a prediction are noise-like)
-PREDICTORS = ("gaussians", "gaussians+lorenzo", "lorenzo")
+PREDICTORS = ("interp", "gaussians+interp", "gaussians")  # on a tie the first: it needs no prediction
 STREAMS = ("symbols", "positions", "values", "mask")
 _LATTICE_LIMIT = float(1 << 50)  # |V / s| beyond this is stored outright (keeps every int64 sum exact)
 DTYPES = ("int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64", "float32", "float64")
@@ -98,48 +98,105 @@ class Residual:
         return data
 
 
-# -- the lattice ---------------------------------------------------------------------------------
-def _lattice(bound: float, dtype: np.dtype) -> tuple[float, bool, np.dtype]:
-    """(step s, integer lattice?, decoded dtype) for a bound in source units.
+# -- the quantiser ------------------------------------------------------------------------------
+def _quantiser(bound: float, margin: float, dtype: np.dtype) -> tuple[float, bool, np.dtype]:
+    """(step, integer?, decoded dtype) for a bound in source units.
 
-    An integer source keeps its dtype on the odd integer lattice 2 floor(E) + 1 unless the float
-    lattice 2E is coarser (E < 1, or its fraction >= 1/2: at E = 0.646 the integer lattice is
-    lossless, 1 against 1.29): then it decodes to float32 (float64 past 16-bit integers)."""
-    if dtype.kind in "iu" and bound >= 1.0 and bound - math.floor(bound) < 0.5:
-        return float(2 * math.floor(bound) + 1), True, dtype
+    An integer source keeps its dtype with the odd integer step 2 floor(E) + 1 (|error| <= floor(E)
+    exactly) unless the float step 2E is coarser (E < 1, or its fraction >= 1/2: at E = 0.646 the
+    integer step is lossless, 1 against 1.29): then it decodes to float32 (float64 past 16-bit
+    integers). The float step keeps the readers' margin: 2 (E - margin)."""
+    if dtype.kind in "iu" and (bound < 0.5 or (bound >= 1.0 and bound - math.floor(bound) < 0.5)):
+        return float(2 * math.floor(bound) + 1), True, dtype  # below 1/2: step 1, the source's own integers
     out = dtype if dtype.kind == "f" else np.dtype(np.float32 if dtype.itemsize <= 2 else np.float64)
-    return 2.0 * bound * (1.0 - 2.0**-30), False, out
+    return 2.0 * (bound - margin) * (1.0 - 2.0**-30), False, out
 
 
-def _on_lattice(k: np.ndarray, step: float, integer: bool, dtype: np.dtype) -> np.ndarray:
-    """The decoded values s k in the source's dtype (integers clipped to its range: the source
-    lies within it, so clipping never moves a value away from it)."""
+def _quantise(t: np.ndarray, step: float, integer: bool) -> np.ndarray:
     if integer:
+        return np.floor_divide(t + int(step) // 2, int(step))  # t integer: |t - step q| <= step // 2
+    return np.rint(t / step).astype(np.int64)
+
+
+def _cast(x: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """float64 or int64 values in the decoded dtype (integers clipped to its range: the source lies
+    within it, so clipping never moves a value away from the source)."""
+    if dtype.kind in "iu":
         info = np.iinfo(dtype)
-        v = k * np.int64(step)
-        return np.clip(v, max(info.min, -(2**62)), min(info.max, 2**62)).astype(dtype)
+        return np.clip(x, max(info.min, -(2**62)), min(info.max, 2**62)).astype(dtype)
     with np.errstate(over="ignore", invalid="ignore"):
-        return (k.astype(np.float64) * step).astype(dtype)
+        return x.astype(dtype)
 
 
-def _round_index(x: np.ndarray, step: float, integer: bool) -> np.ndarray:
-    """round(x / s) as int64 (x integer-valued on an integer lattice: exact floor division)."""
-    if integer and x.dtype.kind in "iu":
-        k = int(step) // 2
-        return np.floor_divide(x.astype(np.int64) + k, int(step))
-    return np.rint(x / step).astype(np.int64)
+def _interp_passes(shape: tuple[int, ...]):
+    """SZ3's interpolation order: from the coarsest lattice (stride 2^L, stored as it is) down to
+    stride 1, each level along z, then y, then x: the points at odd multiples of h along that
+    axis, from their neighbours at +-h (and +-3h) on that axis, already known."""
+    levels = max(1, int(math.ceil(math.log2(max(max(shape), 2)))))
+    for lv in range(levels, 0, -1):
+        h = 1 << (lv - 1)
+        for a in range(3):
+            if h >= shape[a]:
+                continue
+            sel = tuple(slice(0, None, h) if b < a else slice(h, None, 2 * h) if b == a else slice(0, None, 2 * h) for b in range(3))
+            yield a, h, sel
 
 
-def _lorenzo(x: np.ndarray) -> np.ndarray:
-    for a in range(3):
-        x = np.diff(x, axis=a, prepend=np.zeros_like(x[:1] if a == 0 else x[:, :1] if a == 1 else x[:, :, :1]))
-    return x
+def _interp_prediction(x: np.ndarray, a: int, h: int, sel) -> np.ndarray:
+    """The integer prediction of the points ``x[sel]`` from their neighbours along axis ``a``:
+    cubic (-1, 9, 9, -1) / 16 where +-h and +-3h exist, linear where only +-h do, else the -h one."""
+    n = x.shape[a]
+    cols = tuple(s if b != a else slice(None) for b, s in enumerate(sel))
+    line = x[cols]  # every point of the lines through the targets (the axis at full resolution)
+    idx = np.arange(h, n, 2 * h)
+
+    def take(i):
+        return np.take(line, np.clip(i, 0, n - 1), axis=a)
+
+    lo1, hi1 = take(idx - h), take(idx + h)
+    has_hi = np.expand_dims(idx + h < n, tuple(b for b in range(3) if b != a))
+    whole = x.dtype.kind in "iu"  # integers: exact integer rounding; float64: the same operations on every machine
+    pred = np.where(has_hi, (lo1 + hi1) >> 1 if whole else (lo1 + hi1) * 0.5, lo1)
+    cubic = np.expand_dims((idx - 3 * h >= 0) & (idx + 3 * h < n), tuple(b for b in range(3) if b != a))
+    if cubic.any():
+        num = -take(idx - 3 * h) + 9 * lo1 + 9 * hi1 - take(idx + 3 * h)
+        pred = np.where(cubic, (num + 8) >> 4 if whole else num * 0.0625, pred)
+    return pred
 
 
-def _unlorenzo(x: np.ndarray) -> np.ndarray:
-    for a in (2, 1, 0):
-        x = np.cumsum(x, axis=a)
-    return x
+def _feedback(t: np.ndarray, skip: np.ndarray, step: float, integer: bool, interp: bool) -> tuple[np.ndarray, np.ndarray]:
+    """SZ's quantisation with error feedback: each point is predicted from already decoded points
+    (``interp``: the interpolation passes; else 0), its error from that prediction quantised to q,
+    and decoded as prediction + step q (|t - decoded| <= step / 2). ``skip``: points coded as their
+    prediction (q = 0: masked, or stored outright). Returns (q, decoded)."""
+    q = np.zeros(t.shape, np.int64)
+    dec = np.zeros(t.shape, np.int64 if integer else np.float64)
+    if not interp:
+        q[~skip] = _quantise(t[~skip], step, integer)
+        dec[...] = q * np.int64(step) if integer else q * step
+        return q, dec
+    first = (slice(0, 1),) * 3  # the coarsest lattice: the first voxel, predicted as 0
+    q[first] = np.where(skip[first], 0, _quantise(t[first], step, integer))
+    dec[first] = q[first] * (np.int64(step) if integer else step)
+    for a, h, sel in _interp_passes(t.shape):
+        pred = _interp_prediction(dec, a, h, sel)
+        qs = np.where(skip[sel], 0, _quantise(np.where(skip[sel], pred, t[sel]) - pred, step, integer))
+        q[sel] = qs
+        dec[sel] = pred + (qs * np.int64(step) if integer else qs * step)
+    return q, dec
+
+
+def _decoded(q: np.ndarray, step: float, integer: bool, interp: bool) -> np.ndarray:
+    """The decoded residual from its q's: what :func:`_feedback` decoded, on any machine."""
+    if not interp:
+        return q * np.int64(step) if integer else q * step
+    dec = np.zeros(q.shape, np.int64 if integer else np.float64)
+    first = (slice(0, 1),) * 3
+    dec[first] = q[first] * (np.int64(step) if integer else step)
+    for a, h, sel in _interp_passes(q.shape):
+        pred = _interp_prediction(dec, a, h, sel)
+        dec[sel] = pred + (q[sel] * np.int64(step) if integer else q[sel] * step)
+    return dec
 
 
 def _zigzag(d: np.ndarray) -> np.ndarray:
@@ -171,17 +228,36 @@ def _compress(raw: bytes, level: int | None = None) -> bytes:
     return zstd.ZstdCompressor(level=lvl, write_checksum=True).compress(raw)
 
 
-def _decompress(frame: bytes, size: int, what: str) -> bytes:
+def _final_symbols(frame: bytes) -> tuple[bytes, str]:
+    """The chosen predictor's q's coded harder: bzip2 (its Burrows-Wheeler transform suits runs of
+    small q's: 15-25 % below Zstandard 3 on the head MRIs, as small as Zstandard 19 at a tenth of its
+    time) where it is smaller, else the Zstandard frame the predictors were compared by."""
+    import bz2
+
+    raw = zstandard_module().ZstdDecompressor().decompress(frame)
+    packed = bz2.compress(raw, 9)
+    return (packed, "bzip2") if len(packed) < len(frame) else (frame, "zstd")
+
+
+def _decompress(frame: bytes, size: int, what: str, codec: str = "zstd") -> bytes:
     """A frame's bytes, refused unless it yields exactly ``size`` bytes (checked before allocating
     against what Zstandard can produce from the frame's length)."""
-    if size > len(frame) * ZSTD_MAX_RATIO + 1024:
+    if codec == "zstd" and size > len(frame) * ZSTD_MAX_RATIO + 1024:  # bzip2 is read into at most the size
         raise WarpgaussError(
             f"the residual's {what} claim {size:,} bytes from a {len(frame):,}-byte frame, more than Zstandard can produce; the file is damaged"
         )
     zstd = zstandard_module()
     try:
-        raw = zstd.ZstdDecompressor().decompress(frame, max_output_size=max(size, 1))
-    except zstd.ZstdError:
+        if codec == "bzip2":
+            import bz2
+
+            d = bz2.BZ2Decompressor()
+            raw = d.decompress(frame, max_length=size + 1)  # never more than declared (and one byte to tell)
+            if not d.eof and len(raw) <= size:
+                raise OSError
+        else:
+            raw = zstd.ZstdDecompressor().decompress(frame, max_output_size=max(size, 1))
+    except (zstd.ZstdError, OSError, EOFError, ValueError):
         raise WarpgaussError(f"the residual's {what} do not decompress: the file is damaged; restore it or re-encode") from None
     if len(raw) != size:
         raise WarpgaussError(f"the residual's {what} hold {len(raw):,} bytes where the header says {size:,}; the file is damaged")
@@ -232,29 +308,29 @@ def code_residual(
         raise WarpgaussError(f"a bounded residual takes integer or float32/float64 volumes, not {dtype.name}")
     if not (math.isfinite(bound) and bound > 0):
         raise WarpgaussError(f"the error bound must be a positive finite number, got {bound!r}")
-    lo, hi = value_range
+    bound = float(bound)
+    lo, hi = float(value_range[0]), float(value_range[1])
     span = hi - lo if hi > lo else max(abs(lo), 1.0)  # a constant volume: its magnitude
     margin = MARGIN_REL * span + 1e-14 * max(abs(lo), abs(hi))  # and float64 rounding at the values' magnitude
-    step, integer, out_dtype = _lattice(bound, dtype)
+    step, integer, out_dtype = _quantiser(bound, margin, dtype)
     ok = np.ones(source.shape, bool) if valid is None else valid
     src64 = source.astype(np.float64)
-    with np.errstate(invalid="ignore", over="ignore"):
-        fits = ok & (np.abs(src64) < _LATTICE_LIMIT * step)
-        kv = np.zeros(source.shape, np.int64)
-        kv[fits] = _round_index(source[fits], step, integer)
-        t = pred / step
-        kp = np.rint(t).astype(np.int64)
-        ambiguous = np.abs(t - np.floor(t) - 0.5) <= margin / step + 4e-16 * np.abs(t)
-    out = _on_lattice(kv, step, integer, out_dtype)
-    err = np.abs(out.astype(np.float64) - src64)
-    bad = ok & ~(fits & (err <= bound))  # below the dtype's resolution, or off the lattice
     facts: dict = {"sizes": {}}
     best: tuple[int, str, dict[str, bytes], np.ndarray, int] | None = None
     for name in predictors:
-        literal = bad | (ok & (fragile | ambiguous)) if name != "lorenzo" else bad
-        k = np.where(ok & ~literal, kv, kp)  # nothing to code where a voxel is masked or stored outright
-        sym = k - kp if name == "gaussians" else _lorenzo(k - kp) if name == "gaussians+lorenzo" else _lorenzo(k)
-        u = _zigzag(sym.ravel())
+        gauss = name != "interp"
+        base, shaky = _base(pred, fragile, margin, integer, gauss)
+        with np.errstate(invalid="ignore", over="ignore"):
+            t = source.astype(np.int64) - base if integer else src64 - base
+            fits = ok & np.isfinite(src64) & (np.abs(t) < _LATTICE_LIMIT * step)
+        q, dec = _feedback(t, ~fits, step, integer, interp=name != "gaussians")
+        x = base + dec
+        if integer or not gauss:
+            good = _within(x, out_dtype, src64, bound)
+        else:  # a reader's prediction lies within the margin: every value between decodes within the bound
+            good = _within(x - margin, out_dtype, src64, bound) & _within(x + margin, out_dtype, src64, bound)
+        literal = ok & ~(fits & good & ~shaky)
+        u = _zigzag(q.ravel())
         width = _width(u)
         streams = _streams(u, width, literal, source.astype(out_dtype, copy=False), valid)
         size = sum(len(b) for b in streams.values())
@@ -263,6 +339,7 @@ def code_residual(
             best = (size, name, streams, literal, width)
     assert best is not None
     size, name, streams, literal, best_width = best
+    streams["symbols"], codec = _final_symbols(streams["symbols"])
     data = b"".join(streams[s] for s in STREAMS)
     info = {
         "bound": float(bound),
@@ -273,6 +350,7 @@ def code_residual(
         "lattice": "integer" if integer else "float",
         "predictor": name,
         "symbol_bytes": best_width,
+        "symbols_codec": codec,
         "streams": {s: len(streams[s]) for s in STREAMS},
         "literals": int(literal.sum()),
         "masked": 0 if valid is None else int((~valid).sum()),
@@ -283,6 +361,22 @@ def code_residual(
     }
     facts.update(predictor=name, literals=info["literals"], fragile=int((ok & fragile).sum()), bytes=len(data))
     return Residual(info, data), facts
+
+
+def _base(pred: np.ndarray, fragile: np.ndarray, margin: float, integer: bool, gauss: bool) -> tuple[np.ndarray, np.ndarray]:
+    """What the residual is added to (the Gaussians, rounded on an integer step; or 0) and the
+    voxels where a reader's may differ (a pair on the cut; a prediction within the margin of .5)."""
+    if not gauss:
+        return np.zeros(pred.shape, np.int64 if integer else np.float64), np.zeros(pred.shape, bool)
+    if not integer:
+        return pred, fragile
+    ambiguous = np.abs(pred - np.floor(pred) - 0.5) <= margin + 4e-16 * np.abs(pred)
+    return np.rint(pred).astype(np.int64), fragile | ambiguous
+
+
+def _within(x: np.ndarray, dtype: np.dtype, src64: np.ndarray, bound: float) -> np.ndarray:
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.abs(_cast(x, dtype).astype(np.float64) - src64) <= bound
 
 
 def _streams(u: np.ndarray, width: int, literal: np.ndarray, source: np.ndarray, valid: np.ndarray | None) -> dict[str, bytes]:
@@ -313,6 +407,8 @@ def check_info(info, n_voxels: int) -> str | None:
             return f"residual {key} {v!r} is not a positive finite number"
     if info["lattice"] == "integer" and (info["step"] != int(info["step"]) or info["step"] > 2**31):
         return f"residual integer step {info['step']!r} is not a whole number"
+    if info.get("symbols_codec") not in ("zstd", "bzip2"):
+        return f"residual symbols codec {info.get('symbols_codec')!r} is not zstd or bzip2"
     if info.get("symbol_bytes") not in (1, 2, 4, 8):
         return f"residual symbol width {info.get('symbol_bytes')!r} is not 1, 2, 4 or 8 bytes"
     streams = info.get("streams")
@@ -351,17 +447,12 @@ def apply_residual(res: Residual, pred: np.ndarray) -> np.ndarray:
     for s in STREAMS:
         frames[s] = data[at : at + info["streams"][s]]
         at += info["streams"][s]
-    u = _from_planes(_decompress(frames["symbols"], n * width, "symbols"), n, width)
-    sym = _unzigzag(u).reshape(shape)
-    kp = np.rint(pred / step).astype(np.int64)
+    u = _from_planes(_decompress(frames["symbols"], n * width, "symbols", info["symbols_codec"]), n, width)
+    q = _unzigzag(u).reshape(shape)
     name = info["predictor"]
-    if name == "gaussians":
-        k = sym + kp
-    elif name == "gaussians+lorenzo":
-        k = _unlorenzo(sym) + kp
-    else:
-        k = _unlorenzo(sym)
-    out = _on_lattice(k, step, integer, dtype).ravel()
+    dec = _decoded(q, step, integer, interp=name != "gaussians")
+    base, _ = _base(pred, np.zeros(shape, bool), float(info["margin"]), integer, gauss=name != "interp")
+    out = _cast(base + dec, dtype).ravel()
     count = int(info["literals"])
     gaps = _from_planes(_decompress(frames["positions"], 8 * count, "literal positions"), count, 8).view(np.int64)
     pos = np.cumsum(gaps)
