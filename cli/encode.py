@@ -59,7 +59,7 @@ def encode(
         float | None,
         typer.Option(
             rich_help_panel="Error bound",
-            help="Every decoded voxel within this of the source (source units): a residual stored after the Gaussians; without a budget the Gaussians get --ratio 200",
+            help="Every decoded voxel within this of the source (source units): a residual stored after the Gaussians; without a budget the Gaussians get 1/1000 of the source's bytes (8 KiB at least)",
         ),
     ] = None,
     max_error_rel: Annotated[

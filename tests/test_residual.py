@@ -302,3 +302,18 @@ def test_bzip2_codes_the_chosen_symbols_where_smaller_and_a_damaged_frame_is_ref
     bad[len(bad) // 4] ^= 0x55  # inside the bzip2 symbols
     with pytest.raises(WarpgaussError, match="do not decompress|hold"):
         R.apply_residual(R.Residual(res.info, bytes(bad)), zero)
+
+
+def test_the_paraview_reader_shows_the_gaussians_unless_asked_for_the_residual(bounded, monkeypatch):
+    pytest.importorskip("vtkmodules")
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    from warpgauss.paraview import warpgauss_reader as pv
+
+    monkeypatch.setattr(pv, "_use_cli", lambda: False)
+    d, vol, m, _ = bounded
+    shape = m.shape_xyz
+    for residual, within in ((False, False), (True, True)):
+        img, _, _ = pv.decode_image(str(d / "v.wgs"), shape, "cpu", residual)
+        values = vtk_to_numpy(img.GetPointData().GetArray(0)).reshape(vol.shape)
+        assert (np.abs(values.astype(float) - vol).max() <= 2.0) == within

@@ -252,7 +252,8 @@ def encode(
         max_error: A point-wise bound in source units: a residual stored after the Gaussians
             makes every valid voxel of ``decode()`` lie within it of the source, on any device
             (:mod:`warpgauss.residual`; stage S4). The Gaussians keep the budget given, by
-            default ``ratio`` :data:`warpgauss.residual.DEFAULT_RATIO`; render and view use them alone.
+            default the source's bytes / :data:`warpgauss.residual.DEFAULT_RATIO` (at least
+            :data:`warpgauss.residual.MIN_GAUSSIAN_BYTES`); render and view use them alone.
         max_error_rel: The bound as a share of the source's value range instead.
         session: The state a :class:`warpgauss.Encoder` keeps between its calls (device buffers
             and this call's deadline); not for direct use.
@@ -265,13 +266,11 @@ def encode(
     check_budget_options(budget, ratio, file_bytes)  # before the output check: say what is wrong with the request first
     bounded = max_error is not None or max_error_rel is not None
     if bounded:
-        from ..residual import DEFAULT_RATIO as RESIDUAL_RATIO
         from ..residual import check_bound_options
 
         check_bound_options(max_error, max_error_rel)
         check_bounded_request(source, read, bricks, warm_start, session)
-        if budget is None and ratio is None and file_bytes is None:
-            ratio = RESIDUAL_RATIO
+    default_share = bounded and budget is None and ratio is None and file_bytes is None  # sized once the source's bytes are known
     if output is not None:
         check_writable(output, force=force or resume)  # a resume replaces its interrupted model
     if analytic_output is not None:
@@ -321,6 +320,11 @@ def encode(
     with timer.stage("P", "load and normalise"):
         buffers = None if session is None else session.buffers
         f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy, buffers=buffers)
+    if default_share:
+        from ..residual import DEFAULT_RATIO as RESIDUAL_RATIO
+        from ..residual import MIN_GAUSSIAN_BYTES
+
+        opts.bytes = max(int(f.source_bytes / RESIDUAL_RATIO), MIN_GAUSSIAN_BYTES)
     if isinstance(warm_start, Model) and tuple(warm_start.shape_xyz) != tuple(f.shape_xyz):
         raise WarpgaussError(
             f"the warm-start model is on a {'x'.join(map(str, warm_start.shape_xyz))} grid, this volume {'x'.join(map(str, f.shape_xyz))}; encode cold"

@@ -202,8 +202,9 @@ def _use_cli() -> bool:
     return False
 
 
-def decode_image(path: str, shape, device: str | None = None):
-    """(vtkImageData of the decode at ``shape``, vtkPolyData of the primitives, (K, 4) LUT or None)."""
+def decode_image(path: str, shape, device: str | None = None, residual: bool = False):
+    """(vtkImageData of the decode at ``shape``, vtkPolyData of the primitives, (K, 4) LUT or None).
+    ``residual``: apply a bounded residual (on the model's own grid; default: the Gaussians alone)."""
     from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
     if _use_cli():
@@ -212,7 +213,8 @@ def decode_image(path: str, shape, device: str | None = None):
         with tempfile.TemporaryDirectory(prefix="warpgauss-pv-") as d:
             vti, vtp = os.path.join(d, "decoded.vti"), os.path.join(d, "primitives.vtp")
             dev = ["--device", device] if device else []
-            for args in (["decode", path, "-o", vti, "--shape", "x".join(map(str, shape)), *dev], ["export", path, "-o", vtp]):
+            res = ["--residual" if residual else "--no-residual"]
+            for args in (["decode", path, "-o", vti, "--shape", "x".join(map(str, shape)), *dev, *res], ["export", path, "-o", vtp]):
                 r = subprocess.run([*_cli(), *args], capture_output=True, text=True)
                 if r.returncode != 0:
                     raise ReaderError(f"warpgauss {args[0]} failed: {(r.stderr or r.stdout).strip().splitlines()[-1:]}")
@@ -233,7 +235,8 @@ def decode_image(path: str, shape, device: str | None = None):
     m = warpgauss.Model.load(path)
     shape = tuple(shape)
     name = str(m.header.get("name") or "value")  # as warpgauss decode names it
-    img = image_data(m.decode(shape, device=device), m.decoded_spacing(shape), m.decoded_origin(shape), name)
+    data = m.decode(shape, device=device, residual=residual and m.residual is not None)
+    img = image_data(data, m.decoded_spacing(shape), m.decoded_origin(shape), name)
     poly = primitives_polydata(m)  # as warpgauss export writes it
     tf = from_header(m.header)
     return img, poly, tf.rgba
@@ -250,6 +253,7 @@ class WarpgaussReader(VTKPythonAlgorithmBase):
         self._resolution = 0
         self._device = ""
         self._tf_file = ""
+        self._residual = False
 
     def FillOutputPortInformation(self, port, info):
         from vtkmodules.vtkCommonDataModel import vtkDataObject
@@ -278,6 +282,15 @@ class WarpgaussReader(VTKPythonAlgorithmBase):
         """Warp device for the decode (empty: CUDA when present, else CPU)."""
         if device != self._device:
             self._device = device
+            self.Modified()
+
+    @smproperty.intvector(name="Residual", default_values=0)
+    @smdomain.intrange(min=0, max=1)
+    def SetResidual(self, on):
+        """1: apply a model's bounded residual (every voxel within its bound; the model's own grid
+        only, Resolution 0); 0: the Gaussians alone."""
+        if bool(on) != self._residual:
+            self._residual = bool(on)
             self.Modified()
 
     @smproperty.stringvector(name="TransferFunctionFile", default_values="")
@@ -320,7 +333,7 @@ class WarpgaussReader(VTKPythonAlgorithmBase):
         try:
             header = self._header()
             shape = decode_shape(header, self._resolution)
-            img, poly, lut = decode_image(str(self._filename), shape, self._device or None)  # _header() checked it is set
+            img, poly, lut = decode_image(str(self._filename), shape, self._device or None, self._residual)  # _header() checked it is set
             own = bool(self._tf_file)
             if own:
                 lut = file_transfer_function(self._tf_file, header)
