@@ -80,7 +80,7 @@ def bounded_rows(name: str, data: np.ndarray, ratios: list[float], bounds: list[
         t0 = time.perf_counter()
         if gr is None:
             pred, fragile, gbytes, model_psnr, enc_s = np.full(data.shape, lo), np.zeros(data.shape, bool), 0, None, 0.0
-            predictors = ("interp",)
+            predictors = ("interp", "interp-linear")
             pred_s = 0.0
         else:
             m = warpgauss.encode(data, ratio=gr, device=dev, evaluate=True, full_eval=True)
