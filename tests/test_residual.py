@@ -317,3 +317,13 @@ def test_the_paraview_reader_shows_the_gaussians_unless_asked_for_the_residual(b
         img, _, _ = pv.decode_image(str(d / "v.wgs"), shape, "cpu", residual)
         values = vtk_to_numpy(img.GetPointData().GetArray(0)).reshape(vol.shape)
         assert (np.abs(values.astype(float) - vol).max() <= 2.0) == within
+
+
+def test_a_residual_this_machine_cannot_hold_is_refused_before_the_encode(monkeypatch, tmp_path):
+    import warpgauss.driver.load as load
+
+    monkeypatch.setattr(load, "available_memory", lambda: 1 << 20)  # 1 MiB free
+    out = tmp_path / "x.wgs"
+    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "32", "--budget", "50", "--max-error", "0.01", "-o", str(out)])
+    assert res.exit_code == 2 and "coding a bounded residual of" in res.output, res.output
+    assert not out.exists()

@@ -388,9 +388,10 @@ class Model:
         return out
 
     def _decode_bounded(self, device: str | None, info: dict | None) -> np.ndarray:
-        from .residual import apply_residual, prediction
+        from .residual import DECODE_BYTES_PER_VOXEL, apply_residual, check_memory, prediction
 
         assert self.residual is not None
+        check_memory(math.prod(self.shape_xyz), DECODE_BYTES_PER_VOXEL, "applying the residual to")
         pred, _ = prediction(self, device)
         out = apply_residual(self.residual, pred)
         if info is not None:

@@ -71,6 +71,22 @@ _LATTICE_LIMIT = float(1 << 50)  # |V / s| beyond this is stored outright (keeps
 DTYPES = ("int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64", "float32", "float64")
 
 
+CODE_BYTES_PER_VOXEL = 80  # host memory coding a residual takes: float64/int64 copies of the grid (measured peak ~70)
+DECODE_BYTES_PER_VOXEL = 48  # and applying it: the prediction, the q's, the decoded residual, the result
+
+
+def check_memory(n_voxels: int, per_voxel: int, what: str) -> None:
+    """Refuse, before the work, a residual this machine's memory cannot code or apply in one piece."""
+    from .driver.load import available_memory
+
+    need, free = n_voxels * per_voxel, available_memory()
+    if free is not None and need > free:
+        raise WarpgaussError(
+            f"{what} {n_voxels:,} voxels needs about {need / 2**30:.1f} GiB of memory, {free / 2**30:.1f} GiB are available; "
+            "a bounded residual is coded in memory: use a machine with more, or encode without --max-error"
+        )
+
+
 def check_bound_options(max_error: float | None, max_error_rel: float | None) -> None:
     """Refuse a bound that is not one positive finite number, before any work."""
     if max_error is not None and max_error_rel is not None:

@@ -320,6 +320,10 @@ def encode(
     with timer.stage("P", "load and normalise"):
         buffers = None if session is None else session.buffers
         f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy, buffers=buffers)
+    if bounded:
+        from ..residual import CODE_BYTES_PER_VOXEL, check_memory
+
+        check_memory(f.n_voxels, CODE_BYTES_PER_VOXEL, "coding a bounded residual of")
     if default_share:
         from ..residual import DEFAULT_RATIO as RESIDUAL_RATIO
         from ..residual import MIN_GAUSSIAN_BYTES
