@@ -327,3 +327,26 @@ def test_a_residual_this_machine_cannot_hold_is_refused_before_the_encode(monkey
     res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "32", "--budget", "50", "--max-error", "0.01", "-o", str(out)])
     assert res.exit_code == 2 and "coding a bounded residual of" in res.output, res.output
     assert not out.exists()
+
+
+def test_the_bounded_benchmark_and_its_plot_run_on_the_cpu(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent / "benchmarks" / "bounded"
+
+    def load(name):
+        spec = importlib.util.spec_from_file_location(name, root / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+
+    out = tmp_path / "b.json"
+    load("bounded_rd").main(["--size", "16", "--fields", "vortex", "--mris", "", "--gaussian-ratios", "", "--device", "cpu", "--out", str(out)])
+    result = json.loads(out.read_text())
+    assert result["device"] == "cpu" and result["warp_version"] and result["date"]
+    assert [r["bound_rel"] for r in result["rows"]] == [1e-2, 1e-3, 1e-4]
+    assert all(r["max_abs_error"] <= r["bound"] for r in result["rows"])
+    pytest.importorskip("matplotlib")  # the bench extra only
+    load("plot_bounded").main([str(out), "-o", str(tmp_path / "b.png")])
+    assert (tmp_path / "b.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
