@@ -142,6 +142,10 @@ def render(
     dataset: Annotated[str | None, typer.Option(help="HDF5 volumes: dataset path")] = None,
     variable: Annotated[str | None, typer.Option(help="netCDF volumes: variable name")] = None,
     fill_value: Annotated[float | None, typer.Option(help="Volumes: value marking missing data")] = None,
+    residual: Annotated[
+        bool,
+        typer.Option("--residual", help="Models with a bounded residual: ray-march the bounded decode (Gaussians + residual) as a grid"),
+    ] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the figures as JSON")] = False,
     force: Annotated[bool, typer.Option("--force", help="Overwrite an existing image")] = False,
 ) -> None:
@@ -190,11 +194,15 @@ def render(
     if tf is not None and not tf.is_file():
         raise WarpgaussError(f"no such transfer-function file: {tf}")
 
+    if residual and method != "march":
+        raise WarpgaussError(f"--residual ray-marches the bounded decode as a grid; drop --method {method}")
     if is_model_file(input):
         summary = _render_model(
-            input, output, method, compare, camera, settings, colormap, opacity, tf, read, diff_gain, device, force, cache_res
+            input, output, method, compare, camera, settings, colormap, opacity, tf, read, diff_gain, device, force, cache_res, residual
         )
     else:
+        if residual:
+            raise WarpgaussError("--residual applies to a model (.wgs) encoded with --max-error")
         if compare is not None:
             raise WarpgaussError("--compare takes the volume a model encodes; render the model (.wgs) with --compare VOLUME")
         if method != "march":
@@ -235,7 +243,7 @@ def _read_normalised(path: Path, read, value_range=None):
 
 
 def _render_model(
-    path, output, method, compare, camera, settings, colormap, opacity, tf_path, read, gain, device, force, cache_res=None
+    path, output, method, compare, camera, settings, colormap, opacity, tf_path, read, gain, device, force, cache_res=None, residual=False
 ) -> dict:
     from warpgauss._warp import resolve_device
     from warpgauss.model import Model
@@ -253,13 +261,24 @@ def _render_model(
     )
 
     model = Model.load(path)
+    if residual and model.residual is None:
+        raise WarpgaussError(f"{path} has no residual (encode with --max-error for one); render without --residual")
     if compare is not None and not compare.exists():
         raise WarpgaussError(f"no such file: {compare}")
     if method == "cached":  # refuse a cache that cannot be held before anything is built
         check_cache_memory(cache_grid_shape(model.shape_xyz, cache_res), resolve_device(device))
     tf = _transfer(model.header, colormap, opacity, tf_path, model.value_range)
     with err_console.status(f"rendering {model.n} Gaussians ({method})", spinner="dots"):
-        renderer = make_renderer(model, method, device, cache_res=cache_res)
+        if residual:  # the bounded decode, normalised by the header's range (masked voxels 0), as a grid
+            import numpy as np
+
+            lo, hi = model.value_range
+            grid = (model.decode(device=device, residual=True).astype(np.float64) - lo) / (hi - lo)
+            values = np.nan_to_num(np.clip(grid, 0.0, 1.0)).astype(np.float32)
+            renderer = VolumeRenderer(values, Scene.from_header(model.header), device=device)
+            method = "bounded decode"
+        else:
+            renderer = make_renderer(model, method, device, cache_res=cache_res)
         view = resolve_view(camera, renderer.scene, settings.width, settings.height)
         img = renderer.render(view, tf, settings)
         summary = {

@@ -350,3 +350,17 @@ def test_the_bounded_benchmark_and_its_plot_run_on_the_cpu(tmp_path):
     pytest.importorskip("matplotlib")  # the bench extra only
     load("plot_bounded").main([str(out), "-o", str(tmp_path / "b.png")])
     assert (tmp_path / "b.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_render_shows_the_gaussians_or_with_residual_the_bounded_decode(bounded, tmp_path):
+    d, vol, m, _ = bounded
+    run = CliRunner()
+    for extra, method in (([], "march"), (["--residual"], "bounded decode")):
+        png = tmp_path / f"r{len(extra)}.png"
+        res = run.invoke(app, ["render", str(d / "v.wgs"), "-o", str(png), "--size", "32", "--device", "cpu", "--json", *extra])
+        assert res.exit_code == 0 and json.loads(res.output)["method"] == method, res.output
+        assert png.read_bytes()[:4] == b"\x89PNG"
+    plain = tmp_path / "plain.wgs"
+    warpgauss.Model(m.params, m.header).save(plain)  # the same Gaussians, no residual
+    res = run.invoke(app, ["render", str(plain), "-o", str(tmp_path / "x.png"), "--residual", "--device", "cpu"])
+    assert res.exit_code == 2 and "has no residual" in res.output, res.output
