@@ -69,6 +69,13 @@ def encode(
             help="The bound as a share of the source's value range (e.g. 1e-3), instead of --max-error",
         ),
     ] = None,
+    psnr: Annotated[
+        float | None,
+        typer.Option(
+            rich_help_panel="Error bound",
+            help="Instead of a bound: the full-grid PSNR (dB) the decode must reach, with the largest point-wise bound that reaches it",
+        ),
+    ] = None,
     seed: Annotated[int, typer.Option(rich_help_panel="Refinement", help="Seed: same seed and device give the same model")] = 0,
     device: Annotated[
         str | None, typer.Option(rich_help_panel="Refinement", help="Warp device: cpu, cuda, cuda:N (default: CUDA if present)")
@@ -257,13 +264,15 @@ def encode(
     from warpgauss.driver.sizing import check_budget_options
 
     check_budget_options(budget, ratio, file_bytes)  # what needs no data is checked before any file is looked at
-    bounded = max_error is not None or max_error_rel is not None
-    if bounded:
-        from warpgauss.residual import check_bound_options
+    from warpgauss.residual import Bound
 
-        check_bound_options(max_error, max_error_rel)
+    bounded = Bound(max_error, max_error_rel, psnr).given
+    if bounded:
+        Bound(max_error, max_error_rel, psnr).check()
         if ladder is not None or bricks is not None or stride > 1:
-            fail("--max-error bounds every source voxel of one whole encode: it does not combine with --ladder, --bricks or --stride")
+            fail(
+                "--max-error (or --psnr) bounds every source voxel of one whole encode: it does not combine with --ladder, --bricks or --stride"
+            )
     weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
     variables = list(variable or [])
     one_variable = variables[0] if len(variables) == 1 else None
@@ -280,7 +289,7 @@ def encode(
         fail(f"--keyframe-drift must be >= 0 dB (0: never re-encode cold), got {keyframe_drift:g}")
     if series:
         if ladder is not None or resume or save_analytic is not None or bricks is not None or bounded:
-            fail("a series does not combine with --ladder, --resume, --save-analytic, --bricks or --max-error yet")
+            fail("a series does not combine with --ladder, --resume, --save-analytic, --bricks, --max-error or --psnr yet")
         _encode_series(
             str(input),
             variables,
@@ -426,6 +435,7 @@ def encode(
             max_host_memory=max_host_memory,
             max_error=max_error,
             max_error_rel=max_error_rel,
+            residual_psnr=psnr,
         )
     finally:
         if status is not None:

@@ -275,7 +275,7 @@ def test_the_summary_says_how_a_coded_file_met_its_size(tmp_path):
 # be placed here, so that none is dropped on the way (#33)
 CLI_TO_API = {
     "input": "source", "size": "example_size", "fmt": "format", "no_self_test": "self_test",
-    "plateau": "plateau_db", "save_analytic": "analytic_output",
+    "plateau": "plateau_db", "save_analytic": "analytic_output", "psnr": "residual_psnr",
     # parts of the settings objects encode takes
     "lr": "refine", "w_value_empty": "refine", "w_density": "refine", "w_smooth": "refine",
     "w_smooth_final": "refine", "w_anchor": "refine", "w_aniso": "refine", "w_cap": "refine",

@@ -84,6 +84,7 @@ NOT_FOR_LADDERS = {
     "client": "a ladder encodes the whole volume",
     "max_error": "a bounded residual is one encode's (the CLI refuses --ladder with --max-error)",
     "max_error_rel": "a bounded residual is one encode's",
+    "residual_psnr": "a bounded residual is one encode's",
     "max_device_memory": "a ladder encodes the whole volume",
     "max_host_memory": "a ladder encodes the whole volume",
     "on_bricks": "a ladder encodes the whole volume",

@@ -233,7 +233,9 @@ def test_cli_info_decode_and_eval_show_and_apply_the_residual(bounded):
         (["--max-error", "0"], "--max-error must be a positive finite number"),
         (["--max-error", "nan"], "--max-error must be a positive finite number"),
         (["--max-error-rel", "-1e-3"], "--max-error-rel must be a positive finite number"),
-        (["--max-error", "1", "--max-error-rel", "1e-3"], "not both"),
+        (["--max-error", "1", "--max-error-rel", "1e-3"], "give one of"),
+        (["--psnr", "40", "--max-error", "1"], "give one of"),
+        (["--psnr", "inf"], "--psnr must be a positive finite number"),
         (["--max-error", "1", "--stride", "2"], "does not combine"),
         (["--max-error", "1", "--bricks", "2x2x2"], "does not combine"),
         (["--max-error", "1", "--ladder", "10,20"], "does not combine"),
@@ -324,7 +326,9 @@ def test_a_residual_this_machine_cannot_hold_is_refused_before_the_encode(monkey
 
     monkeypatch.setattr(load, "available_memory", lambda: 1 << 20)  # 1 MiB free
     out = tmp_path / "x.wgs"
-    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "32", "--budget", "50", "--max-error", "0.01", "-o", str(out)])
+    res = CliRunner().invoke(
+        app, ["encode", "--example", "vortex", "--size", "32", "--budget", "50", "--max-error", "0.01", "-o", str(out)]
+    )
     assert res.exit_code == 2 and "coding a bounded residual of" in res.output, res.output
     assert not out.exists()
 
@@ -342,7 +346,9 @@ def test_the_bounded_benchmark_and_its_plot_run_on_the_cpu(tmp_path):
         return mod
 
     out = tmp_path / "b.json"
-    load("bounded_rd").main(["--size", "16", "--fields", "vortex", "--mris", "", "--gaussian-ratios", "", "--device", "cpu", "--out", str(out)])
+    load("bounded_rd").main(
+        ["--size", "16", "--fields", "vortex", "--mris", "", "--gaussian-ratios", "", "--device", "cpu", "--out", str(out)]
+    )
     result = json.loads(out.read_text())
     assert result["device"] == "cpu" and result["warp_version"] and result["date"]
     assert [r["bound_rel"] for r in result["rows"]] == [1e-2, 1e-3, 1e-4]
@@ -364,3 +370,17 @@ def test_render_shows_the_gaussians_or_with_residual_the_bounded_decode(bounded,
     warpgauss.Model(m.params, m.header).save(plain)  # the same Gaussians, no residual
     res = run.invoke(app, ["render", str(plain), "-o", str(tmp_path / "x.png"), "--residual", "--device", "cpu"])
     assert res.exit_code == 2 and "has no residual" in res.output, res.output
+
+
+def test_psnr_asks_for_the_largest_bound_whose_decode_reaches_it():
+    from warpgauss.synthetic import generate
+
+    v = generate("interface", 32, seed=0)
+    zero = np.zeros(v.shape)
+    res, facts, check = R.code_for_psnr(v, None, zero, np.zeros(v.shape, bool), 60.0, (0.0, 1.0))
+    assert check["psnr_db"] >= 60.0
+    tried = check["psnr_search"]["bounds_tried"]
+    assert tried[0] == pytest.approx(1e-3)  # the bound that guarantees 60 dB (MSE <= E^2) comes first
+    assert res.info["bound"] in tried and res.info["bound"] > tried[0]  # a uniform error reaches 60 dB at a larger one
+    out = R.apply_residual(res, zero)
+    assert np.abs(out - v).max() <= res.info["bound"]

@@ -87,21 +87,71 @@ def check_memory(n_voxels: int, per_voxel: int, what: str) -> None:
         )
 
 
-def check_bound_options(max_error: float | None, max_error_rel: float | None) -> None:
-    """Refuse a bound that is not one positive finite number, before any work."""
-    if max_error is not None and max_error_rel is not None:
-        raise WarpgaussError("give --max-error or --max-error-rel, not both")
-    for name, v in (("--max-error", max_error), ("--max-error-rel", max_error_rel)):
-        if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-            raise WarpgaussError(f"{name} must be a positive finite number, got {v!r}")
+@dataclass(frozen=True)
+class Bound:
+    """What a bounded encode asks for: exactly one of a point-wise bound in source units
+    (``max_error``), as a share of the value range (``max_error_rel``), or the full-grid PSNR the
+    decode must reach (``psnr``, dB: the largest bound that reaches it, searched)."""
+
+    max_error: float | None = None
+    max_error_rel: float | None = None
+    psnr: float | None = None
+
+    @property
+    def given(self) -> bool:
+        return any(v is not None for v in (self.max_error, self.max_error_rel, self.psnr))
+
+    def check(self) -> None:
+        """Refuse anything but one positive finite number, before any work."""
+        named = [
+            (n, v)
+            for n, v in (("--max-error", self.max_error), ("--max-error-rel", self.max_error_rel), ("--psnr", self.psnr))
+            if v is not None
+        ]
+        if len(named) > 1:
+            raise WarpgaussError(f"give one of --max-error, --max-error-rel and --psnr, not {' and '.join(n for n, _ in named)}")
+        for name, v in named:
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise WarpgaussError(f"{name} must be a positive finite number, got {v!r}")
+
+    def absolute(self, vmin: float, vmax: float) -> float:
+        """E in source units (for ``psnr``: the bound that guarantees it, MSE <= E^2; the search
+        starts there)."""
+        span = float(vmax) - float(vmin) if vmax > vmin else max(abs(float(vmin)), 1.0)
+        if self.max_error is not None:
+            return float(self.max_error)
+        if self.max_error_rel is not None:
+            return float(self.max_error_rel) * span
+        assert self.psnr is not None
+        return span * 10.0 ** (-float(self.psnr) / 20.0)
 
 
-def resolve_bound(max_error: float | None, max_error_rel: float | None, vmin: float, vmax: float) -> float:
-    """The absolute bound E in source units (``max_error_rel`` is a share of the value range)."""
-    if max_error is not None:
-        return float(max_error)
-    assert max_error_rel is not None
-    return float(max_error_rel) * (float(vmax) - float(vmin))
+PSNR_TRIES = 4  # codings after the guaranteed bound when --psnr searches the largest bound reaching it
+
+
+def code_for_psnr(source, valid, pred, fragile, target_db: float, value_range, fill_value=None) -> tuple[Residual, dict, dict]:
+    """The residual of the largest bound whose decode reaches ``target_db`` on the full grid: from
+    the bound that guarantees it (E = range 10^(-P/20): MSE <= E^2) up to sqrt(3) x 2 that (a
+    uniform error has MSE E^2 / 3), bisected in log E over :data:`PSNR_TRIES` codings.
+    Returns (residual, coding facts, measured check) of the largest that reached it."""
+    lo, hi = value_range
+    e0 = Bound(psnr=target_db).absolute(lo, hi)
+    res, facts = code_residual(source, valid, pred, fragile, e0, value_range, fill_value=fill_value)
+    best = (res, facts, verify(res, pred, source, valid))
+    low, high = math.log(e0), math.log(e0 * 2.0 * math.sqrt(3.0))
+    tried = [e0]
+    for _ in range(PSNR_TRIES):
+        mid = 0.5 * (low + high)
+        e = math.exp(mid)
+        res, facts = code_residual(source, valid, pred, fragile, e, value_range, fill_value=fill_value)
+        check = verify(res, pred, source, valid)
+        tried.append(e)
+        if check["psnr_db"] >= target_db:
+            best, low = (res, facts, check), mid
+        else:
+            high = mid
+    best[2]["psnr_search"] = {"target_db": target_db, "bounds_tried": tried, "chosen": best[0].info["bound"]}
+    return best
 
 
 @dataclass

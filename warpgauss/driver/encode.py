@@ -22,6 +22,7 @@ from ..io import ReadOptions
 from ..model import Model
 from ..optimize import RefineConfig
 from ..profiling import StageRecorder
+from ..residual import Bound
 from .bricked import bricking, encode_bricked
 from .load import load_field
 from .options import EncodeOptions, encoding_of, resolve_refine, with_stop_rules
@@ -75,31 +76,34 @@ def check_bounded_request(source, read: ReadOptions | None, bricks, warm_start, 
         raise WarpgaussError("--max-error does not combine with a series or an Encoder yet; encode each volume on its own")
 
 
-def attach_residual(model: Model, source, read, example, example_size, max_error, max_error_rel, device) -> None:
+def attach_residual(model: Model, source, read, example, example_size, bound: Bound, device) -> None:
     """Stage S4: code the bounded residual of the (stored) model against the source's own values
     and attach it to the model; the report's ``residual`` says what it holds."""
     import time
 
     from ..lazy import valid_mask
-    from ..residual import code_residual, prediction, resolve_bound, verify
+    from ..residual import code_for_psnr, code_residual, prediction, verify
 
     t0 = time.perf_counter()
     data, fill = raw_source(source, read, example, example_size)
     if tuple(reversed(data.shape)) != model.shape_xyz:
         raise WarpgaussError(f"internal: the source's shape {data.shape} is not the model grid {model.shape_xyz}")
     lo, hi = model.value_range
-    bound = resolve_bound(max_error, max_error_rel, lo, hi)
     valid = valid_mask(data, fill)
+    masked = None if valid.all() else valid
     pred, fragile = prediction(model, device)
     t1 = time.perf_counter()
-    res, facts = code_residual(data, None if valid.all() else valid, pred, fragile, bound, (lo, hi), fill_value=fill)
+    if bound.psnr is not None:
+        res, facts, check = code_for_psnr(data, masked, pred, fragile, bound.psnr, (lo, hi), fill_value=fill)
+    else:
+        res, facts = code_residual(data, masked, pred, fragile, bound.absolute(lo, hi), (lo, hi), fill_value=fill)
+        check = verify(res, pred, data, valid)
     t2 = time.perf_counter()
-    check = verify(res, pred, data, valid)
     model.residual = res
     gauss = model.file_size(encoding=model.format or "coded") - res.nbytes
     model.run_report["residual"] = {
         **facts,
-        "bound": bound,
+        "bound": res.info["bound"],
         "bound_rel": res.info["bound_rel"],
         "gaussian_bytes": gauss,
         "residual_bytes": res.nbytes,
@@ -174,6 +178,7 @@ def encode(
     motion: bool = True,
     max_error: float | None = None,
     max_error_rel: float | None = None,
+    residual_psnr: float | None = None,
     session=None,
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
@@ -255,6 +260,8 @@ def encode(
             default the source's bytes / :data:`warpgauss.residual.DEFAULT_RATIO` (at least
             :data:`warpgauss.residual.MIN_GAUSSIAN_BYTES`); render and view use them alone.
         max_error_rel: The bound as a share of the source's value range instead.
+        residual_psnr: Instead of a bound, the full-grid PSNR (dB) the decode must reach: the
+            largest bound that reaches it (:func:`warpgauss.residual.code_for_psnr`).
         session: The state a :class:`warpgauss.Encoder` keeps between its calls (device buffers
             and this call's deadline); not for direct use.
 
@@ -264,11 +271,10 @@ def encode(
     from .._fs import check_writable
 
     check_budget_options(budget, ratio, file_bytes)  # before the output check: say what is wrong with the request first
-    bounded = max_error is not None or max_error_rel is not None
+    bound = Bound(max_error, max_error_rel, residual_psnr)
+    bounded = bound.given
     if bounded:
-        from ..residual import check_bound_options
-
-        check_bound_options(max_error, max_error_rel)
+        bound.check()
         check_bounded_request(source, read, bricks, warm_start, session)
     default_share = bounded and budget is None and ratio is None and file_bytes is None  # sized once the source's bytes are known
     if output is not None:
@@ -371,7 +377,7 @@ def encode(
         )
     if bounded:
         with timer.stage("S4", "bounded residual"):
-            attach_residual(model, source, read, example, example_size, max_error, max_error_rel, device)
+            attach_residual(model, source, read, example, example_size, bound, device)
     if output is not None:
         with timer.stage("S3", "export"):
             model.save(output, encoding=encoding_of(opts), force=True if resume else force)
