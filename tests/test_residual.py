@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -335,7 +336,6 @@ def test_a_residual_this_machine_cannot_hold_is_refused_before_the_encode(monkey
 
 def test_the_bounded_benchmark_and_its_plot_run_on_the_cpu(tmp_path):
     import importlib.util
-    from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent / "benchmarks" / "bounded"
 
@@ -384,3 +384,21 @@ def test_psnr_asks_for_the_largest_bound_whose_decode_reaches_it():
     assert res.info["bound"] in tried and res.info["bound"] > tried[0]  # a uniform error reaches 60 dB at a larger one
     out = R.apply_residual(res, zero)
     assert np.abs(out - v).max() <= res.info["bound"]
+
+
+REAL = next((p for p in (Path(__file__).resolve().parents[2] / "shared" / "data", Path("/work/shared/data")) if p.is_dir()), None)
+
+
+@pytest.mark.skipif(REAL is None or not (REAL / "inia19-t1-brain.nii.gz").exists(), reason="inia19-t1-brain.nii.gz not in shared/data")
+def test_a_real_volume_decodes_within_the_bound_on_the_cpu(tmp_path):
+    """A real brain (168x206x128 float32, analytic model only, to stay small): every voxel within
+    1e-3 of the range after a CPU decode of the file."""
+    from warpgauss.io import ReadOptions
+
+    assert REAL is not None
+    src = REAL / "inia19-t1-brain.nii.gz"
+    warpgauss.encode(src, iterations=0, device="cpu", max_error_rel=1e-3, output=tmp_path / "b.wgs", evaluate=False)
+    m = warpgauss.Model.load(tmp_path / "b.wgs")
+    vol = ReadOptions().read(src).data.astype(np.float64)
+    out = m.decode(device="cpu").astype(np.float64)
+    assert m.residual is not None and np.abs(out - vol).max() <= m.residual.info["bound"]
