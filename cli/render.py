@@ -269,16 +269,8 @@ def _render_model(
         check_cache_memory(cache_grid_shape(model.shape_xyz, cache_res), resolve_device(device))
     tf = _transfer(model.header, colormap, opacity, tf_path, model.value_range)
     with err_console.status(f"rendering {model.n} Gaussians ({method})", spinner="dots"):
-        if residual:  # the bounded decode, normalised by the header's range (masked voxels 0), as a grid
-            import numpy as np
-
-            lo, hi = model.value_range
-            grid = (model.decode(device=device, residual=True).astype(np.float64) - lo) / (hi - lo)
-            values = np.nan_to_num(np.clip(grid, 0.0, 1.0)).astype(np.float32)
-            renderer = VolumeRenderer(values, Scene.from_header(model.header), device=device)
-            method = "bounded decode"
-        else:
-            renderer = make_renderer(model, method, device, cache_res=cache_res)
+        method = "bounded" if residual else method  # the bounded decode, normalised by the header's range, as a grid
+        renderer = make_renderer(model, method, device, cache_res=cache_res)
         view = resolve_view(camera, renderer.scene, settings.width, settings.height)
         img = renderer.render(view, tf, settings)
         summary = {

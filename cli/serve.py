@@ -25,7 +25,10 @@ def serve(
     host: Annotated[
         str, typer.Option(help="Address to bind (127.0.0.1: this machine only; 0.0.0.0 exposes the page to the network)")
     ] = "127.0.0.1",
-    method: Annotated[str, typer.Option(help="cached (default: decoded once, fast), march (exact) or splat")] = "cached",
+    method: Annotated[
+        str,
+        typer.Option(help="cached (default: decoded once, fast), march (exact), splat, or bounded (a model's decode with its residual)"),
+    ] = "cached",
     cache_res: Annotated[
         int | None, typer.Option("--cache-res", help="--method cached: voxels along the cache grid's longest axis")
     ] = None,

@@ -31,7 +31,7 @@ from .common import handle_errors, out_console
 from .render import check_png, parse_colour, parse_size
 
 COLORMAPS = ("viridis", "magma", "inferno", "plasma", "cividis", "turbo", "coolwarm", "grayscale")
-METHODS = ("cached", "splat", "march")  # the order the m key cycles through
+METHODS = ("cached", "splat", "march", "bounded")  # the order the m key cycles through ("bounded": with a residual only)
 OPACITIES = ("linear", "0:0,0.3:0,1:1", "0:0,0.6:0,1:1", "0:0,0.5:0.8,1:0", "0.3")
 
 
@@ -76,7 +76,10 @@ class Viewer:
         from warpgauss.transfer import from_header
 
         if method not in METHODS:
-            raise WarpgaussError(f"--method must be cached, splat or march, got {method!r}")
+            raise WarpgaussError(f"--method must be cached, splat, march or bounded, got {method!r}")
+        if method == "bounded" and model.residual is None:
+            raise WarpgaussError("--method bounded draws a model's decode with its residual; this one has none (encode with --max-error)")
+        self.methods = METHODS if model.residual is not None else METHODS[:-1]
         self.model = model
         self.device = device
         self.cache_res = cache_res
@@ -180,7 +183,7 @@ class Viewer:
         self.redraw()
 
     def toggle_method(self):
-        self.method = METHODS[(METHODS.index(self.method) + 1) % len(METHODS)]
+        self.method = self.methods[(self.methods.index(self.method) + 1) % len(self.methods)]
         self.redraw()
 
     def toggle_shading(self):
@@ -277,7 +280,7 @@ def view(
     method: Annotated[
         str,
         typer.Option(
-            help="cached (ray marching of V~ decoded once onto a grid; interactive), splat (EWA splatting) or march (exact ray marching; dragging shows the cached grid)"
+            help="cached (ray marching of V~ decoded once onto a grid; interactive), splat (EWA splatting), march (exact ray marching; dragging shows the cached grid) or bounded (a model's decode with its residual)"
         ),
     ] = "cached",
     cache_res: Annotated[
@@ -304,7 +307,7 @@ def view(
     from warpgauss.transfer import resolve_transfer_function
 
     if method not in METHODS:
-        raise WarpgaussError(f"--method must be cached, splat or march, got {method!r}")
+        raise WarpgaussError(f"--method must be cached, splat, march or bounded, got {method!r}")
     if cache_res is not None and cache_res < 1:
         raise WarpgaussError(f"--cache-res must be a positive number of voxels along the longest axis, got {cache_res}")
     if not 0.1 <= preview_scale <= 1.0:

@@ -361,7 +361,7 @@ def test_the_bounded_benchmark_and_its_plot_run_on_the_cpu(tmp_path):
 def test_render_shows_the_gaussians_or_with_residual_the_bounded_decode(bounded, tmp_path):
     d, vol, m, _ = bounded
     run = CliRunner()
-    for extra, method in (([], "march"), (["--residual"], "bounded decode")):
+    for extra, method in (([], "march"), (["--residual"], "bounded")):
         png = tmp_path / f"r{len(extra)}.png"
         res = run.invoke(app, ["render", str(d / "v.wgs"), "-o", str(png), "--size", "32", "--device", "cpu", "--json", *extra])
         assert res.exit_code == 0 and json.loads(res.output)["method"] == method, res.output
@@ -402,3 +402,28 @@ def test_a_real_volume_decodes_within_the_bound_on_the_cpu(tmp_path):
     vol = ReadOptions().read(src).data.astype(np.float64)
     out = m.decode(device="cpu").astype(np.float64)
     assert m.residual is not None and np.abs(out - vol).max() <= m.residual.info["bound"]
+
+
+def test_view_and_the_page_draw_the_bounded_decode_of_a_model_with_a_residual(bounded, tmp_path):
+    pytest.importorskip("pyvista")
+    from warpgauss.render import RenderSettings, make_renderer
+    from warpgauss.viewer import Viewer
+
+    d, vol, m, _ = bounded
+    loaded = warpgauss.Model.load(d / "v.wgs")
+    settings = RenderSettings(width=32, height=24)
+    bounded_frame = make_renderer(loaded, "bounded", "cpu").render(None, None, settings)
+    gauss_frame = make_renderer(loaded, "march", "cpu").render(None, None, settings)
+    assert bounded_frame.method == "bounded" and np.abs(bounded_frame.rgb - gauss_frame.rgb).max() > 0.0
+    v = Viewer([loaded], [str(d / "v.wgs")], device="cpu", method="bounded")  # what serve --method bounded shows
+    v.resize(32, 24)
+    assert v.frame().shape[:2] == (24, 32) and v.state.method == "bounded"
+    shot = tmp_path / "view.png"
+    res = CliRunner().invoke(
+        app, ["view", str(d / "v.wgs"), "--method", "bounded", "--screenshot", str(shot), "--size", "32x24", "--device", "cpu"]
+    )
+    assert res.exit_code == 0 and shot.is_file(), res.output
+    plain = tmp_path / "plain.wgs"
+    warpgauss.Model(m.params, m.header).save(plain)
+    with pytest.raises(WarpgaussError, match="no residual"):
+        make_renderer(warpgauss.Model.load(plain), "bounded", "cpu")

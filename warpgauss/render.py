@@ -51,7 +51,7 @@ from .raymarch import (  # noqa: F401 - the scene, camera and image types are pa
 from .splat import SplatRenderer
 from .transfer import TransferFunction, make_transfer_function
 
-METHODS = ("march", "cached", "splat")  # how a model is drawn (see the module docstring)
+METHODS = ("march", "cached", "splat", "bounded")  # how a model is drawn (see the module docstring)
 
 
 class ModelRenderer(_Marcher):
@@ -119,6 +119,26 @@ class VolumeRenderer(_Marcher):
         settings = settings or RenderSettings()
         view = camera if isinstance(camera, View) else resolve_view(camera or Camera(), self.scene, settings.width, settings.height)
         return self._march(self.volume, view, tf or make_transfer_function(), settings, "reference")
+
+
+class BoundedRenderer(VolumeRenderer):
+    """Ray marching of a model's bounded decode (the Gaussians plus its residual, every voxel within
+    the residual's bound of the source), normalised by the header's range, as a grid."""
+
+    def __init__(self, model, device: str | None = None):
+        if model.residual is None:
+            raise WarpgaussError("this model has no residual (encode with --max-error for one); draw it with march, cached or splat")
+        lo, hi = model.value_range
+        grid = (model.decode(device=device, residual=True).astype(np.float64) - lo) / (hi - lo)
+        super().__init__(np.nan_to_num(np.clip(grid, 0.0, 1.0)).astype(np.float32), Scene.from_header(model.header), device)
+
+    def render(
+        self, camera: Camera | View | None = None, tf: TransferFunction | None = None, settings: RenderSettings | None = None
+    ) -> Image:
+        """One frame of the bounded decode by ray marching (trilinear samples)."""
+        settings = settings or RenderSettings()
+        view = camera if isinstance(camera, View) else resolve_view(camera or Camera(), self.scene, settings.width, settings.height)
+        return self._march(self.volume, view, tf or make_transfer_function(), settings, "bounded")
 
 
 def cache_grid_shape(shape_xyz, cache_res: int | None = None) -> tuple[int, ...]:
@@ -239,7 +259,8 @@ class CachedRenderer(_Marcher):
 
 
 def make_renderer(model, method: str = "march", device: str | None = None, *, cache_res: int | None = None):
-    """The renderer of ``method`` ("march", "cached" or "splat") for a model.
+    """The renderer of ``method`` ("march", "cached", "splat", or "bounded": the decode with a
+    model's residual, see :class:`BoundedRenderer`) for a model.
 
     Args:
         model: The :class:`warpgauss.Model`.
@@ -255,6 +276,8 @@ def make_renderer(model, method: str = "march", device: str | None = None, *, ca
         return ModelRenderer(model, device)
     if method == "cached":
         return CachedRenderer(model, device, cache_res=cache_res)
+    if method == "bounded":
+        return BoundedRenderer(model, device)
     return SplatRenderer(model, device)
 
 

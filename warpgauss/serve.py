@@ -205,7 +205,15 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
                     html.Div("{{ facts }}", id="facts", style="white-space:pre-line;margin-bottom:8px")
                     html.Div("frame {{ frame_ms }} ms", id="frame_ms", style="margin-bottom:8px")
                     v3.VSelect(
-                        label="renderer", v_model=("method",), items=("['cached', 'march', 'splat']",), density="compact", id="method"
+                        label="renderer",
+                        v_model=("method",),
+                        items=(
+                            "['cached', 'march', 'splat'"
+                            + (", 'bounded'" if any(m.residual is not None for m in viewer.models) else "")
+                            + "]",
+                        ),
+                        density="compact",
+                        id="method",
                     )
                     v3.VSelect(
                         label="colormap",
