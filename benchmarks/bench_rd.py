@@ -189,9 +189,10 @@ def _sperr_class():
     return Sperr
 
 
-def sperr_run(data: np.ndarray, bpp: float):
-    """SPERR at ``bpp`` bits per value: (encoded bytes, decoded array, encode s, decode s)."""
-    codec = _sperr_class()(mode="bpp", bpp=float(bpp))
+def sperr_run(data: np.ndarray, **mode):
+    """SPERR (``mode="bpp", bpp=`` bits per value, or ``mode="pwe", pwe=`` a point-wise error):
+    (encoded bytes, decoded array, encode s, decode s)."""
+    codec = _sperr_class()(**mode)
     t0 = time.perf_counter()
     comp = np.asarray(codec.encode(data))
     t1 = time.perf_counter()
@@ -319,7 +320,7 @@ def codec_task(task: dict) -> dict:
             data = np.subtract(data, np.float32(task["vmin"]), dtype=np.float32)
             data *= np.float32(1.0 / rng)
             truth.codec_input = None
-        run = sperr_run if normalised else (lambda x, r: zfp_run(x, rate=r))
+        run = (lambda x, r: sperr_run(x, mode="bpp", bpp=float(r))) if normalised else (lambda x, r: zfp_run(x, rate=r))
         found = rate_matched(data, sb, task["target"], task["tol"], task["rate"], run, min_rate=task.get("min_rate", 0.0))
         if found is None:
             raise ValueError(f"{kind}: rate {task['rate']} below the minimum {task.get('min_rate')}")
@@ -458,10 +459,15 @@ def volumes(args):
             stride += 1
         raw = vol.data[::stride, ::stride, ::stride]
         shape = "x".join(str(s) for s in raw.shape[::-1])
-        yield f"{fname} {shape}" + (f" (stride {stride})" if stride > 1 else ""), {
-            "source": str(path),
-            "read": _ReadVolume(stride=stride, volume=vol),
-        }, raw, None
+        yield (
+            f"{fname} {shape}" + (f" (stride {stride})" if stride > 1 else ""),
+            {
+                "source": str(path),
+                "read": _ReadVolume(stride=stride, volume=vol),
+            },
+            raw,
+            None,
+        )
 
 
 # ---------------------------------------------------------------------------- benchmark
@@ -693,8 +699,13 @@ def codec_plan(args, meta: dict, ratios, files: dict) -> tuple[list[dict], list[
                 if fmt == "compact" and not args.match_compact:
                     continue
                 matched.append(
-                    {**base, "kind": "sz3-matched", "target": target, "tol": args.match_tol,
-                     "matched_to": {"n": n, "format": fmt, "ratio": target}}
+                    {
+                        **base,
+                        "kind": "sz3-matched",
+                        "target": target,
+                        "tol": args.match_tol,
+                        "matched_to": {"n": n, "format": fmt, "ratio": target},
+                    }
                 )
     if "zfp" in args.codecs:
         for n, full, compact in ratios:
@@ -730,8 +741,15 @@ def ratio_plan(args, meta: dict, files: dict) -> tuple[list[dict], list[dict], l
             rate = 8.0 * sb / (n_voxels * r)  # bits per value: 8 x source itemsize / R
             if rate < min_rate:
                 name = "zfp-rate-matched"
-                unreachable.append({"codec": name, "target_ratio": r, "rate_needed": rate, "min_rate": min_rate,
-                                    "max_ratio": 8.0 * sb / (n_voxels * min_rate)})
+                unreachable.append(
+                    {
+                        "codec": name,
+                        "target_ratio": r,
+                        "rate_needed": rate,
+                        "min_rate": min_rate,
+                        "max_ratio": 8.0 * sb / (n_voxels * min_rate),
+                    }
+                )
                 print(f"{name}: ratio {r:g} needs {rate:.3g} bits/value < {min_rate} (--zfp-min-rate): not run", flush=True)
                 continue
             first.append({**base, "kind": kind, "target": r, "rate": rate, "min_rate": min_rate, "matched_to": {"target_ratio": r}})
@@ -821,35 +839,60 @@ def main(argv=None) -> dict:
     ap.add_argument("--real", default="all", help="files in --data-dir: 'all', a comma list, or 'none'")
     ap.add_argument("--data-dir", type=Path, default=DATA_DIR, help="where the real volumes are (default: ../shared/data)")
     ap.add_argument("--max-voxels", type=int, default=256**3, help="stride real volumes down to at most this many voxels")
-    ap.add_argument("--ratios", type=_floats, default=(),
-                    help="fixed-ratio mode: every codec at these compression ratios (e.g. 10,30,100,300,1000); "
-                         "warpgauss with its defaults (coded format), instead of the budget ladder")
+    ap.add_argument(
+        "--ratios",
+        type=_floats,
+        default=(),
+        help="fixed-ratio mode: every codec at these compression ratios (e.g. 10,30,100,300,1000); "
+        "warpgauss with its defaults (coded format), instead of the budget ladder",
+    )
     ap.add_argument("--no-warpgauss", action="store_true", help="run the reference codecs only (with --ratios)")
     ap.add_argument("--format", default=None, help="--ratios: warpgauss file format (default: the library's, coded)")
-    ap.add_argument("--no-evaluate", action="store_true",
-                    help="--ratios: skip warpgauss's stage EV (the CLI runs it; it can keep the analytic model over a worse refined one)")
+    ap.add_argument(
+        "--no-evaluate",
+        action="store_true",
+        help="--ratios: skip warpgauss's stage EV (the CLI runs it; it can keep the analytic model over a worse refined one)",
+    )
     ap.add_argument("--budgets", default="2000,8000,32000,128000", help="warpgauss ladder (capped at each volume's N_max)")
     ap.add_argument("--min-ratio", type=float, default=2.0, help="drop budgets whose full-precision ratio is below this")
-    ap.add_argument("--preset", default=None,
-                    help="warpgauss refinement preset (ladder default: fast, 300 x 3,072; --ratios default: none, the library's defaults)")
+    ap.add_argument(
+        "--preset",
+        default=None,
+        help="warpgauss refinement preset (ladder default: fast, 300 x 3,072; --ratios default: none, the library's defaults)",
+    )
     ap.add_argument("--iterations", type=int, default=None, help="override the preset's iterations (0: analytic)")
-    ap.add_argument("--codecs", default=None,
-                    help="reference codecs to run: sz3, zfp, sperr ('none' or '' for none; default sz3,zfp, with --ratios "
-                         "sz3,zfp,sperr; those not installed are skipped)")
+    ap.add_argument(
+        "--codecs",
+        default=None,
+        help="reference codecs to run: sz3, zfp, sperr ('none' or '' for none; default sz3,zfp, with --ratios "
+        "sz3,zfp,sperr; those not installed are skipped)",
+    )
     ap.add_argument("--match-tol", type=float, default=0.02, help="relative ratio tolerance of the SZ3 (and fixed-rate) searches")
     ap.add_argument("--match-compact", action="store_true", help="also match SZ3 to the compact ratios")
     ap.add_argument("--sz3-bounds", type=_floats, default=SZ3_BOUNDS, help="SZ3 curve: error bounds x (max - min)")
     ap.add_argument("--zfp-rates", type=_floats, default=ZFP_RATES, help="ZFP fixed-rate curve: bits per value")
     ap.add_argument("--zfp-tols", type=_floats, default=ZFP_TOLERANCES, help="ZFP fixed-accuracy curve: tolerances x (max - min)")
     ap.add_argument("--zfp-min-rate", type=float, default=ZFP_MIN_RATE, help="lowest ZFP fixed rate run (bits per value)")
-    ap.add_argument("--workers", type=int, default=0,
-                    help="processes for the codec runs (0: in this process) and for --volume-dir generation; "
-                         "the codec runs start after every warpgauss row, so they never share the machine with one")
-    ap.add_argument("--volume-dir", type=Path, default=None,
-                    help="read the example fields from <dir>/<name>_<size>.npy, generating the missing ones first")
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="processes for the codec runs (0: in this process) and for --volume-dir generation; "
+        "the codec runs start after every warpgauss row, so they never share the machine with one",
+    )
+    ap.add_argument(
+        "--volume-dir",
+        type=Path,
+        default=None,
+        help="read the example fields from <dir>/<name>_<size>.npy, generating the missing ones first",
+    )
     ap.add_argument("--generate-only", action="store_true", help="with --volume-dir: write the fields and stop")
-    ap.add_argument("--resume", type=Path, default=None,
-                    help="a previous run's JSON: keep its rows, skip the warpgauss budgets it measured and run only the codec settings it lacks")
+    ap.add_argument(
+        "--resume",
+        type=Path,
+        default=None,
+        help="a previous run's JSON: keep its rows, skip the warpgauss budgets it measured and run only the codec settings it lacks",
+    )
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="benchmarks/results/rd_cpu.json")
     args = ap.parse_args(argv)
@@ -864,8 +907,11 @@ def main(argv=None) -> dict:
     if args.volume_dir is not None:
         t0 = time.perf_counter()
         gen_s = generate_examples(fields, args.size, args.volume_dir, args.workers)
-        print(f"generated {sorted(gen_s) or 'nothing'} at {args.size}^3 in {time.perf_counter() - t0:.1f} s "
-              f"({', '.join(f'{k} {v:.1f} s' for k, v in gen_s.items())})", flush=True)
+        print(
+            f"generated {sorted(gen_s) or 'nothing'} at {args.size}^3 in {time.perf_counter() - t0:.1f} s "
+            f"({', '.join(f'{k} {v:.1f} s' for k, v in gen_s.items())})",
+            flush=True,
+        )
         if args.generate_only:
             return {"generated": gen_s}
     if args.codecs is None:
@@ -891,35 +937,48 @@ def main(argv=None) -> dict:
     settings = {
         "match_tol": args.match_tol,
         "codec_workers": args.workers,
-        "codec_timing": "single-threaded codec calls" + (
-            f", {args.workers} at a time in separate processes (after all warpgauss rows)" if args.workers > 0 else ""),
+        "codec_timing": "single-threaded codec calls"
+        + (f", {args.workers} at a time in separate processes (after all warpgauss rows)" if args.workers > 0 else ""),
         "psnr": "10 log10(1/MSE), full grid, normalised by the volume's finite min/max, masked voxels excluded; same function for every codec",
         "ratio": "source bytes (voxels x source dtype size) / compressed bytes; SZ3 and ZFP compress float32 in source units, "
-                 "SPERR the float32 field normalised by min/max",
+        "SPERR the float32 field normalised by min/max",
     }
     if fixed:
-        settings.update({
-            "mode": "fixed ratios",
-            "ratios": list(args.ratios),
-            "warpgauss": None if args.no_warpgauss else {
-                "options": "warpgauss encode VOLUME --ratio R" + (f" --preset {args.preset}" if args.preset else "")
-                           + (f" --iterations {args.iterations}" if args.iterations is not None else "")
-                           + (f" --format {args.format}" if args.format else ""),
-                "format": encoding_of(EncodeOptions(format=args.format)),
-                "preset": args.preset,
-                "evaluate": not args.no_evaluate,
-                "encode_s": "encode call (S1a to EV, reading excluded) + save of the .wgs",
-                "decode_s": "Model.load + full-grid decode",
-            },
-            "iterations": refine.iterations,
-            "samples": refine.samples,
-            "zfp_min_rate": args.zfp_min_rate,
-        })
+        settings.update(
+            {
+                "mode": "fixed ratios",
+                "ratios": list(args.ratios),
+                "warpgauss": None
+                if args.no_warpgauss
+                else {
+                    "options": "warpgauss encode VOLUME --ratio R"
+                    + (f" --preset {args.preset}" if args.preset else "")
+                    + (f" --iterations {args.iterations}" if args.iterations is not None else "")
+                    + (f" --format {args.format}" if args.format else ""),
+                    "format": encoding_of(EncodeOptions(format=args.format)),
+                    "preset": args.preset,
+                    "evaluate": not args.no_evaluate,
+                    "encode_s": "encode call (S1a to EV, reading excluded) + save of the .wgs",
+                    "decode_s": "Model.load + full-grid decode",
+                },
+                "iterations": refine.iterations,
+                "samples": refine.samples,
+                "zfp_min_rate": args.zfp_min_rate,
+            }
+        )
     else:
-        settings.update({"preset": args.preset, "iterations": refine.iterations, "samples": refine.samples,
-                         "budgets": args.budgets, "min_ratio": args.min_ratio})
+        settings.update(
+            {
+                "preset": args.preset,
+                "iterations": refine.iterations,
+                "samples": refine.samples,
+                "budgets": args.budgets,
+                "min_ratio": args.min_ratio,
+            }
+        )
     result = {
-        "benchmark": "rate-distortion at fixed ratios: warpgauss (defaults, coded) vs SZ3, ZFP (fixed rate) and SPERR (bpp)" if fixed
+        "benchmark": "rate-distortion at fixed ratios: warpgauss (defaults, coded) vs SZ3, ZFP (fixed rate) and SPERR (bpp)"
+        if fixed
         else "rate-distortion: warpgauss (full precision, compact) vs SZ3 (abs error bound) vs ZFP (fixed rate, fixed accuracy)",
         "command": "python benchmarks/bench_rd.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
         "device": dev,
@@ -952,7 +1011,9 @@ def main(argv=None) -> dict:
         result["resumed_from"] = str(args.resume)
         # where the reused rows (the warpgauss ones at least) were measured; this run's fields say
         # where the rows it adds were
-        result["previous_run"] = {k: before.get(k) for k in ("device", "device_name", "host", "cpu_count", "warp_version", "date", "command")}
+        result["previous_run"] = {
+            k: before.get(k) for k in ("device", "device_name", "host", "cpu_count", "warp_version", "date", "command")
+        }
     plans, seen = [], {}
     with tempfile.TemporaryDirectory(prefix="bench_rd_") as work:
         for k, (label, src, raw, path) in enumerate(volumes(args)):
@@ -1016,8 +1077,10 @@ def main(argv=None) -> dict:
     result["complete"] = True
     _write(result, out)
     v = result["codec_versions"]
-    print(f"\n{result['device_name']}, Warp {result['warp_version']}, pysz {v['pysz']}, zfpy {v['zfpy']}, "
-          f"numcodecs-wasm-sperr {v['numcodecs-wasm-sperr']} -> {out}")
+    print(
+        f"\n{result['device_name']}, Warp {result['warp_version']}, pysz {v['pysz']}, zfpy {v['zfpy']}, "
+        f"numcodecs-wasm-sperr {v['numcodecs-wasm-sperr']} -> {out}"
+    )
     return result
 
 

@@ -103,6 +103,8 @@ class VolumeRenderer(_Marcher):
         device: Warp device.
     """
 
+    label = "reference"  # the method its images name
+
     def __init__(self, values: np.ndarray, scene: Scene | None = None, device: str | None = None):
         values = np.ascontiguousarray(values, dtype=np.float32)
         if values.ndim != 3 or min(values.shape) < 1:
@@ -118,12 +120,14 @@ class VolumeRenderer(_Marcher):
         """One frame of the dense grid by ray marching (trilinear samples)."""
         settings = settings or RenderSettings()
         view = camera if isinstance(camera, View) else resolve_view(camera or Camera(), self.scene, settings.width, settings.height)
-        return self._march(self.volume, view, tf or make_transfer_function(), settings, "reference")
+        return self._march(self.volume, view, tf or make_transfer_function(), settings, self.label)
 
 
 class BoundedRenderer(VolumeRenderer):
     """Ray marching of a model's bounded decode (the Gaussians plus its residual, every voxel within
     the residual's bound of the source), normalised by the header's range, as a grid."""
+
+    label = "bounded"
 
     def __init__(self, model, device: str | None = None):
         if model.residual is None:
@@ -131,14 +135,6 @@ class BoundedRenderer(VolumeRenderer):
         lo, hi = model.value_range
         grid = (model.decode(device=device, residual=True).astype(np.float64) - lo) / (hi - lo)
         super().__init__(np.nan_to_num(np.clip(grid, 0.0, 1.0)).astype(np.float32), Scene.from_header(model.header), device)
-
-    def render(
-        self, camera: Camera | View | None = None, tf: TransferFunction | None = None, settings: RenderSettings | None = None
-    ) -> Image:
-        """One frame of the bounded decode by ray marching (trilinear samples)."""
-        settings = settings or RenderSettings()
-        view = camera if isinstance(camera, View) else resolve_view(camera or Camera(), self.scene, settings.width, settings.height)
-        return self._march(self.volume, view, tf or make_transfer_function(), settings, "bounded")
 
 
 def cache_grid_shape(shape_xyz, cache_res: int | None = None) -> tuple[int, ...]:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -22,27 +21,17 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
-from bench_rd import _sperr_class, sz3_run, zfp_run  # noqa: E402
+from bench_rd import sperr_run, sz3_run, zfp_run  # noqa: E402
 from bounded_rd import MRIS, volumes  # noqa: E402
 
 from warpgauss.bench import result_header  # noqa: E402
 from warpgauss.evaluate import psnr_from_mse  # noqa: E402
 
 
-def sperr_pwe(data: np.ndarray, eb: float):
-    codec = _sperr_class()(mode="pwe", pwe=float(eb))
-    t0 = time.perf_counter()
-    comp = np.asarray(codec.encode(data))
-    t1 = time.perf_counter()
-    dec = np.asarray(codec.decode(comp))
-    t2 = time.perf_counter()
-    return int(comp.nbytes), dec.reshape(data.shape), t1 - t0, t2 - t1
-
-
 CODECS = {
     "sz3": lambda d, e: sz3_run(d, e),
     "zfp-acc": lambda d, e: zfp_run(d, tolerance=float(e)),
-    "sperr-pwe": sperr_pwe,
+    "sperr-pwe": lambda d, e: sperr_run(d, mode="pwe", pwe=float(e)),
 }
 
 
