@@ -5,12 +5,14 @@ same device), also when a worker is killed mid-run; a brick failing twice fails 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 import warpgauss
 from warpgauss.analysis import normalise, seed_limit
-from warpgauss.bricked import brick_colour, brick_fields, brick_tasks, parse_bricks, plan_bricks, run_bricks, split_bricks, wave_tasks
+from warpgauss.bricked import brick_colour, encode_brick, brick_fields, brick_tasks, parse_bricks, plan_bricks, run_bricks, split_bricks, wave_tasks
 from warpgauss.errors import WarpgaussError
 from warpgauss.synthetic import generate
 
@@ -86,7 +88,35 @@ def test_bricked_encode_on_a_local_dask_cluster_equals_the_serial_one():
         client.cluster.close()
     assert isinstance(client, distributed.Client) and workers == {"cpu"}
     np.testing.assert_array_equal(serial.params, on_cluster.params)
-    assert on_cluster.report["bricking"]["scheduler"].startswith("tcp://")
+    rep = on_cluster.report["bricking"]
+    assert rep["scheduler"].startswith("tcp://")
+    # the local workers read the volume from one temporary file, not from the task graph
+    assert rep["volume_to_workers"] == "a temporary file the workers read"
+    assert serial.report["bricking"]["volume_to_workers"] == "this process"
+    assert [w["bricks"] for w in rep["waves"]] == [1, 1, 1, 1]
+    assert all(0 < w["worker_seconds"] <= w["seconds"] for w in rep["waves"])
+    assert sum(w["bricks"] for w in rep["workers"].values()) == 4 and "this process" not in rep["workers"]
+    assert all(w["host_peak_rss_bytes"] > 2**20 and w["device_peak_bytes"] is None for w in rep["workers"].values())
+
+
+def test_a_task_carries_no_volume_and_ships_only_its_box():
+    """brick_tasks copies nothing: each task reads its box from the volume where it runs; a task
+    that leaves this process takes its box's copy (an in-memory volume) or the file's name."""
+    import pickle
+
+    from warpgauss.lazy import shared
+
+    f, plan, tasks = _tasks(size=24, n=120, counts=(2, 2, 1))
+    assert all(t.values is None and t.volume is not None and t.volume[0] is f.values for t in tasks)
+    t = tasks[1].shipped()
+    box = plan[1].slices("box")
+    np.testing.assert_array_equal(t.values, f.values[box])
+    assert t.volume is None and len(pickle.dumps(t)) < f.values[box].nbytes + 20_000
+    with shared([f.values, None]) as (values, mask):
+        u = dataclasses.replace(tasks[1], volume=(values, mask))
+        assert u.shipped() is u and len(pickle.dumps(u)) < 20_000  # the file travels by name
+        np.testing.assert_array_equal(u.box_arrays()[0], f.values[box])
+        np.testing.assert_array_equal(encode_brick(u)["params"], encode_brick(tasks[1])["params"])
 
 
 def test_cli_bricked_encode_and_its_refusals(tmp_path):

@@ -125,6 +125,45 @@ def test_dask_workers_read_their_own_boxes(tmp_path):
     np.testing.assert_array_equal(serial.params, on_cluster.params)
 
 
+def test_an_array_shared_with_local_workers_is_one_file_read_box_by_box_and_then_removed():
+    """shared(): the arrays written once, each read back by slices and as a whole, pickled as a
+    name (a few hundred bytes, not the voxels), the folder gone on exit."""
+    import os
+    import pickle
+
+    from warpgauss.lazy import Shared, opened, shared
+
+    v = generate("vortex", 20)
+    mask = v > v.mean()
+    with shared([v, None, mask]) as (a, none, m):
+        assert isinstance(a, Shared) and none is None and isinstance(m, Shared)
+        folder = os.path.dirname(a.source.path)
+        np.testing.assert_array_equal(a[2:9, :, 3:5], v[2:9, :, 3:5])
+        np.testing.assert_array_equal(m[1:4], mask[1:4])
+        assert m[1:4].dtype == bool and a.shape == v.shape
+        np.testing.assert_array_equal(opened(a), v)
+        assert opened(v) is v
+        blob = pickle.dumps(a)
+        assert len(blob) < 1000
+        np.testing.assert_array_equal(pickle.loads(blob)[5], v[5])
+    assert not os.path.exists(folder)
+
+
+def test_a_cluster_is_local_when_every_worker_is_on_this_host():
+    from warpgauss.cluster import is_local
+
+    class FakeClient:
+        def __init__(self, hosts):
+            self.hosts = hosts
+
+        def scheduler_info(self):
+            return {"workers": {f"tcp://{h}:1": {"host": h} for h in self.hosts}}
+
+    assert is_local(FakeClient(["127.0.0.1", "127.0.0.1"]))
+    assert not is_local(FakeClient(["127.0.0.1", "10.255.1.7"]))
+    assert not is_local(FakeClient([]))
+
+
 def test_zarr_stores_are_read_whole_or_by_bricks(tmp_path):
     zarr = pytest.importorskip("zarr")
     v = generate("vortex", 20)

@@ -266,6 +266,12 @@ def split_bricks(f: Field, bricks: list[Brick], n: int) -> tuple[list[int], list
 class BrickTask:
     """What one worker needs for one brick: plain arrays and settings (no model, no file).
 
+    The box's voxels come from ``values``/``valid`` (the box alone, copied) or, with those None,
+    from ``volume``: the volume's (values, mask or None), read box by box where the task runs: a
+    file read on demand (:class:`~warpgauss.lazy.LazyValues`), a file this machine shares
+    (:class:`~warpgauss.lazy.Shared`) or, in this process, the arrays themselves (a task sent to
+    another machine takes its box along: :meth:`shipped`).
+
     ``frozen``: the finished neighbours' primitives that reach the box (box coordinates), trained
     beside and never moved; ``pending``: where in the box the unfinished neighbours' interiors lie
     (stand-ins go there); ``rates``: how many stand-ins a region gets (see :func:`split_bricks`).
@@ -273,7 +279,7 @@ class BrickTask:
 
     index: int
     brick: Brick
-    values: np.ndarray | None  # None: read from ``lazy`` where the task runs
+    values: np.ndarray | None  # None: read from ``volume`` where the task runs
     valid: np.ndarray | None
     field_meta: dict
     n: int
@@ -284,15 +290,23 @@ class BrickTask:
     rates: tuple[float, float] = (0.0, 0.0)
     frozen: np.ndarray | None = None
     pending: tuple = ()
-    lazy: tuple | None = None  # (LazyValues, LazyMask or None) of the volume (see warpgauss.lazy)
+    volume: tuple | None = None  # (values, mask or None) of the whole volume, read box by box
 
     def box_arrays(self) -> tuple[np.ndarray, np.ndarray | None]:
-        """The brick's box: normalised values and validity (read now when the volume is lazy)."""
-        if self.values is not None or self.lazy is None:
+        """The brick's box: normalised values and validity (read now from ``volume``)."""
+        if self.values is not None or self.volume is None:
             return self.values, self.valid  # type: ignore[return-value]
         box = self.brick.slices("box")
-        values, mask = self.lazy
+        values, mask = self.volume
         return np.ascontiguousarray(values[box]), None if mask is None else np.ascontiguousarray(mask[box])
+
+    def shipped(self) -> BrickTask:
+        """This task as it may travel to any process: a volume held in this process's memory is
+        replaced by the box's own copy (files, read on demand or shared, travel by name)."""
+        if self.volume is None or not isinstance(self.volume[0], np.ndarray):
+            return self
+        values, valid = self.box_arrays()
+        return dataclasses.replace(self, values=values, valid=valid, volume=None)
 
 
 def brick_seed(seed: int, index: int) -> int:
@@ -330,7 +344,33 @@ def encode_bricks(tasks: list[BrickTask], at_once: int | None = None, limit: int
     dev = resolve_device(tasks[0].device)
     if at_once is None:
         at_once = bricks_at_once(tasks, dev, limit)
-    return [r | {"at_once": at_once} for r in run_together([functools.partial(brick_job, t) for t in tasks], dev, at_once)]
+    t0 = time.perf_counter()
+    out = run_together([functools.partial(brick_job, t) for t in tasks], dev, at_once)
+    facts = _group_facts(dev, time.perf_counter() - t0, at_once)
+    return [r | facts for r in out]
+
+
+def _group_facts(dev: str, seconds: float, at_once: int) -> dict:
+    """What a group of bricks reports of the process that ran it: bricks at once, the group's
+    seconds, the process (a Dask worker's name, else "this process") and its high-water marks of
+    device memory (Warp's pool; None on the CPU) and host memory (peak RSS)."""
+    import resource
+    import sys
+
+    from ._warp import warp
+
+    wp = warp()
+    d = wp.get_device(dev)
+    peak = int(wp.get_mempool_used_mem_high(dev)) if d.is_cuda and wp.is_mempool_enabled(dev) else None
+    worker = "this process"
+    try:
+        from distributed import get_worker
+
+        worker = str(get_worker().name)
+    except (ImportError, ValueError):
+        pass
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * (1 if sys.platform == "darwin" else 1024)
+    return {"at_once": at_once, "group_seconds": seconds, "worker": worker, "device_peak_bytes": peak, "host_peak_rss_bytes": rss}
 
 
 def brick_job(task: BrickTask) -> Generator[None, None, dict]:
@@ -435,26 +475,30 @@ def brick_samples(refine: RefineConfig, n: int, shape_xyz, brick: Brick, device:
 
 
 def brick_tasks(
-    f: Field, bricks: list[Brick], stats: list[dict], seed: int, allocation, refine, device, n: int | None = None
+    f: Field,
+    bricks: list[Brick],
+    stats: list[dict],
+    seed: int,
+    allocation,
+    refine,
+    device,
+    n: int | None = None,
+    volume: tuple | None = None,
 ) -> list[BrickTask]:
     """One task per brick, from :func:`split_bricks`' statistics (``n``, ``rates``); the
-    samples per brick by :func:`brick_samples` (``n``: the whole budget, default the bricks' sum)."""
+    samples per brick by :func:`brick_samples` (``n``: the whole budget, default the bricks' sum).
+    Each task reads its box from ``volume`` (default the field's own values and mask) where it
+    runs; nothing is copied here."""
     from ._warp import resolve_device
-    from .lazy import is_lazy
 
     meta = _field_meta(f)
     total = sum(st["n"] for st in stats) if n is None else n
     dev = resolve_device(device)
+    volume = (f.values, f.mask) if volume is None else volume
     tasks = []
-    lazy = is_lazy(f.values)
     for i, (b, st) in enumerate(zip(bricks, stats)):
-        box = b.slices("box")
         cfg = brick_samples(refine, total, f.shape_xyz, b, dev)
-        if lazy:  # each brick reads its own box where it runs
-            values, valid, src = None, None, (f.values, f.mask)
-        else:
-            values, valid, src = np.ascontiguousarray(f.values[box]), None if f.mask is None else np.ascontiguousarray(f.mask[box]), None
-        tasks.append(BrickTask(i, b, values, valid, meta, st["n"], brick_seed(seed, i), allocation, cfg, device, st["rates"], lazy=src))
+        tasks.append(BrickTask(i, b, None, None, meta, st["n"], brick_seed(seed, i), allocation, cfg, device, st["rates"], volume=volume))
     return tasks
 
 
@@ -501,24 +545,45 @@ def wave_tasks(tasks: list[BrickTask], finished: dict[int, np.ndarray], wave: li
 
 
 def run_bricks(
-    tasks: list[BrickTask], client=None, progress=None, fn=None, at_once: int | None = None, limit: int | None = None
+    tasks: list[BrickTask],
+    client=None,
+    progress=None,
+    fn=None,
+    at_once: int | None = None,
+    limit: int | None = None,
+    waves_out: list[dict] | None = None,
 ) -> list[dict]:
     """Every brick's result, in brick order, wave by wave (:func:`brick_colour`): in this process
     (``client`` None), the bricks of a wave stepping side by side on the device (``at_once`` of
     them, default :func:`bricks_at_once` under ``limit`` bytes of device memory), or on a Dask cluster, a wave's bricks split into one
     group per worker, each group run side by side there (:func:`encode_bricks`); a failed task is
     retried once and one that fails twice fails the run. ``fn``: what runs one task (tests inject
-    failures; a task at a time then)."""
+    failures; a task at a time then). ``waves_out``: a list that gets each wave's timing (its wall
+    seconds here, and the longest time a process spent on its bricks: the difference is what
+    reaching the workers cost)."""
     waves: dict[int, list[int]] = {}
     for t in tasks:
         waves.setdefault(brick_colour(t.brick), []).append(t.index)
     finished: dict[int, np.ndarray] = {}
     results: dict[int, dict] = {}
     for colour in sorted(waves):
+        t0 = time.perf_counter()
         batch = wave_tasks(tasks, finished, waves[colour])
-        for r in _run_wave(fn, batch, client, progress, len(results), len(tasks), at_once, limit):
+        t1 = time.perf_counter()
+        got = _run_wave(fn, batch, client, progress, len(results), len(tasks), at_once, limit)
+        for r in got:
             results[r["index"]] = r
             finished[r["index"]] = r["params"]
+        if waves_out is not None:
+            waves_out.append(
+                {
+                    "colour": colour,
+                    "bricks": len(batch),
+                    "seconds": time.perf_counter() - t0,
+                    "prepare_seconds": t1 - t0,
+                    "worker_seconds": max((r.get("group_seconds", r["seconds"]) for r in got), default=0.0),
+                }
+            )
     return [results[t.index] for t in tasks]
 
 
@@ -575,7 +640,10 @@ def _run_wave(
 
             dev = resolve_device(batch[0].device) if batch else "cpu"
             k = bricks_at_once(batch, dev, limit) if at_once is None else at_once
-            return [r | {"at_once": k} for r in run_together([functools.partial(brick_job, t) for t in batch], dev, k, on_done=one_done)]
+            t0 = time.perf_counter()
+            out = run_together([functools.partial(brick_job, t) for t in batch], dev, k, on_done=one_done)
+            facts = _group_facts(dev, time.perf_counter() - t0, k)
+            return [r | facts for r in out]
         out = []
         for t in batch:
             out.append(fn(t))
@@ -584,6 +652,7 @@ def _run_wave(
     from .cluster import map_on_cluster
 
     tail = "; no model written"
+    batch = [t.shipped() for t in batch]
     if fn is None:
         workers = max(1, len(client.scheduler_info().get("workers", {})))
         groups = brick_groups(batch, workers)

@@ -34,6 +34,21 @@ def map_on_cluster(client, fn, items: list, keys: list[str], what: str, tail: st
     return out
 
 
+def is_local(client) -> bool:
+    """Whether every worker of ``client``'s cluster runs on this machine, so that a file this
+    process writes is theirs to read (a local cluster's workers listen on 127.0.0.1 or on one of
+    this host's addresses)."""
+    import socket
+
+    hosts = {str(w.get("host", "")) for w in client.scheduler_info().get("workers", {}).values()}
+    mine = {"127.0.0.1", "::1", "localhost", socket.gethostname()}
+    try:
+        mine |= set(socket.gethostbyname_ex(socket.gethostname())[2])
+    except OSError:
+        pass
+    return bool(hosts) and hosts <= mine
+
+
 def local_client(workers: int):
     """A local Dask cluster of ``workers`` single-threaded processes (Warp's CPU device runs a
     kernel on one thread), and its client."""

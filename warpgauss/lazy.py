@@ -10,6 +10,11 @@ reopens it itself. :class:`LazyValues` and :class:`LazyMask` are a :class:`~warp
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -195,3 +200,47 @@ def require_source(data, what: str) -> ArraySource:
     if src is None:
         raise WarpgaussError(f"{what} cannot be read lazily (it is in memory); it must fit this machine's memory as a whole")
     return src
+
+
+class Shared(_Lazy3D):
+    """An in-memory array written once to a temporary ``.npy`` file (:func:`shared`), so that the
+    Dask workers of this machine read it box by box instead of receiving it through the task
+    graph; picklable as its :class:`ArraySource` alone. ``array()``: the whole, memory-mapped."""
+
+    def array(self) -> np.memmap:
+        s = self.source
+        return np.memmap(s.path, dtype=np.dtype(s.dtype), mode="r", offset=s.offset, shape=s.shape)
+
+    def __reduce__(self):
+        return (Shared, (self.source,))
+
+
+@contextmanager
+def shared(arrays: Sequence[np.ndarray | None]) -> Iterator[list[Shared | None]]:
+    """Each 3D array of ``arrays`` (None stays None) written to a ``.npy`` file in a temporary
+    folder (``$TMPDIR``: the page cache keeps it in memory while there is room), offered as a
+    :class:`Shared`; the folder is deleted on exit. For the workers of a local cluster, which can
+    open the files this process writes (see :func:`warpgauss.cluster.is_local`)."""
+    folder = tempfile.mkdtemp(prefix="warpgauss-shared-")
+    try:
+        out: list[Shared | None] = []
+        for i, a in enumerate(arrays):
+            if a is None:
+                out.append(None)
+                continue
+            path = os.path.join(folder, f"{i}.npy")
+            np.save(path, np.ascontiguousarray(a))
+            m = np.load(path, mmap_mode="r")
+            src = source_of(m)
+            assert src is not None, "np.load(mmap_mode='r') gives a memmap"
+            del m
+            out.append(Shared(src))
+        yield out
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def opened(item):
+    """A series item as :func:`warpgauss.encode` takes it: a :class:`Shared` array memory-mapped,
+    anything else as it is."""
+    return item.array() if isinstance(item, Shared) else item

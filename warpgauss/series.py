@@ -166,7 +166,16 @@ def encode_series(
         for seg in plan:
             models += encode_segment(seg, on_step)
         return models
-    return _on_cluster(plan, client, on_step)
+    from .cluster import is_local
+    from .lazy import shared
+
+    arrays = [x for seg in plan for x in seg.items if isinstance(x, np.ndarray)]
+    if not arrays or not is_local(client):
+        return _on_cluster(plan, client, on_step)
+    with shared(arrays) as files:  # the workers of this machine read the timesteps from files, not through the graph
+        by_id = {id(a): sf for a, sf in zip(arrays, files)}
+        plan = [dataclasses.replace(seg, items=[by_id.get(id(x), x) for x in seg.items]) for seg in plan]
+        return _on_cluster(plan, client, on_step)
 
 
 def iter_series(sources, **kwargs: Any) -> Iterator[Model]:
@@ -298,7 +307,10 @@ def iter_segment(seg: Segment) -> Iterator[Model]:
     before, first_n = seg.start, seg.n
     best = None  # the best warm PSNR since the last cold timestep (the key-frame rule)
     drift = seg.keyframe_drift if seg.keyframe_drift is not None and seg.keyframe_drift > 0 else None
-    for k, (t, src) in enumerate(zip(seg.steps, seg.items)):
+    from .lazy import Shared, opened
+
+    for k, (t, item) in enumerate(zip(seg.steps, seg.items)):
+        src = opened(item)
         warm = before is not None and not seg.cold
         kw = dict(seg.kwargs)
         n = first_n
@@ -339,7 +351,7 @@ def iter_segment(seg: Segment) -> Iterator[Model]:
             "step": t,
             "steps": seg.total,
             "warm_start": warm,
-            "source": "array" if isinstance(src, np.ndarray) else str(src),
+            "source": "array" if isinstance(item, (np.ndarray, Shared)) else str(item),
         }
         if keyframe is not None:
             m.run_report["series"]["keyframe"] = keyframe

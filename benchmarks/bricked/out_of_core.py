@@ -5,6 +5,10 @@ memory (Warp's pool high-water mark), this process's peak host RSS against the f
 on 500,000 sampled voxels, and the time of each stage.
 
     python benchmarks/bricked/out_of_core.py --size 2048 --budget 4000000 --max-device-memory 24GiB --dir /tmp --out $OUT/i20_out_of_core_h100.json
+    python benchmarks/bricked/out_of_core.py --size 2048 --gpus 2 --max-device-memory 24GiB --max-host-memory 16GiB --out $OUT/out_of_core2048_gpus2.json
+
+With ``--gpus K`` the bricks run on a local Dask cluster of one worker process per GPU; the
+report's ``workers`` gives each one's peak device memory (Warp's pool) and peak host RSS.
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--halo", type=int, default=None)
     ap.add_argument("--iterations", type=int, default=None, help="refinement iterations (default: the encode's)")
     ap.add_argument("--dir", type=Path, default=Path("/tmp"))
+    ap.add_argument("--gpus", type=int, default=1, help="GPU workers (a local Dask cluster, one process per GPU) beyond 1; 1: this process")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -58,6 +63,13 @@ def main(argv=None) -> dict:
     gen_s = time.perf_counter() - t0
     print(f"wrote {path} ({path.stat().st_size / 2**30:.1f} GiB) in {gen_s:.1f} s", flush=True)
     warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64, format="full")  # compile
+    client = None
+    if args.gpus > 1:
+        from warpgauss.cluster import gpu_client
+
+        client = gpu_client(args.gpus)
+        client.wait_for_workers(args.gpus, timeout=300)
+        warpgauss.encode(generate("vortex", 48), budget=400, bricks="2x1x1", client=client, iterations=20, format="full", self_test=False)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     t0 = time.perf_counter()
     done = []
@@ -71,6 +83,7 @@ def main(argv=None) -> dict:
         max_host_memory=args.max_host_memory,
         halo=args.halo,
         iterations=args.iterations,
+        client=client,
         on_bricks=lambda d, t: (done.append(d), print(f"brick {d}/{t} at {time.perf_counter() - t0:.1f} s", flush=True)),
     )
     wall = time.perf_counter() - t0
@@ -95,7 +108,10 @@ def main(argv=None) -> dict:
         "host_rss_before_encode_bytes": rss0,
         "rss_over_file": rss / path.stat().st_size,
         "rss_growth_over_file": (rss - rss0) / path.stat().st_size,
-        "stages": [{k: s[k] for k in ("name", "seconds", "device_peak_bytes", "host_peak_bytes") if k in s} for s in r.get("stages", [])],
+        "gpus": args.gpus,
+        "workers": b.get("workers"),
+        "waves": b.get("waves"),
+        "stages": [{k: s[k] for k in ("stage", "seconds", "device_peak_bytes", "host_peak_bytes") if k in s} for s in r.get("stages", [])],
         "bricks": [{k: x.get(k) for k in ("n", "seconds", "samples", "stand_ins", "frozen", "box_zyx")} for x in b["bricks"]],
         "generate_s": gen_s,
     }
@@ -108,7 +124,10 @@ def main(argv=None) -> dict:
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
         "rows": [row],
     }
-    print({k: v for k, v in row.items() if k not in ("stages", "bricks")}, flush=True)
+    print({k: v for k, v in row.items() if k not in ("stages", "bricks", "waves")}, flush=True)
+    if client is not None:
+        client.close()
+        client.cluster.close()
     args.out.write_text(json.dumps(result, indent=1))
     return result
 

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
+import warpgauss.cluster
 from warpgauss._warp import resolve_device
 from warpgauss.bench import result_header
 from warpgauss.cluster import gpu_client, local_client
@@ -59,6 +60,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--series-size", type=int, default=512)
     ap.add_argument("--series-budget", type=int, default=400_000)
     ap.add_argument("--monolithic", action="store_true", help="also the monolithic encode on one GPU (this process), per size")
+    ap.add_argument(
+        "--graph-gpus",
+        default="",
+        help="also these worker counts with each wave's boxes sent through the Dask graph (the path before the volume was shared as a file)",
+    )
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -104,13 +110,27 @@ def main(argv=None) -> dict:
                 print(f"{size}^3 N {m.n:,} monolithic on one GPU: {sec:.1f} s, PSNR {m.report['psnr_db']:.2f} dB", flush=True)
                 save()
                 del m
-            for k in counts:
+            graph = [(k, True) for k in counts if str(k) in args.graph_gpus.split(",")]
+            for k, through_graph in [(k, False) for k in counts] + graph:
                 t0 = time.perf_counter()
-                m = warpgauss.encode(vol, budget=budget, bricks=args.bricks, client=clients[k], **common)
+                if through_graph:  # as before the volume was shared: every brick's box in the task graph
+                    local = warpgauss.cluster.is_local
+                    warpgauss.cluster.is_local = lambda client: False  # type: ignore[assignment]
+                try:
+                    m = warpgauss.encode(vol, budget=budget, bricks=args.bricks, client=clients[k], **common)
+                finally:
+                    if through_graph:
+                        warpgauss.cluster.is_local = local  # type: ignore[assignment]
                 sec = time.perf_counter() - t0
-                devices = sorted({b["device"] for b in m.report["bricking"]["bricks"]})
+                b = m.report["bricking"]
+                devices = sorted({x["device"] for x in b["bricks"]})
                 row = {
-                    "what": "bricked encode",
+                    "what": "bricked encode" + (" (boxes through the graph)" if through_graph else ""),
+                    "volume_to_workers": b["volume_to_workers"],
+                    "stages": [{"stage": x["stage"], "seconds": x["seconds"]} for x in m.report.get("stages", [])],
+                    "waves": b["waves"],
+                    "workers": b["workers"],
+                    "brick_seconds": sum(x["seconds"] for x in b["bricks"]),
                     "size": size,
                     "n": int(m.n),
                     "gpus": k,
@@ -127,7 +147,10 @@ def main(argv=None) -> dict:
                 save()
                 print(
                     f"{size}^3 N {m.n:,} on {k} GPU(s): {sec:.1f} s, speed-up {row['speedup']:.2f}x, PSNR {row['psnr_db']:.2f} dB, "
-                    f"same model as one GPU: {row['identical_to_one_gpu']}",
+                    f"same model as one GPU: {row['identical_to_one_gpu']} ({row['volume_to_workers']}; waves {sum(w['seconds'] for w in b['waves']):.1f} s, "
+                    f"of which on the workers {sum(w['worker_seconds'] for w in b['waves']):.1f} s; stages "
+                    + ", ".join(f"{x['stage']} {x['seconds']:.1f}" for x in row["stages"])
+                    + ")",
                     flush=True,
                 )
             del vol, base
@@ -152,6 +175,7 @@ def main(argv=None) -> dict:
                         "speedup": rate / base_rate,
                         "psnr_db": [m.report["psnr_db"] for m in models],
                         "warm": [bool(m.report["series"]["warm_start"]) for m in models],
+                        "encode_seconds": [m.report.get("total_seconds") for m in models],
                     }
                 )
                 print(

@@ -4,6 +4,7 @@ of whether a file is bricked and read on demand (:func:`bricking`).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import time
@@ -45,6 +46,8 @@ def encode_bricked(
     from .._warp import resolve_device
     from ..analysis import DeviceVolume
     from ..bricked import brick_cap, brick_tasks, default_halo, parse_bricks, plan_bricks, run_bricks, split_bricks
+    from ..cluster import is_local
+    from ..lazy import is_lazy, shared
     from ..wgs import header_size
 
     counts_xyz = parse_bricks(bricks)
@@ -61,8 +64,6 @@ def encode_bricked(
     sizing = None
     dv = None
     if enc == "coded" and budget_bytes is not None:
-        from ..lazy import is_lazy
-
         if is_lazy(f.values):
             raise WarpgaussError(
                 "a volume read brick by brick takes its budget as --budget N (the coded size pilot of --bytes/--ratio needs the whole volume on the device)"
@@ -76,11 +77,20 @@ def encode_bricked(
     plan = plan_bricks(f.shape_xyz, counts_xyz, halo)
     with timer.stage("Sb", "budget split over the bricks"):
         counts, stats = split_bricks(f, plan, n)
-    tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n)
-    t0 = time.perf_counter()
-    with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
-        results = run_bricks(tasks, client, on_progress, limit=max_device_memory)
-    wall = time.perf_counter() - t0
+    waves: list[dict] = []
+    with contextlib.ExitStack() as stack:
+        volume, sharing = None, "this process" if client is None else "the boxes in the task graph"
+        if client is not None and is_lazy(f.values):
+            sharing = "the workers read the file"
+        elif client is not None and is_local(client):  # one file the workers read, not the volume through the graph
+            with timer.stage("Sh", "the volume shared with the local workers"):
+                volume = tuple(stack.enter_context(shared([f.values, f.mask])))
+            sharing = "a temporary file the workers read"
+        tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n, volume=volume)
+        t0 = time.perf_counter()
+        with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
+            results = run_bricks(tasks, client, on_progress, limit=max_device_memory, waves_out=waves)
+        wall = time.perf_counter() - t0
     params = np.concatenate([r["params"] for r in results]) if results else np.zeros((0, 12), np.float32)
     merged = Model(params, header)
     merged.coded_bits = None if sizing is None else sizing["bits"]
@@ -109,6 +119,7 @@ def encode_bricked(
             "stand_ins": r["stand_ins"],
             "frozen": r["frozen"],
             "at_once": r.get("at_once", 1),
+            "worker": r.get("worker"),
             "setup_seconds": r.get("setup_seconds"),
             "refine_seconds": r.get("refine_seconds"),
         }
@@ -123,6 +134,9 @@ def encode_bricked(
             "scale_cap": allocation.scale_cap,
             "scheduler": "this process" if client is None else str(client.scheduler.address),
             "wall_seconds": wall,
+            "volume_to_workers": sharing,
+            "waves": waves,
+            "workers": _workers(results),
             "bricks": bricks_report,
             "rule": "detail share by interior sum of |grad V|, coverage share by occupied voxels, largest remainders, seed limits",
         },
@@ -134,6 +148,21 @@ def encode_bricked(
         "skipped": [],
     }
     return model
+
+
+def _workers(results: list[dict]) -> dict:
+    """Per process that ran bricks: how many, and its high-water marks of device memory (Warp's
+    pool) and host memory (peak RSS) as its last group reported them."""
+    out: dict[str, dict] = {}
+    for r in results:
+        w = out.setdefault(
+            str(r.get("worker")), {"bricks": 0, "device": r["device"], "device_peak_bytes": None, "host_peak_rss_bytes": None}
+        )
+        w["bricks"] += 1
+        for k in ("device_peak_bytes", "host_peak_rss_bytes"):
+            if r.get(k) is not None:
+                w[k] = max(w[k] or 0, r[k])
+    return out
 
 
 AUTO_BRICK_FLOOR = 2 * 2**30  # an encode estimated below this is never bricked by the default limit
