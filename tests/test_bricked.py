@@ -358,3 +358,17 @@ def test_a_bricking_the_volume_cannot_take_is_refused_before_a_cluster_starts(tm
     for source in (["--example", "vortex", "--size", "16"], [str(vol)]):
         res = CliRunner().invoke(app, ["encode", *source, "--budget", "10", "--bricks", "16x1x1", "--workers", "2", "-o", str(tmp_path / "b.wgs")])
         assert res.exit_code == 2 and "bricks along x leave fewer than 2 voxels" in res.output, res.output
+
+
+def test_the_bricks_statistics_on_a_thread_pool_equal_one_brick_at_a_time():
+    """split_bricks takes the bricks' statistics on a pool of threads (each box's slabs on the
+    cores left to it): the same numbers, bit for bit, as one brick at a time with its own slabs."""
+    from warpgauss.bricked import _brick_stats
+
+    f = normalise(generate("interface", 40))
+    bricks = plan_bricks(f.shape_xyz, (3, 2, 2), 3)
+    _, stats = split_bricks(f, bricks, 500)
+    for b, st in zip(bricks, stats):
+        alone = _brick_stats(f, b)
+        assert {k: st[k] for k in alone} == alone
+    assert sum(st["occupied"] for st in stats) > 0 and all(st["grad_sum"] > 0 for st in stats)

@@ -149,19 +149,26 @@ def test_an_array_shared_with_local_workers_is_one_file_read_box_by_box_and_then
     assert not os.path.exists(folder)
 
 
-def test_a_cluster_is_local_when_every_worker_is_on_this_host():
-    from warpgauss.cluster import is_local
+def test_a_cluster_is_local_when_every_worker_reads_the_file_this_process_wrote():
+    """is_local asks the workers (a host name says too little: on one lent GPU machine the workers
+    listened on an address the host name did not resolve to). Workers that run elsewhere do not
+    see the probe file; one that cannot answer counts as elsewhere."""
+    from warpgauss.cluster import _reads, is_local
 
     class FakeClient:
-        def __init__(self, hosts):
-            self.hosts = hosts
+        def __init__(self, here: list[bool], fails: bool = False):
+            self.here, self.fails = here, fails
 
-        def scheduler_info(self):
-            return {"workers": {f"tcp://{h}:1": {"host": h} for h in self.hosts}}
+        def run(self, fn, path, token):
+            if self.fails:
+                raise OSError("connection closed")
+            return {f"w{i}": fn(path, token) if h else fn(path + ".elsewhere", token) for i, h in enumerate(self.here)}
 
-    assert is_local(FakeClient(["127.0.0.1", "127.0.0.1"]))
-    assert not is_local(FakeClient(["127.0.0.1", "10.255.1.7"]))
+    assert is_local(FakeClient([True, True]))
+    assert not is_local(FakeClient([True, False]))
     assert not is_local(FakeClient([]))
+    assert not is_local(FakeClient([True], fails=True))
+    assert not _reads("/nonexistent/probe", "x")
 
 
 def test_zarr_stores_are_read_whole_or_by_bricks(tmp_path):

@@ -277,20 +277,21 @@ def _lazy_field(src, plan, fill_value, n_invalid, spacing, origin, name, source_
     return f
 
 
-def _map_slabs(fn, nz: int, slab: int = SLAB) -> list:
-    """Run fn(z0) for every z-slab, on a thread pool (numpy releases the GIL in its loops); the
-    results in slab order."""
+def _map_slabs(fn, nz: int, slab: int = SLAB, threads: int | None = None) -> list:
+    """Run fn(z0) for every z-slab, on a thread pool (numpy releases the GIL in its loops; at
+    most ``threads``, default one per core; 1: in this thread); the results in slab order."""
     starts = list(range(0, nz, slab))
-    if len(starts) == 1:
-        return [fn(starts[0])]
+    if len(starts) == 1 or threads == 1:
+        return [fn(z0) for z0 in starts]
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(max_workers=min(len(starts), os.cpu_count() or 1)) as pool:
+    with ThreadPoolExecutor(max_workers=min(len(starts), threads or os.cpu_count() or 1)) as pool:
         return list(pool.map(fn, starts))
 
 
-def count_seed_candidates(values: np.ndarray, mask: np.ndarray | None) -> tuple[int, int]:
-    """(occupied voxels, occupied voxels with a non-zero gradient).
+def count_seed_candidates(values: np.ndarray, mask: np.ndarray | None, threads: int | None = None) -> tuple[int, int]:
+    """(occupied voxels, occupied voxels with a non-zero gradient), z-slab by z-slab on up to
+    ``threads`` threads (default one per core).
 
     The gradient test mirrors ``kernels.analysis.gradient_at`` exactly: on each axis a central
     difference, one-sided next to the border or a masked voxel; non-zero iff the two values differ.
@@ -312,7 +313,7 @@ def count_seed_candidates(values: np.ndarray, mask: np.ndarray | None) -> tuple[
             differs = (_differs(v, ok, 2) | _differs(v, ok, 1) | _differs(v, ok, 0))[core]
         return int(np.count_nonzero(occ)), int(np.count_nonzero(occ & differs))
 
-    parts = _map_slabs(count, nz)
+    parts = _map_slabs(count, nz, threads=threads)
     return sum(p[0] for p in parts), sum(p[1] for p in parts)
 
 

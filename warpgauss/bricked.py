@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import time
 from collections.abc import Generator
 from dataclasses import dataclass
@@ -134,9 +135,10 @@ def plan_bricks(shape_xyz, counts_xyz, halo: int = DEFAULT_HALO) -> list[Brick]:
 GRAD_SLAB = 8  # z-planes per pass of the |grad V| sums (one pass per thread: their temporaries stay small)
 
 
-def _grad_sum(values: np.ndarray, select: np.ndarray | None) -> float:
+def _grad_sum(values: np.ndarray, select: np.ndarray | None, threads: int | None = None) -> float:
     """Sum of |grad V| (central differences, one-sided at the box's faces) over the occupied voxels
-    of ``select`` (None: all), z-slab by z-slab in float32 on a thread pool."""
+    of ``select`` (None: all), z-slab by z-slab in float32 on up to ``threads`` threads (default
+    one per core)."""
     from .analysis import _map_slabs
 
     nz = values.shape[0]
@@ -157,7 +159,7 @@ def _grad_sum(values: np.ndarray, select: np.ndarray | None) -> float:
             use &= select[z0:z1]
         return float(np.sqrt(g[use], dtype=np.float32).sum(dtype=np.float64))
 
-    return float(sum(_map_slabs(part, nz, GRAD_SLAB)))
+    return float(sum(_map_slabs(part, nz, GRAD_SLAB, threads)))
 
 
 def _field_meta(f: Field) -> dict[str, Any]:
@@ -227,17 +229,7 @@ def split_bricks(f: Field, bricks: list[Brick], n: int) -> tuple[list[int], list
     """Exactly ``n`` primitives over the bricks (see the module docstring), and each brick's
     statistics, among them ``rates``: primitives per unit of |grad V| sum and per occupied voxel,
     by which a brick sizes the stand-ins for its pending neighbours."""
-    stats: list[dict[str, Any]] = []
-    for b in bricks:
-        box = b.slices("box")  # read once (a lazy volume reads it from the file)
-        values = np.ascontiguousarray(f.values[box])
-        valid = None if f.mask is None else np.ascontiguousarray(f.mask[box])
-        own = np.zeros(values.shape, bool)
-        own[b.interior_in_box()] = True
-        if valid is not None:
-            own &= valid
-        occ, elig = count_seed_candidates(values, own)
-        stats.append({"occupied": occ, "eligible": elig, "grad_sum": _grad_sum(values, own), "n_max": seed_limit(elig, occ)})
+    stats = _map_bricks(functools.partial(_brick_stats, f), bricks)
     nd, nc = split_budget(n)
     grad_total = sum(s["grad_sum"] for s in stats) or 1.0
     occ_total = sum(s["occupied"] for s in stats) or 1
@@ -260,6 +252,45 @@ def split_bricks(f: Field, bricks: list[Brick], n: int) -> tuple[list[int], list
     for s, c, w in zip(stats, counts, want):
         s.update(n=int(c), share=float(w), rates=rates)
     return [int(c) for c in counts], stats
+
+
+def _brick_stats(f: Field, b: Brick, threads: int | None = None) -> dict[str, Any]:
+    """A brick's occupied and detail-eligible voxels, |grad V| sum and seed limit, over its interior."""
+    box = b.slices("box")  # read once (a lazy volume reads it from the file)
+    values = np.ascontiguousarray(f.values[box])
+    valid = None if f.mask is None else np.ascontiguousarray(f.mask[box])
+    own = np.zeros(values.shape, bool)
+    own[b.interior_in_box()] = True
+    if valid is not None:
+        own &= valid
+    occ, elig = count_seed_candidates(values, own, threads)
+    return {"occupied": occ, "eligible": elig, "grad_sum": _grad_sum(values, own, threads), "n_max": seed_limit(elig, occ)}
+
+
+STATS_BYTES_PER_VOXEL = 24  # a box's copy and its slabs' temporaries, per box voxel, while its statistics are taken
+
+
+def _map_bricks(fn, bricks: list[Brick]) -> list:
+    """``fn(brick, threads=t)`` for every brick, the bricks on a thread pool (one per core, as many
+    as half the available host memory holds at :data:`STATS_BYTES_PER_VOXEL`), each brick's slabs
+    on the ``t`` cores left to it: many small bricks scale with the cores where one box's slabs did
+    not (the 64 bricks of 1024^3 took 18.5 s on 32 cores slab by slab). Results in brick order, the
+    same as one at a time."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from .driver.load import available_memory
+
+    if len(bricks) <= 1:
+        return [fn(b) for b in bricks]
+    free = available_memory()
+    largest = max(b.box_voxels for b in bricks)
+    fit = len(bricks) if free is None else max(1, int(free // 2 // (STATS_BYTES_PER_VOXEL * largest)))
+    cores = os.cpu_count() or 1
+    k = max(1, min(len(bricks), cores, fit))
+    if k == 1:
+        return [fn(b) for b in bricks]
+    with ThreadPoolExecutor(max_workers=k) as pool:
+        return list(pool.map(functools.partial(fn, threads=max(1, cores // k)), bricks))
 
 
 @dataclass

@@ -35,18 +35,32 @@ def map_on_cluster(client, fn, items: list, keys: list[str], what: str, tail: st
 
 
 def is_local(client) -> bool:
-    """Whether every worker of ``client``'s cluster runs on this machine, so that a file this
-    process writes is theirs to read (a local cluster's workers listen on 127.0.0.1 or on one of
-    this host's addresses)."""
-    import socket
+    """Whether every worker of ``client``'s cluster can read a file this process writes (a local
+    cluster's workers, on this machine): asked of the workers themselves, with a file of a random
+    token in a temporary folder (a host name or address says too little: a machine may name itself
+    differently to its workers)."""
+    import secrets
 
-    hosts = {str(w.get("host", "")) for w in client.scheduler_info().get("workers", {}).values()}
-    mine = {"127.0.0.1", "::1", "localhost", socket.gethostname()}
+    from .lazy import shared_folder
+
+    with shared_folder() as folder:
+        token = secrets.token_hex(16)
+        path = f"{folder}/probe"
+        with open(path, "w") as fh:
+            fh.write(token)
+        try:
+            seen = client.run(_reads, path, token)
+        except Exception:  # a worker that cannot answer is not assumed to share our files
+            return False
+    return bool(seen) and all(seen.values())
+
+
+def _reads(path: str, token: str) -> bool:
     try:
-        mine |= set(socket.gethostbyname_ex(socket.gethostname())[2])
+        with open(path) as fh:
+            return fh.read() == token
     except OSError:
-        pass
-    return bool(hosts) and hosts <= mine
+        return False
 
 
 def local_client(workers: int):

@@ -221,8 +221,7 @@ def shared(arrays: Sequence[np.ndarray | None]) -> Iterator[list[Shared | None]]
     folder (``$TMPDIR``: the page cache keeps it in memory while there is room), offered as a
     :class:`Shared`; the folder is deleted on exit. For the workers of a local cluster, which can
     open the files this process writes (see :func:`warpgauss.cluster.is_local`)."""
-    folder = tempfile.mkdtemp(prefix="warpgauss-shared-")
-    try:
+    with shared_folder() as folder:
         out: list[Shared | None] = []
         for i, a in enumerate(arrays):
             if a is None:
@@ -236,6 +235,14 @@ def shared(arrays: Sequence[np.ndarray | None]) -> Iterator[list[Shared | None]]
             del m
             out.append(Shared(src))
         yield out
+
+
+@contextmanager
+def shared_folder() -> Iterator[str]:
+    """A temporary folder (in ``$TMPDIR``) for files this machine's processes share, deleted on exit."""
+    folder = tempfile.mkdtemp(prefix="warpgauss-shared-")
+    try:
+        yield folder
     finally:
         shutil.rmtree(folder, ignore_errors=True)
 
