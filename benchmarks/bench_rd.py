@@ -62,11 +62,11 @@ Fixed ratios, the codecs on the CPU and warpgauss on the GPU (``plot_rd.py`` mer
 
     python benchmarks/bench_rd.py --no-warpgauss --ratios 10,30,100,300,1000 --fields vortex,interface \\
         --size 512 --volume-dir /tmp/vol512 --real mean_reg2mean.nii.gz,mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz,inia19-t1-brain.nii.gz \\
-        --max-voxels 100000000 --codecs sz3,zfp,sperr --workers 2 --out benchmarks/results/i18_rd_codecs_cpu.json
+        --max-voxels 100000000 --codecs sz3,zfp,sperr --workers 2 --out benchmarks/results/rate_distortion/bench_rd_codecs_cpu.json
 
     python benchmarks/bench_rd.py --device cuda:0 --codecs none --ratios 10,30,100,300,1000 --fields vortex,interface \\
         --size 512 --volume-dir /tmp/vol --real mean_reg2mean.nii.gz,mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz,inia19-t1-brain.nii.gz \\
-        --max-voxels 100000000 --out i18_rd_wg_h100.json
+        --max-voxels 100000000 --out $OUT/bench_rd_h100.json
 """
 
 from __future__ import annotations
@@ -89,9 +89,9 @@ import warpgauss
 from warpgauss._warp import device_name, resolve_device, warp
 from warpgauss.allocate import AllocationConfig
 from warpgauss.analysis import seed_limit
+from warpgauss.driver import EncodeOptions, ReadOptions, encode_field, encoding_of, load_field, resolve_refine
 from warpgauss.errors import WarpgaussError
 from warpgauss.model import Model
-from warpgauss.driver import EncodeOptions, ReadOptions, encode_field, encoding_of, load_field, resolve_refine
 from warpgauss.profiling import StageRecorder
 from warpgauss.synthetic import EXAMPLES, generate
 

@@ -200,8 +200,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--no-self-test", action="store_true", help="skip the refiner's self-test (it counts against a time budget)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--seed", type=int, default=0, help="encoding seed (the fields use seed 0)")
-    ap.add_argument("--max-seconds", type=float, default=None, help="start no field or run after this much wall time, "
-                    "nor one expected (from the same run's earlier rows) to end past it")
+    ap.add_argument(
+        "--max-seconds",
+        type=float,
+        default=None,
+        help="start no field or run after this much wall time, nor one expected (from the same run's earlier rows) to end past it",
+    )
     ap.add_argument("--out", default="benchmarks/results/tradeoff.json")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()

@@ -10,8 +10,8 @@ measured on one machine and warpgauss on another make one figure: series wg, sz3
 zfp-rate-matched and sperr, and per volume a table with a row per target ratio (PSNR of each
 codec, warpgauss minus SZ3 and minus SPERR, achieved ratios, encode / decode seconds):
 
-    python benchmarks/plot_rd.py benchmarks/results/i18_rd_codecs_cpu.json i18_rd_wg_h100.json \\
-        -o benchmarks/results/i18_rd.png --table benchmarks/results/i18_rd.md
+    python benchmarks/plot_rd.py benchmarks/results/rate_distortion/bench_rd_codecs_cpu.json bench_rd_h100.json \\
+        -o benchmarks/results/rate_distortion/bench_rd_mri_fields512.png --table /tmp/bench_rd.md
 """
 
 from __future__ import annotations
@@ -66,9 +66,16 @@ def plot(results: list[dict], out: Path, max_psnr: float = 120.0) -> None:
     cols = min(4, len(vols))
     rows = math.ceil(len(vols) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.6 * rows), squeeze=False)
-    for ax, (res, label, entry) in zip(axes.ravel(), vols):
-        _panel(ax, label, [(name, style, [(r["ratio"], r["psnr_db"]) for r in _rows(entry, codec) if r["psnr_db"] <= max_psnr]) for codec, name, style in SERIES])
-    for ax in axes.ravel()[len(vols):]:
+    for ax, (_res, label, entry) in zip(axes.ravel(), vols):
+        _panel(
+            ax,
+            label,
+            [
+                (name, style, [(r["ratio"], r["psnr_db"]) for r in _rows(entry, codec) if r["psnr_db"] <= max_psnr])
+                for codec, name, style in SERIES
+            ],
+        )
+    for ax in axes.ravel()[len(vols) :]:
         ax.axis("off")
     handles, labels = axes.ravel()[0].get_legend_handles_labels()
     r0 = results[0]
@@ -149,8 +156,15 @@ def merge_fixed(results: list[dict], names: list[str] | None = None) -> dict:
     names = names or [f"run {i}" for i in range(len(results))]
     for res, name in zip(results, names):
         for label, entry in res["volumes"].items():
-            m = merged.setdefault(label, {"meta": {k: v for k, v in entry.items() if k not in ("rows", "unreachable")},
-                                          "rows": {}, "unreachable": [], "sources": {}})
+            m = merged.setdefault(
+                label,
+                {
+                    "meta": {k: v for k, v in entry.items() if k not in ("rows", "unreachable")},
+                    "rows": {},
+                    "unreachable": [],
+                    "sources": {},
+                },
+            )
             if m["meta"].get("source_bytes") != entry.get("source_bytes") or m["meta"].get("shape_xyz") != entry.get("shape_xyz"):
                 raise ValueError(f"{label}: {name} has other source bytes or shape than an earlier run")
             for row in entry["rows"]:
@@ -182,8 +196,15 @@ def plot_fixed(merged: dict, results: list[dict], out: Path) -> None:
     nrows = math.ceil(len(vols) / cols)
     fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.8 * nrows), squeeze=False)
     for ax, (label, m) in zip(axes.ravel(), vols):
-        _panel(ax, label, [(name, style, sorted((r["ratio"], r["psnr_db"]) for r in m["rows"].get(codec, {}).values())) for codec, name, style in FIXED_SERIES])
-    for ax in axes.ravel()[len(vols):]:
+        _panel(
+            ax,
+            label,
+            [
+                (name, style, sorted((r["ratio"], r["psnr_db"]) for r in m["rows"].get(codec, {}).values()))
+                for codec, name, style in FIXED_SERIES
+            ],
+        )
+    for ax in axes.ravel()[len(vols) :]:
         ax.axis("off")
     handles = {}
     for ax in axes.ravel()[: len(vols)]:
@@ -231,21 +252,26 @@ def table_fixed(merged: dict) -> str:
             "",
             f"{meta.get('source_dtype')}, {meta.get('source_bytes', 0):,} source bytes; {src}",
             "",
-            "| CR | " + " | ".join(f"{FIXED_NAMES[c]} dB" for c in codecs) + " | wg - SZ3 dB | wg - SPERR dB | achieved CR "
-            + ", ".join(FIXED_NAMES[c] for c in codecs) + " | " + " | ".join(f"{FIXED_NAMES[c]} enc / dec s" for c in codecs) + " |",
+            "| CR | "
+            + " | ".join(f"{FIXED_NAMES[c]} dB" for c in codecs)
+            + " | wg - SZ3 dB | wg - SPERR dB | achieved CR "
+            + ", ".join(FIXED_NAMES[c] for c in codecs)
+            + " | "
+            + " | ".join(f"{FIXED_NAMES[c]} enc / dec s" for c in codecs)
+            + " |",
             "|" + "---|" * (1 + 2 * len(codecs) + 3),
         ]
         for t in targets:
             rows = {c: m["rows"].get(c, {}).get(t) for c in codecs}
 
-            def cell(c, fmt, mark=True):
+            def cell(c, fmt, mark=True, rows=rows, t=t, unreach=unreach):
                 r = rows[c]
                 if r is None:
                     return "n/r" if (c, t) in unreach else "-"
                 star = "" if not mark or (r.get("matched_to") or {}).get("within_tol", True) else "*"
                 return fmt(r) + star
 
-            def diff(a, b):
+            def diff(a, b, rows=rows):
                 ra, rb = rows[a], rows[b]
                 return "-" if ra is None or rb is None else f"{ra['psnr_db'] - rb['psnr_db']:+.2f}"
 
@@ -259,9 +285,11 @@ def table_fixed(merged: dict) -> str:
                 + " |"
             )
         out.append("")
-    out.append("n/r: ratio not reachable by the codec; -: not measured; *: achieved ratio outside the search tolerance. "
-               "PSNR: full grid, normalised by the volume's min/max. Encode / decode: one single-threaded call "
-               "(SZ3: the call at the bound found); warpgauss: encode + save / load + full-grid decode.")
+    out.append(
+        "n/r: ratio not reachable by the codec; -: not measured; *: achieved ratio outside the search tolerance. "
+        "PSNR: full grid, normalised by the volume's min/max. Encode / decode: one single-threaded call "
+        "(SZ3: the call at the bound found); warpgauss: encode + save / load + full-grid decode."
+    )
     return "\n".join(out)
 
 

@@ -99,8 +99,14 @@ def plot(rows: list[dict], out: Path, x: str = "stage", title: str | None = None
                     continue
                 base = r["run"] == "paper"
                 ax.scatter(
-                    r[xkey], r["psnr_final_db"], marker=MARKERS.get(r.get("preset") or r["run"], "P"), color=c,
-                    s=110 if base else 50, edgecolors="black" if base else "none", linewidths=1.6 if base else 0, zorder=4,
+                    r[xkey],
+                    r["psnr_final_db"],
+                    marker=MARKERS.get(r.get("preset") or r["run"], "P"),
+                    color=c,
+                    s=110 if base else 50,
+                    edgecolors="black" if base else "none",
+                    linewidths=1.6 if base else 0,
+                    zorder=4,
                 )
             analytic = fr[0]["psnr_analytic_db"]
             ax.axhline(analytic, color=c, ls=":", lw=1.0, alpha=0.7)
@@ -111,7 +117,9 @@ def plot(rows: list[dict], out: Path, x: str = "stage", title: str | None = None
         ax.grid(True, which="both", alpha=0.3)
     handles = [Line2D([], [], color=colours[f], marker="o", ls="", label=f) for f in fields]
     handles += [
-        Line2D([], [], color="grey", marker="o", ls="", ms=10, markeredgecolor="black", markeredgewidth=1.6, label="paper preset (baseline)"),
+        Line2D(
+            [], [], color="grey", marker="o", ls="", ms=10, markeredgecolor="black", markeredgewidth=1.6, label="paper preset (baseline)"
+        ),
         Line2D([], [], color="grey", marker="^", ls="", label="fast preset"),
         Line2D([], [], color="grey", marker="s", ls="", label="quality preset"),
         Line2D([], [], color="grey", marker=BUDGET_MARKER, ls="-", label="time budgets"),

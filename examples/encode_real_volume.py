@@ -28,8 +28,7 @@ class Example:
         self.iterations = iterations
 
     def step(self, out_dir: Path) -> dict:
-        from warpgauss.io import write_volume
-        from warpgauss.io import ReadOptions
+        from warpgauss.io import ReadOptions, write_volume
 
         model = warpgauss.encode(
             self.path,

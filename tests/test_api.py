@@ -85,7 +85,6 @@ def test_iterations_zero_is_the_analytic_model_and_presets_resolve(interface32):
     m = warpgauss.encode(interface32, budget=100, iterations=0, device=None, evaluate=False)
     assert any(s["what"] == "S2 refinement" for s in m.report["skipped"])
     from warpgauss.driver import resolve_refine
-    from warpgauss.refine import config
 
     assert (resolve_refine(None, "fast", None, None).iterations, resolve_refine(None, "fast", None, None).samples) == (300, 3072)
     assert resolve_refine(None, "quality", 10, None).iterations == 10  # explicit beats the preset
@@ -127,8 +126,8 @@ def test_a_refinement_that_loses_to_the_analytic_model_is_discarded():
 
 
 def test_large_budgets_get_more_samples_by_default_and_presets_keep_theirs(monkeypatch):
-    from warpgauss.optimize import AUTO_BATCH_PRIMITIVES, PRESETS, RefineConfig
     from warpgauss.driver import resolve_refine
+    from warpgauss.optimize import AUTO_BATCH_PRIMITIVES, PRESETS, RefineConfig
     from warpgauss.refine import config
 
     cfg = RefineConfig()

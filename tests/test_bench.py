@@ -29,7 +29,11 @@ def test_bench_kernels_writes_rows_for_every_n_and_sample_count(tmp_path, cpu):
 
 @pytest.mark.parametrize(
     "extra, message",
-    [(["--n", "abc"], "--n must be a comma-separated list"), (["--samples", "0"], "--samples must be"), (["--repeat", "0"], "--repeat must be")],
+    [
+        (["--n", "abc"], "--n must be a comma-separated list"),
+        (["--samples", "0"], "--samples must be"),
+        (["--repeat", "0"], "--repeat must be"),
+    ],
 )
 def test_bench_kernels_refuses_bad_lists(extra, message):
     res = CliRunner().invoke(app, ["bench", "kernels", "--device", "cpu", "--size", "16", *extra])

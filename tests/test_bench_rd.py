@@ -31,8 +31,24 @@ def run(tmp_path_factory):
     bench = _load("bench_rd")
     out = tmp_path_factory.mktemp("rd") / "rd.json"
     res = bench.main(
-        ["--size", "16", "--fields", "vortex", "--real", "none", "--budgets", "60", "--iterations", "3", "--min-ratio", "1",
-         "--device", "cpu", "--out", str(out)]
+        [
+            "--size",
+            "16",
+            "--fields",
+            "vortex",
+            "--real",
+            "none",
+            "--budgets",
+            "60",
+            "--iterations",
+            "3",
+            "--min-ratio",
+            "1",
+            "--device",
+            "cpu",
+            "--out",
+            str(out),
+        ]
     )
     return bench, out, res
 
@@ -140,8 +156,28 @@ def test_codec_workers_and_volume_dir(tmp_path):
     """--volume-dir writes the fields once and maps them; --workers gives the rows of the in-process run."""
     pytest.importorskip("zfpy")
     bench = _load("bench_rd")
-    common = ["--size", "16", "--fields", "vortex", "--real", "none", "--budgets", "60", "--iterations", "0",
-              "--min-ratio", "1", "--codecs", "zfp", "--zfp-rates", "1,4", "--zfp-tols", "0.01", "--device", "cpu"]
+    common = [
+        "--size",
+        "16",
+        "--fields",
+        "vortex",
+        "--real",
+        "none",
+        "--budgets",
+        "60",
+        "--iterations",
+        "0",
+        "--min-ratio",
+        "1",
+        "--codecs",
+        "zfp",
+        "--zfp-rates",
+        "1,4",
+        "--zfp-tols",
+        "0.01",
+        "--device",
+        "cpu",
+    ]
     gen = bench.main(common + ["--volume-dir", str(tmp_path / "vol"), "--generate-only", "--out", str(tmp_path / "g.json")])
     npy = tmp_path / "vol" / "vortex_16.npy"
     assert set(gen["generated"]) == {"vortex"} and npy.is_file()
@@ -161,14 +197,32 @@ def test_codec_workers_and_volume_dir(tmp_path):
 def test_resume_keeps_measured_rows_and_runs_only_what_is_missing(tmp_path):
     pytest.importorskip("zfpy")
     bench = _load("bench_rd")
-    common = ["--size", "16", "--fields", "vortex", "--real", "none", "--budgets", "60", "--iterations", "0",
-              "--min-ratio", "1", "--codecs", "zfp", "--zfp-tols", "0.01", "--device", "cpu"]
+    common = [
+        "--size",
+        "16",
+        "--fields",
+        "vortex",
+        "--real",
+        "none",
+        "--budgets",
+        "60",
+        "--iterations",
+        "0",
+        "--min-ratio",
+        "1",
+        "--codecs",
+        "zfp",
+        "--zfp-tols",
+        "0.01",
+        "--device",
+        "cpu",
+    ]
     a = bench.main(common + ["--zfp-rates", "1", "--out", str(tmp_path / "a.json")])
     first = a["volumes"]["vortex 16^3"]["rows"]
     b = bench.main(common + ["--zfp-rates", "1,4", "--resume", str(tmp_path / "a.json"), "--out", str(tmp_path / "b.json")])
     rows = b["volumes"]["vortex 16^3"]["rows"]
     assert rows[: len(first)] == first  # kept as measured, warpgauss rows included
-    new = rows[len(first):]
+    new = rows[len(first) :]
     assert [(r["codec"], r["rate_bits_per_value"]) for r in new] == [("zfp-rate", 4.0)]  # only the missing setting
     assert b["resumed_from"] == str(tmp_path / "a.json") and b["complete"] and b["previous_run"]["date"] == a["date"]
     # the key identifies a planned task and the row it gave

@@ -12,7 +12,17 @@ import pytest
 
 import warpgauss
 from warpgauss.analysis import normalise, seed_limit
-from warpgauss.bricked import brick_colour, encode_brick, brick_fields, brick_tasks, parse_bricks, plan_bricks, run_bricks, split_bricks, wave_tasks
+from warpgauss.bricked import (
+    brick_colour,
+    brick_fields,
+    brick_tasks,
+    encode_brick,
+    parse_bricks,
+    plan_bricks,
+    run_bricks,
+    split_bricks,
+    wave_tasks,
+)
 from warpgauss.errors import WarpgaussError
 from warpgauss.synthetic import generate
 
@@ -337,8 +347,25 @@ def test_a_tiny_volume_is_refused_for_what_it_is_not_for_bricks_nobody_asked_for
     res = CliRunner().invoke(app, ["encode", str(one), "--budget", "1", "-o", str(tmp_path / "o.wgs")])
     assert res.exit_code == 2 and "constant" in res.output and "bricks" not in res.output
     assert len(plan_bricks((5, 1, 1), (2, 1, 1), 0)) == 2
-    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "16", "--budget", "10", "--bricks", "2x1x1",
-                                   "--halo=-1", "--workers", "2", "-o", str(tmp_path / "h.wgs")])
+    res = CliRunner().invoke(
+        app,
+        [
+            "encode",
+            "--example",
+            "vortex",
+            "--size",
+            "16",
+            "--budget",
+            "10",
+            "--bricks",
+            "2x1x1",
+            "--halo=-1",
+            "--workers",
+            "2",
+            "-o",
+            str(tmp_path / "h.wgs"),
+        ],
+    )
     assert res.exit_code == 2 and "--halo must be >= 0" in res.output and "cluster" not in res.output
 
 
@@ -356,7 +383,9 @@ def test_a_bricking_the_volume_cannot_take_is_refused_before_a_cluster_starts(tm
     vol = tmp_path / "v.npy"
     np.save(vol, np.random.default_rng(0).random((8, 8, 8)).astype(np.float32))
     for source in (["--example", "vortex", "--size", "16"], [str(vol)]):
-        res = CliRunner().invoke(app, ["encode", *source, "--budget", "10", "--bricks", "16x1x1", "--workers", "2", "-o", str(tmp_path / "b.wgs")])
+        res = CliRunner().invoke(
+            app, ["encode", *source, "--budget", "10", "--bricks", "16x1x1", "--workers", "2", "-o", str(tmp_path / "b.wgs")]
+        )
         assert res.exit_code == 2 and "bricks along x leave fewer than 2 voxels" in res.output, res.output
 
 

@@ -29,7 +29,7 @@ def test_coded_files_fill_their_byte_budget_without_exceeding_it(tmp_path, cpu, 
         assert b["bytes"] == size and b["requested_bytes"] == budget and b["n"] == m.n
         assert b["budget_used"] == pytest.approx(size / budget)
         assert warpgauss.Model.load(out).params.tobytes() == m.params.tobytes()  # the returned model is the file's
-    r = warpgauss.encode(vol, ratio=20, device=cpu, format="coded", output=tmp_path / "r.wgs", **FAST)
+    warpgauss.encode(vol, ratio=20, device=cpu, format="coded", output=tmp_path / "r.wgs", **FAST)
     size = (tmp_path / "r.wgs").stat().st_size
     assert 0.95 * (source // 20) <= size <= source // 20
 
@@ -49,7 +49,7 @@ def test_a_real_volume_at_several_ratios(tmp_path, cpu):
 def test_fixed_formats_take_the_most_primitives_that_fit_the_bytes(tmp_path, cpu, fmt, bpp):
     vol = generate("vortex", 24, seed=0)
     out = tmp_path / "m.wgs"
-    m = warpgauss.encode(vol, file_bytes=20000, device=cpu, format=fmt, output=out, **FAST)
+    warpgauss.encode(vol, file_bytes=20000, device=cpu, format=fmt, output=out, **FAST)
     size = out.stat().st_size
     assert size <= 20000 < size + bpp  # one more primitive would not fit
 
@@ -60,7 +60,9 @@ def test_bad_byte_budgets_are_refused(cpu):
         warpgauss.encode(vol, budget=100, file_bytes=5000, device=cpu, **FAST)
     with pytest.raises(WarpgaussError, match="--bytes must be a positive"):
         warpgauss.encode(vol, file_bytes=0, device=cpu, **FAST)
-    with pytest.raises(WarpgaussError, match=r"no room for a single primitive \(\d+ header bytes, up to 12 per primitive in the coded format\)"):
+    with pytest.raises(
+        WarpgaussError, match=r"no room for a single primitive \(\d+ header bytes, up to 12 per primitive in the coded format\)"
+    ):
         warpgauss.encode(vol, file_bytes=500, device=cpu, format="coded", **FAST)
     with pytest.raises(WarpgaussError, match=r"no room for a single primitive \(\d+ header bytes, 48 per primitive\)"):
         warpgauss.encode(vol, file_bytes=500, device=cpu, format="full", **FAST)
@@ -93,10 +95,45 @@ def test_cli_bytes_budget(tmp_path, cpu):
     from warpgauss.cli.main import app
 
     out = tmp_path / "v.wgs"
-    r = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "24", "--bytes", "6000", "--iterations", "5", "--device", "cpu", "--no-self-test", "-o", str(out)])
+    r = CliRunner().invoke(
+        app,
+        [
+            "encode",
+            "--example",
+            "vortex",
+            "--size",
+            "24",
+            "--bytes",
+            "6000",
+            "--iterations",
+            "5",
+            "--device",
+            "cpu",
+            "--no-self-test",
+            "-o",
+            str(out),
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert 0.95 * 6000 <= out.stat().st_size <= 6000
-    r = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "24", "--bytes", "6000", "--budget", "10", "--device", "cpu", "-o", str(tmp_path / "w.wgs")])
+    r = CliRunner().invoke(
+        app,
+        [
+            "encode",
+            "--example",
+            "vortex",
+            "--size",
+            "24",
+            "--bytes",
+            "6000",
+            "--budget",
+            "10",
+            "--device",
+            "cpu",
+            "-o",
+            str(tmp_path / "w.wgs"),
+        ],
+    )
     assert r.exit_code == 2 and "one of --budget, --ratio and --bytes" in r.output and not (tmp_path / "w.wgs").exists()
 
 

@@ -74,8 +74,30 @@ def test_sigkill_mid_run_then_resume_from_the_last_periodic_checkpoint(tmp_path,
     ref = _reference(tmp_path)
     out = tmp_path / "killed.wgs"
     ckpt = Path(str(out) + ".ckpt")
-    args = [sys.executable, "-m", "warpgauss.cli.main", "encode", "--example", "vortex", "--size", "24", "--budget", "300",
-            "--iterations", "120", "--samples", "512", "--device", "cpu", "--seed", "3", "--checkpoint-every", "0", "-o", str(out)]
+    args = [
+        sys.executable,
+        "-m",
+        "warpgauss.cli.main",
+        "encode",
+        "--example",
+        "vortex",
+        "--size",
+        "24",
+        "--budget",
+        "300",
+        "--iterations",
+        "120",
+        "--samples",
+        "512",
+        "--device",
+        "cpu",
+        "--seed",
+        "3",
+        "--checkpoint-every",
+        "0",
+        "-o",
+        str(out),
+    ]
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         deadline = time.time() + 120
@@ -98,8 +120,30 @@ def test_sigkill_mid_run_then_resume_from_the_last_periodic_checkpoint(tmp_path,
     assert not out.exists()  # nothing partial at the destination
     arrays, meta = checkpoint.load(ckpt)
     assert 20 <= meta["iteration"] < 120
-    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "24", "--budget", "300", "--iterations", "120",
-                                   "--samples", "512", "--device", "cpu", "--seed", "3", "-o", str(out), "--resume", "--json"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "encode",
+            "--example",
+            "vortex",
+            "--size",
+            "24",
+            "--budget",
+            "300",
+            "--iterations",
+            "120",
+            "--samples",
+            "512",
+            "--device",
+            "cpu",
+            "--seed",
+            "3",
+            "-o",
+            str(out),
+            "--resume",
+            "--json",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert warpgauss.Model.load(out).params.tobytes() == ref.params.tobytes()
     rep = json.loads(Path(str(out) + ".report.json").read_text())
@@ -129,8 +173,29 @@ def test_resume_refuses_other_options_and_damaged_checkpoints(tmp_path, cpu):
     }
     for name, data in cases.items():
         ckpt.write_bytes(data)
-        res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "24", "--budget", "300", "--iterations", "120",
-                                       "--samples", "512", "--device", "cpu", "--seed", "3", "-o", str(out), "--resume"])
+        res = CliRunner().invoke(
+            app,
+            [
+                "encode",
+                "--example",
+                "vortex",
+                "--size",
+                "24",
+                "--budget",
+                "300",
+                "--iterations",
+                "120",
+                "--samples",
+                "512",
+                "--device",
+                "cpu",
+                "--seed",
+                "3",
+                "-o",
+                str(out),
+                "--resume",
+            ],
+        )
         assert res.exit_code == 2, (name, res.output)
         assert "checkpoint" in res.output and "Traceback" not in res.output, (name, res.output)
     ckpt.unlink()

@@ -48,8 +48,22 @@ def test_example_encode_info_decode_eval_journey(vortex_raw, tmp_path):
     model = tmp_path / "vortex.wgs"
     analytic = tmp_path / "analytic.wgs"
     r = cli(
-        "encode", vortex_raw, "--budget", "300", "-o", model, "--device", "cpu", "--iterations", "40", "--format", "full",
-        "--samples", "512", "--save-analytic", analytic,
+        "encode",
+        vortex_raw,
+        "--budget",
+        "300",
+        "-o",
+        model,
+        "--device",
+        "cpu",
+        "--iterations",
+        "40",
+        "--format",
+        "full",
+        "--samples",
+        "512",
+        "--save-analytic",
+        analytic,
     )
     assert r.exit_code == 0, r.output
     assert model.stat().st_size == analytic.stat().st_size == 48 * 300 + 4096  # 48 N + H, H one 4 KiB block
@@ -162,7 +176,19 @@ def test_infeasible_budget_is_refused_before_warp_starts(tmp_path):
 
 def test_encode_builtin_example_writes_model_and_report(tmp_path):
     r = cli(
-        "encode", "--example", "bubbles", "--size", "32", "--budget", "200", "--device", "cpu", "--iterations", "0", "--format", "full",
+        "encode",
+        "--example",
+        "bubbles",
+        "--size",
+        "32",
+        "--budget",
+        "200",
+        "--device",
+        "cpu",
+        "--iterations",
+        "0",
+        "--format",
+        "full",
         cwd=tmp_path,
     )
     assert r.exit_code == 0, r.output
@@ -197,7 +223,19 @@ def test_encode_help_groups_options_in_panels():
     r = CliRunner().invoke(app, ["encode", "--help"], env={"COLUMNS": "200"})
     assert r.exit_code == 0, r.output
     heads = [line.rstrip(":") for line in r.output.splitlines() if line and not line.startswith(" ") and line.endswith(":")]
-    assert heads == ["Arguments", "Input", "Budget and format", "Error bound", "Refinement", "Loss weights", "Bricks and cluster", "Run control", "Output", "Time series", "Other options"]
+    assert heads == [
+        "Arguments",
+        "Input",
+        "Budget and format",
+        "Error bound",
+        "Refinement",
+        "Loss weights",
+        "Bricks and cluster",
+        "Run control",
+        "Output",
+        "Time series",
+        "Other options",
+    ]
     sections = r.output.split("\n\n")
     where = {s.splitlines()[0].rstrip(":"): s for s in sections if s and s.splitlines()[0].endswith(":")}
     assert "--w-smooth " in where["Loss weights"] and "--bytes" in where["Budget and format"] and "--config" in where["Run control"]
@@ -208,7 +246,9 @@ def test_config_file_sets_options_and_the_report_repeats_the_run(tmp_path):
     """A TOML file sets any option (the command line wins); the report records the resolved
     options, and --config REPORT gives the same model bit for bit (same seed, same device)."""
     cfg = tmp_path / "run.toml"
-    cfg.write_text('example = "vortex"\nsize = 20\nbudget = 40\niterations = 50\ndevice = "cpu"\nno-self-test = true\nw-smooth = 0.02\nformat = "full"\n')
+    cfg.write_text(
+        'example = "vortex"\nsize = 20\nbudget = 40\niterations = 50\ndevice = "cpu"\nno-self-test = true\nw-smooth = 0.02\nformat = "full"\n'
+    )
     out = tmp_path / "a.wgs"
     r = CliRunner().invoke(app, ["encode", "--config", str(cfg), "--iterations", "4", "-o", str(out)])
     assert r.exit_code == 0, r.output
@@ -262,8 +302,24 @@ def test_the_summary_says_how_a_coded_file_met_its_size(tmp_path):
     """The report's coded_choice, printed for people: the sizing, the re-plan and the rate control,
     in words, without result-file names."""
     res = CliRunner().invoke(
-        app, ["encode", "--example", "vortex", "--size", "32", "--ratio", "20", "--iterations", "10", "--samples", "256",
-              "--device", "cpu", "-o", str(tmp_path / "v.wgs")]
+        app,
+        [
+            "encode",
+            "--example",
+            "vortex",
+            "--size",
+            "32",
+            "--ratio",
+            "20",
+            "--iterations",
+            "10",
+            "--samples",
+            "256",
+            "--device",
+            "cpu",
+            "-o",
+            str(tmp_path / "v.wgs"),
+        ],
     )
     assert res.exit_code == 0, res.output
     size = [line for line in res.stdout.splitlines() if line.startswith("size: N ")]
@@ -274,14 +330,31 @@ def test_the_summary_says_how_a_coded_file_met_its_size(tmp_path):
 # table), a part of a settings object, or a command-line matter; a new option on either side must
 # be placed here, so that none is dropped on the way (#33)
 CLI_TO_API = {
-    "input": "source", "size": "example_size", "fmt": "format", "no_self_test": "self_test",
-    "plateau": "plateau_db", "save_analytic": "analytic_output", "psnr": "residual_psnr",
+    "input": "source",
+    "size": "example_size",
+    "fmt": "format",
+    "no_self_test": "self_test",
+    "plateau": "plateau_db",
+    "save_analytic": "analytic_output",
+    "psnr": "residual_psnr",
     # parts of the settings objects encode takes
-    "lr": "refine", "w_value_empty": "refine", "w_density": "refine", "w_smooth": "refine",
-    "w_smooth_final": "refine", "w_anchor": "refine", "w_aniso": "refine", "w_cap": "refine",
-    "stride": "read", "shape": "read", "dtype": "read", "endian": "read", "dataset": "read",
-    "variable": "read", "fill_value": "read",
-    "workers": "client", "scheduler": "client",
+    "lr": "refine",
+    "w_value_empty": "refine",
+    "w_density": "refine",
+    "w_smooth": "refine",
+    "w_smooth_final": "refine",
+    "w_anchor": "refine",
+    "w_aniso": "refine",
+    "w_cap": "refine",
+    "stride": "read",
+    "shape": "read",
+    "dtype": "read",
+    "endian": "read",
+    "dataset": "read",
+    "variable": "read",
+    "fill_value": "read",
+    "workers": "client",
+    "scheduler": "client",
 }
 CLI_ONLY = {"ctx", "ladder", "report", "as_json", "config", "cold", "warm_iterations", "keyframe_drift"}  # ladder/series paths, output
 API_ONLY = {"allocation", "evaluate", "on_bricks", "on_progress", "on_stage", "on_stats", "session", "warm_start"}  # Python callers
@@ -302,6 +375,7 @@ def test_every_command_line_option_maps_to_the_api_and_back():
 
 def test_an_error_line_shows_bracketed_text_as_given(tmp_path):
     """Error lines went through rich markup, which swallowed text such as '[b]' in the value quoted."""
-    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "16", "--budget", "10", "--bricks", "[b]2x2x2",
-                                   "-o", str(tmp_path / "b.wgs")])
+    res = CliRunner().invoke(
+        app, ["encode", "--example", "vortex", "--size", "16", "--budget", "10", "--bricks", "[b]2x2x2", "-o", str(tmp_path / "b.wgs")]
+    )
     assert res.exit_code == 2 and "'[b]2x2x2'" in res.output, res.output

@@ -26,7 +26,9 @@ def _rot(q: np.ndarray) -> np.ndarray:
     ).transpose(2, 0, 1)
 
 
-@pytest.mark.parametrize("bits", [coded.CODED_BITS, {"mu": 0, "log_s": 2, "q": 3, "a": 4, "w": 2}, {"mu": 8, "log_s": 8, "q": 10, "a": 12, "w": 12}])
+@pytest.mark.parametrize(
+    "bits", [coded.CODED_BITS, {"mu": 0, "log_s": 2, "q": 3, "a": 4, "w": 2}, {"mu": 8, "log_s": 8, "q": 10, "a": 12, "w": 12}]
+)
 def test_quantiser_errors_stay_within_half_a_step(bits):
     rng = np.random.default_rng(1)
     p = realistic_params(rng, 3000)
@@ -218,7 +220,7 @@ def test_coded_encode_returns_the_stored_model(tmp_path, cpu):
     vol = generate("bubbles", 24, seed=1)
     kw = dict(budget=400, iterations=30, samples=512, device=cpu, self_test=False)
     a = warpgauss.encode(vol, **kw, format="coded", output=tmp_path / "a.wgs")
-    b = warpgauss.encode(vol, **kw, format="coded", output=tmp_path / "b.wgs")
+    warpgauss.encode(vol, **kw, format="coded", output=tmp_path / "b.wgs")
     assert (tmp_path / "a.wgs").read_bytes() == (tmp_path / "b.wgs").read_bytes()
     back = Model.load(tmp_path / "a.wgs")
     np.testing.assert_array_equal(back.params, a.params)
@@ -245,7 +247,9 @@ def test_more_accurate_models_get_finer_grids(tmp_path, cpu):
     assert extra == 2 and all(bits[k] == coded.CODED_BITS[k] + 2 for k in bits)
     assert coded.bits_for_psnr(200.0)[1] == 4
     vol = generate("vortex", 24, seed=0)
-    m = warpgauss.encode(vol, budget=300, iterations=60, samples=1024, device=cpu, self_test=False, evaluate=False, output=tmp_path / "v.wgs")
+    m = warpgauss.encode(
+        vol, budget=300, iterations=60, samples=1024, device=cpu, self_test=False, evaluate=False, output=tmp_path / "v.wgs"
+    )
     note = m.report["budget"]["coded_bits_from_accuracy"]
     assert note["bits"] == coded.bits_for_psnr(note["sample_psnr_db"])[0]
     assert read_wgs(tmp_path / "v.wgs")[1]["payload"]["quant"]["bits"] == note["bits"]

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import uniform_params
+from test_render import header
 from typer.testing import CliRunner
 
-from test_render import header
 from warpgauss.cli.main import app
 from warpgauss.export import matrix_to_quat, primitive_arrays, quat_to_matrix, write_vtp
 from warpgauss.model import Model

@@ -38,8 +38,24 @@ def test_ladder_refuses_an_infeasible_top_budget_before_encoding(tmp_path, cpu):
 
 def test_ladder_cli_prints_psnr_per_budget(tmp_path, cpu):
     out = tmp_path / "v.wgs"
-    args = ["encode", "--example", "vortex", "--size", "24", "--ladder", "100,300", "--iterations", "20", "--samples", "256",
-            "--device", "cpu", "-o", str(out), "--json"]
+    args = [
+        "encode",
+        "--example",
+        "vortex",
+        "--size",
+        "24",
+        "--ladder",
+        "100,300",
+        "--iterations",
+        "20",
+        "--samples",
+        "256",
+        "--device",
+        "cpu",
+        "-o",
+        str(out),
+        "--json",
+    ]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     rows = json.loads(res.stdout)["ladder"]
@@ -56,8 +72,28 @@ def test_ladder_cli_keeps_target_psnr_and_plateau(tmp_path, cpu):
     from warpgauss import Model
 
     out = tmp_path / "v.wgs"
-    args = ["encode", "--example", "vortex", "--size", "16", "--ladder", "40,80", "--iterations", "10", "--samples", "128",
-            "--target-psnr", "99", "--plateau", "0.25", "--device", "cpu", "-o", str(out), "--json"]
+    args = [
+        "encode",
+        "--example",
+        "vortex",
+        "--size",
+        "16",
+        "--ladder",
+        "40,80",
+        "--iterations",
+        "10",
+        "--samples",
+        "128",
+        "--target-psnr",
+        "99",
+        "--plateau",
+        "0.25",
+        "--device",
+        "cpu",
+        "-o",
+        str(out),
+        "--json",
+    ]
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     for n in (40, 80):

@@ -10,10 +10,10 @@ import pytest
 import warpgauss
 from warpgauss.analysis import normalise
 from warpgauss.bricked import choose_bricks
-from warpgauss.limits import DEVICE_FIXED_BYTES, brick_device_bytes, parse_memory
 from warpgauss.errors import WarpgaussError
 from warpgauss.io import read_volume
 from warpgauss.lazy import LazyValues, is_lazy
+from warpgauss.limits import DEVICE_FIXED_BYTES, brick_device_bytes, parse_memory
 from warpgauss.synthetic import generate
 
 FAST = dict(iterations=10, samples=128, device="cpu", self_test=False, format="full", evaluate=True)

@@ -44,7 +44,13 @@ def test_one_lucas_kanade_step_matches_a_float64_reference():
     wp.launch(
         km.lk_step,
         dim=(2, 2, 2),
-        inputs=[wp.array(ref.astype(np.float32), device="cpu"), wp.array(cur.astype(np.float32), device="cpu"), wp.array(start.astype(np.float32), dtype=wp.vec3, device="cpu"), block, lam],
+        inputs=[
+            wp.array(ref.astype(np.float32), device="cpu"),
+            wp.array(cur.astype(np.float32), device="cpu"),
+            wp.array(start.astype(np.float32), dtype=wp.vec3, device="cpu"),
+            block,
+            lam,
+        ],
         outputs=[out, conf],
         device="cpu",
     )

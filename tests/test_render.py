@@ -31,8 +31,16 @@ runner = CliRunner()
 
 def header(shape=(24, 24, 24), spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0)) -> dict:
     return make_header(
-        shape_xyz=shape, spacing=spacing, origin=origin, vmin=0.0, vmax=1.0, source_dtype="float32",
-        source_itemsize=4, name="test", encoding={}, seed=0,
+        shape_xyz=shape,
+        spacing=spacing,
+        origin=origin,
+        vmin=0.0,
+        vmax=1.0,
+        source_dtype="float32",
+        source_itemsize=4,
+        name="test",
+        encoding={},
+        seed=0,
     )
 
 
@@ -175,7 +183,9 @@ def test_opacity_at_zero_fills_the_grid_box(cpu):
     got = -np.log1p(-img.rgba[..., 3].astype(np.float64))
     assert (samples == 0).any() and (samples > 0).mean() > 0.2  # some rays miss the grid, many cross it
     err = np.abs(got - expected)
-    assert np.quantile(err, 0.98) < 1e-4 and err.max() <= 0.5 * density * step + 1e-4  # a lattice point on the box face may round either way
+    assert (
+        np.quantile(err, 0.98) < 1e-4 and err.max() <= 0.5 * density * step + 1e-4
+    )  # a lattice point on the box face may round either way
 
 
 def test_empty_space_skipping_is_exact_and_early_termination_bounded(cpu):
@@ -225,7 +235,9 @@ def test_marcher_samples_value_and_analytic_gradient(cpu):
     s = r.sample(pts)
     np.testing.assert_allclose(s[:, 0], model.field(cpu).evaluate(pts), atol=1e-6)
     h = 1e-2
-    fd = np.stack([(r.sample(pts + h * e, False)[:, 0] - r.sample(pts - h * e, False)[:, 0]) / (2 * h) for e in np.eye(3, dtype=np.float32)], 1)
+    fd = np.stack(
+        [(r.sample(pts + h * e, False)[:, 0] - r.sample(pts - h * e, False)[:, 0]) / (2 * h) for e in np.eye(3, dtype=np.float32)], 1
+    )
     # V~ jumps at the 5-sigma cut and kinks where rho crosses RHO0: leave out points near either
     m = mahalanobis2(p, pts)
     rho = model.field(cpu).evaluate_full(pts)[1]
@@ -312,7 +324,23 @@ def test_cli_render_model_volume_and_compare(cpu, vortex, tmp_path):
 
     _, d = vortex
     out = tmp_path / "m.png"
-    r = runner.invoke(app, ["render", str(d / "vortex.wgs"), "-o", str(out), "--size", "48x40", "--device", cpu, "--colormap", "magma", "--opacity", "0:0,0.3:0,1:1"])
+    r = runner.invoke(
+        app,
+        [
+            "render",
+            str(d / "vortex.wgs"),
+            "-o",
+            str(out),
+            "--size",
+            "48x40",
+            "--device",
+            cpu,
+            "--colormap",
+            "magma",
+            "--opacity",
+            "0:0,0.3:0,1:1",
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert "wrote" in r.stdout and PILImage.open(out).size == (48, 40)
     vol = tmp_path / "v.png"
@@ -320,12 +348,18 @@ def test_cli_render_model_volume_and_compare(cpu, vortex, tmp_path):
     assert r.exit_code == 0, r.output
     assert json.loads(r.stdout)["method"] == "reference" and PILImage.open(vol).size == (32, 32)
     cmp = tmp_path / "cmp.png"
-    r = runner.invoke(app, ["render", str(d / "vortex.wgs"), "--compare", str(d / "vortex.npy"), "-o", str(cmp), "--size", "40", "--device", cpu, "--json"])
+    r = runner.invoke(
+        app,
+        ["render", str(d / "vortex.wgs"), "--compare", str(d / "vortex.npy"), "-o", str(cmp), "--size", "40", "--device", cpu, "--json"],
+    )
     assert r.exit_code == 0, r.output
     rep = json.loads(r.stdout)
     assert rep["image_psnr_db"] > 30 and 0.9 < rep["image_ssim"] <= 1.0
     assert PILImage.open(cmp).size == (3 * 40 + 2 * 4, 40)
-    r = runner.invoke(app, ["render", str(d / "vortex.wgs"), "--compare", str(d / "vortex.npy"), "-o", str(cmp), "--size", "24", "--device", cpu, "--force"])
+    r = runner.invoke(
+        app,
+        ["render", str(d / "vortex.wgs"), "--compare", str(d / "vortex.npy"), "-o", str(cmp), "--size", "24", "--device", cpu, "--force"],
+    )
     assert r.exit_code == 0 and "image PSNR" in r.stdout and "SSIM" in r.stdout
 
 

@@ -202,8 +202,23 @@ def test_cli_render_cached(cpu, files, tmp_path):
     assert PILImage.open(out).size == (40, 32)
     r = runner.invoke(
         app,
-        ["render", str(files / "v.wgs"), "--method", "cached", "--cache-res", "20", "--compare", str(files / "v.npy"),
-         "-o", str(tmp_path / "cmp.png"), "--size", "32", "--device", cpu, "--json"],
+        [
+            "render",
+            str(files / "v.wgs"),
+            "--method",
+            "cached",
+            "--cache-res",
+            "20",
+            "--compare",
+            str(files / "v.npy"),
+            "-o",
+            str(tmp_path / "cmp.png"),
+            "--size",
+            "32",
+            "--device",
+            cpu,
+            "--json",
+        ],
     )
     assert r.exit_code == 0, r.output
     rep = json.loads(r.stdout)

@@ -86,7 +86,17 @@ def test_cli_encodes_a_glob_as_a_series(tmp_path):
 
     for t, v in enumerate(generate_series("vortex", 16, 2)):
         v.tofile(tmp_path / f"r_{t}_16x16x16_float32.raw")
-    base = ["encode", str(tmp_path / "r_*_16x16x16_float32.raw"), "--budget", "100", "--iterations", "10", "--device", "cpu", "--no-self-test"]
+    base = [
+        "encode",
+        str(tmp_path / "r_*_16x16x16_float32.raw"),
+        "--budget",
+        "100",
+        "--iterations",
+        "10",
+        "--device",
+        "cpu",
+        "--no-self-test",
+    ]
     r = CliRunner().invoke(app, [*base, "--format", "full", "--warm-iterations", "5", "-o", str(tmp_path / "m_{t}.wgs"), "--json"])
     assert r.exit_code == 0, r.output
     rows = json.loads(r.output)["series"]
@@ -151,7 +161,12 @@ def test_a_time_axis_in_one_file_is_a_series(tmp_path):
     h5 = tmp_path / "run.h5"
     both = encode_series(str(h5), variables=["density", "energy"], output_pattern=str(tmp_path / "o_{var}_{t}.wgs"), **kw)
     assert [(m.report["series"]["variable"], m.report["series"]["step"]) for m in both] == [
-        ("density", 0), ("density", 1), ("density", 2), ("energy", 0), ("energy", 1), ("energy", 2)
+        ("density", 0),
+        ("density", 1),
+        ("density", 2),
+        ("energy", 0),
+        ("energy", 1),
+        ("energy", 2),
     ]
     assert (tmp_path / "o_energy_2.wgs").is_file() and all(m.n == 100 for m in both)
     spacings = [tuple(m.header["grid"]["spacing"]) for m in (both[0], both[3])]
@@ -177,10 +192,26 @@ def test_cli_encodes_a_time_axis_and_several_variables(tmp_path):
     from warpgauss.cli.main import app
 
     _time_axis_files(tmp_path, list(generate_series("vortex", 16, 2)))
-    base = ["encode", str(tmp_path / "run.h5"), "--budget", "80", "--iterations", "8", "--device", "cpu", "--no-self-test", "--format", "full", "--json"]
+    base = [
+        "encode",
+        str(tmp_path / "run.h5"),
+        "--budget",
+        "80",
+        "--iterations",
+        "8",
+        "--device",
+        "cpu",
+        "--no-self-test",
+        "--format",
+        "full",
+        "--json",
+    ]
     r = CliRunner().invoke(app, [*base, "--variable", "density", "-o", str(tmp_path / "d_{t}.wgs")])
     assert r.exit_code == 0, r.output
-    assert [(x["variable"], x["step"], x["warm_start"]) for x in json.loads(r.output)["series"]] == [("density", 0, False), ("density", 1, True)]
+    assert [(x["variable"], x["step"], x["warm_start"]) for x in json.loads(r.output)["series"]] == [
+        ("density", 0, False),
+        ("density", 1, True),
+    ]
     r = CliRunner().invoke(app, [*base, "--variable", "density", "--variable", "energy", "-o", str(tmp_path / "m.wgs")])
     assert r.exit_code == 0, r.output
     rows = json.loads(r.output)["series"]
@@ -200,7 +231,9 @@ def test_a_series_on_a_local_dask_cluster(tmp_path):
     client = local_client(2)
     try:
         seen = []
-        spread = encode_series(steps, client=client, output_pattern=str(tmp_path / "s_{t}.wgs"), on_step=lambda t, n, m: seen.append(t), **kw)
+        spread = encode_series(
+            steps, client=client, output_pattern=str(tmp_path / "s_{t}.wgs"), on_step=lambda t, n, m: seen.append(t), **kw
+        )
         cold = encode_series(steps, client=client, cold=True, **kw)
     finally:
         client.close()
@@ -215,7 +248,9 @@ def test_a_series_on_a_local_dask_cluster(tmp_path):
     np.testing.assert_array_equal(spread[3].params, alone.params)
     assert [m.report["series"]["warm_start"] for m in cold] == [False] * 4
     for t in range(4):
-        np.testing.assert_array_equal(cold[t].params, warpgauss.encode(steps[t], **{k: v for k, v in kw.items() if k != "warm_iterations"}).params)
+        np.testing.assert_array_equal(
+            cold[t].params, warpgauss.encode(steps[t], **{k: v for k, v in kw.items() if k != "warm_iterations"}).params
+        )
 
 
 def test_a_drifting_warm_chain_is_re_encoded_cold_at_the_step_that_drifts(tmp_path):

@@ -86,7 +86,9 @@ def test_the_support_restriction_of_the_uniform_stratum_is_logged_when_it_applie
 
     vol = generate("bubbles", 48, seed=2)
     for on in (True, False):
-        m = warpgauss.encode(vol, budget=600, refine=RefineConfig(iterations=3, samples=256, uniform_support=on), device="cpu", evaluate=False)
+        m = warpgauss.encode(
+            vol, budget=600, refine=RefineConfig(iterations=3, samples=256, uniform_support=on), device="cpu", evaluate=False
+        )
         hits = [s for s in m.report["skipped"] if s["what"] == "uniform samples outside the model's support"]
         share = m.report["refinement"]["uniform_support_share"]
         if on:

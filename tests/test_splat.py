@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_render import analytic_line_integral, header, one_gaussian, pixel_rays
 from typer.testing import CliRunner
 
-from test_render import analytic_line_integral, header, one_gaussian, pixel_rays
 from warpgauss.model import Model
 from warpgauss.render import Camera, ModelRenderer, RenderSettings, image_psnr, image_ssim, resolve_view
 from warpgauss.splat import SplatRenderer
@@ -55,7 +55,9 @@ def test_splat_agrees_with_ray_marching(cpu, vortex_analytic):
     for tf in (from_header(model.header), make_transfer_function("magma", "0:0,0.4:0,1:1")):
         a, b = march.render(Camera(), tf, s), splat.render(Camera(), tf, s)
         psnr, ssim, mad = image_psnr(a.rgb, b.rgb), image_ssim(a.rgb, b.rgb), float(np.abs(a.rgb - b.rgb).mean())
-        print(f"splat vs march ({tf.name}): PSNR {psnr:.2f} dB, SSIM {ssim:.3f}, mean |diff| {mad:.4f}; CPU {a.seconds:.3f} s vs {b.seconds:.3f} s")
+        print(
+            f"splat vs march ({tf.name}): PSNR {psnr:.2f} dB, SSIM {ssim:.3f}, mean |diff| {mad:.4f}; CPU {a.seconds:.3f} s vs {b.seconds:.3f} s"
+        )
         assert psnr >= 28.0 and ssim >= 0.8 and mad <= 0.02
         assert b.stats["pairs"] > 0 and b.stats["splats_per_pixel"] > 1
     again = SplatRenderer(model, device=cpu).render(Camera(), tf, s)
@@ -89,6 +91,8 @@ def test_cli_render_splat(cpu, vortex_analytic, tmp_path):
 
     vortex_analytic.save(tmp_path / "v.wgs")
     out = tmp_path / "s.png"
-    r = CliRunner().invoke(app, ["render", str(tmp_path / "v.wgs"), "--method", "splat", "-o", str(out), "--size", "40x24", "--device", cpu])
+    r = CliRunner().invoke(
+        app, ["render", str(tmp_path / "v.wgs"), "--method", "splat", "-o", str(out), "--size", "40x24", "--device", cpu]
+    )
     assert r.exit_code == 0, r.output
     assert "splat" in r.stdout and PILImage.open(out).size == (40, 24)

@@ -84,7 +84,9 @@ def test_undefined_s1_s16_is_null_in_stats_and_the_encode_report(tmp_path, cpu):
     text = CliRunner().invoke(app, ["stats", "--example", "vortex", "--size", "12", "--device", "cpu"])
     assert text.exit_code == 0 and "S(1)/S(16) n/a" in text.stdout
     out = tmp_path / "m.wgs"
-    enc = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "12", "--budget", "20", "--iterations", "2", "-o", str(out), "--device", "cpu"])
+    enc = CliRunner().invoke(
+        app, ["encode", "--example", "vortex", "--size", "12", "--budget", "20", "--iterations", "2", "-o", str(out), "--device", "cpu"]
+    )
     assert enc.exit_code == 0, enc.output
     rep = _strict((tmp_path / "m.wgs.report.json").read_text())
     assert rep["structure"]["s1_s16"] is None

@@ -11,8 +11,8 @@ import pytest
 from test_refine import _toy_params
 
 from warpgauss.analysis import DeviceVolume, normalise
-from warpgauss.optimize import PRESETS, RefineConfig, Refiner
 from warpgauss.driver import resolve_refine
+from warpgauss.optimize import PRESETS, RefineConfig, Refiner
 
 
 def _field():
@@ -168,7 +168,7 @@ def test_a_coded_budget_re_plans_n_for_the_depths_its_accuracy_needs(tmp_path, c
     vol = generate("vortex", 24, seed=0)
     kw = dict(ratio=20, iterations=120, samples=1024, device=cpu, self_test=False, seed=3)
     a = warpgauss.encode(vol, **kw, output=tmp_path / "a.wgs")
-    b = warpgauss.encode(vol, **kw, output=tmp_path / "b.wgs")
+    warpgauss.encode(vol, **kw, output=tmp_path / "b.wgs")
     assert (tmp_path / "a.wgs").read_bytes() == (tmp_path / "b.wgs").read_bytes()
     bud = a.report["budget"]
     rp = bud["coded_replan"]

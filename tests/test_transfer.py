@@ -134,7 +134,9 @@ def test_cli_render_with_transfer_function_files(cpu, tmp_path):
     ours = tmp_path / "ours.json"
     ours.write_text(json.dumps({"colormap": "inferno", "opacity": [[0, 0], [0.2, 0], [1, 1]]}))
     pv = tmp_path / "pv.json"
-    pv.write_text(json.dumps([{"ColorSpace": "Diverging", "Name": "Cool to Warm", "RGBPoints": [0, 0.23, 0.299, 0.754, 1, 0.706, 0.016, 0.15]}]))
+    pv.write_text(
+        json.dumps([{"ColorSpace": "Diverging", "Name": "Cool to Warm", "RGBPoints": [0, 0.23, 0.299, 0.754, 1, 0.706, 0.016, 0.15]}])
+    )
     runner = CliRunner()
     for f in (ours, pv):
         out = tmp_path / f"{f.stem}.png"

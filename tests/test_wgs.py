@@ -224,7 +224,7 @@ def test_compact_round_trip_within_derived_bounds(tmp_path):
     assert d.dtype == np.float32 and d.shape == p.shape
 
     b = COMPACT_BITS
-    slack = lambda x: 2.0 ** -22 * np.abs(x) + 1e-12  # noqa: E731  float32 rounding of the decoded value
+    slack = lambda x: 2.0**-22 * np.abs(x) + 1e-12  # noqa: E731  float32 rounding of the decoded value
     err = np.abs(d.astype(np.float64) - p)
     mu_bound = _half_step(p[:, :3].min(0), p[:, :3].max(0), b["mu"])
     assert np.all(err[:, :3] <= mu_bound + slack(p[:, :3]))
@@ -313,9 +313,7 @@ def test_non_finite_params_rejected_at_write(tmp_path, params, col, value):
     assert not list(tmp_path.iterdir())
 
 
-@pytest.mark.parametrize(
-    "bad", [np.zeros((4, 11), np.float32), np.zeros(12, np.float32), np.array([[1e39] * 12]), np.full((2, 12), "a")]
-)
+@pytest.mark.parametrize("bad", [np.zeros((4, 11), np.float32), np.zeros(12, np.float32), np.array([[1e39] * 12]), np.full((2, 12), "a")])
 def test_bad_param_arrays_rejected_at_write(tmp_path, bad):
     with pytest.raises(WarpgaussError):
         write_wgs(tmp_path / "m.wgs", bad, {})

@@ -66,10 +66,12 @@ def source_commit(where) -> str | None:
 def result_header(benchmark: str, script: str, argv, device: str) -> dict:
     """The fields every benchmark's JSON starts with: what it measures, the command that produced it
     (``script``: the benchmark's ``__file__``; ``argv``: its arguments, None: ``sys.argv[1:]``), the
-    device, its name, the Warp version and the date (UTC)."""
+    warpgauss version and commit, the device, its name, the Warp version and the date (UTC)."""
     import datetime as dt
     import sys
     from pathlib import Path
+
+    from ._version import __version__
 
     parts = Path(script).resolve().parts
     rel = "/".join(parts[parts.index("benchmarks") :]) if "benchmarks" in parts else Path(script).name
@@ -77,6 +79,7 @@ def result_header(benchmark: str, script: str, argv, device: str) -> dict:
     return {
         "benchmark": benchmark,
         "command": " ".join(["python", rel, *args]),
+        "warpgauss_version": __version__,
         "commit": source_commit(Path(script).resolve().parent),
         "device": device,
         "device_name": device_name(device),

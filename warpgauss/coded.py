@@ -34,7 +34,7 @@ import numpy as np
 
 from .errors import WarpgaussError
 
-# measured on four real volumes (benchmarks/results/i18_coded_cpu.json): every bit here costs less
+# measured on four real volumes (benchmarks/results/rate_distortion/coded_loss_mri_cpu.json): every bit here costs less
 # PSNR than the primitives its bytes would buy (about 0.4 dB a byte at these budgets)
 CODED_BITS: dict[str, int] = {"mu": 2, "log_s": 4, "q": 5, "a": 7, "w": 5}
 ZSTD_LEVEL = 19
@@ -342,7 +342,7 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
 
 
 # rate control: one bit at a time, in the order of PSNR lost (or gained) per byte measured on four
-# real volumes (benchmarks/results/i18_coded_cpu.json): dropping w, mu and a bits costs least,
+# real volumes (benchmarks/results/rate_distortion/coded_loss_mri_cpu.json): dropping w, mu and a bits costs least,
 # adding rotation and log-scale bits gains most
 SHRINK_ORDER = ("w", "mu", "a", "log_s", "q")
 GROW_ORDER = ("q", "log_s", "a", "mu", "w")

@@ -10,7 +10,7 @@ from .errors import WarpgaussError
 
 # Peak device memory of one brick's encode, as a linear model of its box voxels and the primitives
 # it refines (own, stand-ins and frozen neighbours, about 1.5 x its share of N). Measured on an
-# H100 (results/bricked/i20_out_of_core1536_h100.json): bricks of 966M voxels and about 1.5M primitives
+# H100 (results/bricked/out_of_core1536_h100.json): bricks of 966M voxels and about 1.5M primitives
 # peaked at 5.19 GB, 3.5 B/voxel once the per-primitive part is taken off; 5 leaves a margin.
 DEVICE_BYTES_PER_VOXEL = 5.0
 DEVICE_BYTES_PER_PRIMITIVE = 1024.0
@@ -18,7 +18,7 @@ DEVICE_FIXED_BYTES = 256 * 2**20
 DEVICE_MARGIN = 0.9  # the default limit: this share of the free memory
 # Peak host memory of one brick's encode per box voxel: the source's copy and the float32 values,
 # the interior/halo/validity masks and their uint8 uploads, the counting passes' temporaries on
-# every thread. Measured (H100 host, 16 threads, results/bricked/i20_out_of_core1536_rss_h100.json): boxes
+# every thread. Measured (H100 host, 16 threads, results/bricked/out_of_core1536_rss_h100.json): boxes
 # of 499M voxels peaked at 11.0 GB RSS, 22 B/voxel (the first estimate, 14, let it pass an 8 GiB limit).
 HOST_BYTES_PER_VOXEL = 22.0
 HOST_SHARE = 0.5  # the default host limit: this share of the memory available now

@@ -19,9 +19,9 @@ COARSEST = 16  # voxels: no level coarser than this on its shortest side
 MAX_LEVELS = 5  # 512^3: levels of 512 .. 32 voxels, a capture range of about 2 x 2^4 = 32 voxels
 STEPS = 8  # Gauss-Newton steps per level (3: up to 1 dB lower start on the rotating bubbles)
 # learning-rate factor of the refinement that follows. Chains of 4 warm timesteps at 512^3, N 400k,
-# 375 iterations (i21_motion_sweep512_stay_h100.json), PSNR at step 4 vortex / bubbles / interface:
+# 375 iterations (motion_sweep512_stay_h100.json), PSNR at step 4 vortex / bubbles / interface:
 # x1 70.53 / 57.81 / 43.42 dB, x0.3 69.89 / 58.13 / 42.56; at 0.1 the vortex chain fell to 64.87
-# (i21_motion_sweep512_vortex2_h100.json). On 40^3 CPU fields x0.3 was 0.1-0.4 dB ahead for one step.
+# (motion_sweep512_vortex2_h100.json). On 40^3 CPU fields x0.3 was 0.1-0.4 dB ahead for one step.
 WARM_LR_SCALE = 1.0
 TURN = True  # turn each primitive with the local rotation (half the curl) of the motion
 PASSES = 2  # decode, match, move; again from the moved model (measured: +0.7 to +2.2 dB at the start)

@@ -36,16 +36,19 @@ import sys
 import time
 from pathlib import Path
 
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import bench_rd  # noqa: E402  (the volumes and the full-grid PSNR every RD figure uses)
 
 from warpgauss import coded  # noqa: E402
-from warpgauss.driver import replan  # noqa: E402 - the rate-control constants
 from warpgauss.allocate import AllocationConfig  # noqa: E402
 from warpgauss.bench import result_header  # noqa: E402
-from warpgauss.driver import EncodeOptions, encode_field, load_field  # noqa: E402
+from warpgauss.driver import (  # noqa: E402
+    EncodeOptions,
+    encode_field,
+    load_field,
+    replan,  # noqa: E402 - the rate-control constants
+)
 from warpgauss.profiling import StageRecorder  # noqa: E402
 from warpgauss.refine import RefineConfig  # noqa: E402
 

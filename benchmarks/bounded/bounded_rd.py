@@ -8,7 +8,7 @@ residual with no Gaussians at all (the 3D Lorenzo predictor alone, ``gaussian_ra
 Rows: ``volume``, ``bound_rel``, ``gaussian_ratio``, ``ratio`` (source bytes over the whole
 file), ``psnr_db``, ``max_abs_error`` (checked <= bound), the predictor chosen, the sizes every
 predictor gave, encode / predict / code / decode seconds. SZ3's ratio and PSNR at the same
-absolute bound come from ``benchmarks/results/i18_rd_codecs_cpu.json`` (pysz 1.1.0, one CPU core,
+absolute bound come from ``benchmarks/results/rate_distortion/bench_rd_codecs_cpu.json`` (pysz 1.1.0, one CPU core,
 the float32 volume), where it holds the volume at this size.
 
 ``--export K`` saves each example field's model at K^3 (with a residual at 1e-4) and its float64
@@ -55,7 +55,7 @@ def volumes(size: int, fields: list[str], mris: list[str]):
 
 def sz3_rows(name: str, shape_zyx) -> dict[float, dict]:
     """SZ3 at bounds (share of the range) from the codec sweep, where it holds this volume at this size."""
-    p = ROOT / "benchmarks" / "results" / "i18_rd_codecs_cpu.json"
+    p = ROOT / "benchmarks" / "results" / "rate_distortion/bench_rd_codecs_cpu.json"
     if not p.is_file():
         return {}
     vols = json.loads(p.read_text())["volumes"]

@@ -27,7 +27,6 @@ from bounded_rd import MRIS, volumes  # noqa: E402
 from warpgauss.bench import result_header  # noqa: E402
 from warpgauss.evaluate import psnr_from_mse  # noqa: E402
 
-
 CODECS = {
     "sz3": lambda d, e: sz3_run(d, e),
     "zfp-acc": lambda d, e: zfp_run(d, tolerance=float(e)),

@@ -2,7 +2,7 @@
 settings (issue #20 target: PSNR within 0.2 dB, time within 1.3x), full-grid PSNR, and the PSNR
 on voxels within 2 voxels of an inner brick face against the rest.
 
-    python benchmarks/bricked/bricked_vs_mono.py --size 512 --budget 400000 --fields vortex,interface --out $OUT/i20_bricked_h100.json
+    python benchmarks/bricked/bricked_vs_mono.py --size 512 --budget 400000 --fields vortex,interface --out $OUT/bricked_h100.json
 """
 
 from __future__ import annotations

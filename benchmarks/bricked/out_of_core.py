@@ -4,7 +4,7 @@ is chosen from the limit, each brick reads its own box from the file. Reports th
 memory (Warp's pool high-water mark), this process's peak host RSS against the file's size, PSNR
 on 500,000 sampled voxels, and the time of each stage.
 
-    python benchmarks/bricked/out_of_core.py --size 2048 --budget 4000000 --max-device-memory 24GiB --dir /tmp --out $OUT/i20_out_of_core_h100.json
+    python benchmarks/bricked/out_of_core.py --size 2048 --budget 4000000 --max-device-memory 24GiB --dir /tmp --out $OUT/out_of_core_h100.json
     python benchmarks/bricked/out_of_core.py --size 2048 --gpus 2 --max-device-memory 24GiB --max-host-memory 16GiB --out $OUT/out_of_core2048_gpus2.json
 
 With ``--gpus K`` the bricks run on a local Dask cluster of one worker process per GPU; the

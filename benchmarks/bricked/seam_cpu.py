@@ -1,7 +1,7 @@
 """Seam quality of the bricked encode (issue #20), CPU: full-grid PSNR on voxels within 2 voxels of
 an inner brick face against the rest, 2x2x2 bricks, the default halo and 8, two example fields at 48^3.
 
-    python benchmarks/bricked/seam_cpu.py --out benchmarks/results/bricked/i20_seam_cpu.json
+    python benchmarks/bricked/seam_cpu.py --out benchmarks/results/bricked/seam_cpu.json
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 thread against slabs on threads (warpgauss.synthetic.SLAB_THREADS), in one run; checks the two
 fields are the same bit for bit where both are made.
 
-    python benchmarks/multi_gpu/generate_time.py --field vortex --sizes 1024,2048 --serial 1024 --out $OUT/i23_generate.json
+    python benchmarks/multi_gpu/generate_time.py --field vortex --sizes 1024,2048 --serial 1024 --out $OUT/generate.json
 """
 
 from __future__ import annotations

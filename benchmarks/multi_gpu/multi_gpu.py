@@ -12,9 +12,9 @@ Every cluster first encodes a small field (kernels compiled in each worker, then
 only the later encodes are timed. On the CPU (``--device cpu``) the workers are CPU processes
 (``local_client``): the same encode paths, for a check on a machine without GPUs.
 
-    python benchmarks/multi_gpu/multi_gpu.py --sizes 1024 --gpus 1,2 --series 8 --out $OUT/i23_multi_gpu_1024.json
-    python benchmarks/multi_gpu/multi_gpu.py --sizes 2048 --budget 4000000 --gpus 1,2 --series 0 --out $OUT/i23_multi_gpu_2048.json
-    python benchmarks/multi_gpu/multi_gpu.py --sizes 32 --budget 400 --bricks 2x2x1 --gpus 1,2 --series 4 --series-size 24 --device cpu --out /tmp/i23_cpu.json
+    python benchmarks/multi_gpu/multi_gpu.py --sizes 1024 --gpus 1,2 --series 8 --out $OUT/multi_gpu_1024.json
+    python benchmarks/multi_gpu/multi_gpu.py --sizes 2048 --budget 4000000 --gpus 1,2 --series 0 --out $OUT/multi_gpu_2048.json
+    python benchmarks/multi_gpu/multi_gpu.py --sizes 32 --budget 400 --bricks 2x2x1 --gpus 1,2 --series 4 --series-size 24 --device cpu --out /tmp/cpu.json
 """
 
 from __future__ import annotations

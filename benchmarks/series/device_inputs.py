@@ -3,7 +3,7 @@ a PyTorch tensor (DLPack), a CuPy array (DLPack) and an object offering only
 ``__cuda_array_interface__``, each encoded as its numpy copy is (same model, bit for bit), and the
 per-call cost an Encoder pays outside refinement, cold and warm.
 
-    python benchmarks/series/device_inputs.py --size 256 --budget 100000 --out $OUT/i21_device_inputs_h100.json
+    python benchmarks/series/device_inputs.py --size 256 --budget 100000 --out $OUT/device_inputs_h100.json
 """
 
 from __future__ import annotations

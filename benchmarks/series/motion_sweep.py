@@ -7,7 +7,7 @@ that same model. A variant sets constants of :mod:`warpgauss.motion` (``static``
 ``oracle``: the true displacement of the turn instead of the estimate).
 Each row records the start PSNR (the moved model before refinement) and the final PSNR.
 
-    python benchmarks/series/motion_sweep.py --size 512 --budget 400000 --fields vortex --steps 4 --out $OUT/i21_motion_sweep.json
+    python benchmarks/series/motion_sweep.py --size 512 --budget 400000 --fields vortex --steps 4 --out $OUT/motion_sweep.json
 """
 
 from __future__ import annotations

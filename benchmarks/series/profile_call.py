@@ -2,7 +2,7 @@
 call, then warm calls under cProfile at a short time budget; prints the stage table and the
 functions with the largest cumulative time.
 
-    python benchmarks/series/profile_call.py --size 256 --budget 55000 --time-budget 0.12 --out $OUT/i21_profile_call_h100.json
+    python benchmarks/series/profile_call.py --size 256 --budget 55000 --time-budget 0.12 --out $OUT/profile_call_h100.json
 """
 
 from __future__ import annotations

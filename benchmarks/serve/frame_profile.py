@@ -3,7 +3,7 @@ render kernels, the pieces around them, and how the view's settings move the ker
 (opacity curve, cache resolution, image size). Variants ending "-cd" shade by central differences
 (no gradient grid), the baseline of the gradient grid in the same run.
 
-    python benchmarks/serve/frame_profile.py --size 512 --budget 1400000 --out $OUT/i22_frame_profile.json
+    python benchmarks/serve/frame_profile.py --size 512 --budget 1400000 --out $OUT/frame_profile.json
 
 It also runs against an older warpgauss (only the public Viewer and renderer pieces are used), so
 a change can be timed against its parent in the same run: put the parent's package on PYTHONPATH

@@ -16,7 +16,7 @@ the main thread.
 The model: N primitives placed by the analytic allocation on an example field (no refinement:
 the frame cost does not depend on how well it fits).
 
-    python benchmarks/serve/serve_frames.py --size 512 --budget 1400000 --out $OUT/i22_serve_frames.json
+    python benchmarks/serve/serve_frames.py --size 512 --budget 1400000 --out $OUT/serve_frames.json
 """
 
 from __future__ import annotations

@@ -39,8 +39,7 @@ VOLUME = _volume()
 
 def _model() -> Path:
     path = _TMP / "m.wgs"
-    r = runner.invoke(app, ["encode", str(VOLUME), "-o", str(path), "--budget", "12", "--iterations", "0",
-                            "--device", "cpu"])
+    r = runner.invoke(app, ["encode", str(VOLUME), "-o", str(path), "--budget", "12", "--iterations", "0", "--device", "cpu"])
     assert r.exit_code == 0, r.output
     return path
 
@@ -85,21 +84,42 @@ NUMBER = st.one_of(
     st.sampled_from(["0", "-1", "1", "1e-300", "1e300", "nan", "inf", "-inf", "", "x", "0x10", "1_000"]),
 )
 SMALL = st.one_of(st.integers(-3, 40).map(str), NUMBER)
-TEXT = st.one_of(st.text(max_size=12), st.sampled_from(["8x8x8", "8,8,8", "0x8x8", "8x8", "999999x999999x999999",
-                                                          "float32", "uint8", "big", "little", "middle", "/", "g/d"]))
+TEXT = st.one_of(
+    st.text(max_size=12),
+    st.sampled_from(["8x8x8", "8,8,8", "0x8x8", "8x8", "999999x999999x999999", "float32", "uint8", "big", "little", "middle", "/", "g/d"]),
+)
 ENCODE_OPTIONS = {
-    "--budget": SMALL, "--ratio": NUMBER, "--seed": NUMBER, "--iterations": st.integers(-2, 4).map(str),
-    "--samples": st.integers(-3, 4096).map(str),  # huge counts: see test_huge_sample_counts_are_refused "--lr": NUMBER, "--w-density": NUMBER, "--w-smooth": NUMBER, "--w-anchor": NUMBER,
-    "--w-value-empty": NUMBER, "--w-cap": NUMBER, "--w-aniso": NUMBER, "--w-smooth-final": NUMBER,
-    "--time-budget": NUMBER, "--stride": SMALL, "--fill-value": NUMBER, "--shape": TEXT, "--dtype": TEXT,
-    "--endian": TEXT, "--dataset": TEXT, "--variable": TEXT, "--preset": TEXT, "--device": st.just("cpu"),
+    "--budget": SMALL,
+    "--ratio": NUMBER,
+    "--seed": NUMBER,
+    "--iterations": st.integers(-2, 4).map(str),
+    "--samples": st.integers(-3, 4096).map(
+        str
+    ),  # huge counts: see test_huge_sample_counts_are_refused "--lr": NUMBER, "--w-density": NUMBER, "--w-smooth": NUMBER, "--w-anchor": NUMBER,
+    "--w-value-empty": NUMBER,
+    "--w-cap": NUMBER,
+    "--w-aniso": NUMBER,
+    "--w-smooth-final": NUMBER,
+    "--time-budget": NUMBER,
+    "--stride": SMALL,
+    "--fill-value": NUMBER,
+    "--shape": TEXT,
+    "--dtype": TEXT,
+    "--endian": TEXT,
+    "--dataset": TEXT,
+    "--variable": TEXT,
+    "--preset": TEXT,
+    "--device": st.just("cpu"),
 }
 
 
 @fuzz(60)
-@given(st.dictionaries(st.sampled_from(sorted(ENCODE_OPTIONS)), st.none(), max_size=5).flatmap(
-    lambda keys: st.fixed_dictionaries({k: ENCODE_OPTIONS[k] for k in keys})
-), st.booleans())
+@given(
+    st.dictionaries(st.sampled_from(sorted(ENCODE_OPTIONS)), st.none(), max_size=5).flatmap(
+        lambda keys: st.fixed_dictionaries({k: ENCODE_OPTIONS[k] for k in keys})
+    ),
+    st.booleans(),
+)
 @example({"--budget": "5", "--iterations": "3", "--samples": "64", "--lr": "nan"}, False)
 @example({"--budget": "5", "--ratio": "20"}, False)
 @example({"--budget": "5", "--seed": str(2**70)}, False)
@@ -130,16 +150,18 @@ def _model_ok(work: Path) -> None:
 
 
 @fuzz(30)
-@given(st.sampled_from(["vortex", "bubbles", "turbulence", "interface", "nope", ""]),
-       st.integers(-2, 12).map(str))  # huge sizes: see test_huge_example_sizes_are_refused
+@given(
+    st.sampled_from(["vortex", "bubbles", "turbulence", "interface", "nope", ""]), st.integers(-2, 12).map(str)
+)  # huge sizes: see test_huge_example_sizes_are_refused
 def test_encode_examples_of_any_size(name, size):
-    invoke(["encode", "--example", name, "--size", size, "--budget", "4", "--iterations", "0", "--device", "cpu",
-            "-o", "out.wgs"], outputs=[Path("out.wgs")])
+    invoke(
+        ["encode", "--example", name, "--size", size, "--budget", "4", "--iterations", "0", "--device", "cpu", "-o", "out.wgs"],
+        outputs=[Path("out.wgs")],
+    )
 
 
 @fuzz(40)
-@given(shape=st.one_of(st.none(), TEXT), normalised=st.booleans(), ext=st.sampled_from([".npy", ".raw", ".h5", ".vti",
-                                                                                          ".xyz", ""]))
+@given(shape=st.one_of(st.none(), TEXT), normalised=st.booleans(), ext=st.sampled_from([".npy", ".raw", ".h5", ".vti", ".xyz", ""]))
 @example(shape="100000x100000x100000", normalised=False, ext=".npy")
 @example(shape="3x2x1", normalised=True, ext=".vti")
 def test_decode_options(shape, normalised, ext):
@@ -172,11 +194,18 @@ def test_commands_on_garbage_model_files(data, command):
 
 
 @fuzz(30)
-@given(stride=st.one_of(st.none(), SMALL), fill=st.one_of(st.none(), NUMBER),
-       volume=st.sampled_from(["same", "missing", "other-shape", "garbage"]))
+@given(
+    stride=st.one_of(st.none(), SMALL),
+    fill=st.one_of(st.none(), NUMBER),
+    volume=st.sampled_from(["same", "missing", "other-shape", "garbage"]),
+)
 def test_eval_options(stride, fill, volume):
-    vol = {"same": VOLUME, "missing": _TMP / "missing_8x8x8_float32.raw", "other-shape": _TMP / "o_4x4x4_uint8.raw",
-           "garbage": _TMP / "g.npy"}[volume]
+    vol = {
+        "same": VOLUME,
+        "missing": _TMP / "missing_8x8x8_float32.raw",
+        "other-shape": _TMP / "o_4x4x4_uint8.raw",
+        "garbage": _TMP / "g.npy",
+    }[volume]
     if volume == "other-shape":
         vol.write_bytes(bytes(64))
     elif volume == "garbage":
@@ -192,14 +221,32 @@ def test_eval_options(stride, fill, volume):
 
 
 def test_huge_sample_counts_are_refused():
-    invoke(["encode", VOLUME, "-o", "out.wgs", "--budget", "6", "--iterations", "2", "--device", "cpu",
-            "--no-self-test", "--samples", str(10**12)], outputs=[Path("out.wgs")])
+    invoke(
+        [
+            "encode",
+            VOLUME,
+            "-o",
+            "out.wgs",
+            "--budget",
+            "6",
+            "--iterations",
+            "2",
+            "--device",
+            "cpu",
+            "--no-self-test",
+            "--samples",
+            str(10**12),
+        ],
+        outputs=[Path("out.wgs")],
+    )
 
 
 @pytest.mark.parametrize("size", [10**6, 2**40])
 def test_huge_example_sizes_are_refused(size):
-    invoke(["encode", "--example", "vortex", "--size", str(size), "--budget", "4", "--iterations", "0",
-            "--device", "cpu", "-o", "out.wgs"], outputs=[Path("out.wgs")])
+    invoke(
+        ["encode", "--example", "vortex", "--size", str(size), "--budget", "4", "--iterations", "0", "--device", "cpu", "-o", "out.wgs"],
+        outputs=[Path("out.wgs")],
+    )
 
 
 def test_info_on_a_good_model():
@@ -211,6 +258,9 @@ def test_info_on_a_good_model():
 def test_encode_options_long():
     """The encode fuzz with 20x the examples and fresh random draws (run with -m slow)."""
     inner = test_encode_options.hypothesis.inner_test
-    given(st.dictionaries(st.sampled_from(sorted(ENCODE_OPTIONS)), st.none(), max_size=6).flatmap(
-        lambda keys: st.fixed_dictionaries({k: ENCODE_OPTIONS[k] for k in keys})
-    ), st.booleans())(fuzz(1200, derandomize=False)(inner))()
+    given(
+        st.dictionaries(st.sampled_from(sorted(ENCODE_OPTIONS)), st.none(), max_size=6).flatmap(
+            lambda keys: st.fixed_dictionaries({k: ENCODE_OPTIONS[k] for k in keys})
+        ),
+        st.booleans(),
+    )(fuzz(1200, derandomize=False)(inner))()

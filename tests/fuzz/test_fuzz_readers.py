@@ -159,8 +159,9 @@ def h5_layout(draw):
                 "chunked": draw(st.booleans()) and len(shape) > 0 and min(shape, default=0) > 0,
                 "gzip": draw(st.booleans()),
                 "written": draw(st.booleans()),
-                "attrs": {k: draw(ATTR) for k in draw(st.sets(st.sampled_from(["spacing", "origin", "_FillValue",
-                                                                                 "missing_value"]), max_size=3))},
+                "attrs": {
+                    k: draw(ATTR) for k in draw(st.sets(st.sampled_from(["spacing", "origin", "_FillValue", "missing_value"]), max_size=3))
+                },
             }
         )
     return items
@@ -190,8 +191,7 @@ def _make_h5(path: Path, items) -> None:
 
 
 @fuzz(100)
-@given(items=h5_layout(), pick=st.one_of(st.none(), st.sampled_from(["d0", "g/d1", "/g/h/d2", "nope", "g"])),
-       stride=st.integers(1, 3))
+@given(items=h5_layout(), pick=st.one_of(st.none(), st.sampled_from(["d0", "g/d1", "/g/h/d2", "nope", "g"])), stride=st.integers(1, 3))
 def test_hdf5_layouts(items, pick, stride):
     path = _TMP / "l.h5"
     _make_h5(path, items)

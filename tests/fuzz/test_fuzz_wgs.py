@@ -35,8 +35,16 @@ def _params(n: int, seed: int = 0) -> np.ndarray:
 
 def _header() -> dict:
     return make_header(
-        shape_xyz=(8, 8, 8), spacing=(1, 1, 1), origin=(0, 0, 0), vmin=-1.0, vmax=2.0, source_dtype="float32",
-        source_itemsize=4, name="fuzz", encoding={"stride": 1}, seed=0,
+        shape_xyz=(8, 8, 8),
+        spacing=(1, 1, 1),
+        origin=(0, 0, 0),
+        vmin=-1.0,
+        vmax=2.0,
+        source_dtype="float32",
+        source_itemsize=4,
+        name="fuzz",
+        encoding={"stride": 1},
+        seed=0,
     )
 
 
@@ -138,18 +146,37 @@ def _layout():
 
 # JSON values of every kind, to put where the reader expects a specific one
 JSON = st.recursive(
-    st.none() | st.booleans() | st.integers(-(2**70), 2**70) | st.floats(allow_nan=False, allow_infinity=False)
-    | st.text(max_size=8),
+    st.none() | st.booleans() | st.integers(-(2**70), 2**70) | st.floats(allow_nan=False, allow_infinity=False) | st.text(max_size=8),
     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=4),
     max_leaves=8,
 )
 
 FIELDS = [
-    ("n",), ("payload",), ("payload", "encoding"), ("payload", "bytes_per_primitive"), ("payload", "layout"),
-    ("payload", "sha256"), ("payload", "quant"), ("grid",), ("grid", "shape_xyz"), ("grid", "spacing"),
-    ("grid", "origin"), ("values",), ("values", "min"), ("values", "max"), ("source",), ("source", "bytes"),
-    ("source", "itemsize"), ("source", "dtype"), ("encoding",), ("encoding", "stride"), ("transfer_function",),
-    ("transfer_function", "lut_rgba8"), ("transfer_function", "opacity"), ("name",), ("seed",),
+    ("n",),
+    ("payload",),
+    ("payload", "encoding"),
+    ("payload", "bytes_per_primitive"),
+    ("payload", "layout"),
+    ("payload", "sha256"),
+    ("payload", "quant"),
+    ("grid",),
+    ("grid", "shape_xyz"),
+    ("grid", "spacing"),
+    ("grid", "origin"),
+    ("values",),
+    ("values", "min"),
+    ("values", "max"),
+    ("source",),
+    ("source", "bytes"),
+    ("source", "itemsize"),
+    ("source", "dtype"),
+    ("encoding",),
+    ("encoding", "stride"),
+    ("transfer_function",),
+    ("transfer_function", "lut_rgba8"),
+    ("transfer_function", "opacity"),
+    ("name",),
+    ("seed",),
 ]
 SHAPES = st.lists(st.integers(-3, 2**40), min_size=0, max_size=4)
 

@@ -124,8 +124,25 @@ def _forward(raw, points, partners, target, weight, occupied, anchor_target, lam
     }
     terms["total"] = float(sum(terms[k] for k in TERMS))
     return {
-        "terms": terms, "P": P, "Pp": Pp, "w": w, "a": a, "ls": ls, "q": q, "rho": rho, "num": num,
-        "D": D, "vt": vt, "rho_p": rho_p, "t": t, "om": om, "o": o, "c": c, "anc": anc, "M": M, "n": n,
+        "terms": terms,
+        "P": P,
+        "Pp": Pp,
+        "w": w,
+        "a": a,
+        "ls": ls,
+        "q": q,
+        "rho": rho,
+        "num": num,
+        "D": D,
+        "vt": vt,
+        "rho_p": rho_p,
+        "t": t,
+        "om": om,
+        "o": o,
+        "c": c,
+        "anc": anc,
+        "M": M,
+        "n": n,
     }
 
 

@@ -94,11 +94,13 @@ def test_binned_and_dense_float32_agree_at_high_overlap(cpu, record_property):
     n = 4_000
     c = np.array([10.0, 10.0, 10.0])
     # two size classes (two cell levels) plus a few huge primitives in the global level
-    p = np.concatenate([
-        overlapping(rng, n // 2, c, 2.0, (math.log(1.6), math.log(2.0))),
-        overlapping(rng, n // 2 - 10, c, 2.0, (math.log(6.0), math.log(8.0))),
-        overlapping(rng, 10, c, 2.0, (math.log(40.0), math.log(60.0))),
-    ])
+    p = np.concatenate(
+        [
+            overlapping(rng, n // 2, c, 2.0, (math.log(1.6), math.log(2.0))),
+            overlapping(rng, n // 2 - 10, c, 2.0, (math.log(6.0), math.log(8.0))),
+            overlapping(rng, 10, c, 2.0, (math.log(40.0), math.log(60.0))),
+        ]
+    )
     gf = GaussianField(p, (20, 20, 20), cpu)
     assert len(gf.plan.sizes) >= 3
     pts = (c + rng.uniform(-1.5, 1.5, (48, 3))).astype(np.float32)
@@ -156,8 +158,14 @@ def test_gradient_scatter_at_high_overlap_matches_float64(cpu, record_property):
 
     lam_ref = dict(lam, log_cap=math.log(8.0), log_min=math.log(0.3), log_aniso=math.log(3.0))
     ref = loss_ref.analytic_gradient(
-        raw.astype(np.float64), pts.astype(np.float64), partners.astype(np.float64), target.astype(np.float64),
-        weight.astype(np.float64), occupied, np.zeros(n), lam_ref,
+        raw.astype(np.float64),
+        pts.astype(np.float64),
+        partners.astype(np.float64),
+        target.astype(np.float64),
+        weight.astype(np.float64),
+        occupied,
+        np.zeros(n),
+        lam_ref,
     )
     worst = 0.0
     for cols in (slice(0, 3), slice(3, 6), slice(6, 10), slice(10, 11), slice(11, 12)):

@@ -98,8 +98,7 @@ def assert_valid_model(m, budget, shape_zyx, *, min_psnr=None):
         (np.zeros((8, 8), np.float32), 1, "3D"),
         (np.zeros((2, 2, 2, 2), np.float32), 1, "3D"),
     ],
-    ids=["constant", "all-nan", "all-inf", "one-voxel", "interior-spike", "budget-0", "budget-negative", "bool",
-         "complex", "2d", "4d"],
+    ids=["constant", "all-nan", "all-inf", "one-voxel", "interior-spike", "budget-0", "budget-negative", "bool", "complex", "2d", "4d"],
 )
 def test_refused_with_a_clear_message(volume, budget, match):
     with pytest.raises(WarpgaussError, match=match) as e:
@@ -210,8 +209,7 @@ def test_normalisation_is_exact_without_overflow(name):
     np.testing.assert_allclose(back.astype(np.float64), v.astype(np.float64), rtol=1e-6, atol=1e-6 * big)
 
 
-@pytest.mark.parametrize("name", ["log-range 1e-30..1e30 f64", "f32 extremes", "f64 extremes", "f32 denormals",
-                                  "f64 denormals"])
+@pytest.mark.parametrize("name", ["log-range 1e-30..1e30 f64", "f32 extremes", "f64 extremes", "f32 denormals", "f64 denormals"])
 def test_extreme_ranges_encode_and_decode_in_source_units(name):
     v, _ = CASES[name]
     budget = 2 if name.startswith("log") else 12  # the log range leaves 2 voxels above 0.02
@@ -296,9 +294,7 @@ def ocean(shape_zyx=(6, 24, 32), fill=np.float32(9.96921e36)):
     z, y, x = np.meshgrid(np.arange(nz), np.linspace(-70, 70, ny), np.arange(nx), indexing="ij")
     temp = 28 * np.cos(np.radians(y)) ** 2 * np.exp(-z / 4.0) + 2 - 0.1 * z + 0.5 * np.sin(x / 3.0)
     lon = np.arange(nx)
-    land2d = (np.abs(lon[None, :] - 10) < 3 + 2 * np.cos(np.linspace(0, 6, ny))[:, None]) | (
-        np.abs(np.linspace(-70, 70, ny))[:, None] > 60
-    )
+    land2d = (np.abs(lon[None, :] - 10) < 3 + 2 * np.cos(np.linspace(0, 6, ny))[:, None]) | (np.abs(np.linspace(-70, 70, ny))[:, None] > 60)
     coast = np.minimum(np.abs(lon - 10) - 3, 30)[None, :]  # distance to the continent, in columns
     floor = np.broadcast_to(coast, (ny, nx)) * 0.8  # depth levels available
     land = land2d[None] | (np.arange(nz)[:, None, None] > floor[None])
@@ -347,8 +343,17 @@ def test_fill_value_at_the_minimum_is_masked_not_normalised():
 
 @pytest.mark.parametrize(
     "shape_zyx, budget",
-    [((1, 12, 12), 20), ((2, 12, 12), 20), ((12, 12, 1), 20), ((12, 1, 12), 20), ((1, 1, 16), 4),
-     ((3, 7, 29), 20), ((2, 2, 2), 1), ((1, 1, 2), 1), ((4, 4, 4), 8)],
+    [
+        ((1, 12, 12), 20),
+        ((2, 12, 12), 20),
+        ((12, 12, 1), 20),
+        ((12, 1, 12), 20),
+        ((1, 1, 16), 4),
+        ((3, 7, 29), 20),
+        ((2, 2, 2), 1),
+        ((1, 1, 2), 1),
+        ((4, 4, 4), 8),
+    ],
     ids=lambda s: "x".join(map(str, s)) if isinstance(s, tuple) else f"n{s}",
 )
 def test_thin_tiny_and_non_cubic_volumes(shape_zyx, budget):

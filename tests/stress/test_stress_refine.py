@@ -65,9 +65,7 @@ def test_10000_iterations_without_nan():
 @pytest.mark.parametrize("lr", [1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0])
 def test_learning_rates_from_1e_5_to_1(lr):
     vol = field8()
-    m = warpgauss.encode(
-        vol, budget=12, iterations=150, samples=128, device="cpu", seed=0, full_eval=True, refine=RefineConfig(lr=lr)
-    )
+    m = warpgauss.encode(vol, budget=12, iterations=150, samples=128, device="cpu", seed=0, full_eval=True, refine=RefineConfig(lr=lr))
     assert_model_ok(m.params)
     r = m.report["refinement"]
     assert r["skipped_nonfinite_updates"] == 0
@@ -120,8 +118,12 @@ DEGENERATE = {
     "quaternion -> 1e30": _set(slice(6, 10), 1e30),
     "weights -> 0 (logit -50)": _set(11, -50.0),
     "weights -> 1 (logit +50)": _set(11, 50.0),
-    "all at once": lambda raw: [_set(slice(3, 6), -50.0, slice(0, 3))(raw), _set(slice(3, 6), 46.0, slice(3, 6))(raw),
-                                _set(slice(6, 10), 0.0)(raw), _set(11, -50.0)(raw)],
+    "all at once": lambda raw: [
+        _set(slice(3, 6), -50.0, slice(0, 3))(raw),
+        _set(slice(3, 6), 46.0, slice(3, 6))(raw),
+        _set(slice(6, 10), 0.0)(raw),
+        _set(11, -50.0)(raw),
+    ],
 }
 
 

@@ -22,7 +22,7 @@ CODED_BPP_MEASURED = (7.6, 15.2)
 CODED_BPP_SIZING = 12  # bytes per primitive a coded file needs at most in practice (the "no room" check)
 CODED_BPP_FLOOR = 4  # and at least: bounds N before its coded size is measured
 # coded bytes per primitive of a refined model over its analytic allocation's: 1.19 / 1.22 / 1.22 /
-# 1.34 on mni_icbm152 / inia19 / mean_reg2mean / nAChR water (benchmarks/results/i18_coded_cpu.json).
+# 1.34 on mni_icbm152 / inia19 / mean_reg2mean / nAChR water (benchmarks/results/rate_distortion/coded_loss_mri_cpu.json).
 # N is sized a little below the median, so that a file rather comes out a few per cent over its
 # budget, which pruning the least important primitives trims to within a primitive of it, than
 # under it, which nothing after refinement can fill (coded.fit_bytes)
@@ -32,7 +32,7 @@ CODED_REFINE_GROWTH = 1.15
 # that accurate needs (coded.bits_for_psnr), since an accurate model that must drop bits to fit
 # loses more than the primitives cost. Measured on vortex 512^3 at ratio 100: N sized for the
 # default depths (907,190) refined to 70.2 dB in float and 55.9 dB once fitted (mu at 0 bits);
-# the float model at half that N scores 71.2 dB (benchmarks/results/i18_sizing_h100.json)
+# the float model at half that N scores 71.2 dB (benchmarks/results/rate_distortion/sizing_vortex512_h100.json)
 CODED_REFINE_GAIN_DB = 12.0
 
 

@@ -121,12 +121,12 @@ class RefineConfig:
             grids while Adam steps the unquantised ones (straight-through).
         quantise_mode: "straight-through" (see ``quantise``) or "refit": at ``quantise_from``
             the centres, scales and rotations move onto their grids and stay, and the remaining
-            iterations refit a and w to them. Measured (i18_coded_cpu.json): refit from 80 %
+            iterations refit a and w to them. Measured (rate_distortion/coded_loss_mri_cpu.json): refit from 80 %
             recovers 1.2 of 2.1 dB on a 51 dB synthetic model at fixed grids, but loses 0.34 /
             0.30 dB on mni_icbm152 / mean_reg2mean where the single projection loses 0.10 / 0.28.
         quantise_from: Share of the iterations after which refinement is quantisation-aware.
             1.0 (the default) projects once, after the last iteration: measured on two head
-            MRIs (600 iterations, CPU, ``benchmarks/results/i18_coded_cpu.json``), refining the
+            MRIs (600 iterations, CPU, ``benchmarks/results/rate_distortion/coded_loss_mri_cpu.json``), refining the
             last fifth straight-through lost 0.93 / 0.72 dB against the float model where the
             single projection lost 0.38 / 0.11 dB, and projecting at every re-bin of the last
             fifth lost 0.44 dB on the first.
@@ -181,7 +181,7 @@ class RefineConfig:
         128,000 Gaussians on smooth fields (vortex 1024^3: 53.4 against 59.6 dB); 4x the samples
         (12,288, what the primitive rule gives at 1.4M) reach 60.1 dB, +1.8 to +8.9 dB on the
         four example fields at 512^3 and 1024^3, for 1.5-2.0x the refinement time. The device
-        rule (``benchmarks/results/i18_sweep_*_h100.json``, three head MRIs of 4.4-11.5M voxels
+        rule (``benchmarks/results/refine/samples_sweep_*_h100.json``, three head MRIs of 4.4-11.5M voxels
         at ratio 100, coded): 3,072 -> 16,384 -> 65,536 samples gained +1.2 to +1.9 dB, then
         -0.3 to +0.6 dB, and 131,072 another 0.1-0.2 dB; refinement 1.9-4.0 s at 3,072 and
         4.6-10.0 s at 65,536. On the CPU (one thread runs a kernel) the primitive rule alone.

@@ -4,16 +4,15 @@ For each (model, source volume) pair: full-grid PSNR of the model as stored in f
 the same model through the coded quantiser at several bit allocations, with the coded payload's
 bytes per primitive (payload only, and with the header). Writes JSON.
 
-    python3 benchmarks/i18/coded_loss.py OUT.json MODEL.wgs:VOLUME [...]
+    python3 benchmarks/rate_distortion/coded_loss.py OUT.json MODEL.wgs:VOLUME [...]
 """
-import datetime as dt
+
 import json
 import sys
 
-import numpy as np
-
 import warpgauss
 from warpgauss import coded
+from warpgauss.bench import result_header
 from warpgauss.model import Model
 from warpgauss.wgs import wgs_bytes
 
@@ -58,9 +57,21 @@ for pair in pairs:
         mq = Model(q, m.header)
         p = warpgauss.psnr(mq, vol, full=True, device="cpu")
         total = len(wgs_bytes(m.params, m.header, encoding="coded")) if name == "default" else None
-        row["variants"][name] = {"bits": bits, "payload_bytes_per_primitive": len(payload) / m.n, "psnr_db": p, "loss_db": base - p,
-                                 "raw_bytes_per_primitive": quant["raw_bytes"] / m.n, "file_bytes": total}
-        print(f"  {name:8s} {len(payload) / m.n:6.2f} B/prim  {p:7.3f} dB  loss {base - p:6.3f}" + (f"  file {total}" if total else ""), flush=True)
+        row["variants"][name] = {
+            "bits": bits,
+            "payload_bytes_per_primitive": len(payload) / m.n,
+            "psnr_db": p,
+            "loss_db": base - p,
+            "raw_bytes_per_primitive": quant["raw_bytes"] / m.n,
+            "file_bytes": total,
+        }
+        print(
+            f"  {name:8s} {len(payload) / m.n:6.2f} B/prim  {p:7.3f} dB  loss {base - p:6.3f}" + (f"  file {total}" if total else ""),
+            flush=True,
+        )
     rows.append(row)
-json.dump({"benchmark": "coded format: bytes per primitive and PSNR loss (full grid) against float32",
-           "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"), "rows": rows}, open(out, "w"), indent=1)
+json.dump(
+    {**result_header("coded format: bytes per primitive and PSNR loss (full grid) against float32", __file__, None, "cpu"), "rows": rows},
+    open(out, "w"),
+    indent=1,
+)

@@ -1,18 +1,17 @@
 """Per-kernel GPU time of one full-grid decode (brick lists) of the bench's 1.4M model at 1024^3,
 and the list statistics (entries per brick, candidates per contributing pair).
 
-    python3 benchmarks/i17/decode_prof.py SIZE N OUT.json
+    python3 benchmarks/kernels/decode_prof.py SIZE N OUT.json
 """
+
 import json
 import sys
 import time
 from collections import defaultdict
 
-import numpy as np
-
 from warpgauss import bench as B
-from warpgauss._warp import device_name, warp
-from warpgauss.bench import bench_field, bench_primitives
+from warpgauss._warp import warp
+from warpgauss.bench import bench_field, bench_primitives, result_header
 from warpgauss.field import GaussianField
 
 wp = warp()
@@ -30,8 +29,13 @@ wall = time.perf_counter() - t0
 per = defaultdict(float)
 for t in wp.timing_end():
     per[t.name] += t.elapsed
-res = {"device_name": device_name(dev), "warp_version": wp.config.version, "date": time.strftime("%Y-%m-%dT%H:%M:%S"), "size": size, "n": n,
-       "wall_s": wall, "kernel_ms": dict(sorted(per.items(), key=lambda kv: -kv[1]))}
+res = {
+    **result_header("decode by kernel (brick lists)", __file__, None, dev),
+    "size": size,
+    "n": n,
+    "wall_s": wall,
+    "kernel_ms": dict(sorted(per.items(), key=lambda kv: -kv[1])),
+}
 counts = gf._decode_bufs["counts"].numpy()
 res["entries_per_brick_last_slab_mean"] = float(counts.mean())
 for k, v in list(res["kernel_ms"].items())[:8]:

@@ -5,18 +5,17 @@ iterations=I, samples=S)`` with the default (coded) format, full-grid PSNR of th
 the refinement seconds (stage S2) and the encode's wall seconds (kernels compiled beforehand).
 The JSON is rewritten after every row.
 
-    python benchmarks/i18/samples_sweep.py --device cuda:0 --volumes .wk/npz/*.npz \\
+    python benchmarks/refine/samples_sweep.py --device cuda:0 --volumes /tmp/vol/*.npz \\
         --fields vortex:512,interface:512 --ratios 100 --grid 1500x3072,1500x32768 --out $OUT/sweep.json
 
 Volumes: ``.npz`` files holding one array ``v`` (the real MRIs, saved from ``../shared/data`` with
-numpy because the GPU host has no pyvista; the source dtype is kept, so ratios are the same) and
+numpy because the GPU host has no pyvista: ``benchmarks/bench_rd.py --volume-dir`` writes them; the source dtype is kept, so ratios are the same) and
 example fields ``name:size`` generated on the device.
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import os
 import time
@@ -25,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss._warp import device_name, resolve_device, warp
+from warpgauss._warp import resolve_device
+from warpgauss.bench import result_header
 from warpgauss.synthetic import generate
 
 
@@ -53,17 +53,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--device", default="cuda:0")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    wp = warp()
     dev = resolve_device(args.device)
     t0 = time.perf_counter()
     warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64)
     result = {
-        "benchmark": "samples x iterations at a fixed ratio, default (coded) format, full-grid PSNR",
-        "command": "python benchmarks/i18/samples_sweep.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
-        "device": dev,
-        "device_name": device_name(dev),
-        "warp_version": wp.config.version,
-        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        **result_header("samples x iterations at a fixed ratio, default (coded) format, full-grid PSNR", __file__, argv, dev),
         "warmup_seconds": time.perf_counter() - t0,
         "rows": [],
     }
@@ -105,8 +99,11 @@ def main(argv=None) -> dict:
                     "stages": stages,
                 }
                 result["rows"].append(row)
-                print(f"{label} CR {ratio:g} N {model.n} {row['iterations']} x {row['samples']}: {row['psnr_db']:.2f} dB, "
-                      f"S2 {row['refine_s']:.2f} s, wall {wall:.2f} s", flush=True)
+                print(
+                    f"{label} CR {ratio:g} N {model.n} {row['iterations']} x {row['samples']}: {row['psnr_db']:.2f} dB, "
+                    f"S2 {row['refine_s']:.2f} s, wall {wall:.2f} s",
+                    flush=True,
+                )
                 _write(result, args.out)
                 del model
         del vol

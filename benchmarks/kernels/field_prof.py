@@ -1,8 +1,9 @@
 """Per-kernel GPU time of refinement iterations on an example field (Warp activity timing, no
 graph), the pair-pass statistics, and a real run's CPU-side time per step (where the host waits).
 
-    python3 benchmarks/i17/field_prof.py FIELD SIZE N SAMPLES OUT.json [RUN_ITERATIONS]
+    python3 benchmarks/kernels/field_prof.py FIELD SIZE N SAMPLES OUT.json [RUN_ITERATIONS]
 """
+
 import json
 import sys
 import time
@@ -10,9 +11,10 @@ from collections import defaultdict
 
 import numpy as np
 
-from warpgauss._warp import device_name, warp
+from warpgauss._warp import warp
 from warpgauss.allocate import AllocationConfig, allocate
 from warpgauss.analysis import DeviceVolume, normalise
+from warpgauss.bench import result_header
 from warpgauss.optimize import RefineConfig, Refiner
 from warpgauss.profiling import StageRecorder
 from warpgauss.synthetic import generate
@@ -25,7 +27,7 @@ dv = DeviceVolume(f, dev)
 ac = AllocationConfig()
 params, _ = allocate(dv, n, 0, ac, StageRecorder())
 cap = ac.resolved_cap(f.shape_xyz)
-res = {"device_name": device_name(dev), "warp_version": wp.config.version, "date": time.strftime("%Y-%m-%dT%H:%M:%S"), "field": name, "size": size, "n": n, "samples": m}
+res = {**result_header("refinement by kernel on an example field", __file__, None, dev), "field": name, "size": size, "n": n, "samples": m}
 r = Refiner(dv, params, RefineConfig(iterations=1500, samples=m), 0, ac.scale_min, cap)
 r.use_graph = False
 for _ in range(25):
@@ -55,6 +57,8 @@ r2 = Refiner(dv, params, RefineConfig(iterations=int(sys.argv[6]) if len(sys.arg
 marks = []
 last = [time.perf_counter(), r2.plan]
 late = defaultdict(float)
+
+
 def after(rr):
     if rr.iteration == 1000:  # per-kernel time late in the run (plain launches for the timing)
         rr.use_graph = False
@@ -66,6 +70,8 @@ def after(rr):
     t = time.perf_counter()
     marks.append((rr.iteration, 1000 * (t - last[0]), rr.plan is not last[1], rr._graph is None))
     last[0], last[1] = t, rr.plan
+
+
 wp.synchronize()
 t0 = time.perf_counter()
 r2.run(after_step=after)
@@ -80,6 +86,15 @@ res["late_kernel_ms_per_step_total"] = sum(late.values())
 for k, v in list(res["late_kernel_ms_per_step"].items())[:12]:
     print(f"late {v:9.3f} ms  {k}")
 print("late total", res["late_kernel_ms_per_step_total"])
-for k in ("plan_sizes", "point_grid_sizes", "radius_quantiles", "pair_pass", "run_seconds", "run_host_ms_median", "run_plan_changes", "run_slowest_steps"):
+for k in (
+    "plan_sizes",
+    "point_grid_sizes",
+    "radius_quantiles",
+    "pair_pass",
+    "run_seconds",
+    "run_host_ms_median",
+    "run_plan_changes",
+    "run_slowest_steps",
+):
     print(k, res[k])
 json.dump(res, open(out, "w"), indent=1)

@@ -2,17 +2,18 @@
 per-step wall times over 200 steps (re-bins every 10, re-plans every 100), and a real run's
 ms/iteration (Refiner.run) against the bench's step median.
 
-    python3 benchmarks/i17/iter_prof.py SIZE N SAMPLES OUT.json
+    python3 benchmarks/kernels/iter_prof.py SIZE N SAMPLES OUT.json
 """
+
 import json
 import sys
 import time
 
 import numpy as np
 
-from warpgauss._warp import device_name, warp
+from warpgauss._warp import warp
 from warpgauss.analysis import DeviceVolume
-from warpgauss.bench import _Timer, bench_field, bench_primitives
+from warpgauss.bench import _Timer, bench_field, bench_primitives, result_header
 from warpgauss.optimize import RefineConfig, Refiner
 
 wp = warp()
@@ -36,8 +37,14 @@ parts = {
     "rebin": r.rebin,
     "rebin+replan": lambda: r.rebin(replan=True),
 }
-res = {"device_name": device_name(dev), "warp_version": wp.config.version, "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
-       "size": size, "n": n, "samples": m, "uniform_support": bool(r.uniform_support), "parts_ms": {}}
+res = {
+    **result_header("where a refinement iteration's time goes beyond the kernels", __file__, None, dev),
+    "size": size,
+    "n": n,
+    "samples": m,
+    "uniform_support": bool(r.uniform_support),
+    "parts_ms": {},
+}
 for k, fn in parts.items():
     res["parts_ms"][k] = T.ms(fn, 10)
     res["parts_ms"][k + " wall"] = T.wall_ms(fn, 10)
