@@ -276,6 +276,43 @@ def encode(
     weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
     variables = list(variable or [])
     one_variable = variables[0] if len(variables) == 1 else None
+    read = ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value)
+    from warpgauss.driver.config import EncodeConfig
+
+    cfg = EncodeConfig.from_kwargs(  # every path below takes its settings from here
+        budget=budget,
+        ratio=ratio,
+        file_bytes=file_bytes,
+        seed=seed,
+        device=device,
+        iterations=iterations,
+        samples=samples,
+        preset=preset,
+        refine=RefineConfig(lr=lr, weights=weights),
+        self_test=not no_self_test,
+        time_budget=time_budget,
+        checkpoint=checkpoint,
+        checkpoint_every=checkpoint_every,
+        resume=resume,
+        target_psnr=target_psnr,
+        plateau_db=plateau,
+        compact=compact,
+        format=fmt,
+        example=example,
+        example_size=size,
+        read=read,
+        full_eval=full_eval,
+        force=force,
+        analytic_output=save_analytic,
+        bricks=bricks,
+        halo=halo,
+        max_device_memory=max_device_memory,
+        max_host_memory=max_host_memory,
+        motion=motion,
+        max_error=max_error,
+        max_error_rel=max_error_rel,
+        residual_psnr=psnr,
+    )
     series = input is not None and not input.exists() and any(c in str(input) for c in "*?[")
     if input is not None and not series and (len(variables) > 1 or input.exists()):
         from warpgauss.series import time_steps
@@ -290,37 +327,7 @@ def encode(
     if series:
         if ladder is not None or resume or save_analytic is not None or bricks is not None or bounded:
             fail("a series does not combine with --ladder, --resume, --save-analytic, --bricks, --max-error or --psnr yet")
-        _encode_series(
-            str(input),
-            variables,
-            (workers, scheduler),
-            output,
-            dict(
-                budget=budget,
-                ratio=ratio,
-                file_bytes=file_bytes,
-                seed=seed,
-                device=device,
-                iterations=iterations,
-                samples=samples,
-                preset=preset,
-                refine=RefineConfig(lr=lr, weights=weights),
-                target_psnr=target_psnr,
-                plateau_db=plateau,
-                self_test=not no_self_test,
-                compact=compact,
-                format=fmt,
-                full_eval=full_eval,
-                time_budget=time_budget,
-                motion=motion,
-            ),
-            ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value),
-            cold,
-            warm_iterations,
-            keyframe_drift,
-            as_json,
-            force,
-        )
+        _encode_series(str(input), variables, (workers, scheduler), output, cfg, cold, warm_iterations, keyframe_drift, as_json)
         return
     if input is not None and not input.exists():
         fail(f"no such file: {input}")
@@ -341,27 +348,7 @@ def encode(
             fail(
                 "--ladder gives the budgets: it does not combine with --budget, --ratio, --bytes, --time-budget, --resume or --save-analytic"
             )
-        _encode_ladder(
-            ladder,
-            input,
-            out,
-            example,
-            size,
-            seed,
-            device,
-            iterations,
-            samples,
-            preset,
-            RefineConfig(lr=lr, weights=weights),
-            (target_psnr, plateau),
-            not no_self_test,
-            compact,
-            fmt,
-            ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value),
-            full_eval,
-            as_json,
-            force,
-        )
+        _encode_ladder(ladder, input, out, cfg, as_json)
         return
     status = None if as_json else err_console.status("starting", spinner="dots")
     if status is not None:
@@ -377,7 +364,7 @@ def encode(
     ):
         fail("--halo, --workers and --scheduler apply to a bricked encode: give --bricks XxYxZ (--halo also --max-device-memory)")
     if bricks is not None:
-        from warpgauss.bricked import parse_bricks
+        from warpgauss.brickplan import parse_bricks
         from warpgauss.cluster import default_client
 
         parse_bricks(bricks)  # refused in one line before a cluster starts
@@ -385,9 +372,7 @@ def encode(
             fail(f"--halo must be >= 0 voxels, got {halo}")
         from warpgauss.driver.bricked import check_bricking
 
-        check_bricking(
-            input, ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value), example, size, bricks, halo
-        )
+        check_bricking(input, read, example, size, bricks, halo)
         client, where = default_client(workers, scheduler, device)
         if status is not None:
             status.console.print(f"bricks {bricks}: {where}", highlight=False)
@@ -399,43 +384,12 @@ def encode(
     try:
         model = warpgauss.encode(
             input,
-            budget=budget,
-            ratio=ratio,
-            file_bytes=file_bytes,
-            seed=seed,
-            device=device,
-            iterations=iterations,
-            samples=samples,
-            preset=preset,
-            refine=RefineConfig(lr=lr, weights=weights),
-            self_test=not no_self_test,
-            time_budget=time_budget,
-            checkpoint=checkpoint,
-            checkpoint_every=checkpoint_every,
-            resume=resume,
-            target_psnr=target_psnr,
-            plateau_db=plateau,
-            compact=compact,
-            format=fmt,
-            example=example,
-            example_size=size,
-            read=ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value),
-            full_eval=full_eval,
-            output=out,
-            force=force,
+            **cfg.replace(output=out).to_kwargs(),
             on_stage=None if status is None else lambda name, title: status.update(f"[bold]{name}[/] {title}"),
             on_stats=None if status is None else lambda s: status.console.print(_stats_line(s)),
             on_progress=None if status is None else progress,
-            analytic_output=save_analytic,
-            bricks=bricks,
-            halo=halo,
             client=client,
             on_bricks=brick_progress,
-            max_device_memory=max_device_memory,
-            max_host_memory=max_host_memory,
-            max_error=max_error,
-            max_error_rel=max_error_rel,
-            residual_psnr=psnr,
         )
     finally:
         if status is not None:
@@ -465,30 +419,14 @@ def encode(
         raise typer.Exit(130)
 
 
-def _encode_ladder(
-    text,
-    input,
-    out,
-    example,
-    size,
-    seed,
-    device,
-    iterations,
-    samples,
-    preset,
-    refine,
-    stops,
-    self_test,
-    compact,
-    fmt,
-    read,
-    full_eval,
-    as_json,
-    force,
-) -> None:
+def _encode_ladder(text, input, out, cfg, as_json) -> None:
+    """``warpgauss encode --ladder N1,N2,...``: one model and report per budget (see warpgauss.encode_ladder)."""
+    import inspect
+
     import warpgauss
     from warpgauss._fs import atomic_write_bytes, check_writable
 
+    force = cfg.run.force
     budgets = parse_int_list(text, "--ladder") or ()
     pattern = str(out.with_name(f"{out.stem}.n{{n}}{out.suffix or '.wgs'}"))
     for n in sorted(set(budgets)):
@@ -497,26 +435,12 @@ def _encode_ladder(
     if status is not None:
         status.start()
     try:
+        takes = inspect.signature(warpgauss.encode_ladder).parameters
         models = warpgauss.encode_ladder(
             input,
             budgets=budgets,
             output_pattern=pattern,
-            force=force,
-            seed=seed,
-            device=device,
-            iterations=iterations,
-            samples=samples,
-            preset=preset,
-            refine=refine,
-            target_psnr=stops[0],
-            plateau_db=stops[1],
-            self_test=self_test,
-            compact=compact,
-            format=fmt,
-            example=example,
-            example_size=size,
-            read=read,
-            full_eval=full_eval,
+            **{k: v for k, v in cfg.to_kwargs().items() if k in takes},  # the command line refused the others already
             on_stage=None if status is None else lambda name, title: status.update(f"[bold]{name}[/] {title}"),
         )
     finally:
@@ -565,13 +489,11 @@ def _encode_series(
     variables: list[str],
     cluster: tuple,
     output,
-    kw: dict,
-    read,
+    cfg,
     cold: bool,
     warm_iterations,
     keyframe_drift: float | None,
     as_json: bool,
-    force: bool,
 ) -> None:
     """``warpgauss encode 'GLOB'`` (or a file with a time axis, or several --variable): one model
     and report per timestep and variable (see warpgauss.encode_series)."""
@@ -579,6 +501,21 @@ def _encode_series(
     from warpgauss._fs import atomic_write_bytes
     from warpgauss.series import KEYFRAME_DRIFT_DB
 
+    read, force = cfg.reading.read, cfg.run.force
+    # what a series sets per timestep (output, warm start) or passes on its own (read, force); the
+    # command line refused the options a series does not take (bricks, bounds, resume, --save-analytic)
+    per_step = (
+        "read",
+        "force",
+        "output",
+        "example",
+        "example_size",
+        "checkpoint",
+        "checkpoint_every",
+        "max_device_memory",
+        "max_host_memory",
+    )
+    kw = {k: v for k, v in cfg.to_kwargs().items() if k not in per_step}
     out = output or Path("series.wgs")
     name = str(out)
     if len(variables) > 1 and "{var" not in name:

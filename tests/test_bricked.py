@@ -12,17 +12,8 @@ import pytest
 
 import warpgauss
 from warpgauss.analysis import normalise, seed_limit
-from warpgauss.bricked import (
-    brick_colour,
-    brick_fields,
-    brick_tasks,
-    encode_brick,
-    parse_bricks,
-    plan_bricks,
-    run_bricks,
-    split_bricks,
-    wave_tasks,
-)
+from warpgauss.bricked import brick_colour, brick_fields, brick_tasks, encode_brick, run_bricks, wave_tasks
+from warpgauss.brickplan import parse_bricks, plan_bricks, split_bricks
 from warpgauss.errors import WarpgaussError
 from warpgauss.synthetic import generate
 
@@ -242,7 +233,7 @@ def test_a_killed_worker_is_survived_and_a_brick_failing_twice_fails_the_run(tmp
 def test_seams_are_within_1_db_of_the_interior():
     """Issue #20's seam criterion on the CPU: PSNR on the voxels within 2 voxels of an inner brick
     face at most 1.5 dB below the rest (vortex: no feature of its own sits on the centre planes)."""
-    from warpgauss.bricked import face_band
+    from warpgauss.brickplan import face_band
 
     v = generate("vortex", 32)
     f = normalise(v)
@@ -392,12 +383,12 @@ def test_a_bricking_the_volume_cannot_take_is_refused_before_a_cluster_starts(tm
 def test_the_bricks_statistics_on_a_thread_pool_equal_one_brick_at_a_time():
     """split_bricks takes the bricks' statistics on a pool of threads (each box's slabs on the
     cores left to it): the same numbers, bit for bit, as one brick at a time with its own slabs."""
-    from warpgauss.bricked import _brick_stats
+    from warpgauss.brickplan import brick_stats
 
     f = normalise(generate("interface", 40))
     bricks = plan_bricks(f.shape_xyz, (3, 2, 2), 3)
     _, stats = split_bricks(f, bricks, 500)
     for b, st in zip(bricks, stats):
-        alone = _brick_stats(f, b)
+        alone = brick_stats(f, b)
         assert {k: st[k] for k in alone} == alone
     assert sum(st["occupied"] for st in stats) > 0 and all(st["grad_sum"] > 0 for st in stats)

@@ -9,7 +9,7 @@ import pytest
 
 import warpgauss
 from warpgauss.analysis import normalise
-from warpgauss.bricked import choose_bricks
+from warpgauss.brickplan import choose_bricks
 from warpgauss.errors import WarpgaussError
 from warpgauss.io import read_volume
 from warpgauss.lazy import LazyValues, is_lazy

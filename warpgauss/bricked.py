@@ -9,7 +9,7 @@ beside the finished neighbours' primitives that reach its box (frozen: evaluated
 and beside stand-ins for the neighbours still to come (seeded in their part of the halo at the
 density the budget rule gives there, refined, then dropped). The merged model holds only the
 bricks' own primitives: exactly N. A brick caps sigma by the primitive spacing and its default
-halo is twice that cap (:func:`brick_cap`, :func:`default_halo`). Measured
+halo is twice that cap (:func:`warpgauss.brickplan.brick_cap`, :func:`~warpgauss.brickplan.default_halo`). Measured
 (``benchmarks/bricked/README_issue20.md``, H100, 2x2x2): without the frozen neighbours and stand-ins a
 bricking lost 15.7 dB on a 512^3 vortex and 11.5 dB on the interface; with them and the cap,
 -0.35 / +0.33 dB at 512^3 and -0.38 / +0.71 dB at 1024^3, in 2.4-3.2x the monolithic time.
@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
 import time
 from collections.abc import Generator
 from dataclasses import dataclass
@@ -41,125 +40,13 @@ from typing import Any
 import numpy as np
 
 from .allocate import AllocationConfig
-from .analysis import OCCUPIED, Field, count_seed_candidates, seed_limit, split_budget
-from .errors import WarpgaussError
-from .limits import HOST_BYTES_PER_VOXEL, brick_device_bytes, default_device_limit
+from .analysis import Field, count_seed_candidates, seed_limit
+from .brickplan import Brick, grad_sum
+from .limits import brick_device_bytes, default_device_limit
 from .refine.config import RefineConfig
 from .together import finish
 
-DEFAULT_HALO = 4  # voxels on each side at least (see default_halo)
-CAP_SPACING = 1.25  # a brick's sigma cap in units of the mean primitive spacing (see brick_cap)
-
-
-def brick_cap(cap: float, shape_xyz, n: int) -> float:
-    """A brick's sigma cap: the monolithic cap ``cap``, at most :data:`CAP_SPACING` x the mean
-    primitive spacing (voxels / n)^(1/3) (at least 2 voxels), so that primitives reach (2 sigma)
-    no further past a brick's faces than its halo (:func:`default_halo`) holds samples. Measured
-    (H100, N 400,000, halo 16, ``results/bricked/bricked512_caps_h100.json``): on a 512^3 vortex the
-    bricked encode with the monolithic cap (32 voxels) scored 68.02 dB against 71.51; with cap 8
-    (1.16 spacings) 71.50 against the monolithic's 72.10 at cap 8. On 48^3 fields with 1,500
-    Gaussians (spacing 4.2) a cap of 2 instead of 3 cost the monolithic encode 5.8 dB: the cap
-    must not fall below the spacing."""
-    d = (float(np.prod([int(v) for v in shape_xyz])) / max(int(n), 1)) ** (1.0 / 3.0)
-    return float(min(cap, max(2.0, CAP_SPACING * d)))
-
-
-def default_halo(cap: float) -> int:
-    """The default halo for a brick sigma cap: 2 sigma, at least :data:`DEFAULT_HALO` voxels."""
-    return max(DEFAULT_HALO, int(np.ceil(2.0 * cap)))
-
-
 MIN_BRICK_SAMPLES = 512  # samples per iteration a brick draws at least
-
-
-@dataclass(frozen=True)
-class Brick:
-    """One brick: its index, its interior and its halo box, ``(z, y, x)`` voxel slices as
-    ``(start, stop)`` pairs (interior within the halo box)."""
-
-    index: tuple[int, int, int]
-    interior: tuple[tuple[int, int], ...]
-    box: tuple[tuple[int, int], ...]
-
-    @property
-    def box_voxels(self) -> int:
-        """Voxels in the halo box."""
-        return int(np.prod([hi - lo for lo, hi in self.box]))
-
-    def slices(self, which: str = "box") -> tuple[slice, ...]:
-        return tuple(slice(a, b) for a, b in getattr(self, which))
-
-    def interior_in_box(self) -> tuple[slice, ...]:
-        return tuple(slice(i0 - b0, i1 - b0) for (i0, i1), (b0, _) in zip(self.interior, self.box))
-
-
-def parse_bricks(text) -> tuple[int, int, int]:
-    """'2x2x2' (x, y, z), an int (the same on every axis) or a 3-tuple -> counts (x, y, z)."""
-    counts: tuple[int, ...]
-    if isinstance(text, (int, np.integer)):
-        counts = (int(text),) * 3
-    elif isinstance(text, str):
-        try:
-            counts = tuple(int(p) for p in text.lower().replace(",", "x").split("x"))
-        except ValueError:
-            counts = ()
-    else:
-        counts = tuple(int(c) for c in text)
-    if len(counts) != 3 or min(counts) < 1:
-        raise WarpgaussError(f"--bricks must be three positive integers XxYxZ (e.g. 2x2x2), got {text!r}")
-    return (counts[0], counts[1], counts[2])
-
-
-def plan_bricks(shape_xyz, counts_xyz, halo: int = DEFAULT_HALO) -> list[Brick]:
-    """Bricks of nearly equal size covering the grid (interiors disjoint), each with ``halo``
-    voxels more on every side where the grid allows; x fastest in the list."""
-    if halo < 0:
-        raise WarpgaussError(f"the halo must be >= 0 voxels, got {halo}")
-    shape_zyx = tuple(int(s) for s in shape_xyz)[::-1]
-    counts_zyx = tuple(int(c) for c in counts_xyz)[::-1]
-    for s, c, axis in zip(shape_zyx, counts_zyx, "zyx"):
-        if c > 1 and (c > s or s // c < 2):  # one brick along an axis is that axis whole, however short
-            raise WarpgaussError(f"{c} bricks along {axis} leave fewer than 2 voxels each ({s} voxels); use fewer bricks")
-    edges = [np.linspace(0, s, c + 1).round().astype(int) for s, c in zip(shape_zyx, counts_zyx)]
-    out = []
-    for k in range(counts_zyx[0]):
-        for j in range(counts_zyx[1]):
-            for i in range(counts_zyx[2]):
-                idx = (k, j, i)
-                interior = tuple((int(edges[a][idx[a]]), int(edges[a][idx[a] + 1])) for a in range(3))
-                box = tuple((max(0, lo - halo), min(shape_zyx[a], hi + halo)) for a, (lo, hi) in enumerate(interior))
-                out.append(Brick((i, j, k), interior, box))
-    return out
-
-
-GRAD_SLAB = 8  # z-planes per pass of the |grad V| sums (one pass per thread: their temporaries stay small)
-
-
-def _grad_sum(values: np.ndarray, select: np.ndarray | None, threads: int | None = None) -> float:
-    """Sum of |grad V| (central differences, one-sided at the box's faces) over the occupied voxels
-    of ``select`` (None: all), z-slab by z-slab in float32 on up to ``threads`` threads (default
-    one per core)."""
-    from .analysis import _map_slabs
-
-    nz = values.shape[0]
-
-    def part(z0: int) -> float:
-        z1 = min(nz, z0 + GRAD_SLAB)
-        lo, hi = max(0, z0 - 1), min(nz, z1 + 1)  # one plane more each side: central differences
-        v = np.asarray(values[lo:hi], np.float32)
-        g = np.zeros(v.shape, np.float32)
-        for axis in range(3):
-            if v.shape[axis] > 1:
-                d = np.gradient(v, axis=axis)
-                g += d * d
-        core = slice(z0 - lo, z0 - lo + (z1 - z0))
-        g, v = g[core], v[core]
-        use = v > OCCUPIED
-        if select is not None:
-            use &= select[z0:z1]
-        return float(np.sqrt(g[use], dtype=np.float32).sum(dtype=np.float64))
-
-    return float(sum(_map_slabs(part, nz, GRAD_SLAB, threads)))
 
 
 def _field_meta(f: Field) -> dict[str, Any]:
@@ -173,20 +60,6 @@ def _field_meta(f: Field) -> dict[str, Any]:
         source_dtype=f.source_dtype,
         source_itemsize=f.source_itemsize,
     )
-
-
-def face_band(shape_xyz, bricks: list[Brick], width: int = 2) -> np.ndarray:
-    """Voxels within ``width`` of an inner brick face, (z, y, x) booleans: where seams show."""
-    shape_zyx = tuple(int(s) for s in shape_xyz)[::-1]
-    near = np.zeros(shape_zyx, bool)
-    for b in bricks:
-        for axis, (i0, i1) in enumerate(b.interior):
-            for face in (i0, i1):
-                if 0 < face < shape_zyx[axis]:
-                    sl = [slice(None)] * 3
-                    sl[axis] = slice(max(0, face - width), face + width)
-                    near[tuple(sl)] = True
-    return near
 
 
 @dataclass(frozen=True)
@@ -223,74 +96,6 @@ def brick_fields(f: Field, brick: Brick, pending: tuple | None = None) -> BrickF
         halo &= ~inner
     own = inner if valid is None else inner & valid
     return BrickFields(masked(own), masked(halo if valid is None else halo & valid), masked(valid))
-
-
-def split_bricks(f: Field, bricks: list[Brick], n: int) -> tuple[list[int], list[dict]]:
-    """Exactly ``n`` primitives over the bricks (see the module docstring), and each brick's
-    statistics, among them ``rates``: primitives per unit of |grad V| sum and per occupied voxel,
-    by which a brick sizes the stand-ins for its pending neighbours."""
-    stats = _map_bricks(functools.partial(_brick_stats, f), bricks)
-    nd, nc = split_budget(n)
-    grad_total = sum(s["grad_sum"] for s in stats) or 1.0
-    occ_total = sum(s["occupied"] for s in stats) or 1
-    want = np.array([nd * s["grad_sum"] / grad_total + nc * s["occupied"] / occ_total for s in stats])
-    cap = np.array([s["n_max"] for s in stats])
-    if cap.sum() < n:
-        raise WarpgaussError(
-            f"the bricks can hold at most {int(cap.sum()):,} primitives (their seed limits), fewer than {n:,}; use fewer bricks or a smaller budget"
-        )
-    counts = np.minimum(np.floor(want).astype(np.int64), cap)
-    # largest remainders first; a brick at its seed limit passes its share on
-    order = sorted(range(len(bricks)), key=lambda i: (-(want[i] - np.floor(want[i])), i))
-    while counts.sum() < n:
-        for i in order:
-            if counts.sum() == n:
-                break
-            if counts[i] < cap[i]:
-                counts[i] += 1
-    rates = (nd / grad_total, nc / occ_total)
-    for s, c, w in zip(stats, counts, want):
-        s.update(n=int(c), share=float(w), rates=rates)
-    return [int(c) for c in counts], stats
-
-
-def _brick_stats(f: Field, b: Brick, threads: int | None = None) -> dict[str, Any]:
-    """A brick's occupied and detail-eligible voxels, |grad V| sum and seed limit, over its interior."""
-    box = b.slices("box")  # read once (a lazy volume reads it from the file)
-    values = np.ascontiguousarray(f.values[box])
-    valid = None if f.mask is None else np.ascontiguousarray(f.mask[box])
-    own = np.zeros(values.shape, bool)
-    own[b.interior_in_box()] = True
-    if valid is not None:
-        own &= valid
-    occ, elig = count_seed_candidates(values, own, threads)
-    return {"occupied": occ, "eligible": elig, "grad_sum": _grad_sum(values, own, threads), "n_max": seed_limit(elig, occ)}
-
-
-STATS_BYTES_PER_VOXEL = 24  # a box's copy and its slabs' temporaries, per box voxel, while its statistics are taken
-
-
-def _map_bricks(fn, bricks: list[Brick]) -> list:
-    """``fn(brick, threads=t)`` for every brick, the bricks on a thread pool (one per core, as many
-    as half the available host memory holds at :data:`STATS_BYTES_PER_VOXEL`), each brick's slabs
-    on the ``t`` cores left to it: many small bricks scale with the cores where one box's slabs did
-    not (the 64 bricks of 1024^3 took 18.5 s on 32 cores slab by slab). Results in brick order, the
-    same as one at a time."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from .driver.load import available_memory
-
-    if len(bricks) <= 1:
-        return [fn(b) for b in bricks]
-    free = available_memory()
-    largest = max(b.box_voxels for b in bricks)
-    fit = len(bricks) if free is None else max(1, int(free // 2 // (STATS_BYTES_PER_VOXEL * largest)))
-    cores = os.cpu_count() or 1
-    k = max(1, min(len(bricks), cores, fit))
-    if k == 1:
-        return [fn(b) for b in bricks]
-    with ThreadPoolExecutor(max_workers=k) as pool:
-        return list(pool.map(functools.partial(fn, threads=max(1, cores // k)), bricks))
 
 
 @dataclass
@@ -351,7 +156,7 @@ def stand_in_count(fields: BrickFields, rates: tuple[float, float]) -> int:
     h = fields.halo
     if h.occupied == 0:
         return 0
-    want = rates[0] * _grad_sum(h.values, h.mask) + rates[1] * h.occupied
+    want = rates[0] * grad_sum(h.values, h.mask) + rates[1] * h.occupied
     return int(min(round(want), seed_limit(h.eligible, h.occupied)))
 
 
@@ -699,32 +504,3 @@ def _run_wave(
         return [r for part in parts for r in part]
     keys = [f"warpgauss-brick-{t.index}-{id(t)}" for t in batch]
     return map_on_cluster(client, fn, batch, keys, "a brick", tail=tail, after=after)
-
-
-# -- choosing the bricking from device and host memory limits (see warpgauss.limits) ------------
-
-
-def choose_bricks(shape_xyz, n: int, limit: int | None, halo: int = DEFAULT_HALO, host_limit: int | None = None) -> tuple[int, int, int]:
-    """The fewest bricks (x, y, z) whose largest box fits ``limit`` bytes of device memory (by
-    :func:`brick_device_bytes`, ``n`` primitives over them), ``host_limit`` bytes of host memory
-    (:data:`HOST_BYTES_PER_VOXEL`) and the kernels' voxel index; more bricks go along the axis
-    whose bricks are longest. (1, 1, 1) when the whole grid fits."""
-    from .analysis import MAX_VOXELS
-
-    counts = [1, 1, 1]
-    shape = [int(s) for s in shape_xyz]
-    while True:
-        boxes = [b.box_voxels for b in plan_bricks(shape, counts, halo if counts != [1, 1, 1] else 0)]
-        k = int(np.prod(counts))
-        need = brick_device_bytes(max(boxes), 1.5 * n / k if k > 1 else n)
-        host = HOST_BYTES_PER_VOXEL * max(boxes)
-        if max(boxes) <= MAX_VOXELS and (limit is None or need <= limit) and (host_limit is None or host <= host_limit):
-            return (counts[0], counts[1], counts[2])
-        axis = int(np.argmax([s / c for s, c in zip(shape, counts)]))
-        if shape[axis] // (counts[axis] + 1) < max(2, 4 * halo):
-            raise WarpgaussError(
-                f"no bricking of {'x'.join(map(str, shape))} fits {limit / 2**30 if limit else 0:.1f} GiB of device memory and "
-                f"{host_limit / 2**30 if host_limit else 0:.1f} GiB of host memory (bricks of {'x'.join(map(str, counts))} need about "
-                f"{need / 2**30:.1f} and {host / 2**30:.1f} GiB each); raise --max-device-memory / --max-host-memory or lower the budget"
-            )
-        counts[axis] += 1

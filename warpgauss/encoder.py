@@ -95,6 +95,9 @@ class Encoder:
                 raise WarpgaussError(f"Encoder does not take {name}=: it is set per call or by the encoder itself")
         if budget is None and ratio is None:
             raise WarpgaussError("an Encoder needs budget= (N) or ratio=")
+        from .driver.config import EncodeConfig
+
+        EncodeConfig.from_kwargs(**encode_kwargs)  # an unknown option is refused here, not at the first call
         _check_budget_seconds(time_budget)
         if warm_iterations is not None and warm_iterations < 0:
             raise WarpgaussError(f"warm iterations must be >= 0, got {warm_iterations}")

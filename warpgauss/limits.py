@@ -1,6 +1,6 @@
 """Memory limits of an encode: sizes given as text (``24GiB``), the peak device and host memory a
 brick's encode needs (linear models measured on an H100), and what a device may use by default.
-:func:`warpgauss.bricked.choose_bricks` picks a bricking from them."""
+:func:`warpgauss.brickplan.choose_bricks` picks a bricking from them."""
 
 from __future__ import annotations
 

@@ -204,6 +204,12 @@ def _plan(
 ) -> list[Segment]:
     """Check a series' inputs before any work and lay out one :class:`Segment` per variable."""
     from ._fs import check_writable
+    from .driver.config import EncodeConfig
+
+    for name in ("output", "warm_start", "session", "example"):
+        if name in encode_kwargs:
+            raise WarpgaussError(f"a series does not take {name}=: it is set per timestep (output_pattern= names the files)")
+    EncodeConfig.from_kwargs(**encode_kwargs)  # an unknown option is refused before any timestep
 
     chains = series_chains(sources, variables, read)
     for var, items, opts in chains:

@@ -19,7 +19,7 @@ import warpgauss
 from warpgauss._warp import device_name, resolve_device, warp
 from warpgauss.allocate import AllocationConfig
 from warpgauss.analysis import normalise
-from warpgauss.bricked import face_band, parse_bricks, plan_bricks
+from warpgauss.brickplan import face_band, parse_bricks, plan_bricks
 from warpgauss.synthetic import generate
 
 

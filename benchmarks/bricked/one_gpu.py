@@ -24,6 +24,7 @@ import numpy as np
 
 import warpgauss
 import warpgauss.bricked as wb
+import warpgauss.brickplan as bp
 from warpgauss._warp import resolve_device, warp
 from warpgauss.analysis import normalise
 from warpgauss.bench import result_header
@@ -48,9 +49,9 @@ def profile_brick(v: np.ndarray, n: int, bricks: str, dev: str, steps: int = 60)
     wp = warp()
     f = normalise(v)
     alloc = AllocationConfig()
-    alloc = AllocationConfig(scale_cap=wb.brick_cap(alloc.resolved_cap(f.shape_xyz), f.shape_xyz, n))
-    plan = wb.plan_bricks(f.shape_xyz, wb.parse_bricks(bricks), wb.default_halo(alloc.scale_cap))
-    _, stats = wb.split_bricks(f, plan, n)
+    alloc = AllocationConfig(scale_cap=bp.brick_cap(alloc.resolved_cap(f.shape_xyz), f.shape_xyz, n))
+    plan = bp.plan_bricks(f.shape_xyz, bp.parse_bricks(bricks), bp.default_halo(alloc.scale_cap))
+    _, stats = bp.split_bricks(f, plan, n)
     tasks = wb.brick_tasks(f, plan, stats, 0, alloc, RefineConfig(), dev, n)
     task = wb.wave_tasks(tasks, {}, [0])[0]
     t0 = time.perf_counter()

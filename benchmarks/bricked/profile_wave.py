@@ -25,6 +25,7 @@ import numpy as np
 
 import warpgauss
 import warpgauss.bricked as wb
+import warpgauss.brickplan as bp
 from warpgauss._warp import resolve_device, warp
 from warpgauss.allocate import AllocationConfig, allocate
 from warpgauss.analysis import DeviceVolume, normalise
@@ -104,9 +105,9 @@ def main(argv=None) -> dict:
     samples_rows("monolithic", mono, list(f.shape_xyz))
     del mono, dv
     for bricks in filter(None, args.bricks.split(",")):
-        alloc = AllocationConfig(scale_cap=wb.brick_cap(a.resolved_cap(f.shape_xyz), f.shape_xyz, n))
-        plan = wb.plan_bricks(f.shape_xyz, wb.parse_bricks(bricks), wb.default_halo(alloc.scale_cap))
-        _, stats = wb.split_bricks(f, plan, n)
+        alloc = AllocationConfig(scale_cap=bp.brick_cap(a.resolved_cap(f.shape_xyz), f.shape_xyz, n))
+        plan = bp.plan_bricks(f.shape_xyz, bp.parse_bricks(bricks), bp.default_halo(alloc.scale_cap))
+        _, stats = bp.split_bricks(f, plan, n)
         tasks = wb.brick_tasks(f, plan, stats, 0, alloc, RefineConfig(), dev, n)
         wave = [t.index for t in tasks if wb.brick_colour(t.brick) == 0]
         batch = wb.wave_tasks(tasks, {}, wave)

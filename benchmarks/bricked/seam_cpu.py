@@ -16,7 +16,7 @@ import numpy as np
 import warpgauss
 from warpgauss._warp import warp
 from warpgauss.analysis import normalise
-from warpgauss.bricked import face_band, plan_bricks
+from warpgauss.brickplan import face_band, plan_bricks
 from warpgauss.synthetic import generate
 
 

@@ -45,7 +45,8 @@ def encode_bricked(
     """
     from .._warp import resolve_device
     from ..analysis import DeviceVolume
-    from ..bricked import brick_cap, brick_tasks, default_halo, parse_bricks, plan_bricks, run_bricks, split_bricks
+    from ..bricked import brick_tasks, run_bricks
+    from ..brickplan import brick_cap, default_halo, parse_bricks, plan_bricks, split_bricks
     from ..cluster import is_local
     from ..lazy import is_lazy, shared
     from ..wgs import header_size
@@ -184,7 +185,7 @@ def check_bricking(source, read, example, example_size, bricks, halo) -> None:
     """Refuse a bricking that cannot split the volume (too many bricks along an axis), where its
     shape is known without reading it: an example, or a file whose header gives it (the formats
     read on demand). Runs before a Dask cluster starts; other inputs are checked once read."""
-    from ..bricked import parse_bricks, plan_bricks
+    from ..brickplan import parse_bricks, plan_bricks
 
     counts = parse_bricks(bricks)
     if example is not None:
@@ -200,10 +201,10 @@ def check_bricking(source, read, example, example_size, bricks, halo) -> None:
 def bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory=None):
     """(bricks, read lazily, device limit, bricks chosen here) of an encode: given bricks are kept;
     otherwise a file whose monolithic encode would not fit the device or host limit (or the
-    kernels' voxel index) is bricked by :func:`~warpgauss.bricked.choose_bricks`. Only a format
+    kernels' voxel index) is bricked by :func:`~warpgauss.brickplan.choose_bricks`. Only a format
     that can be read on demand is looked at before it is read."""
     from .._warp import resolve_device
-    from ..bricked import brick_cap, choose_bricks, default_halo
+    from ..brickplan import brick_cap, choose_bricks, default_halo
     from ..limits import HOST_SHARE, brick_device_bytes, default_device_limit, parse_memory
 
     limit = None if max_device_memory is None else parse_memory(max_device_memory, "--max-device-memory")

@@ -24,10 +24,10 @@ from ..optimize import RefineConfig
 from ..profiling import StageRecorder
 from ..residual import Bound
 from .bricked import bricking, encode_bricked
+from .config import EncodeConfig, config_of
 from .load import load_field
-from .options import EncodeOptions, encoding_of, resolve_refine, with_stop_rules
+from .options import encoding_of
 from .run import encode_field
-from .sizing import check_budget_options
 
 
 def _array_device(arr, device: str | None) -> str:
@@ -238,13 +238,13 @@ def encode(
 
         bricks: Split the grid into bricks (``"2x2x2"``, counts x, y, z) with a halo, the budget
             over them before refinement, and encode each on its own (see :mod:`warpgauss.bricked`).
-        halo: Voxels of halo around each brick (default :func:`warpgauss.bricked.default_halo`: 4, 16 at 512^3).
+        halo: Voxels of halo around each brick (default :func:`warpgauss.brickplan.default_halo`: 4, 16 at 512^3).
         client: A ``distributed.Client``: the bricks run on its cluster (None: in this process).
         on_bricks: Optional callback(bricks done, bricks) during a bricked encode.
         max_device_memory: Bytes (or ``"24GiB"``) one encode may use on the device; default: 90 %
             of what a CUDA device has free (none on the CPU). Without ``bricks``, a volume whose
             monolithic encode would not fit it, or that has more voxels than the kernels index, is
-            bricked (:func:`warpgauss.bricked.choose_bricks`), and a file read on demand.
+            bricked (:func:`warpgauss.brickplan.choose_bricks`), and a file read on demand.
         max_host_memory: The same for this machine's memory (default: half of what is available
             now); a bricked encode of a file keeps one brick's box in memory at a time.
         warm_start: A :class:`Model` (or its ``(N, 12)`` parameters) of the previous timestep of
@@ -268,47 +268,55 @@ def encode(
     Returns:
         The :class:`Model`, with ``model.report`` holding the run report.
     """
+    return encode_with(
+        source,
+        config_of(locals()),
+        on_stage=on_stage,
+        on_stats=on_stats,
+        on_progress=on_progress,
+        on_bricks=on_bricks,
+        client=client,
+        session=session,
+    )
+
+
+def encode_with(
+    source,
+    cfg: EncodeConfig,
+    *,
+    on_stage: Callable[[str, str], None] | None = None,
+    on_stats: Callable[[dict], None] | None = None,
+    on_progress: Callable[[int, int, dict], None] | None = None,
+    on_bricks: Callable[[int, int], None] | None = None,
+    client=None,
+    session=None,
+) -> Model:
+    """:func:`encode` of ``source`` with the settings of ``cfg`` (see :mod:`.config`), the
+    callbacks, Dask client and Encoder session beside them."""
     from .._fs import check_writable
 
-    check_budget_options(budget, ratio, file_bytes)  # before the output check: say what is wrong with the request first
-    bound = Bound(max_error, max_error_rel, residual_psnr)
+    cfg.budget.check()  # before the output check: say what is wrong with the request first
+    run, reading, bricking_ = cfg.run, cfg.reading, cfg.bricking
+    read, bricks, device = reading.read, bricking_.bricks, cfg.device
+    bound = cfg.bound
     bounded = bound.given
     if bounded:
         bound.check()
-        check_bounded_request(source, read, bricks, warm_start, session)
-    default_share = bounded and budget is None and ratio is None and file_bytes is None  # sized once the source's bytes are known
+        check_bounded_request(source, read, bricks, cfg.start.warm_start, session)
+    default_share = bounded and not cfg.budget.given  # sized once the source's bytes are known
+    force, resume, output = run.force, run.resume, run.output
     if output is not None:
         check_writable(output, force=force or resume)  # a resume replaces its interrupted model
-    if analytic_output is not None:
-        check_writable(analytic_output, force=force or resume)
+    if run.analytic_output is not None:
+        check_writable(run.analytic_output, force=force or resume)
+    checkpoint = run.checkpoint
     if checkpoint is None and output is not None:
         checkpoint = Path(str(output) + ".ckpt")
     if resume and (checkpoint is None or not Path(checkpoint).is_file()):
         raise WarpgaussError(f"--resume: no checkpoint at {checkpoint}; encode without --resume")
-    if not checkpoint_every >= 0:
-        raise WarpgaussError(f"--checkpoint-every must be >= 0 seconds, got {checkpoint_every}")
-    refine = resolve_refine(refine, preset, iterations, samples)
-    refine = with_stop_rules(refine, target_psnr, plateau_db)
-    if time_budget is not None and not time_budget > 0:
-        raise WarpgaussError(f"--time-budget must be a positive number of seconds, got {time_budget}")
-    opts = EncodeOptions(
-        budget,
-        ratio,
-        seed,
-        compact,
-        allocation or AllocationConfig(),
-        stride=(read or ReadOptions()).stride,
-        refine=refine,
-        self_test=self_test,
-        time_budget=time_budget,
-        checkpoint=checkpoint,
-        checkpoint_every=checkpoint_every,
-        resume=resume,
-        format=format,
-        bytes=file_bytes,
-        init=_warm_params(warm_start),
-        motion=motion,
-    )
+    if not run.checkpoint_every >= 0:
+        raise WarpgaussError(f"--checkpoint-every must be >= 0 seconds, got {run.checkpoint_every}")
+    opts = cfg.options(cfg.refinement.resolved(), checkpoint=checkpoint, init=_warm_params(cfg.start.warm_start))
     if opts.init is not None and (bricks is not None or resume):
         raise WarpgaussError("a warm start does not combine with --bricks or --resume")
     if session is not None:
@@ -322,7 +330,10 @@ def encode(
         device = _array_device(source, device)
     encoding_of(opts)  # an unknown format is refused before any work
     timer = StageRecorder(on_stage=on_stage)
-    bricks, lazy, limit, auto = bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory)
+    example, example_size = reading.example, reading.example_size
+    bricks, lazy, limit, auto = bricking(
+        source, read, example, bricks, bricking_.halo, cfg.budget.n, device, bricking_.max_device_memory, bricking_.max_host_memory
+    )
     with timer.stage("P", "load and normalise"):
         buffers = None if session is None else session.buffers
         f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy, buffers=buffers)
@@ -335,24 +346,25 @@ def encode(
         from ..residual import MIN_GAUSSIAN_BYTES
 
         opts.bytes = max(int(f.source_bytes / RESIDUAL_RATIO), MIN_GAUSSIAN_BYTES)
+    warm_start = cfg.start.warm_start
     if isinstance(warm_start, Model) and tuple(warm_start.shape_xyz) != tuple(f.shape_xyz):
         raise WarpgaussError(
             f"the warm-start model is on a {'x'.join(map(str, warm_start.shape_xyz))} grid, this volume {'x'.join(map(str, f.shape_xyz))}; encode cold"
         )
     if bricks is not None:
-        if analytic_output is not None:
+        if run.analytic_output is not None:
             raise WarpgaussError("--bricks does not write an analytic model (--save-analytic)")
         model = encode_bricked(
             f,
             opts,
             bricks,
-            halo=halo,
+            halo=bricking_.halo,
             device=device,
             client=client,
             timer=timer,
             input_info=info,
-            evaluate=evaluate,
-            full_eval=full_eval,
+            evaluate=run.evaluate,
+            full_eval=run.full_eval,
             on_progress=on_bricks,
             max_device_memory=limit,
         )
@@ -368,11 +380,11 @@ def encode(
             device=device,
             timer=timer,
             input_info=info,
-            evaluate=evaluate,
-            full_eval=full_eval,
+            evaluate=run.evaluate,
+            full_eval=run.full_eval,
             on_stats=on_stats,
             on_progress=on_progress,
-            analytic_output=analytic_output,
+            analytic_output=run.analytic_output,
             force=force or resume,
         )
     if bounded:

@@ -15,9 +15,10 @@ from ..io import ReadOptions
 from ..model import Model
 from ..optimize import RefineConfig
 from ..profiling import StageRecorder
+from .config import config_of
 from .encode import finish_report
 from .load import load_field
-from .options import EncodeOptions, encoding_of, header_for, resolve_refine, with_stop_rules
+from .options import encoding_of, header_for
 from .run import encode_field
 from .sizing import sizing_bpp
 
@@ -63,6 +64,7 @@ def encode_ladder(
     """
     from .._fs import check_writable
 
+    cfg = config_of(locals())
     ladder = sorted({int(b) for b in budgets})
     if not ladder or ladder[0] < 1:
         raise WarpgaussError(f"--ladder needs positive budgets, got {list(budgets)}")
@@ -72,31 +74,21 @@ def encode_ladder(
         for p in named:
             check_writable(p, force=force)
         paths = list(named)
-    refine = with_stop_rules(resolve_refine(refine, preset, iterations, samples), target_psnr, plateau_db)
+    refine = cfg.refinement.resolved()
     first = StageRecorder(on_stage=on_stage)
     with first.stage("P", "load and normalise"):
         f, info = load_field(source, read, example=example, example_size=example_size)
     load_seconds = first.seconds("P")
     from ..wgs import header_size
 
-    probe = EncodeOptions(budget=ladder[-1], seed=seed, compact=compact, refine=refine, format=format)
+    probe = cfg.options(refine, budget=ladder[-1])
     enc = encoding_of(probe)
     check_budget(f, ladder[-1], header_size(header_for(f, probe), 1 << 40, encoding=enc), sizing_bpp(enc))
     cache: dict = {}
     models = []
     for i, (n, path) in enumerate(zip(ladder, paths)):
         timer = first if i == 0 else StageRecorder(on_stage=on_stage)
-        opts = EncodeOptions(
-            n,
-            None,
-            seed,
-            compact,
-            allocation or AllocationConfig(),
-            stride=(read or ReadOptions()).stride,
-            refine=refine,
-            self_test=self_test and i == 0,
-            format=format,
-        )
+        opts = cfg.options(refine, budget=n, self_test=self_test and i == 0)
         model = encode_field(
             f,
             opts,

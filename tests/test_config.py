@@ -1,0 +1,113 @@
+"""One encode configuration (warpgauss.driver.config): every warpgauss.encode argument has one
+place in EncodeConfig and maps back, every path takes its settings from it, and an unknown
+option is refused where it is given, in one line."""
+
+from __future__ import annotations
+
+import inspect
+
+import pytest
+
+import warpgauss
+from warpgauss.allocate import AllocationConfig
+from warpgauss.driver.config import FIELDS, NOT_SETTINGS, EncodeConfig
+from warpgauss.errors import WarpgaussError
+from warpgauss.io import ReadOptions
+from warpgauss.optimize import RefineConfig
+
+# a value for every setting that differs from its default
+SAMPLE = {
+    "budget": 1234,
+    "ratio": 55.0,
+    "file_bytes": 99_000,
+    "format": "full",
+    "compact": True,
+    "seed": 7,
+    "device": "cpu",
+    "preset": "fast",
+    "iterations": 33,
+    "samples": 512,
+    "refine": RefineConfig(lr={"mu": 1e-3}),
+    "target_psnr": 40.0,
+    "plateau_db": 0.1,
+    "self_test": False,
+    "time_budget": 5.0,
+    "allocation": AllocationConfig(scale_cap=3.0),
+    "read": ReadOptions(stride=2),
+    "example": "vortex",
+    "example_size": 40,
+    "checkpoint": "run.ckpt",
+    "checkpoint_every": 10.0,
+    "resume": True,
+    "evaluate": False,
+    "full_eval": True,
+    "output": "out.wgs",
+    "force": True,
+    "analytic_output": "a.wgs",
+    "bricks": "2x2x1",
+    "halo": 3,
+    "max_device_memory": "24GiB",
+    "max_host_memory": "8GiB",
+    "max_error": 0.5,
+    "max_error_rel": 0.01,
+    "residual_psnr": 60.0,
+    "warm_start": "previous",
+    "motion": False,
+}
+
+
+def test_every_encode_argument_has_one_place_in_the_configuration():
+    params = set(inspect.signature(warpgauss.encode).parameters)
+    assert params - set(NOT_SETTINGS) == set(FIELDS)
+    assert set(SAMPLE) == set(FIELDS)
+    assert len({v for v in FIELDS.values()}) == len(FIELDS)  # no two arguments share a place
+
+
+def test_each_setting_maps_to_its_place_and_back():
+    for name, value in SAMPLE.items():
+        cfg = EncodeConfig.from_kwargs(**{name: value})
+        assert cfg.get(name) is value or cfg.get(name) == value, name
+        assert cfg.to_kwargs() == {name: value}, name  # nothing else moved off its default
+    every = EncodeConfig.from_kwargs(**SAMPLE)
+    assert every.to_kwargs() == SAMPLE
+    assert EncodeConfig.from_kwargs(**every.to_kwargs()) == every
+    assert set(EncodeConfig().to_kwargs(every=True)) == set(FIELDS) and EncodeConfig().to_kwargs() == {}
+    assert every.replace(seed=1).seed == 1 and every.replace(seed=1).budget == every.budget
+    # the groups: the budget is one place for N, ratio and bytes
+    assert (every.budget.n, every.budget.ratio, every.budget.bytes) == (1234, 55.0, 99_000)
+    assert every.reading.stride == 2 and every.bound.psnr == 60.0 and every.start.motion is False
+
+
+def test_an_unknown_option_is_refused_where_it_is_given(tmp_path):
+    with pytest.raises(WarpgaussError, match="unknown encode option itertions; the options are warpgauss.encode's keyword arguments"):
+        EncodeConfig.from_kwargs(itertions=5)
+    with pytest.raises(WarpgaussError, match="unknown encode options bogus, itertions"):
+        EncodeConfig.from_kwargs(itertions=5, bogus=1)
+    with pytest.raises(WarpgaussError, match="unknown encode option itertions"):
+        warpgauss.Encoder(budget=10, itertions=5)  # at construction, not at the first call
+    with pytest.raises(WarpgaussError, match="unknown encode option itertions"):
+        warpgauss.encode_series([tmp_path / "a.npy"], budget=10, itertions=5)
+    with pytest.raises(WarpgaussError, match="a series does not take output="):
+        warpgauss.encode_series([tmp_path / "a.npy"], budget=10, output="x.wgs")
+
+
+def test_the_ladder_takes_its_settings_from_the_configuration():
+    """encode_ladder's arguments are encode's (the same names and defaults) besides its own."""
+    ladder = inspect.signature(warpgauss.encode_ladder).parameters
+    encode = inspect.signature(warpgauss.encode).parameters
+    own = {"budgets", "output_pattern"}
+    for name, p in ladder.items():
+        if name in own:
+            continue
+        assert name in FIELDS or name in NOT_SETTINGS, name
+        assert p.default == encode[name].default, name
+
+
+def test_a_ladder_keeps_its_stop_rules_and_reading_through_the_configuration():
+    from warpgauss.synthetic import generate
+
+    ms = warpgauss.encode_ladder(
+        generate("vortex", 24), budgets=[40, 80], iterations=5, samples=128, device="cpu", self_test=False, format="full", target_psnr=90.0
+    )
+    assert [m.n for m in ms] == [40, 80]
+    assert all(m.header["encoding"]["refinement"]["target_psnr"] == 90.0 for m in ms)
