@@ -261,7 +261,7 @@ def _feedback(t: np.ndarray, skip: np.ndarray, step: float, integer: bool, inter
         dec[...] = q * np.int64(step) if integer else q * step
         return q, dec
     first = (slice(0, 1),) * 3  # the coarsest lattice: the first voxel, predicted as 0
-    q[first] = np.where(skip[first], 0, _quantise(t[first], step, integer))
+    q[first] = np.where(skip[first], 0, _quantise(np.where(skip[first], 0, t[first]), step, integer))  # a skipped value may be NaN
     dec[first] = q[first] * (np.int64(step) if integer else step)
     for a, h, sel in _interp_passes(t.shape):
         pred = _interp_prediction(dec, a, h, sel, interp == "cubic")
