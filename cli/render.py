@@ -233,7 +233,7 @@ def _transfer(header, colormap, opacity, tf_path, value_range):
     return resolve_transfer_function(header, path=tf_path, colormap_name=colormap, opacity=opacity, value_range=value_range)
 
 
-def _read_normalised(path: Path, read, value_range=None):
+def read_normalised(path: Path, read, value_range=None):
     from warpgauss.analysis import normalise
 
     vol = read.read(path)
@@ -288,7 +288,7 @@ def _render_model(
         if compare is None:
             save_png(output, img.rgb8(), force=force)
             return summary
-        _, f = _read_normalised(compare, read, model.value_range)
+        _, f = read_normalised(compare, read, model.value_range)
         ref = VolumeRenderer(f.values, Scene.from_header(model.header), device=renderer.device).render(view, tf, settings)
     summary.update(
         compare=str(compare),
@@ -304,7 +304,7 @@ def _render_model(
 def _render_volume(path, output, camera, settings, colormap, opacity, tf_path, read, device, force) -> dict:
     from warpgauss.render import Scene, VolumeRenderer, save_png
 
-    vol, f = _read_normalised(path, read)
+    vol, f = read_normalised(path, read)
     tf = _transfer(None, colormap, opacity, tf_path, (f.vmin, f.vmax))
     nz, ny, nx = f.values.shape
     with err_console.status("rendering the volume", spinner="dots"):

@@ -40,13 +40,13 @@ def serve(
     curves, switch colormap, renderer, shading and density, step through a series, compare with the
     source volume."""
     from warpgauss.io import ReadOptions
-    from warpgauss.serve import _require_trame
+    from warpgauss.serve import require_trame
     from warpgauss.serve import serve as run
     from warpgauss.viewer import Viewer, load_models
 
-    from .render import _read_normalised
+    from .render import read_normalised
 
-    _require_trame()  # before any work: a missing extra is a one-line error
+    require_trame()  # before any work: a missing extra is a one-line error
     if not 0 <= port <= 65535:
         raise WarpgaussError(f"--port must be 0-65535, got {port}")
     loaded, paths = load_models(models)
@@ -59,7 +59,7 @@ def serve(
         for k, p in enumerate(volume if len(volume) == len(loaded) else volume * len(loaded)):
             if not Path(p).exists():
                 raise WarpgaussError(f"no such file: {p}")
-            _, f = _read_normalised(Path(p), read, loaded[k].value_range)
+            _, f = read_normalised(Path(p), read, loaded[k].value_range)
             if tuple(f.shape_xyz) != tuple(loaded[k].shape_xyz):
                 raise WarpgaussError(
                     f"--volume {p} is on a {'x'.join(map(str, f.shape_xyz))} grid, the model on {'x'.join(map(str, loaded[k].shape_xyz))}"

@@ -153,7 +153,7 @@ def test_a_cluster_is_local_when_every_worker_reads_the_file_this_process_wrote(
     """is_local asks the workers (a host name says too little: on one lent GPU machine the workers
     listened on an address the host name did not resolve to). Workers that run elsewhere do not
     see the probe file; one that cannot answer counts as elsewhere."""
-    from warpgauss.cluster import _reads, is_local
+    from warpgauss.cluster import is_local, reads_token
 
     class FakeClient:
         def __init__(self, here: list[bool], fails: bool = False):
@@ -168,7 +168,7 @@ def test_a_cluster_is_local_when_every_worker_reads_the_file_this_process_wrote(
     assert not is_local(FakeClient([True, False]))
     assert not is_local(FakeClient([]))
     assert not is_local(FakeClient([True], fails=True))
-    assert not _reads("/nonexistent/probe", "x")
+    assert not reads_token("/nonexistent/probe", "x")
 
 
 def test_zarr_stores_are_read_whole_or_by_bricks(tmp_path):

@@ -19,7 +19,7 @@ import warpgauss
 from warpgauss import residual as R
 from warpgauss.cli.main import app
 from warpgauss.errors import WarpgaussError
-from warpgauss.wgs import _PREFIX, PREFIX_SIZE, read_wgs
+from warpgauss.wgs import PREFIX, PREFIX_SIZE, read_wgs
 
 
 # -- the float64 predictor -------------------------------------------------------------------
@@ -251,12 +251,12 @@ def test_bound_requests_that_cannot_hold_are_refused_before_any_work(tmp_path, a
 
 def _rewrite_header(src, dst, change) -> None:
     data = src.read_bytes()
-    magic, version, hlen, _ = _PREFIX.unpack_from(data)
+    magic, version, hlen, _ = PREFIX.unpack_from(data)
     header = json.loads(data[PREFIX_SIZE : PREFIX_SIZE + hlen])
     change(header)
     area = json.dumps(header, sort_keys=True, separators=(",", ":")).encode()
     rest = data[PREFIX_SIZE + hlen :]
-    dst.write_bytes(_PREFIX.pack(magic, version, len(area), zlib.crc32(area)) + area + rest)
+    dst.write_bytes(PREFIX.pack(magic, version, len(area), zlib.crc32(area)) + area + rest)
 
 
 def test_a_crafted_residual_is_refused_in_one_line(bounded, tmp_path):

@@ -297,7 +297,7 @@ def test_the_page_keeps_showing_the_last_frame_while_a_new_one_renders(model_fil
     update and then serves the new frame (the one Viewer.frame draws for that state)."""
     import asyncio
 
-    from warpgauss.serve import _Area
+    from warpgauss.serve import Area
     from warpgauss.viewer import Viewer
 
     v = Viewer([warpgauss.Model.load(model_file)], [str(model_file)], device="cpu")
@@ -311,7 +311,7 @@ def test_the_page_keeps_showing_the_last_frame_while_a_new_one_renders(model_fil
             updates.append(1)
             done.set()
 
-        area = _Area(v, frames.append, update)
+        area = Area(v, frames.append, update)
         first, w, h = area.img_cols_rows  # the first frame is drawn at once
         assert (w, h) == (48, 40) and len(frames) == 1
         v.orbit(60, 10)

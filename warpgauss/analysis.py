@@ -81,7 +81,7 @@ F32_TINY = float(np.finfo(np.float32).tiny)  # smallest normal float32
 _F32_SAFE = 1e30  # float32 normalisation only where values, range and scale stay within 1e-30..1e30
 
 
-class _NormPlan:
+class NormPlan:
     """How stage P maps source values to (x - lo) / (hi - lo) without overflow, NaN or lost scale.
 
     float32 arithmetic (fast, exact enough for <= 4-byte sources) is used only while neither the
@@ -181,10 +181,10 @@ def normalise(
     if not (np.issubdtype(data.dtype, np.integer) or np.issubdtype(data.dtype, np.floating)):
         raise WarpgaussError(f"the volume's dtype {data.dtype} is not a real number type")
     if lazy:  # every read through the source: nothing stays mapped (see warpgauss.lazy)
-        from .lazy import _Lazy3D, require_source
+        from .lazy import Lazy3D, require_source
 
         src = require_source(data, name)
-        data = _Lazy3D(src)  # type: ignore[assignment]
+        data = Lazy3D(src)  # type: ignore[assignment]
     nz = data.shape[0]
     exact = np.dtype(data.dtype).itemsize > 4 or np.dtype(data.dtype) in (np.int32, np.uint32)
     maybe_invalid = np.issubdtype(data.dtype, np.floating) or fill_value is not None
@@ -204,7 +204,7 @@ def normalise(
     # read on demand, a slab is the source's copy and its temporaries on every thread: keep it small
     plane = int(np.prod(data.shape[1:], dtype=np.int64))
     slab = SLAB if not lazy else max(1, min(SLAB, LAZY_SLAB_VOXELS // max(plane, 1)))
-    parts = _map_slabs(scan, nz, slab)
+    parts = map_slabs(scan, nz, slab)
     lo = min(float(p[0]) for p in parts)
     hi = max(float(p[1]) for p in parts)
     n_invalid = sum(p[2] for p in parts)
@@ -218,7 +218,7 @@ def normalise(
             raise WarpgaussError(f"the value range ({lo:g}, {hi:g}) is not finite; the model is damaged")
     if hi <= lo:
         raise WarpgaussError(f"the volume is constant ({lo:g} everywhere it is valid); there is no structure to encode")
-    plan = _NormPlan(lo, hi, data_lo, data_hi, exact, clip)
+    plan = NormPlan(lo, hi, data_lo, data_hi, exact, clip)
     if lazy:
         return _lazy_field(src, plan, fill_value, n_invalid, spacing, origin, name, source_dtype or data.dtype, count_candidates)
     values = np.empty(data.shape, np.float32)
@@ -233,14 +233,14 @@ def normalise(
             mask[z0 : z0 + SLAB] = ok
         values[z0 : z0 + SLAB] = v
 
-    _map_slabs(fill, nz)
-    f = _new_field(values, mask, lo, hi, spacing, origin, name, source_dtype or data.dtype, n_invalid)
+    map_slabs(fill, nz)
+    f = new_field(values, mask, lo, hi, spacing, origin, name, source_dtype or data.dtype, n_invalid)
     if count_candidates:
         f.occupied, f.eligible = count_seed_candidates(values, mask)
     return f
 
 
-def _new_field(values, mask, lo, hi, spacing, origin, name, source_dtype, n_invalid: int) -> Field:
+def new_field(values, mask, lo, hi, spacing, origin, name, source_dtype, n_invalid: int) -> Field:
     """The Field of normalised ``values`` (an array, or read on demand) and its stage-P facts."""
     f = Field(
         values=values,
@@ -265,7 +265,7 @@ def _lazy_field(src, plan, fill_value, n_invalid, spacing, origin, name, source_
 
     values = LazyValues(src, plan, fill_value, n_invalid > 0)
     mask = LazyMask(src, fill_value) if n_invalid else None
-    f = _new_field(values, mask, plan.lo_value, plan.hi_value, spacing, origin, name, source_dtype, n_invalid)
+    f = new_field(values, mask, plan.lo_value, plan.hi_value, spacing, origin, name, source_dtype, n_invalid)
     if count_candidates:
         step = max(1, 4 * LAZY_SLAB_VOXELS // max(1, values.shape[1] * values.shape[2]))
 
@@ -277,7 +277,7 @@ def _lazy_field(src, plan, fill_value, n_invalid, spacing, origin, name, source_
     return f
 
 
-def _map_slabs(fn, nz: int, slab: int = SLAB, threads: int | None = None) -> list:
+def map_slabs(fn, nz: int, slab: int = SLAB, threads: int | None = None) -> list:
     """Run fn(z0) for every z-slab, on a thread pool (numpy releases the GIL in its loops; at
     most ``threads``, default one per core; 1: in this thread); the results in slab order."""
     starts = list(range(0, nz, slab))
@@ -313,7 +313,7 @@ def count_seed_candidates(values: np.ndarray, mask: np.ndarray | None, threads: 
             differs = (_differs(v, ok, 2) | _differs(v, ok, 1) | _differs(v, ok, 0))[core]
         return int(np.count_nonzero(occ)), int(np.count_nonzero(occ & differs))
 
-    parts = _map_slabs(count, nz, threads=threads)
+    parts = map_slabs(count, nz, threads=threads)
     return sum(p[0] for p in parts), sum(p[1] for p in parts)
 
 

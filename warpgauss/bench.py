@@ -118,7 +118,7 @@ def bench_primitives(n: int, shape_xyz: tuple[int, int, int], sigma_spacing: flo
     return p
 
 
-class _Timer:
+class Timer:
     def __init__(self, device: str):
         self.wp = warp()
         self.device = device
@@ -184,7 +184,7 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
     dev = resolve_device(device)
     if cfg.size < 8 or not cfg.ns or not cfg.samples or min(cfg.ns) < 1 or min(cfg.samples) < 1:
         raise WarpgaussError("bench kernels needs --size >= 8 and positive --n and --samples lists")
-    timer = _Timer(dev)
+    timer = Timer(dev)
     t0 = time.perf_counter()
     f = bench_field(cfg.size)
     dv = DeviceVolume(f, dev)
@@ -313,7 +313,7 @@ def _decode_on_device(gf, path: str = "lists") -> None:
         if path == "lists":
             gf.decode_slab(view, z0, one)
         elif path == "walk":
-            gf._decode_walk(view, z0, one)
+            gf.decode_walk(view, z0, one)
         else:
             wp.launch(kf.eval_grid_binned, dim=(h, ny, nx), inputs=[z0, one, gf.prims], outputs=[view], device=gf.device)
 

@@ -107,7 +107,7 @@ def grad_sum(values: np.ndarray, select: np.ndarray | None, threads: int | None 
     """Sum of |grad V| (central differences, one-sided at the box's faces) over the occupied voxels
     of ``select`` (None: all), z-slab by z-slab in float32 on up to ``threads`` threads (default
     one per core)."""
-    from .analysis import _map_slabs
+    from .analysis import map_slabs
 
     nz = values.shape[0]
 
@@ -127,7 +127,7 @@ def grad_sum(values: np.ndarray, select: np.ndarray | None, threads: int | None 
             use &= select[z0:z1]
         return float(np.sqrt(g[use], dtype=np.float32).sum(dtype=np.float64))
 
-    return float(sum(_map_slabs(part, nz, GRAD_SLAB, threads)))
+    return float(sum(map_slabs(part, nz, GRAD_SLAB, threads)))
 
 
 def face_band(shape_xyz, bricks: list[Brick], width: int = 2) -> np.ndarray:

@@ -49,13 +49,13 @@ def is_local(client) -> bool:
         with open(path, "w") as fh:
             fh.write(token)
         try:
-            seen = client.run(_reads, path, token)
+            seen = client.run(reads_token, path, token)
         except Exception:  # a worker that cannot answer is not assumed to share our files
             return False
     return bool(seen) and all(seen.values())
 
 
-def _reads(path: str, token: str) -> bool:
+def reads_token(path: str, token: str) -> bool:
     try:
         with open(path) as fh:
             return fh.read() == token

@@ -48,8 +48,8 @@ ZSTD_LEVEL_LARGE = 12
 # halves the noise). Measured: a 51.2 dB vortex model lost 2.07 dB at CODED_BITS, 0.14 dB at +2.
 BITS_REFERENCE_DB = 40.0
 DB_PER_BIT = 6.0
-_Q_RANGE = 1.0 / math.sqrt(2.0)
-_COLUMNS = ("mu_x", "mu_y", "mu_z", "log_sx", "log_sy", "log_sz", "q_index", "q_0", "q_1", "q_2", "a", "w")
+Q_RANGE = 1.0 / math.sqrt(2.0)
+CODED_COLUMNS = ("mu_x", "mu_y", "mu_z", "log_sx", "log_sy", "log_sz", "q_index", "q_0", "q_1", "q_2", "a", "w")
 _DELTA = ("mu_x", "mu_y", "mu_z")
 _MAX_CODE = 1 << 52  # |code| bound: every code and difference is exact in float64 and int64
 
@@ -81,7 +81,7 @@ def zstandard_module():
     return zstandard
 
 
-def _check_bits(bits) -> dict[str, int]:
+def check_bits(bits) -> dict[str, int]:
     if not isinstance(bits, dict) or set(bits) != set(CODED_BITS):
         raise WarpgaussError(f"coded bit depths must name {sorted(CODED_BITS)}, got {bits!r}")
     out = {}
@@ -128,8 +128,8 @@ def _q_levels(b: int) -> int:
 
 
 def quantise(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarray:
-    """(N, 12) integer codes (int64) of ``params`` on the coded grids (columns as :data:`_COLUMNS`)."""
-    b = _check_bits(dict(CODED_BITS if bits is None else bits))
+    """(N, 12) integer codes (int64) of ``params`` on the coded grids (columns as :data:`CODED_COLUMNS`)."""
+    b = check_bits(dict(CODED_BITS if bits is None else bits))
     p = np.asarray(params, np.float64)
     n = p.shape[0]
     codes = np.empty((n, 12), np.int64)
@@ -145,13 +145,13 @@ def quantise(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarr
     qi, small = smallest_three(p[:, 6:10])
     lev = _q_levels(b["q"])
     codes[:, 6] = qi
-    sc = np.clip(np.rint((small + _Q_RANGE) / (2 * _Q_RANGE) * lev), 0, lev).astype(np.int64)
+    sc = np.clip(np.rint((small + Q_RANGE) / (2 * Q_RANGE) * lev), 0, lev).astype(np.int64)
     # the implied component must stay strictly the largest after rounding, else a decoded model
     # would code to another index (and drift by a step when saved again): near ties, move the
     # largest small component one level towards 0 until it is
     mid = lev // 2
     for _ in range(4 * lev):
-        sv = sc * (2 * _Q_RANGE / lev) - _Q_RANGE
+        sv = sc * (2 * Q_RANGE / lev) - Q_RANGE
         largest = np.sqrt(np.maximum(0.0, 1.0 - np.sum(sv * sv, axis=1)))
         bad = np.abs(sv).max(axis=1) >= largest * (1.0 - 1e-9)
         if not bad.any():
@@ -167,14 +167,14 @@ def quantise(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarr
 
 def dequantise(codes: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarray:
     """(N, 12) float32 parameters of integer codes (unit quaternions)."""
-    b = _check_bits(dict(CODED_BITS if bits is None else bits))
+    b = check_bits(dict(CODED_BITS if bits is None else bits))
     c = np.asarray(codes, np.int64)
     n = c.shape[0]
     out = np.empty((n, 12), np.float64)
     out[:, 0:3] = c[:, 0:3] / float(1 << b["mu"])
     out[:, 3:6] = c[:, 3:6] / float(1 << b["log_s"])
     lev = _q_levels(b["q"])
-    out[:, 6:10] = from_smallest_three(c[:, 6], c[:, 7:10] * (2 * _Q_RANGE / lev) - _Q_RANGE)
+    out[:, 6:10] = from_smallest_three(c[:, 6], c[:, 7:10] * (2 * Q_RANGE / lev) - Q_RANGE)
     out[:, 10] = c[:, 10] / float(1 << b["a"])
     out[:, 11] = c[:, 11] / float(1 << b["w"])
     return out.astype(np.float32)
@@ -249,12 +249,12 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tupl
         needs (bit depths, per-column coding, offset and byte width, raw size), and the
         permutation of ``params`` rows the file stores them in.
     """
-    b = _check_bits(dict(CODED_BITS if bits is None else bits))
+    b = check_bits(dict(CODED_BITS if bits is None else bits))
     codes = quantise(params, b)
     order = coded_order(codes)
     codes = codes[order]
     columns, planes, raw = [], [], 0
-    for k, name in enumerate(_COLUMNS):
+    for k, name in enumerate(CODED_COLUMNS):
         col = codes[:, k]
         if name in _DELTA:
             off = int(col[0])
@@ -270,7 +270,7 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tupl
     blob = b"".join(p.tobytes() for p in planes)
     level = ZSTD_LEVEL if raw <= ZSTD_LARGE_RAW else ZSTD_LEVEL_LARGE
     payload = zstandard_module().ZstdCompressor(level=level, write_checksum=True).compress(blob)
-    # columns: [offset, bytes] in _COLUMNS order (centres delta-coded from the offset, the rest
+    # columns: [offset, bytes] in CODED_COLUMNS order (centres delta-coded from the offset, the rest
     # offset-coded), kept terse: at high compression ratios the header is part of the budget
     quant = {"bits": b, "columns": columns, "raw_bytes": raw}
     return payload, quant, order
@@ -287,14 +287,14 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
     if not isinstance(quant, dict):
         raise WarpgaussError("the coded payload description ('quant') is missing; the file is damaged")
     try:
-        b = _check_bits(quant.get("bits"))
+        b = check_bits(quant.get("bits"))
     except WarpgaussError as e:
         raise WarpgaussError(f"{e}; the file is damaged or was written by another warpgauss version") from None
     cols = quant.get("columns")
-    if not isinstance(cols, list) or len(cols) != len(_COLUMNS) or not all(isinstance(c, list) and len(c) == 2 for c in cols):
-        raise WarpgaussError(f"the coded column list must hold {len(_COLUMNS)} (offset, bytes) pairs; the file is damaged")
+    if not isinstance(cols, list) or len(cols) != len(CODED_COLUMNS) or not all(isinstance(c, list) and len(c) == 2 for c in cols):
+        raise WarpgaussError(f"the coded column list must hold {len(CODED_COLUMNS)} (offset, bytes) pairs; the file is damaged")
     widths, offsets = [], []
-    for (off, w), name in zip(cols, _COLUMNS):
+    for (off, w), name in zip(cols, CODED_COLUMNS):
         if isinstance(w, bool) or not isinstance(w, int) or not 1 <= w <= 8:
             raise WarpgaussError(f"coded column {name} width {w!r} is not 1..8 bytes; the file is damaged")
         widths.append(w)
@@ -321,17 +321,17 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
         full = np.zeros((n, 8), np.uint8)
         full[:, :w] = planes.T
         v = full.view("<u8").reshape(n)
-        if _COLUMNS[k] in _DELTA:
+        if CODED_COLUMNS[k] in _DELTA:
             if np.any(v > np.uint64(2 * _MAX_CODE)):
-                raise WarpgaussError(f"coded column {_COLUMNS[k]} holds a difference beyond 2^52; the file is damaged")
+                raise WarpgaussError(f"coded column {CODED_COLUMNS[k]} holds a difference beyond 2^52; the file is damaged")
             d = (v >> np.uint64(1)).astype(np.int64) ^ -(v & np.uint64(1)).astype(np.int64)
             col = off + np.cumsum(d)
         else:
             if np.any(v > np.uint64(_MAX_CODE)):
-                raise WarpgaussError(f"coded column {_COLUMNS[k]} holds a code beyond 2^52; the file is damaged")
+                raise WarpgaussError(f"coded column {CODED_COLUMNS[k]} holds a code beyond 2^52; the file is damaged")
             col = off + v.astype(np.int64)
         if np.any(np.abs(col) > _MAX_CODE):
-            raise WarpgaussError(f"coded column {_COLUMNS[k]} decodes beyond 2^52; the file is damaged")
+            raise WarpgaussError(f"coded column {CODED_COLUMNS[k]} decodes beyond 2^52; the file is damaged")
         codes[:, k] = col
     lev = _q_levels(b["q"])
     if np.any((codes[:, 6] < 0) | (codes[:, 6] > 3)) or np.any((codes[:, 7:10] < 0) | (codes[:, 7:10] > lev)):
@@ -406,7 +406,7 @@ def fit_bytes(
         at the starting depths as ``first_bytes``, and ``kept``: the rows of ``params`` kept, in
         their order, for a refit of the pruned model).
     """
-    b = _check_bits(dict(CODED_BITS if bits is None else bits))
+    b = check_bits(dict(CODED_BITS if bits is None else bits))
     p = np.asarray(params, np.float32)
     share = PRUNE_SHARE if prune_share is None else float(prune_share)
     keep = np.arange(len(p))

@@ -188,7 +188,7 @@ def normalise_on_device(
             then shares that memory: the next normalisation into the same buffers overwrites it.
     """
     from ._warp import warp
-    from .analysis import MAX_VOXELS, _new_field, _NormPlan
+    from .analysis import MAX_VOXELS, NormPlan, new_field
     from .kernels import ingest as ki
 
     wp = warp()
@@ -211,7 +211,7 @@ def normalise_on_device(
     if hi <= lo:
         raise WarpgaussError(f"the volume is constant ({lo:g} everywhere it is valid); there is no structure to encode")
     exact = np_dtype.itemsize > 4 or np_dtype in (np.int32, np.uint32)
-    plan = _NormPlan(lo, hi, lo, hi, exact, True)
+    plan = NormPlan(lo, hi, lo, hi, exact, True)
     values, mask = (buffers or DeviceBuffers()).get((nz, ny, nx), dev)
     has_mask = int(n_invalid > 0)
     wp.launch(
@@ -234,7 +234,7 @@ def normalise_on_device(
         outputs=[values, mask, has_mask],
         device=dev,
     )
-    f = _new_field(DeviceValues(values), DeviceMask(mask) if has_mask else None, lo, hi, spacing, origin, name, np_dtype, n_invalid)
+    f = new_field(DeviceValues(values), DeviceMask(mask) if has_mask else None, lo, hi, spacing, origin, name, np_dtype, n_invalid)
     if count_candidates:
         occ_r, elig_r = (wp.empty(rows, dtype=int, device=dev) for _ in range(2))
         wp.launch(ki.row_candidates, dim=rows, inputs=[values, mask, has_mask], outputs=[occ_r, elig_r], device=dev)

@@ -390,7 +390,7 @@ class GaussianField:
         wp.utils.array_scan(counts[:nb], ends[:nb], inclusive=True)
         total = int(ends[nb - 1 : nb].numpy()[0])
         if total > MAX_BRICK_LIST:
-            self._decode_walk(out, z0, scale)
+            self.decode_walk(out, z0, scale)
         else:
             self._decode_lists(out, z0, scale, common, ends, counts, nb, bricks, total)
         if self._clamped is None:
@@ -477,7 +477,7 @@ class GaussianField:
             bufs[name] = buf
         return buf
 
-    def _decode_walk(self, out, z0: int, scale) -> None:
+    def decode_walk(self, out, z0: int, scale) -> None:
         """Evaluate a slab by the binned cell walk, skipping bricks no primitive reaches."""
         from .kernels import decode as kd
 

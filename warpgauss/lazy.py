@@ -99,12 +99,12 @@ def source_of(data) -> ArraySource | None:
     if isinstance(data, np.memmap) and data.base is not None and getattr(data, "filename", None) is not None:
         if data.ndim == 3 and data.flags.c_contiguous:
             return ArraySource("memmap", str(data.filename), tuple(int(s) for s in data.shape), data.dtype.str, int(data.offset))  # type: ignore[arg-type]
-    if isinstance(data, _Lazy3D):
+    if isinstance(data, Lazy3D):
         return data.source
     return None
 
 
-class _Lazy3D:
+class Lazy3D:
     """A reader's unread array (chunked HDF5, Zarr): shape, dtype and slicing only."""
 
     def __init__(self, source: ArraySource):
@@ -127,7 +127,7 @@ class LazyValues:
     """Normalised values read on demand: ``v[slices]`` is float32 with invalid voxels 0."""
 
     source: ArraySource
-    plan: Any  # analysis._NormPlan (plain numbers)
+    plan: Any  # analysis.NormPlan (plain numbers)
     fill_value: float | None
     check_valid: bool
 
@@ -202,7 +202,7 @@ def require_source(data, what: str) -> ArraySource:
     return src
 
 
-class Shared(_Lazy3D):
+class Shared(Lazy3D):
     """An in-memory array written once to a temporary ``.npy`` file (:func:`shared`), so that the
     Dask workers of this machine read it box by box instead of receiving it through the task
     graph; picklable as its :class:`ArraySource` alone. ``array()``: the whole, memory-mapped."""

@@ -236,9 +236,9 @@ class Model:
     def file_sizes(self, compact: bool = False, *, encoding: str | None = None) -> tuple[int, int]:
         """(file bytes, payload bytes) of this model's file (see :meth:`file_size`); a residual's
         bytes count in both."""
-        from .wgs import ENCODINGS, _encoding, header_size, payload_size, wgs_bytes
+        from .wgs import ENCODINGS, header_size, payload_size, resolve_encoding, wgs_bytes
 
-        enc = _encoding(compact, encoding)
+        enc = resolve_encoding(compact, encoding)
         per = ENCODINGS[enc]
         if per is None or self.residual is not None:
             data = wgs_bytes(self.params, self.header, encoding=enc, bits=self.coded_bits, residual=self.residual)

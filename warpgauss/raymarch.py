@@ -1,5 +1,5 @@
 """What every renderer shares: the scene (grid, spacing, extent), the camera and its resolved view,
-the render settings, the image, and the ray-marching core (:class:`_Marcher`) that the exact, cached
+the render settings, the image, and the ray-marching core (:class:`Marcher`) that the exact, cached
 and reference renderers use and the splatter builds on. The renderers are in :mod:`warpgauss.render`
 and :mod:`warpgauss.splat`; the kernels in :mod:`warpgauss.kernels.render`.
 """
@@ -328,7 +328,7 @@ def device_memory_bytes(device: str) -> int | None:
         return None
 
 
-class _Marcher:
+class Marcher:
     """What the model and volume renderers share: transfer-function upload, occupancy, launch."""
 
     march_tile = 16  # pixels a side of the squares the march's threads go over (1: row by row)

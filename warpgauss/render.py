@@ -41,10 +41,10 @@ from .raymarch import (  # noqa: F401 - the scene, camera and image types are pa
     OCCUPANCY_TARGET,
     Camera,
     Image,
+    Marcher,
     RenderSettings,
     Scene,
     View,
-    _Marcher,
     device_memory_bytes,
     resolve_view,
 )
@@ -54,7 +54,7 @@ from .transfer import TransferFunction, make_transfer_function
 METHODS = ("march", "cached", "splat", "bounded")  # how a model is drawn (see the module docstring)
 
 
-class ModelRenderer(_Marcher):
+class ModelRenderer(Marcher):
     """Exact ray marching of a model's mixture field V~ through the binned evaluator (``method="march"``).
 
     Every sample visits the binned candidates near it and its shading uses the analytic gradient;
@@ -93,7 +93,7 @@ class ModelRenderer(_Marcher):
         return self._march(self.field.prims, view, tf or make_transfer_function(), settings, "march")
 
 
-class VolumeRenderer(_Marcher):
+class VolumeRenderer(Marcher):
     """Ray marching of a dense normalised grid (trilinear) with the model's marcher: the reference.
 
     Args:
@@ -175,7 +175,7 @@ def check_cache_memory(shape_xyz, device: str) -> None:
         )
 
 
-class CachedRenderer(_Marcher):
+class CachedRenderer(Marcher):
     """Ray marching of a model's V~ decoded once onto a grid kept on the device.
 
     The decode is the model's full-grid decode (bricks no primitive reaches are written 0 without

@@ -24,7 +24,7 @@ import numpy as np
 
 from .errors import WarpgaussError
 from .model import Model
-from .readers.timesteps import TimeStep, _arrays, time_steps
+from .readers.timesteps import TimeStep, time_arrays, time_steps
 
 __all__ = ["TimeStep", "encode_series", "iter_series", "series_chains", "series_sources", "time_steps"]
 
@@ -62,7 +62,7 @@ def _listed(sources) -> list:
 def _grid(src, read) -> tuple[int, ...]:
     """(x, y, z) of a series input, reading no voxels where the format allows."""
     if isinstance(src, TimeStep):
-        kind, found = _arrays(Path(src.path))
+        kind, found = time_arrays(Path(src.path))
         return tuple(int(v) for v in dict(found)[src.key][1:][::-1])
     if isinstance(src, np.ndarray):
         if src.ndim != 3:

@@ -22,7 +22,7 @@ from .viewer import PRESETS, TF_FILE, Viewer
 READY_PREFIX = "warpgauss serve: "  # the line printed once the page is served (tests read its URL)
 
 
-def _require_trame():
+def require_trame():
     try:
         import trame  # noqa: F401
         import trame_color_opacity_editor  # noqa: F401
@@ -32,7 +32,7 @@ def _require_trame():
         raise WarpgaussError(f'warpgauss serve needs the trame packages ({e.name} is missing): pip install "warpgauss[serve]"') from None
 
 
-class _Area:
+class Area:
     """The image source trame-rca asks for frames (its RemoteControlledAreaProtocol).
 
     trame-rca asks on the server's event loop; a frame that takes long (exact marching, a large
@@ -116,7 +116,7 @@ class _Area:
 
 def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = None):
     """The trame server of a viewer's page (not started)."""
-    _require_trame()
+    require_trame()
     from trame.app import get_server
     from trame.ui.vuetify3 import SinglePageLayout
     from trame.widgets import color_opacity_editor as coe
@@ -158,7 +158,7 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
             state.custom_colors = viewer.state.colors is not None
             state.facts = _facts_text(viewer.facts())
 
-    area = _Area(viewer, on_frame, lambda: handler.update() if handler is not None else None)
+    area = Area(viewer, on_frame, lambda: handler.update() if handler is not None else None)
 
     class _Forward:  # mouse events re-render at once; the rest of the protocol goes to the area
         img_cols_rows = property(lambda self: area.img_cols_rows)

@@ -13,11 +13,11 @@ from __future__ import annotations
 import math
 import time
 
-from .raymarch import Camera, Image, RenderSettings, Scene, View, _Marcher, count_stats, resolve_view
+from .raymarch import Camera, Image, Marcher, RenderSettings, Scene, View, count_stats, resolve_view
 from .transfer import TransferFunction, make_transfer_function
 
 
-class SplatRenderer(_Marcher):
+class SplatRenderer(Marcher):
     """A model resident on a device, ready to splat.
 
     Args:

@@ -114,7 +114,7 @@ def generate(name: str, size: int | tuple[int, int, int] = 64, seed: int = 0) ->
         raise WarpgaussError(f"seed must be a non-negative int, got {seed!r}")
     rng = np.random.default_rng(int(seed))
     volume = make(shape_xyz, rng)
-    return _normalise(volume)
+    return unit_range(volume)
 
 
 SERIES_TURN_DEGREES = 4.0  # an evolving example turns this much about the z axis per timestep
@@ -139,7 +139,7 @@ def generate_series(
     yield base
     for t in range(1, int(steps)):
         turned = rotate(base, t * float(turn_degrees), axes=(1, 2), reshape=False, order=1, mode="nearest")
-        yield _normalise(turned.astype(np.float32))
+        yield unit_range(turned.astype(np.float32))
 
 
 def raw_name(name: str, size: int | tuple[int, int, int]) -> str:
@@ -195,7 +195,7 @@ def _slabs(shape_zyx: tuple[int, int, int]) -> Iterator[tuple[int, int]]:
         yield z0, min(nz, z0 + step)
 
 
-def _normalise(v: np.ndarray) -> np.ndarray:
+def unit_range(v: np.ndarray) -> np.ndarray:
     """Map ``v`` in place to [0, 1] by its min/max: min becomes exactly 0 and max exactly 1.
 
     (v - lo) / (hi - lo) in float32 is monotone in v, is 0 at lo and x / x = 1 at hi.

@@ -66,7 +66,7 @@ from typing import Any
 import numpy as np
 
 from ._fs import atomic_write_bytes, check_writable
-from .coded import _Q_RANGE, from_smallest_three, smallest_three  # the three smaller components lie in +-1/sqrt2
+from .coded import Q_RANGE, from_smallest_three, smallest_three  # the three smaller components lie in +-1/sqrt2
 from .errors import WarpgaussError
 from .residual import Residual
 
@@ -75,7 +75,7 @@ FORMAT_VERSION = 1
 RESIDUAL_VERSION = 2  # a file with a residual: a reader that predates residuals refuses it by its version
 HEADER_BLOCK = 4096
 PREFIX_SIZE = 20  # magic (8) + version (4) + JSON length (4) + CRC32 (4)
-_PREFIX = struct.Struct("<8sIII")
+PREFIX = struct.Struct("<8sIII")
 
 PARAM_NAMES: tuple[str, ...] = (
     "mu_x",
@@ -150,9 +150,9 @@ def _payload_info(encoding: str, sha256: str, quant: dict | None, payload_bytes:
 
 def _coded_placeholder() -> dict:
     """A coded payload description with every number at its widest (for header sizes)."""
-    from .coded import _COLUMNS, CODED_BITS
+    from .coded import CODED_BITS, CODED_COLUMNS
 
-    return {"bits": {k: 24 for k in CODED_BITS}, "columns": [[-(1 << 52), 8]] * len(_COLUMNS), "raw_bytes": _N_PLACEHOLDER}
+    return {"bits": {k: 24 for k in CODED_BITS}, "columns": [[-(1 << 52), 8]] * len(CODED_COLUMNS), "raw_bytes": _N_PLACEHOLDER}
 
 
 def _quant_dict(mu_lo, mu_hi, s_lo, s_hi, a_lo, a_hi, w_lo, w_hi) -> dict:
@@ -193,13 +193,13 @@ def header_size(header: dict, n: int, *, compact: bool = False, encoding: str | 
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
         raise WarpgaussError(f"the primitive count must be a non-negative integer, got {n!r}")
-    return _reserved_size(header, _encoding(compact, encoding))
+    return _reserved_size(header, resolve_encoding(compact, encoding))
 
 
 FORMAT_ALIASES = {"full": "float32", "compact": "compact96"}  # the names the command line and the API take
 
 
-def _encoding(compact: bool, encoding: str | None) -> str:
+def resolve_encoding(compact: bool, encoding: str | None) -> str:
     """The payload encoding of a format name or alias (:data:`FORMAT_ALIASES`), else of ``compact``."""
     if encoding is None:
         return "compact96" if compact else "float32"
@@ -316,7 +316,7 @@ def encode_compact(params: np.ndarray) -> tuple[bytes, dict]:
             _quantise(mu, mu_lo.astype(np.float64), mu_hi.astype(np.float64), b["mu"]),
             _quantise(s, float(s_lo), float(s_hi), b["log_s"]),
             qi.astype(np.uint64)[:, None],
-            _quantise(small, -_Q_RANGE, _Q_RANGE, b["q"], centred=True),
+            _quantise(small, -Q_RANGE, Q_RANGE, b["q"], centred=True),
             _quantise(a, float(a_lo), float(a_hi), b["a"])[:, None],
             _quantise(w, float(w_lo), float(w_hi), b["w"])[:, None],
         ],
@@ -370,7 +370,7 @@ def decode_compact(payload: bytes, n: int, quant: dict) -> np.ndarray:
     out = np.empty((n, 12), np.float64)
     out[:, 0:3] = _dequantise(c[:, 0:3], mu_lo, mu_hi, b["mu"])
     out[:, 3:6] = _dequantise(c[:, 3:6], s_lo, s_hi, b["log_s"])
-    out[:, 6:10] = from_smallest_three(c[:, 6], _dequantise(c[:, 7:10], -_Q_RANGE, _Q_RANGE, b["q"], centred=True))
+    out[:, 6:10] = from_smallest_three(c[:, 6], _dequantise(c[:, 7:10], -Q_RANGE, Q_RANGE, b["q"], centred=True))
     out[:, 10] = _dequantise(c[:, 10], a_lo, a_hi, b["a"])
     out[:, 11] = _dequantise(c[:, 11], w_lo, w_hi, b["w"])
     return out.astype(np.float32)
@@ -437,7 +437,7 @@ def write_wgs(
         residual's bytes.
     """
     dest = check_writable(path, force=force)
-    encoding = _encoding(compact, encoding)
+    encoding = resolve_encoding(compact, encoding)
     data = wgs_bytes(params, header, encoding=encoding, header_size=header_size, bits=bits, residual=residual)
     if encoding == "coded":  # no file is written that read_wgs would refuse
         from .coded import MIN_PAYLOAD_PER_PRIMITIVE
@@ -454,7 +454,7 @@ def write_wgs(
 
 def payload_size(data: bytes) -> int:
     """Payload bytes of a whole file's bytes (what follows the prefix and the header, a residual included)."""
-    _, _, hlen, _ = _PREFIX.unpack_from(data)
+    _, _, hlen, _ = PREFIX.unpack_from(data)
     return len(data) - PREFIX_SIZE - hlen
 
 
@@ -472,7 +472,7 @@ def wgs_bytes(
     the primitives, described by the header's ``residual`` entry."""
     p = _validated_params(params)
     n = p.shape[0]
-    encoding = _encoding(False, encoding)
+    encoding = resolve_encoding(False, encoding)
     if encoding == "compact96":
         payload, quant = encode_compact(p)
     elif encoding == "coded":
@@ -503,7 +503,7 @@ def wgs_bytes(
         raise WarpgaussError(f"header of {H} bytes is too large for the format (max 4 GiB); shrink the header")
     area = body + b" " * (H - need)
     version = FORMAT_VERSION if residual is None else RESIDUAL_VERSION
-    prefix = _PREFIX.pack(MAGIC, version, len(area), zlib.crc32(area))
+    prefix = PREFIX.pack(MAGIC, version, len(area), zlib.crc32(area))
     return b"".join([prefix, area, payload, tail])
 
 
@@ -546,7 +546,7 @@ def _read(path: str | os.PathLike, payload: bool) -> tuple[np.ndarray | None, di
 
         if size < PREFIX_SIZE:
             raise bad(f"not a warpgauss model file (only {size} bytes, shorter than the {PREFIX_SIZE}-byte prefix)")
-        magic, version, hlen, crc = _PREFIX.unpack(f.read(PREFIX_SIZE))
+        magic, version, hlen, crc = PREFIX.unpack(f.read(PREFIX_SIZE))
         if magic != MAGIC:
             raise bad("not a warpgauss model file (bad magic); give a .wgs file written by warpgauss")
         if version not in (FORMAT_VERSION, RESIDUAL_VERSION):

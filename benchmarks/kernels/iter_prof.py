@@ -13,7 +13,7 @@ import numpy as np
 
 from warpgauss._warp import warp
 from warpgauss.analysis import DeviceVolume
-from warpgauss.bench import _Timer, bench_field, bench_primitives, result_header
+from warpgauss.bench import Timer, bench_field, bench_primitives, result_header
 from warpgauss.optimize import RefineConfig, Refiner
 
 wp = warp()
@@ -22,7 +22,7 @@ size, n, m, out = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv
 f = bench_field(size)
 dv = DeviceVolume(f, dev)
 r = Refiner(dv, bench_primitives(n, f.shape_xyz, 0.7, 0), RefineConfig(iterations=1500, samples=m), 0, 0.3, max(2.0, size / 16))
-T = _Timer(dev)
+T = Timer(dev)
 for _ in range(20):
     r.step()
 wp.synchronize()

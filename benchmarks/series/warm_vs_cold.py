@@ -35,7 +35,7 @@ def steps_of(name: str, size: int, steps: int, turn: float) -> list:
     """The series' volumes, turned in parallel threads (scipy releases the GIL)."""
     from scipy.ndimage import rotate
 
-    from warpgauss.synthetic import _normalise
+    from warpgauss.synthetic import unit_range
 
     base = generate(name, size)
     if steps == 1:
@@ -44,7 +44,7 @@ def steps_of(name: str, size: int, steps: int, turn: float) -> list:
     def turned(t):
         import numpy as np
 
-        return _normalise(rotate(base, t * turn, axes=(1, 2), reshape=False, order=1, mode="nearest").astype(np.float32))
+        return unit_range(rotate(base, t * turn, axes=(1, 2), reshape=False, order=1, mode="nearest").astype(np.float32))
 
     with ThreadPoolExecutor(max_workers=8) as pool:
         return [base, *pool.map(turned, range(1, steps))]

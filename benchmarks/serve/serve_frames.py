@@ -6,9 +6,9 @@ What is timed is the page's own path without the browser: warpgauss.viewer.Viewe
 RGBA -> RGB8, copy to the host) for an orbit of frames, then the image encodings trame-rca would
 apply: the page's (warpgauss.serve.FrameEncoder: JPEG 90 while the view moves, lossless PNG at
 zlib level 1 once still) and trame-rca's own PNG (PIL's default compression), and set_opacity +
-frame() for transfer-function edits. Then the page's own path (warpgauss.serve._Area, without the
+frame() for transfer-function edits. Then the page's own path (warpgauss.serve.Area, without the
 browser and the websocket): on an asyncio loop as trame-rca drives it, each change (a camera step,
-an opacity edit) renders in _Area's worker thread, the page is told to fetch it, and it is encoded
+an opacity edit) renders in Area's worker thread, the page is told to fetch it, and it is encoded
 as a moving frame (JPEG) in a thread pool as trame-rca's scheduler does; timed from the change to
 the encoded bytes, one at a time (latency) and back to back with the encodings overlapping the next
 render (throughput). The worker thread's frames are checked bit for bit against frames rendered on
@@ -60,17 +60,17 @@ def encode_seconds(img: np.ndarray, fmt: str) -> float:
 
 
 async def page_path(viewer: Viewer, changes: list, pool) -> dict:
-    """The page's path for a list of state changes (callables on the viewer): _Area renders each in
+    """The page's path for a list of state changes (callables on the viewer): Area renders each in
     its worker thread; the frame is then encoded as a moving frame (JPEG) in ``pool``. Latency: one change at a time,
     change -> encoded bytes. Throughput: the same changes back to back, each encoding overlapping
     the next render (as trame-rca's scheduler pushes frames while the next renders)."""
     import asyncio
 
-    from warpgauss.serve import _Area
+    from warpgauss.serve import Area
 
     loop = asyncio.get_running_loop()
     fetched = asyncio.Event()
-    area = _Area(viewer, on_frame=lambda seconds: None, request_update=fetched.set)
+    area = Area(viewer, on_frame=lambda seconds: None, request_update=fetched.set)
     area.img_cols_rows  # noqa: B018 - the first frame renders at once, on this thread
 
     async def one(change):

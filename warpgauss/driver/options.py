@@ -51,11 +51,11 @@ DEFAULT_FORMAT = "coded"
 def encoding_of(opts: EncodeOptions) -> str:
     """The file format of an encoding: ``format`` ("full" = float32, "compact" = compact96), else
     compact96 with ``compact``, else :data:`DEFAULT_FORMAT`."""
-    from ..wgs import _encoding
+    from ..wgs import resolve_encoding
 
     if opts.format is None and not opts.compact:
         return DEFAULT_FORMAT
-    return _encoding(opts.compact, opts.format)
+    return resolve_encoding(opts.compact, opts.format)
 
 
 def with_stop_rules(refine: RefineConfig, target_psnr: float | None, plateau_db: float | None) -> RefineConfig:

@@ -25,35 +25,35 @@ import os
 from pathlib import Path
 
 from ..errors import WarpgaussError
-from .common import MAX_READ_VOXELS, Volume, _check_options, _check_stride, _finish, _match_suffix, _Reader, parse_raw_name
-from .hdf5 import _read_hdf5, _read_netcdf
-from .mrc import _read_mrc
-from .plt import _read_plt
-from .raw import _read_npy, _read_raw
-from .vtk import _read_pyvista
+from .common import MAX_READ_VOXELS, ReaderSpec, Volume, check_options, check_stride, finish_read, match_suffix, parse_raw_name
+from .hdf5 import read_hdf5, read_netcdf
+from .mrc import read_mrc
+from .plt import read_plt
+from .raw import read_npy, read_raw
+from .vtk import read_pyvista
 from .write import WRITERS, write_volume
-from .zarr import _read_zarr
+from .zarr import read_zarr
 
 _RAW_OPTS = frozenset({"shape", "dtype", "endian"})
 _H5_OPTS = frozenset({"dataset", "variable"})
 
 #: File extension (lower case, full suffix) -> reader. The longest matching suffix wins.
-READERS: dict[str, _Reader] = {
-    ".raw": _Reader(_read_raw, _RAW_OPTS, "raw binary"),
-    ".bin": _Reader(_read_raw, _RAW_OPTS, "raw binary"),
-    ".npy": _Reader(_read_npy, frozenset(), "numpy"),
-    ".h5": _Reader(_read_hdf5, _H5_OPTS, "HDF5"),
-    ".hdf5": _Reader(_read_hdf5, _H5_OPTS, "HDF5"),
-    ".hdf": _Reader(_read_hdf5, _H5_OPTS, "HDF5"),
-    ".nc": _Reader(_read_netcdf, _H5_OPTS, "netCDF"),
-    ".cdf": _Reader(_read_netcdf, _H5_OPTS, "netCDF"),
+READERS: dict[str, ReaderSpec] = {
+    ".raw": ReaderSpec(read_raw, _RAW_OPTS, "raw binary"),
+    ".bin": ReaderSpec(read_raw, _RAW_OPTS, "raw binary"),
+    ".npy": ReaderSpec(read_npy, frozenset(), "numpy"),
+    ".h5": ReaderSpec(read_hdf5, _H5_OPTS, "HDF5"),
+    ".hdf5": ReaderSpec(read_hdf5, _H5_OPTS, "HDF5"),
+    ".hdf": ReaderSpec(read_hdf5, _H5_OPTS, "HDF5"),
+    ".nc": ReaderSpec(read_netcdf, _H5_OPTS, "netCDF"),
+    ".cdf": ReaderSpec(read_netcdf, _H5_OPTS, "netCDF"),
     **{
-        ext: _Reader(_read_pyvista, frozenset(), "VTK/medical image")
+        ext: ReaderSpec(read_pyvista, frozenset(), "VTK/medical image")
         for ext in (".vti", ".vtk", ".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr")
     },
-    **{base + comp: _Reader(_read_mrc, frozenset(), "MRC/CCP4") for base in (".mrc", ".map", ".ccp4") for comp in ("", ".gz", ".bz2")},
-    ".plt": _Reader(_read_plt, frozenset(), "gOpenMol plt"),
-    ".zarr": _Reader(_read_zarr, frozenset({"dataset"}), "Zarr store"),
+    **{base + comp: ReaderSpec(read_mrc, frozenset(), "MRC/CCP4") for base in (".mrc", ".map", ".ccp4") for comp in ("", ".gz", ".bz2")},
+    ".plt": ReaderSpec(read_plt, frozenset(), "gOpenMol plt"),
+    ".zarr": ReaderSpec(read_zarr, frozenset({"dataset"}), "Zarr store"),
 }
 
 
@@ -111,13 +111,13 @@ def read_volume(
         raise WarpgaussError(f"no such file: {p}")
     if p.is_dir() and not p.name.lower().endswith(".zarr"):
         raise WarpgaussError(f"{p} is a directory; give a volume file (or a .zarr store)")
-    suffix = _match_suffix(p.name, READERS, "read")
+    suffix = match_suffix(p.name, READERS, "read")
     reader = READERS[suffix]
-    s = _check_stride(stride)
+    s = check_stride(stride)
     given = {"shape": shape, "dtype": dtype, "endian": endian, "dataset": dataset, "variable": variable}
-    _check_options(p, reader, [k for k, v in given.items() if v is not None])
+    check_options(p, reader, [k for k, v in given.items() if v is not None])
     got = reader.func(p, **given, stride=s, lazy=lazy and s == 1)
-    return _finish(p, suffix, got, s, lazy=lazy and s == 1)
+    return finish_read(p, suffix, got, s, lazy=lazy and s == 1)
 
 
 __all__ = [

@@ -1,5 +1,5 @@
 """What every reader shares: the :class:`Volume` it returns, the reader record, dtype and shape
-parsing, the size checks against the machine, and the final validation (:func:`_finish`).
+parsing, the size checks against the machine, and the final validation (:func:`finish_read`).
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ class Volume:
 
 
 @dataclass
-class _Read:
+class ReadResult:
     """What a format reader found, before the common validation, stride and byte-order steps."""
 
     data: np.ndarray
@@ -75,8 +75,8 @@ class _Read:
 
 
 @dataclass(frozen=True)
-class _Reader:
-    func: Callable[..., _Read]
+class ReaderSpec:
+    func: Callable[..., ReadResult]
     options: frozenset[str]  # keyword options of read_volume this format understands
     what: str
 
@@ -131,7 +131,7 @@ def parse_raw_name(filename: str | os.PathLike) -> tuple[tuple[int, int, int], n
     return shape, _RAW_DTYPES[m.group(4).lower()]
 
 
-def _resolve_dtype(dtype) -> np.dtype:
+def resolve_dtype(dtype) -> np.dtype:
     """A user's dtype (``"float32"``, ``"float"``, ``"double"``, ``np.int16``...) as a real numeric dtype."""
     if isinstance(dtype, str) and dtype.lower() in _RAW_DTYPES:
         return _RAW_DTYPES[dtype.lower()]
@@ -144,7 +144,7 @@ def _resolve_dtype(dtype) -> np.dtype:
     return dt
 
 
-def _resolve_shape(shape) -> tuple[int, int, int]:
+def resolve_shape(shape) -> tuple[int, int, int]:
     """Validate a user's ``(x, y, z)`` shape."""
     try:
         xyz = tuple(int(v) for v in shape)
@@ -155,7 +155,7 @@ def _resolve_shape(shape) -> tuple[int, int, int]:
     return xyz  # type: ignore[return-value]
 
 
-def _byte_order(endian: str | None) -> str:
+def byte_order(endian: str | None) -> str:
     if endian is None or str(endian).lower() in ("little", "le", "<"):
         return "<"
     if str(endian).lower() in ("big", "be", ">"):
@@ -163,7 +163,7 @@ def _byte_order(endian: str | None) -> str:
     raise WarpgaussError(f"endian must be 'little' or 'big', got {endian!r}")
 
 
-def _fmt_xyz(shape_xyz) -> str:
+def fmt_xyz(shape_xyz) -> str:
     return "x".join(str(int(v)) for v in shape_xyz)
 
 
@@ -174,7 +174,7 @@ def _physical_memory() -> int | None:
         return None
 
 
-def _check_declared(what: str, shape_zyx, itemsize: int, stride: int = 1) -> int:
+def check_declared(what: str, shape_zyx, itemsize: int, stride: int = 1) -> int:
     """Refuse a declared grid before anything is allocated for it; returns the voxels to read.
 
     A header's dimensions are only a claim: compressed or sparse storage lets a few bytes declare
@@ -183,7 +183,7 @@ def _check_declared(what: str, shape_zyx, itemsize: int, stride: int = 1) -> int
     """
     kept = [-(-int(n) // stride) for n in shape_zyx]
     voxels = math.prod(kept)
-    shown = _fmt_xyz(tuple(shape_zyx)[::-1])
+    shown = fmt_xyz(tuple(shape_zyx)[::-1])
     if voxels > MAX_READ_VOXELS:
         raise WarpgaussError(
             f"{what} declares {shown} voxels ({voxels} after --stride {stride}), more than the {MAX_READ_VOXELS} "
@@ -198,11 +198,11 @@ def _check_declared(what: str, shape_zyx, itemsize: int, stride: int = 1) -> int
     return voxels
 
 
-def _finish(p: Path, suffix: str, got: _Read, stride: int, lazy: bool = False) -> Volume:
+def finish_read(p: Path, suffix: str, got: ReadResult, stride: int, lazy: bool = False) -> Volume:
     """Common validation, stride and byte order (``lazy``: left to the reads); builds the :class:`Volume`."""
     data = got.data
-    _check_shape(data.shape, p.name)
-    _check_dtype(data.dtype, p.name)
+    check_shape(data.shape, p.name)
+    check_dtype(data.dtype, p.name)
     if stride > 1 and not got.strided:
         data = data[::stride, ::stride, ::stride]
     if not data.dtype.isnative and not lazy:
@@ -231,7 +231,7 @@ def _fill_in_dtype(fill: float | None, dtype: np.dtype) -> float | None:
     return float(stored) if np.isfinite(stored) else fill
 
 
-def _match_suffix(filename: str, table: dict, verb: str) -> str:
+def match_suffix(filename: str, table: dict, verb: str) -> str:
     lower = filename.lower()
     hits = [ext for ext in table if lower.endswith(ext)]
     if not hits:
@@ -240,7 +240,7 @@ def _match_suffix(filename: str, table: dict, verb: str) -> str:
     return max(hits, key=len)
 
 
-def _check_options(p: Path, reader: _Reader, given: list[str]) -> None:
+def check_options(p: Path, reader: ReaderSpec, given: list[str]) -> None:
     extra = [o for o in given if o not in reader.options]
     if extra:
         opts = ", ".join(f"--{o}" for o in extra)
@@ -248,13 +248,13 @@ def _check_options(p: Path, reader: _Reader, given: list[str]) -> None:
         raise WarpgaussError(f"{opts} {verb} not apply to {p.name} ({reader.what} file); leave {it} out")
 
 
-def _check_stride(stride) -> int:
+def check_stride(stride) -> int:
     if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
         raise WarpgaussError(f"stride must be a positive integer, got {stride!r}")
     return int(stride)
 
 
-def _check_shape(shape: tuple, what: str) -> None:
+def check_shape(shape: tuple, what: str) -> None:
     if len(shape) != 3:
         raise WarpgaussError(f"{what} is {len(shape)}D (shape {tuple(shape)}); warpgauss encodes 3D volumes")
     if min(shape) < 1:
@@ -268,7 +268,7 @@ def usable_spacing(spacing, stride: int = 1) -> tuple[float, float, float]:
     return (x, y, z)
 
 
-def _check_dtype(dtype: np.dtype, what: str) -> None:
+def check_dtype(dtype: np.dtype, what: str) -> None:
     if dtype.kind not in "iuf":
         raise WarpgaussError(f"{what} holds {dtype} values; warpgauss encodes real numbers (integer or float)")
 
@@ -279,7 +279,7 @@ def _volume_name(filename: str, suffix: str) -> str:
     return stem or "volume"
 
 
-def _attr_xyz(attrs, key: str, default: tuple[float, float, float]) -> tuple[float, float, float]:
+def attr_xyz(attrs, key: str, default: tuple[float, float, float]) -> tuple[float, float, float]:
     """Three finite numbers from an attribute; the default for anything else (metadata only)."""
     value = attrs.get(key)
     if value is None:
@@ -293,7 +293,7 @@ def _attr_xyz(attrs, key: str, default: tuple[float, float, float]) -> tuple[flo
     return tuple(float(v) for v in arr)  # type: ignore[return-value]
 
 
-def _fill_attr(attrs) -> float | None:
+def fill_attr(attrs) -> float | None:
     for key in ("_FillValue", "missing_value"):
         value = attrs.get(key)
         if value is not None:
@@ -303,12 +303,12 @@ def _fill_attr(attrs) -> float | None:
     return None
 
 
-def _first_line(e: BaseException) -> str:
+def first_line(e: BaseException) -> str:
     text = str(e).strip()
     return text.splitlines()[0] if text else type(e).__name__
 
 
-def _list_datasets(found: list[tuple[str, tuple]], limit: int = 12) -> str:
+def list_datasets(found: list[tuple[str, tuple]], limit: int = 12) -> str:
     if not found:
         return "no datasets"
     items = [f"{n} {tuple(int(v) for v in s)}" for n, s in found[:limit]]
@@ -316,16 +316,16 @@ def _list_datasets(found: list[tuple[str, tuple]], limit: int = 12) -> str:
     return ", ".join(items) + more
 
 
-def _pick_array(where: str, found: list[tuple[str, tuple]], wanted, has, noun: str, option: str, strip: str = "/") -> str:
+def pick_array(where: str, found: list[tuple[str, tuple]], wanted, has, noun: str, option: str, strip: str = "/") -> str:
     """The key of the array to read from a container (HDF5 datasets, netCDF variables, Zarr
     arrays): ``wanted`` (leading ``strip`` characters dropped) if ``has(key)``, else the first
     3D one of ``found`` ((name, shape) pairs); a one-line error listing them otherwise."""
     if wanted is not None:
         key = str(wanted).lstrip(strip)
         if not has(key):
-            raise WarpgaussError(f"{where} has no {noun} {wanted!r}; it holds {_list_datasets(found)}; pick one with {option}")
+            raise WarpgaussError(f"{where} has no {noun} {wanted!r}; it holds {list_datasets(found)}; pick one with {option}")
         return key
     first = next((n for n, s in found if len(s) == 3), None)
     if first is None:
-        raise WarpgaussError(f"{where} has no 3D {noun}; it holds {_list_datasets(found)}")
+        raise WarpgaussError(f"{where} has no 3D {noun}; it holds {list_datasets(found)}")
     return first

@@ -8,7 +8,7 @@ from types import ModuleType
 import numpy as np
 
 from ..errors import WarpgaussError
-from .common import _first_line, _Read
+from .common import ReadResult, first_line
 
 _MRC_MODES: dict[int, np.dtype] = {
     0: np.dtype(np.int8),
@@ -19,7 +19,7 @@ _MRC_MODES: dict[int, np.dtype] = {
 }
 
 
-def _read_mrc(path: Path, **_) -> _Read:
+def read_mrc(path: Path, **_) -> ReadResult:
     """MRC2014 / CCP4 density maps, optionally ``.gz`` or ``.bz2`` compressed.
 
     1024-byte header, NSYMBT extended-header bytes skipped, MODE gives the dtype, axes permuted by
@@ -61,7 +61,7 @@ def _read_mrc(path: Path, **_) -> _Read:
     file_axes = (mapcrs[2], mapcrs[1], mapcrs[0])
     data = data.transpose(file_axes.index(3), file_axes.index(2), file_axes.index(1))
     spacing = _mrc_spacing(floats[10:13], ints[7:10], data.shape[::-1])
-    return _Read(data, spacing=spacing, origin=_mrc_origin(floats[49:52], ints[4:7], mapcrs, spacing))
+    return ReadResult(data, spacing=spacing, origin=_mrc_origin(floats[49:52], ints[4:7], mapcrs, spacing))
 
 
 def _decompressed(path: Path) -> bytes | None:
@@ -78,7 +78,7 @@ def _decompressed(path: Path) -> bytes | None:
         with codec.open(path, "rb") as fh:
             return fh.read()
     except (OSError, EOFError, ValueError) as e:
-        raise WarpgaussError(f"cannot decompress {path.name} ({_first_line(e)})") from e
+        raise WarpgaussError(f"cannot decompress {path.name} ({first_line(e)})") from e
 
 
 def _mrc_dtype(path: Path, mode: int) -> np.dtype:

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import WarpgaussError
-from .common import _Read
+from .common import ReadResult
 
 
-def _read_plt(path: Path, **_) -> _Read:
+def read_plt(path: Path, **_) -> ReadResult:
     """gOpenMol ``.plt``: 5 int32 (rank=3, surface type, nz, ny, nx) + 6 float32 (zmin, zmax,
     ymin, ymax, xmin, xmax) header, then float32 with x fastest.
 
@@ -35,7 +35,7 @@ def _read_plt(path: Path, **_) -> _Read:
     data = np.memmap(path, dtype=e + "f4", mode="r", offset=44, shape=(nz, ny, nx))
     spacing = tuple(_plt_step(lo, hi, n) for lo, hi, n in ((xmin, xmax, nx), (ymin, ymax, ny), (zmin, zmax, nz)))
     origin = tuple(lo + d / 2 for lo, d in zip((xmin, ymin, zmin), spacing))
-    return _Read(data, spacing=spacing, origin=origin)  # type: ignore[arg-type]
+    return ReadResult(data, spacing=spacing, origin=origin)  # type: ignore[arg-type]
 
 
 def _plt_step(lo: float, hi: float, n: int) -> float:

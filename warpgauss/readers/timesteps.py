@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import WarpgaussError
-from .common import _attr_xyz, _fill_attr, _list_datasets
+from .common import attr_xyz, fill_attr, list_datasets
 
 CONTAINER_SUFFIXES = (".h5", ".hdf5", ".hdf", ".nc", ".cdf", ".zarr")
 
@@ -46,23 +46,23 @@ class TimeStep:
     def meta(self) -> tuple[tuple[float, float, float], tuple[float, float, float], float | None]:
         """(spacing, origin, fill value) the array declares, as the readers take them."""
         attrs = _attrs(self)
-        return _attr_xyz(attrs, "spacing", (1.0, 1.0, 1.0)), _attr_xyz(attrs, "origin", (0.0, 0.0, 0.0)), _fill_attr(attrs)
+        return attr_xyz(attrs, "spacing", (1.0, 1.0, 1.0)), attr_xyz(attrs, "origin", (0.0, 0.0, 0.0)), fill_attr(attrs)
 
     def __str__(self) -> str:
         return f"{self.path}:{self.key}[{self.t}]"
 
 
-def _arrays(path: Path) -> tuple[str, list[tuple[str, tuple]]]:
+def time_arrays(path: Path) -> tuple[str, list[tuple[str, tuple]]]:
     """(kind, [(name, shape)]) of the arrays in a container file, without reading them."""
     if path.is_dir() or path.suffix.lower() == ".zarr":
         import zarr
 
-        from .zarr import _array_names
+        from .zarr import array_names
 
         root: Any = zarr.open(str(path), mode="r")
         if isinstance(root, zarr.Array):
             return "zarr", [("", tuple(root.shape))]
-        return "zarr", [(n, tuple(root[n].shape)) for n in sorted(_array_names(root))]
+        return "zarr", [(n, tuple(root[n].shape)) for n in sorted(array_names(root))]
     with open(path, "rb") as fh:
         magic = fh.read(8)
     if magic.startswith(b"CDF"):
@@ -85,14 +85,14 @@ def time_steps(path, variable: str | None = None) -> list[TimeStep] | None:
     if not (p.exists() and str(p).lower().endswith(CONTAINER_SUFFIXES)):
         return None
     try:
-        kind, found = _arrays(p)
+        kind, found = time_arrays(p)
     except Exception:  # noqa: BLE001 - not a container we can list: the reader will say why
         return None
     shapes = dict(found)
     if variable is not None:
         key = variable.lstrip("/") if kind == "hdf5" else variable
         if key not in shapes:
-            raise WarpgaussError(f"{p.name} has no variable {variable!r}; it holds {_list_datasets(found)}; pick one with --variable")
+            raise WarpgaussError(f"{p.name} has no variable {variable!r}; it holds {list_datasets(found)}; pick one with --variable")
         if len(shapes[key]) != 4:
             return None
     else:

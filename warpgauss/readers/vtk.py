@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import WarpgaussError
-from .common import _check_declared, _first_line, _Read
+from .common import ReadResult, check_declared, first_line
 
 
-def _read_pyvista(path: Path, **_) -> _Read:
+def read_pyvista(path: Path, **_) -> ReadResult:
     """VTK ImageData, legacy structured points, NIfTI, MetaImage, NRRD via ``pyvista.read``.
 
     The active point-data scalars (else the first point-data array) are used; a file with cell data
@@ -49,14 +49,14 @@ def _read_pyvista(path: Path, **_) -> _Read:
     if arr.ndim > 1 and path.name.lower().endswith((".nrrd", ".nhdr")):
         fixed = _nrrd_undo_vtk_components(path, arr, spacing)
         if fixed is not None:
-            return _Read(fixed[0], spacing=fixed[1], origin=origin)  # type: ignore[arg-type]
+            return ReadResult(fixed[0], spacing=fixed[1], origin=origin)  # type: ignore[arg-type]
     if arr.ndim > 1 and int(np.prod(arr.shape[1:])) != 1:
         raise WarpgaussError(
             f"{path.name}: array {name!r} has {int(np.prod(arr.shape[1:]))} components per voxel; "
             f"warpgauss encodes scalar volumes, so extract one component (or the magnitude) first"
         )
     xyz = arr.reshape(dims, order="F")  # [x, y, z]
-    return _Read(np.ascontiguousarray(xyz.transpose(2, 1, 0)), spacing=spacing, origin=origin)  # type: ignore[arg-type]
+    return ReadResult(np.ascontiguousarray(xyz.transpose(2, 1, 0)), spacing=spacing, origin=origin)  # type: ignore[arg-type]
 
 
 _NRRD_SIZES = {
@@ -105,7 +105,7 @@ def _quiet_pyvista_read(pv, path: Path):
         try:
             mesh = pv.read(path)
         except Exception as e:  # VTK and pyvista raise a mix of types for unreadable files
-            raise WarpgaussError(f"cannot read {path.name} with pyvista ({_first_line(e)})") from e
+            raise WarpgaussError(f"cannot read {path.name} with pyvista ({first_line(e)})") from e
         finally:
             logging.disable(previous)
     errors = [ev for ev in catcher.events if str(getattr(ev, "kind", "ERROR")) == "ERROR"]
@@ -137,7 +137,7 @@ def _precheck_vtk(path: Path) -> None:
     dims, itemsize, need_after = found
     if not dims or min(dims) < 1:
         raise WarpgaussError(f"{path.name} declares an empty grid (sizes {dims}); the header is damaged")
-    _check_declared(path.name, tuple(dims)[::-1], itemsize)
+    check_declared(path.name, tuple(dims)[::-1], itemsize)
     if need_after is not None:
         offset, amount, mode = need_after
         have = _gzip_bytes(path, offset, amount) if mode == "gzip" else path.stat().st_size - offset
@@ -249,7 +249,7 @@ def _nifti_declared(path: Path):
             with gzip.open(path, "rb") as fh:
                 head = fh.read(544)
         except (OSError, EOFError) as e:
-            raise WarpgaussError(f"cannot decompress {path.name} ({_first_line(e)})") from None
+            raise WarpgaussError(f"cannot decompress {path.name} ({first_line(e)})") from None
         size = None
     else:
         head = _head_text(path, 544)

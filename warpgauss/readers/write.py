@@ -10,7 +10,7 @@ import numpy as np
 
 from .._fs import atomic_path, check_writable
 from ..errors import WarpgaussError
-from .common import _check_dtype, _check_shape, _match_suffix
+from .common import check_dtype, check_shape, match_suffix
 
 # --------------------------------------------------------------------------------------------------
 # Writers
@@ -91,10 +91,10 @@ def write_volume(
         The written path.
     """
     p = Path(path)
-    suffix = _match_suffix(p.name, WRITERS, "write")
+    suffix = match_suffix(p.name, WRITERS, "write")
     data = np.asarray(data_zyx)
-    _check_shape(data.shape, "the array to write")
-    _check_dtype(data.dtype, "the array to write")
+    check_shape(data.shape, "the array to write")
+    check_dtype(data.dtype, "the array to write")
     if not data.dtype.isnative:
         data = data.astype(data.dtype.newbyteorder("="))
     spacing_t = _xyz_tuple(spacing, "spacing")

@@ -8,10 +8,10 @@ from typing import Any
 import numpy as np
 
 from ..errors import WarpgaussError
-from .common import _attr_xyz, _check_declared, _check_dtype, _check_shape, _fill_attr, _first_line, _pick_array, _Read
+from .common import ReadResult, attr_xyz, check_declared, check_dtype, check_shape, fill_attr, first_line, pick_array
 
 
-def _read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False, **_) -> _Read:
+def read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False, **_) -> ReadResult:
     """The store's array, or the group's ``dataset`` (default: the first 3D array, by name);
     ``[z, y, x]`` order assumed. ``lazy``: left unread, each brick reads its box."""
     try:
@@ -23,7 +23,7 @@ def _read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False,
     try:
         root: Any = zarr.open(str(path), mode="r")
     except Exception as e:  # zarr raises several types for a store it cannot read
-        why = _first_line(e)
+        why = first_line(e)
         if "StorePath(" in why:  # zarr names its own objects: say what was looked for instead
             why = "no Zarr array or group metadata (.zarray, .zgroup or zarr.json) at its top"
         raise WarpgaussError(f"cannot open {path.name} as a Zarr store: {why}") from None
@@ -32,35 +32,35 @@ def _read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False,
     if isinstance(root, zarr.Array):
         arr = root
     else:
-        names = sorted(_array_names(root))
+        names = sorted(array_names(root))
         found = [(n, tuple(root[n].shape)) for n in names]
-        key = _pick_array(path.name, found, dataset, lambda k: k in names, "array", "--dataset")
+        key = pick_array(path.name, found, dataset, lambda k: k in names, "array", "--dataset")
         arr = root[key]
     shape = tuple(int(v) for v in arr.shape)
-    _check_shape(shape, path.name)
-    _check_dtype(np.dtype(arr.dtype), path.name)
+    check_shape(shape, path.name)
+    check_dtype(np.dtype(arr.dtype), path.name)
     attrs = dict(arr.attrs)
     meta = dict(
-        spacing=_attr_xyz(attrs, "spacing", (1.0, 1.0, 1.0)),
-        origin=_attr_xyz(attrs, "origin", (0.0, 0.0, 0.0)),
-        fill_value=_fill_attr(attrs),
+        spacing=attr_xyz(attrs, "spacing", (1.0, 1.0, 1.0)),
+        origin=attr_xyz(attrs, "origin", (0.0, 0.0, 0.0)),
+        fill_value=fill_attr(attrs),
     )
     if lazy:
-        from ..lazy import ArraySource, _Lazy3D
+        from ..lazy import ArraySource, Lazy3D
 
         src = ArraySource("zarr", str(path), shape, np.dtype(arr.dtype).str, key=key)  # type: ignore[arg-type]
-        return _Read(_Lazy3D(src), **meta)  # type: ignore[arg-type]
-    voxels = _check_declared(f"{path.name}", shape, np.dtype(arr.dtype).itemsize, stride)
+        return ReadResult(Lazy3D(src), **meta)  # type: ignore[arg-type]
+    voxels = check_declared(f"{path.name}", shape, np.dtype(arr.dtype).itemsize, stride)
     s = slice(None, None, stride)
     try:
-        return _Read(np.asarray(arr[s, s, s]), strided=True, **meta)  # type: ignore[arg-type]
+        return ReadResult(np.asarray(arr[s, s, s]), strided=True, **meta)  # type: ignore[arg-type]
     except MemoryError:
         raise WarpgaussError(f"not enough memory to read {path.name} ({voxels} voxels); use a larger --stride") from None
 
 
-def _array_names(group, prefix: str = "") -> list[str]:
+def array_names(group, prefix: str = "") -> list[str]:
     """Every array's path in a group, nested groups included."""
     out = [prefix + n for n, _ in group.arrays()]
     for n, sub in group.groups():
-        out += _array_names(sub, prefix + n + "/")
+        out += array_names(sub, prefix + n + "/")
     return out

@@ -239,9 +239,9 @@ class RefineConfig:
         if self.quantise_mode not in ("straight-through", "refit"):
             raise WarpgaussError(f"quantise_mode must be straight-through or refit, got {self.quantise_mode!r}")
         if self.quantise is not None:
-            from ..coded import _check_bits
+            from ..coded import check_bits
 
-            _check_bits(self.quantise)
+            check_bits(self.quantise)
         if not (finite(self.jitter) and 0 <= self.jitter <= 1):
             raise WarpgaussError(f"jitter must be in [0, 1] voxels, got {self.jitter}")
         lo, hi = self.partner_distance

@@ -614,6 +614,7 @@ class Refiner:
             self.project()  # the model ends on the grids it is stored on (a checkpoint keeps the run's state)
         return history
 
-    def _now(self, clock) -> float:
+    def now(self, clock) -> float:
+        """``clock()`` once the device has finished what was enqueued (a time budget's clock)."""
         self._wp.synchronize_device(self.device)
         return clock()

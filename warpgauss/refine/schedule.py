@@ -107,7 +107,7 @@ class BudgetPlan:
 
     def __init__(self, refiner, deadline: float, clock):
         self.r, self.deadline, self.clock = refiner, deadline, clock
-        self.t0 = self.last = refiner._now(clock)
+        self.t0 = self.last = refiner.now(clock)
         self.slowest = 0.0
         self.per_it: float | None = None
         self.base_m = refiner.m
@@ -121,7 +121,7 @@ class BudgetPlan:
     def before_step(self, it: int) -> bool:
         """Whether iteration ``it`` may start; re-plans at the end of each probe."""
         r, cfg = self.r, self.r.cfg
-        now = self.r._now(self.clock)
+        now = self.r.now(self.clock)
         self.slowest, self.last = max(self.slowest, now - self.last), now
         if self.mark is None:
             self.mark = (it, now)
