@@ -1,4 +1,4 @@
-"""Plumbing of benchmarks/bench_rd.py and plot_rd.py on a 16^3 field (seconds on the CPU).
+"""Plumbing of benchmarks/rate_distortion/bench_rd.py and plot_rd.py on a 16^3 field (seconds on the CPU).
 
 SZ3 (pysz), ZFP (zfpy) and matplotlib are in the ``bench`` extra only: without them the script
 skips those codecs and the parts of this test that need them are skipped.
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "rate_distortion"
 
 
 def _load(name):

@@ -1,4 +1,4 @@
-"""The run-time-against-error benchmark (benchmarks/bench_tradeoff.py) and its plot, on a tiny CPU case."""
+"""The run-time-against-error benchmark (benchmarks/refine/bench_tradeoff.py) and its plot, on a tiny CPU case."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "refine"
 BUDGET = 0.5  # seconds of the time-budgeted run
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

@@ -444,11 +444,11 @@ def test_viewer_controls_change_the_frame(cpu, vortex):
 
 
 def test_render_benchmark_runs_on_cpu_at_tiny_sizes(tmp_path):
-    """benchmarks/bench_render.py (fps of both paths; GPU sizes by default) with tiny CPU flags."""
+    """benchmarks/render/bench_render.py (fps of both paths; GPU sizes by default) with tiny CPU flags."""
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_render.py"
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "render" / "bench_render.py"
     spec = importlib.util.spec_from_file_location("_bench_render", path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)

@@ -10,7 +10,7 @@ and beside stand-ins for the neighbours still to come (seeded in their part of t
 density the budget rule gives there, refined, then dropped). The merged model holds only the
 bricks' own primitives: exactly N. A brick caps sigma by the primitive spacing and its default
 halo is twice that cap (:func:`warpgauss.brickplan.brick_cap`, :func:`~warpgauss.brickplan.default_halo`). Measured
-(``benchmarks/bricked/README_issue20.md``, H100, 2x2x2): without the frozen neighbours and stand-ins a
+(``benchmarks/bricked/README_seams_and_out_of_core.md``, H100, 2x2x2): without the frozen neighbours and stand-ins a
 bricking lost 15.7 dB on a 512^3 vortex and 11.5 dB on the interface; with them and the cap,
 -0.35 / +0.33 dB at 512^3 and -0.38 / +0.71 dB at 1024^3, in 2.4-3.2x the monolithic time.
 

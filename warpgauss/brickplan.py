@@ -26,7 +26,7 @@ def brick_cap(cap: float, shape_xyz, n: int) -> float:
     """A brick's sigma cap: the monolithic cap ``cap``, at most :data:`CAP_SPACING` x the mean
     primitive spacing (voxels / n)^(1/3) (at least 2 voxels), so that primitives reach (2 sigma)
     no further past a brick's faces than its halo (:func:`default_halo`) holds samples. Measured
-    (H100, N 400,000, halo 16, ``results/bricked/bricked512_caps_h100.json``): on a 512^3 vortex the
+    (H100, N 400,000, halo 16, ``results/bricked/bricked_vs_mono_512_caps_h100.json``): on a 512^3 vortex the
     bricked encode with the monolithic cap (32 voxels) scored 68.02 dB against 71.51; with cap 8
     (1.16 spacings) 71.50 against the monolithic's 72.10 at cap 8. On 48^3 fields with 1,500
     Gaussians (spacing 4.2) a cap of 2 instead of 3 cost the monolithic encode 5.8 dB: the cap

@@ -29,7 +29,7 @@ from .readers.timesteps import TimeStep, time_arrays, time_steps
 __all__ = ["TimeStep", "encode_series", "iter_series", "series_chains", "series_sources", "time_steps"]
 
 # A warm timestep this many dB below the best warm one since the last cold timestep is re-encoded
-# cold. 16-step chains at 512^3, N 400k, 375 warm iterations (benchmarks/results/series/series512_*_stay_h100.json):
+# cold. 16-step chains at 512^3, N 400k, 375 warm iterations (benchmarks/results/series/warm_vs_cold_series512_*_stay_h100.json):
 # bubbles stay within 0.9 dB of their best (never re-encoded); the vortex drifts 3 dB from step 5,
 # the interface 10 dB (1-1.7 dB a step), where a cold timestep costs 2.5-3x a warm one.
 KEYFRAME_DRIFT_DB = 1.0

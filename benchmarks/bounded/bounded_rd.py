@@ -48,7 +48,7 @@ def volumes(size: int, fields: list[str], mris: list[str]):
         if p.is_file():
             yield name, np.load(p)["data"]
         else:
-            print(f"skipped {name}: {p} not there (copy it from ../shared/data as benchmarks/bench_rd.py does)")
+            print(f"skipped {name}: {p} not there (copy it from ../shared/data as benchmarks/rate_distortion/bench_rd.py does)")
     for f in fields:
         yield f"{f} {size}^3", generate(f, size, seed=0)
 

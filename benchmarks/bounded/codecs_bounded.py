@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE.parent / "rate_distortion"))
 sys.path.insert(0, str(HERE))
 
 from bench_rd import sperr_run, sz3_run, zfp_run  # noqa: E402

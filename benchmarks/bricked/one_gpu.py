@@ -10,7 +10,7 @@ against the monolithic), the per-brick setup and refinement seconds. ``--profile
 brick's iteration phase by phase (sample, forward, backward, update, re-bin) with the device
 synchronised around each, and a captured iteration, to show where a brick's time goes.
 
-    python benchmarks/bricked/one_gpu.py --sizes 512 --fields vortex,interface --bricks 2x2x2,4x4x4 --out $OUT/bricks_one_gpu_512.json
+    python benchmarks/bricked/one_gpu.py --sizes 512 --fields vortex,interface --bricks 2x2x2,4x4x4 --out $OUT/one_gpu_512_h200.json
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ bricking, set up as the encode sets them up; then
 - ``wave``: the first wave's bricks, ``--steps`` steps each, one brick after another and then side
   by side (round robin, a stream each): ms per step of the wave.
 
-    python benchmarks/bricked/profile_wave.py --size 512 --bricks 2x2x2,4x4x4,1x1x4 --out $OUT/bricks_profile_wave.json
+    python benchmarks/bricked/profile_wave.py --size 512 --bricks 2x2x2,4x4x4,1x1x4 --out $OUT/profile_wave_512_h200.json
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ The JSON is rewritten after every row.
         --fields vortex:512,interface:512 --ratios 100 --grid 1500x3072,1500x32768 --out $OUT/sweep.json
 
 Volumes: ``.npz`` files holding one array ``v`` (the real MRIs, saved from ``../shared/data`` with
-numpy because the GPU host has no pyvista: ``benchmarks/bench_rd.py --volume-dir`` writes them; the source dtype is kept, so ratios are the same) and
+numpy because the GPU host has no pyvista: ``benchmarks/rate_distortion/bench_rd.py --volume-dir`` writes them; the source dtype is kept, so ratios are the same) and
 example fields ``name:size`` generated on the device.
 """
 

@@ -13,7 +13,7 @@ For each field, timestep 0 is encoded cold; then for t = 1 .. steps-1:
 ``--series K`` then encodes K timesteps of the first field with encode_series (warm, at
 ``--warm-iterations``) and records the total time and the per-step PSNR.
 
-    python benchmarks/series/warm_vs_cold.py --size 256 --budget 100000 --fields vortex,bubbles --steps 3 --out $OUT/warm256_h100.json
+    python benchmarks/series/warm_vs_cold.py --size 256 --budget 100000 --fields vortex,bubbles --steps 3 --out $OUT/warm_vs_cold_256_h100.json
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ from typing import Any
 
 from ..errors import WarpgaussError
 
-# quality: measured on the H100 (benchmarks/results/quality_grid_h100.json, vortex and interface
+# quality: measured on the H100 (benchmarks/results/refine/quality_grid_h100.json, vortex and interface
 # at 128^3 with 20,000 Gaussians, split-cell kernels): 1,500 x 12,288 gives +2.7 / +1.0 dB over
 # the paper configuration in 7.1 / 4.7 s of refinement (paper: 2.2 / 1.7 s); doubling the samples
 # again adds only 0.3-0.6 dB for twice the time, and doubling iterations instead gains the same.

@@ -4,7 +4,7 @@ Prints a table and writes JSON (device name, Warp version, date). A warm-up enco
 kernel module first. ``--sweep`` adds a samples-per-iteration sweep (to choose the quality preset)
 and ``--repeat`` encodes the first field twice with the same seed to measure run-to-run spread.
 
-    python benchmarks/bench_refine.py --size 128 --budget 20000 --presets paper,fast --sweep 3072,65536
+    python benchmarks/refine/bench_refine.py --size 128 --budget 20000 --presets paper,fast --sweep 3072,65536
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--sweep-fields", default="vortex,interface")
     ap.add_argument("--repeat", action="store_true", help="same seed twice on the first field: spread")
     ap.add_argument("--device", default=None)
-    ap.add_argument("--out", default="benchmarks/results/refine.json")
+    ap.add_argument("--out", default="benchmarks/results/refine/bench_refine.json")
     args = ap.parse_args(argv)
 
     wp = warp()

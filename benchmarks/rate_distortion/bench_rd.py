@@ -52,19 +52,19 @@ On a large volume (512^3, 1024^3) ``--volume-dir`` generates the example fields 
 separate processes that map those files, after every warpgauss row (so the GPU encodes never share
 the host with them):
 
-    python benchmarks/bench_rd.py --device cuda:0 --size 512 --preset paper --real none \\
-        --budgets 16000,128000,512000 --volume-dir /tmp/vol --workers 12 --out rd_h100_512.json
+    python benchmarks/rate_distortion/bench_rd.py --device cuda:0 --size 512 --preset paper --real none \\
+        --budgets 16000,128000,512000 --volume-dir /tmp/vol --workers 12 --out rate_distortion/bench_rd_fields512_h100.json
 
-    python benchmarks/bench_rd.py --size 128 --budgets 1000,4000,16000 --preset fast \\
-        --real nAChR_M2_water.plt,1jzv.ccp4 --out benchmarks/results/rd_cpu_128.json
+    python benchmarks/rate_distortion/bench_rd.py --size 128 --budgets 1000,4000,16000 --preset fast \\
+        --real nAChR_M2_water.plt,1jzv.ccp4 --out benchmarks/results/rate_distortion/bench_rd_fields128_cpu.json
 
 Fixed ratios, the codecs on the CPU and warpgauss on the GPU (``plot_rd.py`` merges the two):
 
-    python benchmarks/bench_rd.py --no-warpgauss --ratios 10,30,100,300,1000 --fields vortex,interface \\
+    python benchmarks/rate_distortion/bench_rd.py --no-warpgauss --ratios 10,30,100,300,1000 --fields vortex,interface \\
         --size 512 --volume-dir /tmp/vol512 --real mean_reg2mean.nii.gz,mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz,inia19-t1-brain.nii.gz \\
         --max-voxels 100000000 --codecs sz3,zfp,sperr --workers 2 --out benchmarks/results/rate_distortion/bench_rd_codecs_cpu.json
 
-    python benchmarks/bench_rd.py --device cuda:0 --codecs none --ratios 10,30,100,300,1000 --fields vortex,interface \\
+    python benchmarks/rate_distortion/bench_rd.py --device cuda:0 --codecs none --ratios 10,30,100,300,1000 --fields vortex,interface \\
         --size 512 --volume-dir /tmp/vol --real mean_reg2mean.nii.gz,mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz,inia19-t1-brain.nii.gz \\
         --max-voxels 100000000 --out $OUT/bench_rd_h100.json
 """
@@ -95,7 +95,7 @@ from warpgauss.model import Model
 from warpgauss.profiling import StageRecorder
 from warpgauss.synthetic import EXAMPLES, generate
 
-DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data"
 SZ3_BOUNDS = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 1e-4)  # x (max - min)
 ZFP_RATES = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)  # bits per value
 ZFP_MIN_RATE = 0.25  # the lowest fixed rate run: at 9 bits per 4^3 block (0.14) zfp codes only the block exponents,
@@ -894,7 +894,7 @@ def main(argv=None) -> dict:
         help="a previous run's JSON: keep its rows, skip the warpgauss budgets it measured and run only the codec settings it lacks",
     )
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--out", default="benchmarks/results/rd_cpu.json")
+    ap.add_argument("--out", default="benchmarks/results/rate_distortion/bench_rd_cpu.json")
     args = ap.parse_args(argv)
     fixed = bool(args.ratios)
     if args.no_warpgauss and not fixed:
@@ -980,7 +980,7 @@ def main(argv=None) -> dict:
         "benchmark": "rate-distortion at fixed ratios: warpgauss (defaults, coded) vs SZ3, ZFP (fixed rate) and SPERR (bpp)"
         if fixed
         else "rate-distortion: warpgauss (full precision, compact) vs SZ3 (abs error bound) vs ZFP (fixed rate, fixed accuracy)",
-        "command": "python benchmarks/bench_rd.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+        "command": "python benchmarks/rate_distortion/bench_rd.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
         "device": dev,
         "device_name": device_name(dev),
         "cpu_count": os.cpu_count(),

@@ -4,7 +4,7 @@ Prints a table and writes JSON (device name, Warp version, date, per-stage secon
 memory, PSNR) to --out. A warm-up encode runs first so that kernel compilation is reported
 separately and kept out of the timings.
 
-    python benchmarks/bench_encode.py --fields vortex,bubbles --sizes 128,256 --budgets 20000
+    python benchmarks/refine/bench_encode.py --fields vortex,bubbles --sizes 128,256 --budgets 20000
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--budgets", default="4000")
     ap.add_argument("--device", default=None)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default="benchmarks/results/encode.json")
+    ap.add_argument("--out", default="benchmarks/results/refine/bench_encode.json")
     args = ap.parse_args(argv)
 
     wp = warp()

@@ -3,14 +3,14 @@
 Also prints (or writes with ``--table``) a Markdown table per volume: each warpgauss budget with
 SZ3 and ZFP at the matched ratio, and encode / decode seconds.
 
-    python benchmarks/plot_rd.py benchmarks/results/rd_cpu_128.json -o benchmarks/results/rd_cpu_128.png
+    python benchmarks/rate_distortion/plot_rd.py benchmarks/results/rate_distortion/bench_rd_fields128_cpu.json -o benchmarks/results/rate_distortion/bench_rd_fields128_cpu.png
 
 Fixed-ratio runs (``bench_rd.py --ratios``) are merged by volume label, so the reference codecs
 measured on one machine and warpgauss on another make one figure: series wg, sz3-matched,
 zfp-rate-matched and sperr, and per volume a table with a row per target ratio (PSNR of each
 codec, warpgauss minus SZ3 and minus SPERR, achieved ratios, encode / decode seconds):
 
-    python benchmarks/plot_rd.py benchmarks/results/rate_distortion/bench_rd_codecs_cpu.json bench_rd_h100.json \\
+    python benchmarks/rate_distortion/plot_rd.py benchmarks/results/rate_distortion/bench_rd_codecs_cpu.json bench_rd_h100.json \\
         -o benchmarks/results/rate_distortion/bench_rd_mri_fields512.png --table /tmp/bench_rd.md
 """
 
@@ -296,7 +296,7 @@ def table_fixed(merged: dict) -> str:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("json", nargs="+", help="bench_rd.py outputs")
-    ap.add_argument("-o", "--out", default="benchmarks/results/rd_cpu.png")
+    ap.add_argument("-o", "--out", default="benchmarks/results/rate_distortion/bench_rd_cpu.png")
     ap.add_argument("--table", default=None, help="also write the Markdown table here")
     args = ap.parse_args(argv)
     results = [json.loads(Path(p).read_text()) for p in args.json]

@@ -6,8 +6,8 @@ fast / quality, time budgets), the time-budget points of a field joined by a lin
 (the baseline) drawn larger with a black edge, and each field's analytic (unrefined) PSNR as a
 dotted line. Also prints a markdown table of every row, with the difference to the paper preset.
 
-    python3 benchmarks/plot_tradeoff.py benchmarks/results/tradeoff_512.json benchmarks/results/tradeoff_1024_*.json \\
-        --out benchmarks/results/tradeoff.png
+    python3 benchmarks/refine/plot_tradeoff.py benchmarks/results/refine/bench_tradeoff_512.json benchmarks/results/refine/bench_tradeoff_1024_*.json \\
+        --out benchmarks/results/refine/bench_tradeoff.png
 
 Needs matplotlib (``pip install -e ".[bench]"``).
 """
@@ -143,7 +143,7 @@ def plot(rows: list[dict], out: Path, x: str = "stage", title: str | None = None
 def main(argv=None) -> Path:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("inputs", nargs="+", help="bench_tradeoff.py JSON files")
-    ap.add_argument("--out", default="benchmarks/results/tradeoff.png")
+    ap.add_argument("--out", default="benchmarks/results/refine/bench_tradeoff.png")
     ap.add_argument("--x", choices=sorted(X_KEYS), default="stage", help="which seconds go on the x axis")
     ap.add_argument("--title", default=None)
     args = ap.parse_args(argv)

@@ -15,8 +15,8 @@ takes seconds per frame) times as many frames as fit, at least one, and its row 
 (``warmup_timed``). The JSON (device name, Warp version, date, rows so far) is rewritten
 atomically after every row, so an interrupted run keeps what finished.
 
-    python benchmarks/bench_render.py --budgets 200000,1400000 --size 256 --resolution 1024   # GPU
-    python benchmarks/bench_render.py --budgets 300 --size 24 --resolution 32 --frames 2 --device cpu
+    python benchmarks/render/bench_render.py --budgets 200000,1400000 --size 256 --resolution 1024   # GPU
+    python benchmarks/render/bench_render.py --budgets 300 --size 24 --resolution 32 --frames 2 --device cpu
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--opacity", default="0:0,0.3:0,1:1")
     ap.add_argument("--no-shading", action="store_true")
     ap.add_argument("--device", default=None)
-    ap.add_argument("--out", default="benchmarks/results/render.json")
+    ap.add_argument("--out", default="benchmarks/results/render/bench_render.json")
     args = ap.parse_args(argv)
 
     methods = [m for m in args.methods.split(",") if m]

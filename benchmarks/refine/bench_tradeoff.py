@@ -14,7 +14,7 @@ row as it finishes, and the JSON (``--out``) is rewritten atomically after every
 is killed (or stopped by ``--max-seconds``, or by Ctrl-C, which ends the current refinement
 early and starts nothing more) leaves every finished row; ``complete`` is true only when every
 planned run was made, and ``skipped`` lists the others. ``python3
-benchmarks/plot_tradeoff.py OUT.json`` draws the figure and prints a markdown table.
+benchmarks/refine/plot_tradeoff.py OUT.json`` draws the figure and prints a markdown table.
 
 Times per row (seconds):
 
@@ -38,12 +38,12 @@ vortex 1.19 s, bubbles 0.05 s, turbulence 1.21 s, interface 0.23 s; at 128^3: 0.
 0.04 s. The work grows with the voxel count (turbulence, an FFT, somewhat faster), so 1024^3
 (64x the voxels of 256^3) takes roughly vortex 75 s, bubbles 3 s, turbulence 80-100 s,
 interface 15 s, and 512^3 about an eighth of that (the H100 host measured 11.2, 0.4, 9.4, 1.8 s
-at 512^3, ``encode_h100.json``). A 1024^3 float32 volume is 4 GiB; each is freed before the next
+at 512^3, ``refine/bench_encode_h100.json``). A 1024^3 float32 volume is 4 GiB; each is freed before the next
 one is generated (turbulence holds a complex64 half-spectrum, another 4 GiB, while it is made).
 
-    python3 benchmarks/bench_tradeoff.py --sizes 512 --budget 1400000 --out benchmarks/results/tradeoff_512.json
-    python3 benchmarks/bench_tradeoff.py --sizes 1024 --fields vortex,bubbles --max-seconds 480 \\
-        --out benchmarks/results/tradeoff_1024_a.json
+    python3 benchmarks/refine/bench_tradeoff.py --sizes 512 --budget 1400000 --out benchmarks/results/refine/bench_tradeoff_512.json
+    python3 benchmarks/refine/bench_tradeoff.py --sizes 1024 --fields vortex,bubbles --max-seconds 480 \\
+        --out benchmarks/results/refine/bench_tradeoff_1024_a.json
 """
 
 from __future__ import annotations
@@ -206,7 +206,7 @@ def main(argv=None) -> dict:
         default=None,
         help="start no field or run after this much wall time, nor one expected (from the same run's earlier rows) to end past it",
     )
-    ap.add_argument("--out", default="benchmarks/results/tradeoff.json")
+    ap.add_argument("--out", default="benchmarks/results/refine/bench_tradeoff.json")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
 
@@ -240,7 +240,7 @@ def main(argv=None) -> dict:
         "host": platform.node(),
         "cpu_count": os.cpu_count(),
         "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-        "command": list(sys.argv if argv is None else ["benchmarks/bench_tradeoff.py", *argv]),
+        "command": list(sys.argv if argv is None else ["benchmarks/refine/bench_tradeoff.py", *argv]),
         "config": {
             "fields": fields,
             "sizes": sizes,
