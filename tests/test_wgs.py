@@ -14,15 +14,13 @@ import numpy as np
 import pytest
 from conftest import uniform_params
 
+from warpgauss.compact import COMPACT_BITS, decode_compact, encode_compact
 from warpgauss.errors import WarpgaussError
 from warpgauss.wgs import (
-    COMPACT_BITS,
     HEADER_BLOCK,
     MAGIC,
     PARAM_NAMES,
     PREFIX_SIZE,
-    decode_compact,
-    encode_compact,
     header_size,
     read_wgs,
     write_wgs,
