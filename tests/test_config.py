@@ -111,3 +111,26 @@ def test_a_ladder_keeps_its_stop_rules_and_reading_through_the_configuration():
     )
     assert [m.n for m in ms] == [40, 80]
     assert all(m.header["encoding"]["refinement"]["target_psnr"] == 90.0 for m in ms)
+
+
+def test_a_series_keeps_its_stop_rules_from_the_command_line(tmp_path):
+    """warpgauss encode 'GLOB' --target-psnr --plateau: every timestep's model was refined with them
+    (the series path takes its settings from the one configuration the command line builds)."""
+    import json
+
+    import numpy as np
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+    from warpgauss.synthetic import generate_series
+
+    for t, v in enumerate(generate_series("vortex", 16, 2)):
+        np.save(tmp_path / f"t_{t}.npy", v)
+    out = tmp_path / "s.wgs"
+    args = ["encode", str(tmp_path / "t_*.npy"), "--budget", "40", "--iterations", "5", "--samples", "128", "--device", "cpu"]
+    args += ["--no-self-test", "--format", "full", "--target-psnr", "95", "--plateau", "0.5", "-o", str(out), "--json"]
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0, r.output
+    for row in json.loads(r.output)["series"]:
+        refinement = warpgauss.Model.load(row["output"]).header["encoding"]["refinement"]
+        assert refinement["target_psnr"] == 95.0 and refinement["plateau_db"] == 0.5
