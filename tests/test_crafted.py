@@ -149,3 +149,26 @@ def test_a_loaded_model_has_no_run_report_and_says_where_it_is(bomb):
     assert m.report is None
     with pytest.raises(WarpgaussError, match=r"no run report: it was loaded from a file \(its report is the .report.json beside it\)"):
         _ = m.run_report
+
+
+@pytest.mark.slow
+def test_a_real_model_of_the_same_n_passes_under_that_limit(bomb, tmp_path):
+    """The other half of the limit test: a coded file that really holds 30 million Gaussians (about
+    a quarter of a gigabyte) is answered under the same 3 GiB address-space limit that refuses the
+    bomb: the limit catches the claim, not a large model (info reads the header)."""
+    pytest.importorskip("resource")
+    from conftest import uniform_params
+
+    real, _ = bomb
+    p = uniform_params(np.random.default_rng(0), BOMB_N, centre=(0.0, 16.0), log_scale=(-1.0, 1.0), weight=(0.01, 1.0))
+    big = tmp_path / "big.wgs"
+    warpgauss.Model(p, warpgauss.Model.load(real).header).save(big, encoding="coded")
+    del p
+    assert big.stat().st_size > 100 * 2**20
+    code = (
+        "import resource, sys; resource.setrlimit(resource.RLIMIT_AS, (3 << 30, resource.getrlimit(resource.RLIMIT_AS)[1])); "
+        "from warpgauss.cli.main import run; sys.argv = ['warpgauss', *sys.argv[1:]]; run()"
+    )
+    r = subprocess.run([sys.executable, "-c", code, "info", str(big), "--json"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["n"] == BOMB_N
