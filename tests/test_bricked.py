@@ -74,8 +74,9 @@ def test_bricked_encode_is_exact_and_repeatable():
     assert a.report["psnr_db"] > 25.0
 
 
-def test_bricked_encode_on_a_local_dask_cluster_equals_the_serial_one():
+def test_bricked_encode_on_a_local_dask_cluster_equals_the_serial_one(monkeypatch):
     distributed = pytest.importorskip("distributed")
+    import warpgauss.lazy
     from warpgauss.cluster import local_client
 
     v = generate("interface", 24)
@@ -84,6 +85,12 @@ def test_bricked_encode_on_a_local_dask_cluster_equals_the_serial_one():
     try:
         on_cluster = warpgauss.encode(v, budget=250, bricks="2x1x2", halo=2, client=client, **FAST)
         workers = {b["device"] for b in on_cluster.report["bricking"]["bricks"]}
+
+        def full(arrays):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(warpgauss.lazy, "shared", full)  # no room for the shared copy: the graph carries the boxes
+        no_room = warpgauss.encode(v, budget=250, bricks="2x1x2", halo=2, client=client, **FAST)
     finally:
         client.close()
         client.cluster.close()
@@ -94,6 +101,8 @@ def test_bricked_encode_on_a_local_dask_cluster_equals_the_serial_one():
     # the local workers read the volume from one temporary file, not from the task graph
     assert rep["volume_to_workers"] == "a temporary file the workers read"
     assert serial.report["bricking"]["volume_to_workers"] == "this process"
+    assert no_room.report["bricking"]["volume_to_workers"] == "the boxes in the task graph (no shared copy: No space left on device)"
+    np.testing.assert_array_equal(no_room.params, serial.params)
     assert [w["bricks"] for w in rep["waves"]] == [1, 1, 1, 1]
     assert all(0 < w["worker_seconds"] <= w["seconds"] for w in rep["waves"])
     assert sum(w["bricks"] for w in rep["workers"].values()) == 4 and "this process" not in rep["workers"]

@@ -220,8 +220,9 @@ def test_cli_encodes_a_time_axis_and_several_variables(tmp_path):
     assert r.exit_code == 2 and "no variable 'wind'" in r.output
 
 
-def test_a_series_on_a_local_dask_cluster(tmp_path):
+def test_a_series_on_a_local_dask_cluster(tmp_path, monkeypatch):
     pytest.importorskip("distributed")
+    import warpgauss.lazy
     from warpgauss.cluster import local_client
     from warpgauss.series import encode_series
 
@@ -235,6 +236,12 @@ def test_a_series_on_a_local_dask_cluster(tmp_path):
             steps, client=client, output_pattern=str(tmp_path / "s_{t}.wgs"), on_step=lambda t, n, m: seen.append(t), **kw
         )
         cold = encode_series(steps, client=client, cold=True, **kw)
+
+        def full(arrays):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(warpgauss.lazy, "shared", full)  # no room for the timesteps' files: they go through the graph
+        no_room = encode_series(steps, client=client, **kw)
     finally:
         client.close()
         client.cluster.close()
@@ -247,6 +254,8 @@ def test_a_series_on_a_local_dask_cluster(tmp_path):
     alone = warpgauss.encode(steps[3], **{k: v for k, v in kw.items() if k != "warm_iterations"})
     np.testing.assert_array_equal(spread[3].params, alone.params)
     assert [m.report["series"]["warm_start"] for m in cold] == [False] * 4
+    for a, b in zip(no_room, spread):
+        np.testing.assert_array_equal(a.params, b.params)
     for t in range(4):
         np.testing.assert_array_equal(
             cold[t].params, warpgauss.encode(steps[t], **{k: v for k, v in kw.items() if k != "warm_iterations"}).params

@@ -12,6 +12,7 @@ ordinary model that decode, render and eval read alone.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import glob as _glob
 import os
@@ -172,7 +173,11 @@ def encode_series(
     arrays = [x for seg in plan for x in seg.items if isinstance(x, np.ndarray)]
     if not arrays or not is_local(client):
         return _on_cluster(plan, client, on_step)
-    with shared(arrays) as files:  # the workers of this machine read the timesteps from files, not through the graph
+    with contextlib.ExitStack() as stack:
+        try:  # the workers of this machine read the timesteps from files, not through the graph
+            files = stack.enter_context(shared(arrays))
+        except OSError:  # no room in $TMPDIR: the timesteps go through the graph
+            return _on_cluster(plan, client, on_step)
         by_id = {id(a): sf for a, sf in zip(arrays, files)}
         plan = [dataclasses.replace(seg, items=[by_id.get(id(x), x) for x in seg.items]) for seg in plan]
         return _on_cluster(plan, client, on_step)

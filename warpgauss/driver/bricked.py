@@ -84,9 +84,12 @@ def encode_bricked(
         if client is not None and is_lazy(f.values):
             sharing = "the workers read the file"
         elif client is not None and is_local(client):  # one file the workers read, not the volume through the graph
-            with timer.stage("Sh", "the volume shared with the local workers"):
-                volume = tuple(stack.enter_context(shared([f.values, f.mask])))
-            sharing = "a temporary file the workers read"
+            try:
+                with timer.stage("Sh", "the volume shared with the local workers"):
+                    volume = tuple(stack.enter_context(shared([f.values, f.mask])))
+                sharing = "a temporary file the workers read"
+            except OSError as e:  # no room in $TMPDIR: each wave's boxes go through the graph, as to a remote cluster
+                sharing = f"the boxes in the task graph (no shared copy: {e.strerror or e})"
         tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n, volume=volume)
         t0 = time.perf_counter()
         with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
