@@ -56,6 +56,7 @@ def is_local(client) -> bool:
 
 
 def reads_token(path: str, token: str) -> bool:
+    """Whether this process (a Dask worker, asked by :func:`is_local`) reads ``token`` at ``path``."""
     try:
         with open(path) as fh:
             return fh.read() == token
