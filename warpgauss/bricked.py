@@ -166,12 +166,13 @@ def encode_brick(task: BrickTask) -> dict:
     return finish(brick_job(task))
 
 
-def encode_bricks(tasks: list[BrickTask], at_once: int | None = None, limit: int | None = None) -> list[dict]:
+def encode_bricks(tasks: list[BrickTask], at_once: int | None = None, limit: int | None = None, on_done=None) -> list[dict]:
     """Several bricks (of one wave: they share no box) on one device, ``at_once`` of them stepping
     side by side (:func:`warpgauss.together.run_together`; default: as many as
     :func:`bricks_at_once` lets ``limit`` bytes of the device hold, one at a time on the CPU). Each brick's result is
     the one :func:`encode_brick` gives, bit for bit. Runs wherever it is called (a Dask worker
-    takes a group of a wave's bricks this way)."""
+    takes a group of a wave's bricks this way; this process a whole wave). ``on_done(i, result)``
+    as each brick ends."""
     from ._warp import resolve_device
     from .together import run_together
 
@@ -181,7 +182,7 @@ def encode_bricks(tasks: list[BrickTask], at_once: int | None = None, limit: int
     if at_once is None:
         at_once = bricks_at_once(tasks, dev, limit)
     t0 = time.perf_counter()
-    out = run_together([functools.partial(brick_job, t) for t in tasks], dev, at_once)
+    out = run_together([functools.partial(brick_job, t) for t in tasks], dev, at_once, on_done=on_done)
     facts = _group_facts(dev, time.perf_counter() - t0, at_once)
     return [r | facts for r in out]
 
@@ -471,15 +472,7 @@ def _run_wave(
                 count[0] += 1
                 after(count[0], i, r)
 
-            from ._warp import resolve_device
-            from .together import run_together
-
-            dev = resolve_device(batch[0].device) if batch else "cpu"
-            k = bricks_at_once(batch, dev, limit) if at_once is None else at_once
-            t0 = time.perf_counter()
-            out = run_together([functools.partial(brick_job, t) for t in batch], dev, k, on_done=one_done)
-            facts = _group_facts(dev, time.perf_counter() - t0, k)
-            return [r | facts for r in out]
+            return encode_bricks(batch, at_once, limit, on_done=one_done)
         out = []
         for t in batch:
             out.append(fn(t))

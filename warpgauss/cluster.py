@@ -55,6 +55,21 @@ def is_local(client) -> bool:
     return bool(seen) and all(seen.values())
 
 
+def share_arrays(client, arrays, stack) -> tuple[list | None, str | None]:
+    """``arrays`` (3D, or None) for ``client``'s workers: written once to temporary files that they
+    read (:func:`warpgauss.lazy.shared`, kept while ``stack``, a :class:`contextlib.ExitStack`,
+    is open) where they run on this machine (:func:`is_local`); else None, and the arrays travel
+    in the task graph. The second value says why a local cluster got none (no room in $TMPDIR)."""
+    from .lazy import shared
+
+    if not is_local(client):
+        return None, None
+    try:
+        return stack.enter_context(shared(arrays)), None
+    except OSError as e:
+        return None, f"no shared copy: {e.strerror or e}"
+
+
 def reads_token(path: str, token: str) -> bool:
     """Whether this process (a Dask worker, asked by :func:`is_local`) reads ``token`` at ``path``."""
     try:

@@ -167,19 +167,14 @@ def encode_series(
         for seg in plan:
             models += encode_segment(seg, on_step)
         return models
-    from .cluster import is_local
-    from .lazy import shared
+    from .cluster import share_arrays
 
     arrays = [x for seg in plan for x in seg.items if isinstance(x, np.ndarray)]
-    if not arrays or not is_local(client):
-        return _on_cluster(plan, client, on_step)
     with contextlib.ExitStack() as stack:
-        try:  # the workers of this machine read the timesteps from files, not through the graph
-            files = stack.enter_context(shared(arrays))
-        except OSError:  # no room in $TMPDIR: the timesteps go through the graph
-            return _on_cluster(plan, client, on_step)
-        by_id = {id(a): sf for a, sf in zip(arrays, files)}
-        plan = [dataclasses.replace(seg, items=[by_id.get(id(x), x) for x in seg.items]) for seg in plan]
+        files, _ = share_arrays(client, arrays, stack) if arrays else (None, None)
+        if files is not None:  # the workers of this machine read the timesteps from files, not through the graph
+            by_id = {id(a): sf for a, sf in zip(arrays, files)}
+            plan = [dataclasses.replace(seg, items=[by_id.get(id(x), x) for x in seg.items]) for seg in plan]
         return _on_cluster(plan, client, on_step)
 
 

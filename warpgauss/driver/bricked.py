@@ -47,8 +47,8 @@ def encode_bricked(
     from ..analysis import DeviceVolume
     from ..bricked import brick_tasks, run_bricks
     from ..brickplan import brick_cap, default_halo, parse_bricks, plan_bricks, split_bricks
-    from ..cluster import is_local
-    from ..lazy import is_lazy, shared
+    from ..cluster import share_arrays
+    from ..lazy import is_lazy
     from ..wgs import header_size
 
     counts_xyz = parse_bricks(bricks)
@@ -83,13 +83,13 @@ def encode_bricked(
         volume, sharing = None, "this process" if client is None else "the boxes in the task graph"
         if client is not None and is_lazy(f.values):
             sharing = "the workers read the file"
-        elif client is not None and is_local(client):  # one file the workers read, not the volume through the graph
-            try:
-                with timer.stage("Sh", "the volume shared with the local workers"):
-                    volume = tuple(stack.enter_context(shared([f.values, f.mask])))
-                sharing = "a temporary file the workers read"
-            except OSError as e:  # no room in $TMPDIR: each wave's boxes go through the graph, as to a remote cluster
-                sharing = f"the boxes in the task graph (no shared copy: {e.strerror or e})"
+        elif client is not None:  # one file the workers read, where they can, not the volume through the graph
+            with timer.stage("Sh", "the volume shared with the workers on this machine"):
+                files, why = share_arrays(client, [f.values, f.mask], stack)
+            if files is not None:
+                volume, sharing = tuple(files), "a temporary file the workers read"
+            elif why is not None:
+                sharing = f"the boxes in the task graph ({why})"
         tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n, volume=volume)
         t0 = time.perf_counter()
         with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
