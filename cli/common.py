@@ -16,7 +16,7 @@ from rich.console import Console
 from warpgauss.errors import WarpgaussError
 
 err_console = Console(stderr=True, highlight=False)
-out_console = Console(highlight=False)
+out_console = Console(highlight=False, soft_wrap=True)  # whole lines in a file or a pipe; tables still fit the width
 
 
 def print_error(message: str) -> None:
@@ -126,6 +126,38 @@ def print_json(obj) -> None:
     sys.stdout.write(json_text(obj))
 
 
+class PhaseLines:
+    """An encode's progress for people: the spinner says what runs now, and each phase (the run
+    report's stages grouped in plain words, :func:`warpgauss.profiling.phase_of`) leaves one line
+    with its seconds on stderr when the next begins or :meth:`close` is called."""
+
+    def __init__(self, status) -> None:
+        self.status = status
+        self.phase: str | None = None
+        self.t0 = 0.0
+
+    def stage(self, name: str, title: str) -> None:
+        import time
+
+        from warpgauss.profiling import phase_of
+
+        words = phase_of(name)
+        if words != self.phase:
+            self.close()
+            self.phase, self.t0 = words, time.perf_counter()
+        self.status.update(f"{words}: {title}")
+
+    def update(self, text: str) -> None:
+        self.status.update(f"{self.phase}: {text}" if self.phase else text)
+
+    def close(self) -> None:
+        import time
+
+        if self.phase is not None:
+            self.status.console.print(f"  {self.phase:<34} {time.perf_counter() - self.t0:8.2f} s", highlight=False)
+            self.phase = None
+
+
 def human_bytes(n: float | None) -> str:
     if n is None:
         return "-"
@@ -217,6 +249,8 @@ def config_callback(ctx: typer.Context, param, value: Path | None):
                     p.process_value(ctx, v)
             except typer.BadParameter as e:
                 raise WarpgaussError(f"{value}: {key} = {v!r}: {_first_line(Exception(e.format_message()))}") from None
+            if isinstance(v, str) and takes_path(p) and not Path(v).expanduser().is_absolute():
+                v = str(Path(value).parent / v)  # a file's relative paths are relative to the file, not to where we run
             defaults[p.name] = v  # converted and checked as a default of the option
     except WarpgaussError as e:
         if debugging():
@@ -226,12 +260,24 @@ def config_callback(ctx: typer.Context, param, value: Path | None):
     return value
 
 
+def takes_path(param) -> bool:
+    """Whether a command parameter's value is a path (typer's annotation, or click's type)."""
+    import typing
+
+    ann = getattr(getattr(param, "type_descriptor", None), "annotation", None)
+    if ann is not None:
+        return ann is Path or Path in typing.get_args(ann)
+    return type(getattr(param, "type", None)).__name__ == "Path"
+
+
 NOT_REPEATED = ("config", "force", "resume")  # flags of one invocation: a repeat must ask again to overwrite
 
 
-def resolved_config(ctx: typer.Context) -> dict:
+def resolved_config(ctx: typer.Context, folder: Path | None = None) -> dict:
     """The command's parameters as run (long option names, None and :data:`NOT_REPEATED` left
-    out): a ``--config`` file of these repeats the run (and refuses to overwrite its output)."""
+    out): a ``--config`` file of these repeats the run (and refuses to overwrite its output). Paths
+    are written relative to ``folder`` (the report's, where :func:`config_callback` resolves them
+    from), so the report repeats the run from any working folder."""
     out = {}
     for p in ctx.command.params:
         if p.name in NOT_REPEATED:
@@ -239,7 +285,9 @@ def resolved_config(ctx: typer.Context) -> dict:
         v = ctx.params.get(p.name)
         if v is None:
             continue
-        out[_long_name(p)] = str(v) if isinstance(v, Path) else v
+        if isinstance(v, Path):
+            v = os.path.relpath(v.absolute(), folder.absolute()) if folder is not None else str(v)
+        out[_long_name(p)] = v
     return out
 
 

@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 
 from .common import (
+    PhaseLines,
     config_callback,
     err_console,
     fail,
@@ -148,6 +149,12 @@ def encode(
         bool, typer.Option("--full-eval", rich_help_panel="Output", help="PSNR on the full grid, not 500,000 samples")
     ] = False,
     as_json: Annotated[bool, typer.Option("--json", rich_help_panel="Output", help="Print the run report as JSON on stdout")] = False,
+    verbose: Annotated[
+        bool,
+        typer.Option(
+            "--verbose", "-v", rich_help_panel="Output", help="Also print each stage's seconds and memory and what the run skipped"
+        ),
+    ] = False,
     checkpoint: Annotated[
         Path | None,
         typer.Option(rich_help_panel="Run control", help="Refinement checkpoint file; default OUTPUT.ckpt (deleted when the run ends)"),
@@ -351,12 +358,13 @@ def encode(
         _encode_ladder(ladder, input, out, cfg, as_json)
         return
     status = None if as_json else err_console.status("starting", spinner="dots")
+    lines = None if status is None else PhaseLines(status)
     if status is not None:
         status.start()
 
     def progress(it: int, total: int, rec: dict) -> None:
-        if status is not None:
-            status.update(f"[bold]S2[/] refinement {it}/{total}  loss {rec['total']:.3e}  sample PSNR {rec['sample_psnr_db']:.2f} dB")
+        if lines is not None:
+            lines.update(f"iteration {it}/{total}, sample PSNR {rec['sample_psnr_db']:.2f} dB")
 
     client = None
     if bricks is None and (
@@ -378,19 +386,21 @@ def encode(
             status.console.print(f"bricks {bricks}: {where}", highlight=False)
 
     def brick_progress(done: int, total: int) -> None:
-        if status is not None:
-            status.update(f"[bold]bricks[/] {done}/{total} encoded")
+        if lines is not None:
+            lines.update(f"{done}/{total} bricks encoded")
 
     try:
         model = warpgauss.encode(
             input,
             **cfg.replace(output=out).to_kwargs(),
-            on_stage=None if status is None else lambda name, title: status.update(f"[bold]{name}[/] {title}"),
-            on_stats=None if status is None else lambda s: status.console.print(_stats_line(s)),
+            on_stage=None if lines is None else lines.stage,
+            on_stats=None if status is None or not verbose else lambda s: status.console.print(_stats_line(s)),
             on_progress=None if status is None else progress,
             client=client,
             on_bricks=brick_progress,
         )
+        if lines is not None:
+            lines.close()
     finally:
         if status is not None:
             status.stop()
@@ -401,12 +411,12 @@ def encode(
                 cluster.close()
     rep = model.run_report
     rep["report"] = str(rep_path)
-    rep["config"] = resolved_config(ctx)  # warpgauss encode --config REPORT repeats the run
+    rep["config"] = resolved_config(ctx, rep_path.parent)  # warpgauss encode --config REPORT repeats the run, from any folder
     atomic_write_bytes(rep_path, json_text(rep).encode())
     if as_json:
         print_json(rep)
     elif not rep.get("interrupted"):
-        _print_summary(rep)
+        _print_summary(rep, verbose)
     if rep.get("interrupted"):
         r = rep["refinement"]
         ck = r.get("checkpoint") or {}
@@ -630,7 +640,10 @@ def _stats_line(s: dict) -> str:
     )
 
 
-def _print_summary(rep: dict) -> None:
+def _print_summary(rep: dict, verbose: bool = False) -> None:
+    """The encode's result for people: what was written (N, bytes, ratio), how accurate it is, how
+    long it took and where the files went; with ``verbose`` also the structure, the stage table
+    (codes as in the report) and what the run skipped."""
     from rich.table import Table
 
     b = rep["budget"]
@@ -638,7 +651,7 @@ def _print_summary(rep: dict) -> None:
     out_console.print(
         f"[bold]{rep['input']['name']}[/] {'x'.join(map(str, rep['input']['shape_xyz']))} -> "
         f"{b['n']} Gaussians, {human_bytes(b['bytes'])} ({b['bytes']} B, {b['format']}, {b['bytes_per_primitive']:.2f} B/Gaussian), "
-        f"compression {b['compression_ratio']:.2f}x on {rep['device_name']}"
+        f"compression {b['compression_ratio']:.2f}x"
     )
     if b.get("coded_choice"):  # how a coded file met its byte budget: primitives against precision
         out_console.print(f"size: {b['coded_choice']}", soft_wrap=True)
@@ -663,12 +676,17 @@ def _print_summary(rep: dict) -> None:
             f"({res['predictor']} predictor, {res['literals']} voxels stored exactly), compression {res['compression_ratio']:.2f}x",
             soft_wrap=True,
         )
-    t = Table(show_edge=False, header_style="bold")
-    for col in ("stage", "what", "seconds", "host peak", "device peak"):
-        t.add_column(col, justify="right" if col in ("seconds", "host peak", "device peak") else "left")
-    for s in rep["stages"]:
-        t.add_row(s["stage"], s["title"], f"{s['seconds']:.3f}", human_bytes(s["host_peak_bytes"]), human_bytes(s["device_peak_bytes"]))
-    out_console.print(t)
-    for sk in rep["skipped"]:
-        out_console.print(f"skipped {sk['what']}: {sk['why']}")
+    out_console.print(f"time: {rep['total_seconds']:.2f} s on {rep['device_name']}")
+    if verbose:
+        t = Table(show_edge=False, header_style="bold")
+        for col in ("stage", "what", "seconds", "host peak", "device peak"):
+            t.add_column(col, justify="right" if col in ("seconds", "host peak", "device peak") else "left")
+        for s in rep["stages"]:
+            t.add_row(s["stage"], s["title"], f"{s['seconds']:.3f}", human_bytes(s["host_peak_bytes"]), human_bytes(s["device_peak_bytes"]))
+        out_console.print(t)
+        for sk in rep["skipped"]:
+            out_console.print(f"skipped {sk['what']}: {sk['why']}")
+    elif rep["skipped"]:
+        n = len(rep["skipped"])
+        out_console.print(f"{n} note{'s' * (n != 1)} on what the run skipped: --verbose or the report")
     out_console.print(f"model: {rep['output']}   report: {rep['report']}")

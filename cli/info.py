@@ -15,9 +15,12 @@ def info(
     model: Annotated[Path, typer.Argument(help="Model file (.wgs)")],
     as_json: Annotated[bool, typer.Option("--json", help="Print a JSON object")] = False,
     verify: Annotated[bool, typer.Option("--verify", help="Also read the payload and check its checksum and codes")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Also list every encoding setting the header records")] = False,
 ) -> None:
     """Print N, bytes, compression ratio and the header of a model file. The header is validated
     and the payload is not read (a file of any size answers at once); --verify reads it too."""
+    from rich.table import Table
+
     from warpgauss.model import Model
 
     if verify:
@@ -52,21 +55,54 @@ def info(
         print_json(summary)
         return
     g, v, src = h["grid"], h["values"], h["source"]
-    lines = [
-        f"[bold]{model}[/]: {n} Gaussians, {payload.get('encoding')} payload ({summary['bytes_per_primitive']:.2f} B/Gaussian), {size} bytes ({human_bytes(size)})",
-        f"compression ratio {summary['compression_ratio']:.2f}x against {src['bytes']} source bytes "
-        f"({src['dtype']}, {src['itemsize']} B/voxel)",
-        f"grid {'x'.join(map(str, g['shape_xyz']))} (x,y,z), spacing {g['spacing']}, origin {g['origin']}",
-        f"values [{v['min']:g}, {v['max']:g}], name {h.get('name')!r}, seed {h.get('seed')}",
-        f"encoding {h.get('encoding')}",
-        f"transfer function {h.get('transfer_function', {}).get('colormap')}",
+    rows = [
+        ("file", f"{model}: {size} bytes ({human_bytes(size)})"),
+        ("Gaussians", f"{n}, {payload.get('encoding')} payload, {summary['bytes_per_primitive']:.2f} B a Gaussian"),
+        (
+            "compression",
+            f"{summary['compression_ratio']:.2f}x against {src['bytes']} source bytes ({src['dtype']}, {src['itemsize']} B a voxel)",
+        ),
+        ("grid", f"{' x '.join(map(str, g['shape_xyz']))} (x, y, z), spacing {_numbers(g['spacing'])}, origin {_numbers(g['origin'])}"),
+        ("values", f"{v['min']:g} .. {v['max']:g}"),
+        ("name", str(h.get("name"))),
+        ("seed", str(h.get("seed"))),
+        ("colour map", str(h.get("transfer_function", {}).get("colormap"))),
     ]
     if res:
-        lines.insert(
-            1,
-            f"Gaussians {size - res_bytes} bytes ({human_bytes(size - res_bytes)}) + bounded residual {res_bytes} bytes "
-            f"({human_bytes(res_bytes)}): every voxel within {res['bound']:.6g} of the source ({res['bound_rel']:.3g} of its range), "
-            f"{res['predictor']} predictor, {res['literals']} voxels stored exactly",
+        rows.insert(
+            2,
+            (
+                "bounded residual",
+                f"{res_bytes} bytes ({human_bytes(res_bytes)}) beside {size - res_bytes} of Gaussians: every voxel within "
+                f"{res['bound']:.6g} of the source ({res['bound_rel']:.3g} of its range), {res['predictor']} predictor, "
+                f"{res['literals']} voxels stored exactly",
+            ),
         )
-    for line in lines:
-        out_console.print(line, soft_wrap=True)
+    enc = h.get("encoding") or {}
+    if enc:
+        rows.append(("method", str(enc.get("method"))))
+        rows.append(("refinement", f"{enc.get('iterations')} iterations x {enc.get('samples')} samples, stride {enc.get('stride')}"))
+    if verbose:
+        rows += [(f"encoding.{k}", str(val)) for k, val in _flat(enc) if k not in ("method",)]
+    t = Table.grid(padding=(0, 2))
+    t.add_column(style="bold")
+    t.add_column()
+    for label, value in rows:
+        t.add_row(label, value)
+    out_console.print(t)
+    if not verbose and enc:
+        out_console.print("every encoding setting: warpgauss info --verbose")
+
+
+def _numbers(xs) -> str:
+    return ", ".join(f"{float(x):g}" for x in xs)
+
+
+def _flat(d: dict, prefix: str = ""):
+    """(dotted key, value) for every leaf of a nested settings dict, in key order."""
+    for k in sorted(d):
+        v = d[k]
+        if isinstance(v, dict):
+            yield from _flat(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v

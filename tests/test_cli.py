@@ -326,6 +326,56 @@ def test_the_summary_says_how_a_coded_file_met_its_size(tmp_path):
     assert len(size) == 1 and "rate control:" in size[0] and "benchmarks/" not in size[0]
 
 
+def test_encode_and_info_speak_to_people_and_verbose_shows_the_rest(vortex_raw, tmp_path):
+    """#34: the default encode output is a line per phase in words and a summary (N, bytes, ratio,
+    PSNR, time, the files), no stage codes, no stage table, no paragraphs on what was skipped;
+    --verbose adds them. info prints rows, not a Python dict; --verbose lists every setting."""
+    out = tmp_path / "v.wgs"
+    args = ["encode", str(vortex_raw), "--budget", "80", "--iterations", "5", "--samples", "256", "--device", "cpu", "-o", str(out)]
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0, r.output
+    text = r.stdout
+    for code in ("S1a", "S1x", "S2 ", "stage", "skipped "):
+        assert code not in text, (code, text)
+    assert "80 Gaussians" in text and "compression" in text and "PSNR" in text and "time:" in text
+    assert f"model: {out}" in text and "report:" in text
+    for words in ("read the volume", "place the Gaussians", "refine", "measure the accuracy", "write the model"):
+        assert any(line.strip().startswith(words) and line.rstrip().endswith(" s") for line in r.stderr.splitlines()), (words, r.stderr)
+    r = CliRunner().invoke(app, [*args, "--force", "--verbose"])
+    assert r.exit_code == 0, r.output
+    assert "S1a" in r.stdout and "device peak" in r.stdout
+
+    r = CliRunner().invoke(app, ["info", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "{" not in r.stdout and "80," in r.stdout and "24 x 24 x 24" in r.stdout
+    r = CliRunner().invoke(app, ["info", str(out), "--verbose"])
+    assert r.exit_code == 0 and "encoding.refinement.lr " in r.stdout and "{" not in r.stdout, r.output
+
+
+def test_a_report_repeats_the_run_from_another_folder(vortex_raw, tmp_path):
+    """#34: --config REPORT found the input only from the folder the first run started in: the
+    report's paths are relative to the report, and a config file's relative paths to the file."""
+    import shutil
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    (a / "data").mkdir(parents=True)
+    b.mkdir()
+    shutil.copy(vortex_raw, a / "data" / vortex_raw.name)
+    (a / "out").mkdir()
+    r = cli("encode", f"data/{vortex_raw.name}", "--budget", "60", "--iterations", "4", "--device", "cpu", "-o", "out/m.wgs", cwd=a)
+    assert r.exit_code == 0, r.output
+    report = a / "out" / "m.wgs.report.json"
+    cfg = json.loads(report.read_text())["config"]
+    assert cfg["input"] == f"../data/{vortex_raw.name}" and cfg["output"] == "m.wgs"
+    r = cli("encode", "--config", report, cwd=b)
+    assert r.exit_code == 2 and "exists" in r.output  # the same output, found from b: not overwritten
+    r = cli("encode", "--config", report, "-o", "again.wgs", cwd=b)
+    assert r.exit_code == 0, r.output
+    from warpgauss.model import Model
+
+    np.testing.assert_array_equal(Model.load(a / "out" / "m.wgs").params, Model.load(b / "again.wgs").params)
+
+
 # how `warpgauss encode`'s options reach warpgauss.encode: the same name, another name (this
 # table), a part of a settings object, or a command-line matter; a new option on either side must
 # be placed here, so that none is dropped on the way (#33)
@@ -356,7 +406,7 @@ CLI_TO_API = {
     "workers": "client",
     "scheduler": "client",
 }
-CLI_ONLY = {"ctx", "ladder", "report", "as_json", "config", "cold", "warm_iterations", "keyframe_drift"}  # ladder/series paths, output
+CLI_ONLY = {"ctx", "ladder", "report", "as_json", "verbose", "config", "cold", "warm_iterations", "keyframe_drift"}  # ladder/series paths, output
 API_ONLY = {"allocation", "evaluate", "on_bricks", "on_progress", "on_stage", "on_stats", "session", "warm_start"}  # Python callers
 
 

@@ -12,6 +12,26 @@ from dataclasses import dataclass, field
 
 POLL_SECONDS = 0.01
 
+# What each stage of an encode is, in the words its progress lines use: the stage codes (the run
+# report's, the table --verbose prints) grouped by their longest matching prefix.
+PHASES: tuple[tuple[str, str], ...] = (
+    ("P", "read the volume"),
+    ("Sh", "share the volume with the workers"),
+    ("Sb", "split the budget over the bricks"),
+    ("S1", "place the Gaussians"),
+    ("S2", "refine"),
+    ("EV", "measure the accuracy"),
+    ("S3", "write the model"),
+    ("S4", "code the bounded residual"),
+)
+
+
+def phase_of(stage: str) -> str:
+    """The plain words for a stage code (the longest prefix in :data:`PHASES`; the code itself
+    when none matches)."""
+    best = max((p for p in PHASES if stage.startswith(p[0])), key=lambda p: len(p[0]), default=None)
+    return stage if best is None else best[1]
+
 
 def _rss_bytes() -> int:
     """Current resident set size of this process."""
