@@ -93,11 +93,12 @@ def render(
     input: Annotated[Path, typer.Argument(help="Model (.wgs) or volume file (the reference rendering)")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Image file (.png)")],
     method: Annotated[
-        str,
+        str | None,
         typer.Option(
-            help="march (exact ray marching of V~), cached (ray marching of V~ decoded once onto a grid: fast) or splat (EWA splatting); models only"
+            help="cached (ray marching of V~ decoded once onto a grid: fast; the default for a model, as in serve and view), "
+            "march (exact ray marching of V~: slow) or splat (EWA splatting); a volume is always ray-marched"
         ),
-    ] = "march",
+    ] = None,
     cache_res: Annotated[
         int | None,
         typer.Option(
@@ -158,9 +159,9 @@ def render(
     check_writable(output, force=force)
     if not input.exists():
         raise WarpgaussError(f"no such file: {input}")
-    if method not in ("march", "cached", "splat"):
+    if method is not None and method not in ("march", "cached", "splat"):
         raise WarpgaussError(f"--method must be march, cached or splat, got {method!r}")
-    if cache_res is not None and method != "cached":
+    if cache_res is not None and method not in (None, "cached"):
         raise WarpgaussError(f"--cache-res applies to --method cached, not {method}")
     if cache_res is not None and cache_res < 1:
         raise WarpgaussError(f"--cache-res must be a positive number of voxels along the longest axis, got {cache_res}")
@@ -194,9 +195,10 @@ def render(
     if tf is not None and not tf.is_file():
         raise WarpgaussError(f"no such transfer-function file: {tf}")
 
-    if residual and method != "march":
+    if residual and method not in (None, "march"):
         raise WarpgaussError(f"--residual ray-marches the bounded decode as a grid; drop --method {method}")
     if is_model_file(input):
+        method = method or ("march" if residual else "cached")
         summary = _render_model(
             input, output, method, compare, camera, settings, colormap, opacity, tf, read, diff_gain, device, force, cache_res, residual
         )
@@ -205,8 +207,10 @@ def render(
             raise WarpgaussError("--residual applies to a model (.wgs) encoded with --max-error")
         if compare is not None:
             raise WarpgaussError("--compare takes the volume a model encodes; render the model (.wgs) with --compare VOLUME")
-        if method != "march":
+        if method not in (None, "march"):
             raise WarpgaussError(f"a volume is rendered by ray marching only (--method {method} needs a model)")
+        if cache_res is not None:
+            raise WarpgaussError("--cache-res applies to a model (.wgs): a volume is ray-marched as it is")
         summary = _render_volume(input, output, camera, settings, colormap, opacity, tf, read, device, force)
     if as_json:
         print_json(summary)
@@ -268,10 +272,11 @@ def _render_model(
     if method == "cached":  # refuse a cache that cannot be held before anything is built
         check_cache_memory(cache_grid_shape(model.shape_xyz, cache_res), resolve_device(device))
     tf = _transfer(model.header, colormap, opacity, tf_path, model.value_range)
-    with err_console.status(f"rendering {model.n} Gaussians ({method})", spinner="dots"):
+    with err_console.status(f"preparing {model.n} Gaussians for {method} rendering", spinner="dots") as status:
         method = "bounded" if residual else method  # the bounded decode, normalised by the header's range, as a grid
         renderer = make_renderer(model, method, device, cache_res=cache_res)
         view = resolve_view(camera, renderer.scene, settings.width, settings.height)
+        status.update(f"rendering {settings.width}x{settings.height} ({method}, {model.n} Gaussians)")
         img = renderer.render(view, tf, settings)
         summary = {
             "input": str(path),

@@ -406,7 +406,17 @@ CLI_TO_API = {
     "workers": "client",
     "scheduler": "client",
 }
-CLI_ONLY = {"ctx", "ladder", "report", "as_json", "verbose", "config", "cold", "warm_iterations", "keyframe_drift"}  # ladder/series paths, output
+CLI_ONLY = {
+    "ctx",
+    "ladder",
+    "report",
+    "as_json",
+    "verbose",
+    "config",
+    "cold",
+    "warm_iterations",
+    "keyframe_drift",
+}  # ladder/series paths, output
 API_ONLY = {"allocation", "evaluate", "on_bricks", "on_progress", "on_stage", "on_stats", "session", "warm_start"}  # Python callers
 
 

@@ -342,7 +342,7 @@ def test_cli_render_model_volume_and_compare(cpu, vortex, tmp_path):
         ],
     )
     assert r.exit_code == 0, r.output
-    assert "wrote" in r.stdout and PILImage.open(out).size == (48, 40)
+    assert "wrote" in r.stdout and "cached" in r.stdout and PILImage.open(out).size == (48, 40)  # render's default, as serve's and view's
     vol = tmp_path / "v.png"
     r = runner.invoke(app, ["render", str(d / "vortex.npy"), "-o", str(vol), "--size", "32", "--device", cpu, "--json"])
     assert r.exit_code == 0, r.output

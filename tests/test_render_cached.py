@@ -233,7 +233,9 @@ def test_cli_render_cached(cpu, files, tmp_path):
         (["MODEL", "--method", "cached", "--cache-res", "-8"], "--cache-res must be a positive"),
         (["MODEL", "--method", "cached", "--cache-res", "5000"], "choose a smaller --cache-res"),  # 1.25e11 voxels
         (["MODEL", "--method", "cached", "--cache-res", "1200"], "GiB available on cpu"),  # 6.4 GiB > the patched 1 GiB
-        (["MODEL", "--cache-res", "16"], "--cache-res applies to --method cached"),
+        (["MODEL", "--method", "march", "--cache-res", "16"], "--cache-res applies to --method cached"),
+        (["MODEL", "--cache-res", "1200"], "GiB available on cpu"),  # cached is the default for a model
+        (["VOLUME", "--cache-res", "16"], "--cache-res applies to a model"),
         (["MODEL", "--method", "splat", "--cache-res", "16"], "--cache-res applies to --method cached"),
         (["VOLUME", "--method", "cached"], "--method cached needs a model"),
         (["MODEL", "--method", "exact"], "--method must be march, cached or splat"),

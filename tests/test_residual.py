@@ -361,7 +361,7 @@ def test_the_bounded_benchmark_and_its_plot_run_on_the_cpu(tmp_path):
 def test_render_shows_the_gaussians_or_with_residual_the_bounded_decode(bounded, tmp_path):
     d, vol, m, _ = bounded
     run = CliRunner()
-    for extra, method in (([], "march"), (["--residual"], "bounded")):
+    for extra, method in (([], "cached"), (["--residual"], "bounded")):
         png = tmp_path / f"r{len(extra)}.png"
         res = run.invoke(app, ["render", str(d / "v.wgs"), "-o", str(png), "--size", "32", "--device", "cpu", "--json", *extra])
         assert res.exit_code == 0 and json.loads(res.output)["method"] == method, res.output
