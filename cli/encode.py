@@ -224,7 +224,7 @@ def encode(
         float | None,
         typer.Option(
             rich_help_panel="Time series",
-            help="Re-encode a warm timestep cold when its PSNR falls this many dB below the best warm one since the last cold timestep (default 1.0; 0: never)",
+            help="Key frames: a warm timestep whose PSNR falls more than this many dB below the best warm PSNR since the chain's last cold timestep is encoded again cold and the better of the two kept; the chain goes on from it (default 1.0; 0: never)",
         ),
     ] = None,
     motion: Annotated[
@@ -527,7 +527,7 @@ def _encode_series(
     )
     kw = {k: v for k, v in cfg.to_kwargs().items() if k not in per_step}
     out = output or Path("series.wgs")
-    name = str(out)
+    name = str(out / "step.wgs") if out.is_dir() else str(out)  # a folder: step_000.wgs ... inside it
     if len(variables) > 1 and "{var" not in name:
         name = str(Path(name).with_name(f"{Path(name).stem}_{{var}}{Path(name).suffix or '.wgs'}"))
     if "{t" not in name:

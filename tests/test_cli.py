@@ -376,6 +376,46 @@ def test_a_report_repeats_the_run_from_another_folder(vortex_raw, tmp_path):
     np.testing.assert_array_equal(Model.load(a / "out" / "m.wgs").params, Model.load(b / "again.wgs").params)
 
 
+def test_example_writes_a_series_that_encode_takes_into_a_folder(tmp_path):
+    """#34: no command wrote an example series, and -o DIR (an existing folder) wrote DIR_000.wgs
+    beside it: example --steps writes one file a timestep (names checked first), and a series
+    encoded with -o FOLDER lands inside it."""
+    series = tmp_path / "run"
+    series.mkdir()
+    r = cli("example", "vortex", "--size", "12", "--steps", "3", "-o", series)
+    assert r.exit_code == 0, r.output
+    files = sorted(p.name for p in series.iterdir())
+    assert files == [f"vortex_{t:03d}_12x12x12_float32.raw" for t in range(3)]
+    from warpgauss.synthetic import generate_series
+
+    want = list(generate_series("vortex", 12, steps=3))
+    for t, name in enumerate(files):
+        np.testing.assert_array_equal(np.fromfile(series / name, np.float32).reshape(12, 12, 12), want[t])
+    assert_refused(cli("example", "vortex", "--size", "12", "--steps", "3", "-o", tmp_path / "x.raw"), "holding {t}")
+    assert_refused(cli("example", "vortex", "--size", "12", "--steps", "3", "-o", series), "already exists")
+    models = tmp_path / "models"
+    models.mkdir()
+    r = cli("encode", str(series / "vortex_*_12x12x12_float32.raw"), "--budget", "20", "--iterations", "2", "--device", "cpu", "-o", models)
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in models.glob("*.wgs")) == [f"step_{t:03d}.wgs" for t in range(3)]
+    assert not list(tmp_path.glob("models_*"))
+
+
+def test_key_frames_are_described_alike_in_help_and_docs():
+    """#34: commands.md and --help described the key-frame rule differently."""
+    from pathlib import Path
+
+    from typer.main import get_command
+
+    rule = "best warm PSNR since the chain's last cold timestep"
+    helptext = next(p.help for p in get_command(app).commands["encode"].params if p.name == "keyframe_drift")
+    root = Path(__file__).resolve().parents[1]
+    flat = {name: " ".join((root / name).read_text().split()) for name in ("docs/guide/commands.md", "docs/guide/python.md")}
+    assert rule in helptext
+    for name, text in flat.items():
+        assert rule in text, name
+
+
 # how `warpgauss encode`'s options reach warpgauss.encode: the same name, another name (this
 # table), a part of a settings object, or a command-line matter; a new option on either side must
 # be placed here, so that none is dropped on the way (#33)

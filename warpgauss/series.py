@@ -3,10 +3,10 @@
 A series is a list of volumes (paths, a glob pattern, or arrays). Every input is checked before
 any work (files exist, one grid for all, outputs writable); timestep 0 is encoded as usual, and
 timestep t > 0 starts from timestep t-1's model (:func:`warpgauss.encode`'s ``warm_start``) with
-``warm_iterations`` (default: the configured iterations) unless ``cold``. A warm timestep that
-drifts more than ``keyframe_drift`` dB below the chain's best since its last cold timestep is
-encoded again cold, and the cold one kept if it scores better (a key frame the chain continues
-from). One ``.wgs`` per timestep: each stays an
+``warm_iterations`` (default: the configured iterations) unless ``cold``. Key frames: a warm
+timestep whose PSNR falls more than ``keyframe_drift`` dB below the best warm PSNR since the
+chain's last cold timestep is encoded again cold and the better of the two kept; the chain goes on
+from it. One ``.wgs`` per timestep: each stays an
 ordinary model that decode, render and eval read alone.
 """
 
