@@ -164,6 +164,58 @@ def _needs(what: str) -> None:
     pytest.skip(f"{what}; the browser test runs where it is (.ci/run installs it)")
 
 
+def _start_serve(model_file, *extra):
+    """`warpgauss serve MODEL` on a free port in a subprocess: (process, the URL it printed)."""
+    cmd = [
+        sys.executable,
+        "-c",
+        "from warpgauss.cli.main import run; run()",
+        "serve",
+        str(model_file),
+        "--port",
+        "0",
+        "--device",
+        "cpu",
+        *extra,
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    line = ""
+    deadline = time.time() + 120
+    while "http://" not in line and time.time() < deadline:
+        line = proc.stdout.readline()
+        if not line and proc.poll() is not None:
+            pytest.fail(f"warpgauss serve exited ({proc.returncode}) before serving")
+    return proc, re.search(r"http://\S+", line).group(0)
+
+
+def test_requests_the_page_cannot_handle_log_one_line_and_the_launcher_answers(model_file):
+    """#34: a GET /ws without an upgrade and a 20 KB URL printed server tracebacks; the page's
+    launcher request (POST /paraview/) got a 405 in the browser's console."""
+    pytest.importorskip("trame")
+    import json
+    import urllib.error
+    import urllib.request
+
+    proc, url = _start_serve(model_file)
+    try:
+        for bad in (url + "ws", url + "a" * 20_000):
+            try:
+                urllib.request.urlopen(bad, timeout=30).read()
+            except urllib.error.HTTPError as e:
+                assert 400 <= e.code < 600
+        req = urllib.request.Request(url + "paraview/", data=b'{"application": "trame"}', method="POST")
+        with urllib.request.urlopen(req, timeout=30) as r:
+            assert r.status == 200 and json.loads(r.read())["sessionURL"] == "ws://USE_HOST/ws"
+    finally:
+        proc.terminate()
+        out = proc.communicate(timeout=20)[0]
+    lines = [line for line in out.splitlines() if line.strip()]
+    assert "Traceback" not in out, out
+    handled = [line for line in lines if "not handled" in line]
+    assert len(handled) == 2 and "HTTPBadRequest" in handled[0] and "LineTooLong" in handled[1], out
+    assert all(len(line) < 300 for line in handled), out
+
+
 def test_the_page_in_a_real_browser(model_file, tmp_path):
     """Start `warpgauss serve`, open it in headless Chromium, drag the camera, pull the opacity
     curve's top node down, and compare the page's image with `warpgauss render` of the view the
@@ -179,23 +231,21 @@ def test_the_page_in_a_real_browser(model_file, tmp_path):
 
     from warpgauss.cli.main import app
 
-    cmd = [sys.executable, "-c", "from warpgauss.cli.main import run; run()", "serve", str(model_file), "--port", "0", "--device", "cpu"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    volume = tmp_path / "vortex.npy"
+    np.save(volume, generate("vortex", 64))
+    proc, url = _start_serve(model_file, "--volume", str(volume))
     try:
-        line = ""
-        deadline = time.time() + 120
-        while "http://" not in line and time.time() < deadline:
-            line = proc.stdout.readline()
-            if not line and proc.poll() is not None:
-                pytest.fail(f"warpgauss serve exited ({proc.returncode}) before serving")
-        url = re.search(r"http://\S+", line).group(0)
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=CHROMIUM, headless=True, args=["--no-sandbox", "--disable-gpu"])
             page = browser.new_page(viewport={"width": 900, "height": 600}, device_scale_factor=1)
+            failed: list[str] = []  # every response >= 400 the page saw (#34: a 405 on POST /paraview/)
+            page.on("response", lambda r: failed.append(f"{r.status} {r.request.method} {r.url}") if r.status >= 400 else None)
             page.goto(url)
             page.wait_for_function(
                 "() => {const i = document.querySelector('#view img'); return i && i.complete && i.naturalWidth > 0}", timeout=120_000
             )
+            assert page.title() == f"warpgauss - {model_file.name}"  # not trame's "Trame"
+            assert failed == [], failed
 
             def settled(before: str | None = None, timeout: float = 60.0):
                 """The view's image and the command it reports, once both stop changing."""
@@ -234,6 +284,11 @@ def test_the_page_in_a_real_browser(model_file, tmp_path):
             page.mouse.up()
             command, shown = settled(dragged)
             assert "--opacity 0:0,1:1" not in command
+            assert not page.locator("#compare_labels").is_visible()
+            page.locator("#compare").check()  # compare with volume: each half named (#34)
+            page.wait_for_function("() => document.querySelector('#compare_labels').offsetParent !== null", timeout=60_000)
+            assert page.locator("#compare_labels").inner_text().split("\n") == ["model (Gaussians)", "source volume"]
+            assert failed == [], failed
             browser.close()
         out = tmp_path / "same.png"
         args = shlex.split(command)[1:]

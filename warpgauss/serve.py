@@ -125,10 +125,12 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
 
     server = get_server(name, client_type="vue3")
     state, ctrl = server.state, server.controller
+    ctrl.on_server_bind.add(_bind_routes)
     s = viewer.state
     facts = viewer.facts()
     state.update(
         {
+            "trame__title": title or "warpgauss",  # the browser tab's title (trame's default: "Trame")
             "method": s.method,
             "colormap": s.colormap,
             "colors": viewer.color_nodes(),
@@ -201,6 +203,14 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
             with html.Div(style="display:flex;gap:16px;padding:24px 8px 8px 8px;height:calc(100vh - 80px)"):
                 with html.Div(id="view", style="flex:1;min-width:256px;position:relative;"):
                     view = rca.RemoteControlledArea(name="view", display="image", send_mouse_move=True, style="width:100%;height:100%;")
+                    with html.Div(  # the two halves of "compare with volume", named over each
+                        v_show=("compare && has_volume",),
+                        id="compare_labels",
+                        style="position:absolute;top:4px;left:0;right:0;display:flex;pointer-events:none;"
+                        "font-size:13px;color:#fff;text-shadow:0 0 3px #000",
+                    ):
+                        html.Div("model (Gaussians)", style="flex:1;text-align:center")
+                        html.Div("source volume", style="flex:1;text-align:center")
                 with html.Div(style="width:380px;overflow-y:auto;font-size:13px"):
                     html.Div("{{ facts }}", id="facts", style="white-space:pre-line;margin-bottom:8px")
                     html.Div("frame {{ frame_ms }} ms", id="frame_ms", style="margin-bottom:8px")
@@ -306,6 +316,42 @@ def _view_handler(view, window):
     handler = RcaViewAdapter(window, view.name, scheduler=scheduler)
     view.add_view_handler(handler)
     return handler
+
+
+def _bind_routes(wslink_server) -> None:
+    """Our routes beside wslink's, and one-line logs. trame's page first asks a session launcher
+    (``POST <page>/paraview/``) where to connect and falls back to ``<page>/ws`` when that fails,
+    which left a 405 in the browser's console: the route answers with that same address. A request
+    the server cannot handle (``GET /ws`` without an upgrade, a URL over aiohttp's 8 KiB line
+    limit) logged a traceback: it logs one line."""
+    import logging
+
+    from aiohttp import web
+
+    async def launcher(request):
+        base = request.path[: -len("paraview/")] if request.path.endswith("paraview/") else "/"
+        secure = request.headers.get("X-Forwarded-Proto", request.scheme) == "https"
+        return web.json_response({"sessionURL": f"{'wss' if secure else 'ws'}://USE_HOST{base}ws"})
+
+    wslink_server.app.router.add_post("/paraview/", launcher)
+    log = logging.getLogger("aiohttp.server")
+    if not any(isinstance(f, _OneLine) for f in log.filters):
+        log.addFilter(_OneLine())
+
+
+class _OneLine:
+    """A logging filter: a record with an exception becomes one line naming it, no traceback."""
+
+    def filter(self, record) -> bool:
+        if record.exc_info and record.exc_info[1] is not None:
+            e = record.exc_info[1]
+            while e.__context__ is not None:  # the first failure, not what failed while handling it
+                e = e.__context__
+            text = " ".join(str(e).split())
+            text = text[:120] + "..." if len(text) > 120 else text
+            record.msg = f"warpgauss serve: {record.getMessage()}, not handled: {type(e).__name__} {text}".rstrip()
+            record.args, record.exc_info, record.exc_text = (), None, None
+        return True
 
 
 def _facts_text(f: dict) -> str:
