@@ -388,16 +388,23 @@ def budget_from_ratio(source_bytes: int, ratio: float, header_bytes: int, bytes_
     return budget_from_bytes(source_bytes / ratio, source_bytes, header_bytes, bytes_per_primitive)
 
 
-def budget_from_bytes(total_bytes: float, source_bytes: int, header_bytes: int, bytes_per_primitive: int, format: str | None = None) -> int:
+def budget_from_bytes(
+    total_bytes: float,
+    source_bytes: int,
+    header_bytes: int,
+    bytes_per_primitive: int,
+    format: str | None = None,
+    measured: tuple[float, float] | None = None,
+) -> int:
     """N = floor((B - H) / bytes per primitive) for a file of B bytes; refused when none fits
-    (``format`` "coded": the bytes per primitive are the most a coded primitive takes in practice)."""
+    (``format`` "coded": the bytes per primitive are what a coded primitive is sized at, and
+    ``measured`` the range refined models coded at, which the refusal quotes)."""
     n = int(np.floor((total_bytes - header_bytes) / bytes_per_primitive))
     if n < 1:
-        per = (
-            f"up to {bytes_per_primitive} per primitive in the coded format"
-            if format == "coded"
-            else f"{bytes_per_primitive} per primitive"
-        )
+        per = f"{bytes_per_primitive} per primitive"
+        if format == "coded":
+            seen = f"{measured[0]:g}-{measured[1]:g} bytes on refined models, " if measured else ""
+            per = f"a coded Gaussian takes {seen}{bytes_per_primitive} assumed here"
         about = "about " if format == "coded" else ""
         raise WarpgaussError(
             f"a budget of {total_bytes:.0f} bytes leaves no room for a single primitive ({header_bytes} header bytes, "

@@ -80,7 +80,7 @@ def resolve_budget(f: Field, opts: EncodeOptions, header_bytes: int) -> int:
         assert opts.budget is not None  # target_bytes gives None only for --budget
         n = int(opts.budget)
     else:
-        n = budget_from_bytes(total, f.source_bytes, header_bytes, bpp, encoding_of(opts))
+        n = budget_from_bytes(total, f.source_bytes, header_bytes, bpp, encoding_of(opts), CODED_BPP_MEASURED)
     if encoding_of(opts) == "coded" and total is not None:
         # a bound: the coded N is measured once the volume is analysed (coded_budget), at most N_max
         n_max = seed_limit(f.eligible, f.occupied)
