@@ -181,15 +181,20 @@ def test_the_smallest_predictor_is_chosen_and_a_good_prediction_pays():
 
 
 @pytest.mark.parametrize("axes", R.ORDERS)
-def test_every_axis_order_decodes_what_the_encoder_decoded(axes):
-    """The interpolation passes in any axis order visit every point once, from known neighbours
-    only: a reader's decode of the q's equals the encoder's, bit for bit, and within the bound."""
+@pytest.mark.parametrize("levels", [R.FLAT, (1.5, 4.0)])
+def test_every_axis_order_decodes_what_the_encoder_decoded(axes, levels):
+    """The interpolation passes in any axis order, with flat or level-wise bounds, visit every
+    point once, from known neighbours only: a reader's decode of the q's equals the encoder's, bit
+    for bit, and within the bound, on the float and on the integer lattice."""
     rng = np.random.default_rng(4)
     t = rng.normal(size=(9, 14, 11)).cumsum(axis=2)
     skip = np.zeros(t.shape, bool)
-    q, dec = R._feedback(t, skip, 0.02, False, "cubic", axes)
-    assert np.array_equal(R._decoded(q, 0.02, False, "cubic", axes), dec)
+    q, dec = R._feedback(t, skip, 0.02, False, "cubic", axes, levels)
+    assert np.array_equal(R._decoded(q, 0.02, False, "cubic", axes, levels), dec)
     assert np.abs(dec - t).max() <= 0.01 + 1e-12
+    ti = np.rint(t * 100).astype(np.int64)
+    q, dec = R._feedback(ti, skip, 7.0, True, "linear", axes, levels)  # the odd integer step: |error| <= 3
+    assert np.array_equal(R._decoded(q, 7.0, True, "linear", axes, levels), dec) and np.abs(dec - ti).max() <= 3
     seen = np.zeros(t.shape, int)
     seen[(slice(0, 1),) * 3] += 1
     for _, _, sel in R._interp_passes(t.shape, axes):
@@ -198,9 +203,9 @@ def test_every_axis_order_decodes_what_the_encoder_decoded(axes):
 
 
 def test_the_axis_order_and_layout_are_chosen_stored_and_a_file_without_them_reads_as_before(monkeypatch):
-    """The coder picks the interpolation's axis order on a central block and the q's storage
-    order by size; both go in the header (checked on reading). Files written before carry neither
-    and decode as z, y, x in the raster order."""
+    """The coder picks the interpolation's axis order and level-wise bounds on a central block and
+    the q's storage order by size; all go in the header (checked on reading). Files written before
+    carry none and decode as z, y, x, flat bounds, in the raster order."""
     from warpgauss.synthetic import generate
 
     v = generate("interface", 20, seed=1)
@@ -208,14 +213,16 @@ def test_the_axis_order_and_layout_are_chosen_stored_and_a_file_without_them_rea
     pred, none = np.zeros(v.shape), np.zeros(v.shape, bool)
     res, facts = R.code_residual(v, None, pred, none, 1e-3, (0.0, 1.0))
     assert res.info["axes"] in R.ORDERS and res.info["layout"] in R.ORDERS and facts["axes"] == res.info["axes"]
+    assert tuple(res.info["levels"]) in R.LEVELWISE
     assert np.abs(R.apply_residual(res, pred) - v).max() <= 1e-3
-    for key in ("axes", "layout"):
-        bad = dict(res.info, **{key: "011"})
+    for key, value in (("axes", "011"), ("layout", "011"), ("levels", [0.5, 2.0]), ("levels", [1.5])):
+        bad = dict(res.info, **{key: value})
         with pytest.raises(WarpgaussError, match=f"residual {key}"):
             R.apply_residual(R.Residual(bad, res.data), pred)
     monkeypatch.setattr(R, "ORDERS", (R.AXES,))  # what the coder wrote before it chose
+    monkeypatch.setattr(R, "LEVELWISE", (R.FLAT,))
     old, _ = R.code_residual(v, None, pred, none, 1e-3, (0.0, 1.0))
-    info = {k: val for k, val in old.info.items() if k not in ("axes", "layout")}
+    info = {k: val for k, val in old.info.items() if k not in ("axes", "layout", "levels")}
     monkeypatch.undo()
     assert np.array_equal(R.apply_residual(R.Residual(info, old.data), pred), R.apply_residual(old, pred))
 

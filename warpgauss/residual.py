@@ -221,6 +221,28 @@ def _cast(x: np.ndarray, dtype: np.dtype) -> np.ndarray:
 AXES = "012"  # the axis order of files without one: z, then y, then x at every level; and the raster layout
 ORDERS = ("012", "021", "102", "120", "201", "210")
 CHOOSE_BLOCK = 64  # edge of the central block the interpolation's axis order is chosen on (0.1 s at 64^3)
+# level-wise bounds (alpha, beta), as QoZ tunes SZ3's interpolation: level l (1: the finest) is
+# quantised with the step / min(alpha^(l-1), beta), since an error on a coarse level spreads to
+# every finer point predicted from it. Chosen per interpolation kind on the central block. On the
+# head MRIs at 1e-2 of the range: mean_reg2mean 32.08 -> 33.77 (cubic, 1.25, 2), inia19 and
+# mni_icbm152 keep (1, 1) or gain under 1 % (linear)
+LEVELWISE = ((1.0, 1.0), (1.25, 2.0), (1.5, 2.0), (1.5, 4.0), (2.0, 4.0))
+FLAT = (1.0, 1.0)
+
+
+def _level_step(step: float, integer: bool, levels: tuple[float, float], lv: int) -> float:
+    """The quantisation step of interpolation level ``lv`` (1: the finest): ``step`` over
+    min(alpha^(lv-1), beta), by repeated products of exactly representable numbers (the same on
+    every machine); on the integer lattice the odd step whose half-width is the bound's over that."""
+    alpha, beta = levels
+    f = 1.0
+    for _ in range(lv - 1):
+        f = min(f * alpha, beta)
+    if f == 1.0:
+        return step
+    if integer:
+        return float(2 * math.floor(((int(step) - 1) // 2) / f) + 1)
+    return step / f
 
 
 def _interp_passes(shape: tuple[int, ...], axes: str = AXES):
@@ -229,8 +251,7 @@ def _interp_passes(shape: tuple[int, ...], axes: str = AXES):
     points at odd multiples of h along that axis, from their neighbours at +-h (and +-3h) on that
     axis, already known."""
     order = [int(c) for c in axes]
-    levels = max(1, int(math.ceil(math.log2(max(max(shape), 2)))))
-    for lv in range(levels, 0, -1):
+    for lv in range(_top_level(shape), 0, -1):
         h = 1 << (lv - 1)
         for k, a in enumerate(order):
             if h >= shape[a]:
@@ -262,11 +283,14 @@ def _interp_prediction(x: np.ndarray, a: int, h: int, sel, cubic_ok: bool = True
     return pred
 
 
-def _feedback(t: np.ndarray, skip: np.ndarray, step: float, integer: bool, interp: str, axes: str = AXES) -> tuple[np.ndarray, np.ndarray]:
+def _feedback(
+    t: np.ndarray, skip: np.ndarray, step: float, integer: bool, interp: str, axes: str = AXES, levels: tuple[float, float] = FLAT
+) -> tuple[np.ndarray, np.ndarray]:
     """SZ's quantisation with error feedback: each point is predicted from already decoded points
     (``interp`` "cubic" or "linear": the interpolation passes; "": 0), its error from that prediction quantised to q,
     and decoded as prediction + step q (|t - decoded| <= step / 2). ``skip``: points coded as their
-    prediction (q = 0: masked, or stored outright); ``axes``: the passes' axis order. Returns (q, decoded)."""
+    prediction (q = 0: masked, or stored outright); ``axes``: the passes' axis order; ``levels``: the
+    level-wise bounds (:data:`LEVELWISE`). Returns (q, decoded)."""
     q = np.zeros(t.shape, np.int64)
     dec = np.zeros(t.shape, np.int64 if integer else np.float64)
     if not interp:  # "": no interpolation
@@ -274,26 +298,34 @@ def _feedback(t: np.ndarray, skip: np.ndarray, step: float, integer: bool, inter
         dec[...] = q * np.int64(step) if integer else q * step
         return q, dec
     first = (slice(0, 1),) * 3  # the coarsest lattice: the first voxel, predicted as 0
-    q[first] = np.where(skip[first], 0, _quantise(np.where(skip[first], 0, t[first]), step, integer))  # a skipped value may be NaN
-    dec[first] = q[first] * (np.int64(step) if integer else step)
+    s0 = _level_step(step, integer, levels, _top_level(t.shape) + 1)
+    q[first] = np.where(skip[first], 0, _quantise(np.where(skip[first], 0, t[first]), s0, integer))  # a skipped value may be NaN
+    dec[first] = q[first] * (np.int64(s0) if integer else s0)
     for a, h, sel in _interp_passes(t.shape, axes):
+        s = _level_step(step, integer, levels, h.bit_length())
         pred = _interp_prediction(dec, a, h, sel, interp == "cubic")
-        qs = np.where(skip[sel], 0, _quantise(np.where(skip[sel], pred, t[sel]) - pred, step, integer))
+        qs = np.where(skip[sel], 0, _quantise(np.where(skip[sel], pred, t[sel]) - pred, s, integer))
         q[sel] = qs
-        dec[sel] = pred + (qs * np.int64(step) if integer else qs * step)
+        dec[sel] = pred + (qs * np.int64(s) if integer else qs * s)
     return q, dec
 
 
-def _decoded(q: np.ndarray, step: float, integer: bool, interp: str, axes: str = AXES) -> np.ndarray:
+def _top_level(shape: tuple[int, ...]) -> int:
+    return max(1, int(math.ceil(math.log2(max(max(shape), 2)))))
+
+
+def _decoded(q: np.ndarray, step: float, integer: bool, interp: str, axes: str = AXES, levels: tuple[float, float] = FLAT) -> np.ndarray:
     """The decoded residual from its q's: what :func:`_feedback` decoded, on any machine."""
     if not interp:
         return q * np.int64(step) if integer else q * step
     dec = np.zeros(q.shape, np.int64 if integer else np.float64)
     first = (slice(0, 1),) * 3
-    dec[first] = q[first] * (np.int64(step) if integer else step)
+    s0 = _level_step(step, integer, levels, _top_level(q.shape) + 1)
+    dec[first] = q[first] * (np.int64(s0) if integer else s0)
     for a, h, sel in _interp_passes(q.shape, axes):
+        s = _level_step(step, integer, levels, h.bit_length())
         pred = _interp_prediction(dec, a, h, sel, interp == "cubic")
-        dec[sel] = pred + (q[sel] * np.int64(step) if integer else q[sel] * step)
+        dec[sel] = pred + (q[sel] * np.int64(s) if integer else q[sel] * s)
     return dec
 
 
@@ -326,23 +358,32 @@ def _compress(raw: bytes, level: int | None = None) -> bytes:
     return zstd.ZstdCompressor(level=lvl, write_checksum=True).compress(raw)
 
 
-def _choose_axes(source: np.ndarray, usable: np.ndarray, step: float, integer: bool) -> str:
-    """The interpolation's axis order that codes a central block of the source (at most
-    :data:`CHOOSE_BLOCK` a side) smallest, cubic, no Gaussians (Zstandard 3); ties to the first
-    of :data:`ORDERS`. Measured on the three head MRIs at 1e-2 and 1e-3: the block picked the order
-    that is best or within 0.1 % of it on the whole volume."""
+def _choose_interpolation(source: np.ndarray, usable: np.ndarray, step: float, integer: bool) -> tuple[str, dict[str, tuple[float, float]]]:
+    """The interpolation's axis order, and each kind's level-wise bounds, that code a central block
+    of the source (at most :data:`CHOOSE_BLOCK` a side, no Gaussians, Zstandard 3) smallest: the
+    order first (cubic, flat bounds), then (alpha, beta) from :data:`LEVELWISE` for "cubic" and for
+    "linear"; ties to the earlier. Measured on the three head MRIs at 1e-2 and 1e-3: the block
+    picked the order that is best or within 0.1 % of it on the whole volume."""
+    flat = {"cubic": FLAT, "linear": FLAT}
     if min(source.shape) < 4:
-        return AXES
+        return AXES, flat
     sl = tuple(slice(max(0, n // 2 - CHOOSE_BLOCK // 2), max(0, n // 2 - CHOOSE_BLOCK // 2) + CHOOSE_BLOCK) for n in source.shape)
     block, ok = source[sl], usable[sl]
     with np.errstate(invalid="ignore", over="ignore"):
         t = np.where(ok, block, 0).astype(np.int64) if integer else np.where(ok, block.astype(np.float64), 0.0)
-    sizes = {}
-    for axes in ORDERS:
-        q, _ = _feedback(t, ~ok, step, integer, "cubic", axes)
+
+    def size(kind: str, axes: str, levels: tuple[float, float]) -> int:
+        q, _ = _feedback(t, ~ok, step, integer, kind, axes, levels)
         u = _zigzag(q.ravel())
-        sizes[axes] = len(_compress(_planes(u, _width(u)), 3))
-    return min(ORDERS, key=lambda a: (sizes[a], ORDERS.index(a)))
+        return len(_compress(_planes(u, _width(u)), 3))
+
+    by_axes = {axes: size("cubic", axes, FLAT) for axes in ORDERS}
+    axes = min(ORDERS, key=lambda a: (by_axes[a], ORDERS.index(a)))
+    chosen = {}
+    for kind in ("cubic", "linear"):
+        sizes = [size(kind, axes, lw) for lw in LEVELWISE]
+        chosen[kind] = LEVELWISE[int(np.argmin(sizes))]
+    return axes, chosen
 
 
 def _final_symbols(u: np.ndarray) -> tuple[bytes, str, str]:
@@ -443,7 +484,7 @@ def code_residual(
     ok = np.ones(source.shape, bool) if valid is None else valid
     src64 = source.astype(np.float64)
     facts: dict = {"sizes": {}}
-    axes = _choose_axes(source, ok & np.isfinite(src64), step, integer)
+    axes, levelwise = _choose_interpolation(source, ok & np.isfinite(src64), step, integer)
     best: tuple[int, str, dict[str, bytes], np.ndarray, int, np.ndarray] | None = None
     for name in _candidates(predictors, facts["sizes"]):
         gauss, kind = _parts(name)
@@ -451,7 +492,7 @@ def code_residual(
         with np.errstate(invalid="ignore", over="ignore"):
             t = source.astype(np.int64) - base if integer else src64 - base
             fits = ok & np.isfinite(src64) & (np.abs(t) < _LATTICE_LIMIT * step)
-        q, dec = _feedback(t, ~fits, step, integer, kind, axes)
+        q, dec = _feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT))
         x = base + dec
         if integer or not gauss:
             good = _within(x, out_dtype, src64, bound)
@@ -480,6 +521,7 @@ def code_residual(
         "symbol_bytes": best_width,
         "symbols_codec": codec,
         "axes": axes,
+        "levels": list(levelwise.get(_parts(name)[1], FLAT)),
         "layout": layout,
         "streams": {s: len(streams[s]) for s in STREAMS},
         "literals": int(literal.sum()),
@@ -489,7 +531,15 @@ def code_residual(
         "payload_bytes": len(data),
         "sha256": hashlib.sha256(data).hexdigest(),
     }
-    facts.update(predictor=name, axes=axes, layout=layout, literals=info["literals"], fragile=int((ok & fragile).sum()), bytes=len(data))
+    facts.update(
+        predictor=name,
+        axes=axes,
+        levels=info["levels"],
+        layout=layout,
+        literals=info["literals"],
+        fragile=int((ok & fragile).sum()),
+        bytes=len(data),
+    )
     return Residual(info, data), facts
 
 
@@ -553,6 +603,15 @@ def check_info(info, n_voxels: int) -> str | None:
     for key in ("axes", "layout"):
         if info.get(key, AXES) not in ORDERS:
             return f"residual {key} {info.get(key)!r} is not one of {', '.join(ORDERS)}"
+    lv = info.get("levels", list(FLAT))
+    if not (
+        isinstance(lv, list)
+        and len(lv) == 2
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in lv)
+        and 1 <= lv[0] <= 4
+        and 1 <= lv[1] <= 64
+    ):
+        return f"residual levels {lv!r} are not [alpha, beta] with 1 <= alpha <= 4 and 1 <= beta <= 64"
     if info.get("symbol_bytes") not in (1, 2, 4, 8):
         return f"residual symbol width {info.get('symbol_bytes')!r} is not 1, 2, 4 or 8 bytes"
     streams = info.get("streams")
@@ -596,7 +655,8 @@ def apply_residual(res: Residual, pred: np.ndarray) -> np.ndarray:
     q = _unzigzag(u).reshape(tuple(shape[a] for a in layout)).transpose(np.argsort(layout))
     name = info["predictor"]
     gauss, kind = _parts(name)
-    dec = _decoded(q, step, integer, kind, info.get("axes", AXES))
+    levels = info.get("levels", list(FLAT))
+    dec = _decoded(q, step, integer, kind, info.get("axes", AXES), (float(levels[0]), float(levels[1])))
     base, _ = _base(pred, np.zeros(shape, bool), float(info["margin"]), integer, gauss)
     out = _cast(base + dec, dtype).ravel()
     count = int(info["literals"])
