@@ -7,6 +7,7 @@ import json
 import math
 import os
 import sys
+import time
 from pathlib import Path
 
 import typer
@@ -137,8 +138,6 @@ class PhaseLines:
         self.t0 = 0.0
 
     def stage(self, name: str, title: str) -> None:
-        import time
-
         from warpgauss.profiling import phase_of
 
         words = phase_of(name)
@@ -151,8 +150,6 @@ class PhaseLines:
         self.status.update(f"{self.phase}: {text}" if self.phase else text)
 
     def close(self) -> None:
-        import time
-
         if self.phase is not None:
             self.status.console.print(f"  {self.phase:<34} {time.perf_counter() - self.t0:8.2f} s", highlight=False)
             self.phase = None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated
 
@@ -76,7 +77,7 @@ def _write_series(name: str, shape: tuple[int, int, int], steps: int, output: Pa
         check_writable(Path(n), force=force)
     for t, data in zip(range(steps), generate_series(name, shape, steps=steps, seed=seed)):
         write_volume(Path(names[t]), data, force=force)
-    glob = pattern.replace("{t:03d}", "*").replace("{t}", "*")
+    glob = re.sub(r"\{t(:[^}]*)?\}", "*", pattern)
     out_console.print(f"wrote {steps} timesteps {names[0]} .. {names[-1]} ({shape[0]}x{shape[1]}x{shape[2]} float32 each)")
     out_console.print(f"encode the series: warpgauss encode '{glob}' --budget 2000 -o '{stem}_{{t:03d}}.wgs'")
 
