@@ -151,7 +151,7 @@ class PhaseLines:
 
     def close(self) -> None:
         if self.phase is not None:
-            self.status.console.print(f"  {self.phase:<34} {time.perf_counter() - self.t0:8.2f} s", highlight=False)
+            self.status.console.print(f"  {self.phase:<36} {time.perf_counter() - self.t0:8.2f} s", highlight=False)
             self.phase = None
 
 

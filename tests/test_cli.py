@@ -352,6 +352,23 @@ def test_encode_and_info_speak_to_people_and_verbose_shows_the_rest(vortex_raw, 
     assert r.exit_code == 0 and "encoding.refinement.lr " in r.stdout and "{" not in r.stdout, r.output
 
 
+def test_every_stage_an_encode_records_has_a_phase_in_words():
+    """The progress lines name phases, never stage codes: every stage code the driver records
+    (found in its source) maps to words, the longest prefix winning (bricks' S1-S2b is not S1)."""
+    import re
+    from pathlib import Path
+
+    from warpgauss.profiling import PHASES, phase_of
+
+    root = Path(__file__).resolve().parents[1] / "warpgauss"
+    codes = {m for f in root.rglob("*.py") for m in re.findall(r'stage\(\s*"([A-Za-z0-9-]+)"', f.read_text())}
+    assert {"P", "S1a", "S2", "EV", "S3", "S1-S2b"} <= codes, codes
+    words = {w for _, w in PHASES}
+    for code in codes:
+        assert phase_of(code) in words, code
+    assert phase_of("S1-S2b") != phase_of("S1a")
+
+
 def test_a_report_repeats_the_run_from_another_folder(vortex_raw, tmp_path):
     """#34: --config REPORT found the input only from the folder the first run started in: the
     report's paths are relative to the report, and a config file's relative paths to the file."""

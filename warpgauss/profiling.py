@@ -19,6 +19,7 @@ PHASES: tuple[tuple[str, str], ...] = (
     ("Sh", "share the volume with the workers"),
     ("Sb", "split the budget over the bricks"),
     ("S1", "place the Gaussians"),
+    ("S1-S2b", "encode the bricks (place and refine)"),
     ("S2", "refine"),
     ("EV", "measure the accuracy"),
     ("S3", "write the model"),
