@@ -29,7 +29,7 @@ none was given), from a stored mask.
 The interpolation's axis order (``axes``: which axis each level interpolates first) is chosen on a
 central block of the source, and the q's are stored in the axis order (``layout``) that codes
 smallest: on the three head MRIs at 1e-2 and 1e-3 of the range, x before z before y coded the
-residual 2-17 % smaller than z, y, x, and storing mni_icbm152's q's with x in the middle 1.5x
+residual 4-17 % smaller than z, y, x, and storing mni_icbm152's q's with x in the middle 1.4-1.6x
 smaller than the raster at 1e-3 (benchmarks/bounded/README.md). The q's are zigzag-mapped to the
 narrowest of 1, 2, 4 or 8 bytes, split into byte planes and coded with Zstandard, as the coded
 model format is (:mod:`warpgauss.coded`), or bzip2 where that is smaller. The payload is a sequence of
