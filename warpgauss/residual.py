@@ -297,12 +297,10 @@ def _feedback(
         q[~skip] = _quantise(t[~skip], step, integer)
         dec[...] = q * np.int64(step) if integer else q * step
         return q, dec
-    first = (slice(0, 1),) * 3  # the coarsest lattice: the first voxel, predicted as 0
-    s0 = _level_step(step, integer, levels, _top_level(t.shape) + 1)
+    first, s0, passes = _stepped_passes(t.shape, step, integer, axes, levels)
     q[first] = np.where(skip[first], 0, _quantise(np.where(skip[first], 0, t[first]), s0, integer))  # a skipped value may be NaN
     dec[first] = q[first] * (np.int64(s0) if integer else s0)
-    for a, h, sel in _interp_passes(t.shape, axes):
-        s = _level_step(step, integer, levels, h.bit_length())
+    for a, h, sel, s in passes:
         pred = _interp_prediction(dec, a, h, sel, interp == "cubic")
         qs = np.where(skip[sel], 0, _quantise(np.where(skip[sel], pred, t[sel]) - pred, s, integer))
         q[sel] = qs
@@ -314,16 +312,23 @@ def _top_level(shape: tuple[int, ...]) -> int:
     return max(1, int(math.ceil(math.log2(max(max(shape), 2)))))
 
 
+def _stepped_passes(shape: tuple[int, ...], step: float, integer: bool, axes: str, levels: tuple[float, float]):
+    """What the coder and every reader walk alike: the first voxel (the coarsest lattice, predicted
+    as 0) and its step, then (axis, h, selection, step) of each interpolation pass."""
+    first = (slice(0, 1),) * 3
+    s0 = _level_step(step, integer, levels, _top_level(shape) + 1)
+    passes = ((a, h, sel, _level_step(step, integer, levels, h.bit_length())) for a, h, sel in _interp_passes(shape, axes))
+    return first, s0, passes
+
+
 def _decoded(q: np.ndarray, step: float, integer: bool, interp: str, axes: str = AXES, levels: tuple[float, float] = FLAT) -> np.ndarray:
     """The decoded residual from its q's: what :func:`_feedback` decoded, on any machine."""
     if not interp:
         return q * np.int64(step) if integer else q * step
     dec = np.zeros(q.shape, np.int64 if integer else np.float64)
-    first = (slice(0, 1),) * 3
-    s0 = _level_step(step, integer, levels, _top_level(q.shape) + 1)
+    first, s0, passes = _stepped_passes(q.shape, step, integer, axes, levels)
     dec[first] = q[first] * (np.int64(s0) if integer else s0)
-    for a, h, sel in _interp_passes(q.shape, axes):
-        s = _level_step(step, integer, levels, h.bit_length())
+    for a, h, sel, s in passes:
         pred = _interp_prediction(dec, a, h, sel, interp == "cubic")
         dec[sel] = pred + (q[sel] * np.int64(s) if integer else q[sel] * s)
     return dec
