@@ -236,6 +236,9 @@ def test_a_series_on_a_local_dask_cluster(tmp_path, monkeypatch):
             steps, client=client, output_pattern=str(tmp_path / "s_{t}.wgs"), on_step=lambda t, n, m: seen.append(t), **kw
         )
         cold = encode_series(steps, client=client, cold=True, **kw)
+        by_ratio_kw = {k: v for k, v in kw.items() if k != "budget"}
+        by_ratio = encode_series(steps, client=client, ratio=2.0, **by_ratio_kw)
+        by_ratio_serial = encode_series(steps, ratio=2.0, **by_ratio_kw)
 
         def full(arrays):
             raise OSError(28, "No space left on device")
@@ -245,14 +248,19 @@ def test_a_series_on_a_local_dask_cluster(tmp_path, monkeypatch):
     finally:
         client.close()
         client.cluster.close()
-    # timestep 0 first; then steps 1-3 in two runs: [1, 2] warm on from 0, [3] cold at N
+    # N given: two runs start at once, [0, 1] and [2, 3], each cold at N and then warm
     assert [m.report["series"]["step"] for m in spread] == [0, 1, 2, 3] and sorted(seen) == [0, 1, 2, 3]
-    assert [m.report["series"]["warm_start"] for m in spread] == [False, True, True, False]
+    assert [m.report["series"]["warm_start"] for m in spread] == [False, True, False, True]
     assert all(m.n == 90 for m in spread) and all((tmp_path / f"s_{t}.wgs").is_file() for t in range(4))
-    for t in (0, 1, 2):  # the same processes' work as the serial run, bit for bit
+    for t in (0, 1):  # the same processes' work as the serial run, bit for bit
         np.testing.assert_array_equal(spread[t].params, serial[t].params)
-    alone = warpgauss.encode(steps[3], **{k: v for k, v in kw.items() if k != "warm_iterations"})
-    np.testing.assert_array_equal(spread[3].params, alone.params)
+    alone = warpgauss.encode(steps[2], **{k: v for k, v in kw.items() if k != "warm_iterations"})
+    np.testing.assert_array_equal(spread[2].params, alone.params)
+    # N from a ratio: timestep 0 first (it fixes N), then [1, 2] warm on from it and [3] cold at that N
+    assert [m.report["series"]["warm_start"] for m in by_ratio] == [False, True, True, False]
+    assert len({m.n for m in by_ratio}) == 1 and by_ratio[0].n == by_ratio_serial[0].n
+    for t in (0, 1, 2):
+        np.testing.assert_array_equal(by_ratio[t].params, by_ratio_serial[t].params)
     assert [m.report["series"]["warm_start"] for m in cold] == [False] * 4
     for a, b in zip(no_room, spread):
         np.testing.assert_array_equal(a.params, b.params)

@@ -138,11 +138,12 @@ def encode_series(
             its report's ``series.keyframe`` says what happened. None or <= 0: never.
         on_step: Optional callback(t, steps, model) after each timestep (on a cluster: as each
             part comes back).
-        client: A ``distributed.Client``: the timesteps are spread over its workers. Each
-            variable's timestep 0 runs first (it fixes N); the rest of the chain is split into one
-            run of consecutive timesteps per worker, the first continuing warm from timestep 0,
-            each other starting cold at that N and then warm (``cold``: every timestep on its
-            own). A part that fails is retried once.
+        client: A ``distributed.Client``: the timesteps are spread over its workers, each
+            chain split into one run of consecutive timesteps per worker, each run's first
+            timestep cold at the chain's N and the rest warm (``cold``: every timestep on its
+            own). With ``budget`` (N given) every run starts at once; with ``ratio`` timestep 0
+            runs first (it fixes N) and the rest is split, the first run continuing warm from
+            it. A part that fails is retried once.
         encode_kwargs: Passed to :func:`warpgauss.encode` (seed, device, format, iterations ...).
 
     Returns:
@@ -368,17 +369,27 @@ def iter_segment(seg: Segment) -> Iterator[Model]:
 
 
 def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
-    """The segments on a Dask cluster: every chain's timestep 0 first (it fixes N), then the rest
-    of each chain split into one contiguous part per worker (timesteps cold: one part each); a
-    part that fails is retried once, one that fails twice fails the run."""
+    """The segments on a Dask cluster, each chain split into one contiguous part per worker
+    (timesteps cold: one part each). Where ``budget`` gives N, every part starts at once (a
+    part's first timestep is cold at that N); where N comes from a ratio or byte budget, the
+    chain's timestep 0 runs first (it fixes N, the other parts wait for it) and the rest is
+    split. A part that fails is retried once, one that fails twice fails the run."""
     workers = max(1, len(client.scheduler_info().get("workers", {})))
+
+    def parts_of(seg: Segment) -> list[Segment]:
+        return seg.split(len(seg.steps) if seg.cold else workers) if seg.steps else []
+
+    known = [seg.budget is not None for seg in plan]  # N given: no timestep 0 to wait for
     firsts = [
         dataclasses.replace(seg, steps=seg.steps[:1], items=seg.items[:1], outputs=None if seg.outputs is None else seg.outputs[:1])
-        for seg in plan
+        for seg, k in zip(plan, known)
+        if not k
     ]
-    heads = _gather(client, firsts, on_step)
-    parts: list[Segment] = []
-    for seg, head in zip(plan, heads):
+    at_once = [part for seg, k in zip(plan, known) if k for part in parts_of(seg)]
+    done = _gather(client, firsts + at_once, on_step)
+    heads, parts = done[: len(firsts)], at_once
+    rests: list[Segment] = []
+    for seg, head in zip([s for s, k in zip(plan, known) if not k], heads):
         rest = dataclasses.replace(
             seg,
             steps=seg.steps[1:],
@@ -387,14 +398,14 @@ def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
             start=head[0],
             n=head[0].n,
         )
-        if rest.steps:
-            parts += rest.split(len(rest.steps) if seg.cold else workers)
-    done = _gather(client, parts, on_step)
+        rests += parts_of(rest)
+    done = done[len(firsts) :] + _gather(client, rests, on_step)
+    parts = parts + rests
     by_var: dict = {}
-    for seg, head in zip(plan, heads):
+    for seg, head in zip([s for s, k in zip(plan, known) if not k], heads):
         by_var.setdefault(seg.var, []).extend(head)
     for part, models in zip(parts, done):
-        by_var[part.var].extend(models)
+        by_var.setdefault(part.var, []).extend(models)
     return [m for seg in plan for m in sorted(by_var[seg.var], key=lambda m: m.run_report["series"]["step"])]
 
 
