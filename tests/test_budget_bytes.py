@@ -90,6 +90,31 @@ def test_fit_bytes_shrinks_prunes_and_grows():
     np.testing.assert_array_equal(big, coded.project_coded(p, bits)[coded.encode_coded(p, bits)[2]])
 
 
+def test_a_model_fitted_with_a_score_keeps_the_best_scoring_fit(cpu):
+    """Model.fit_bytes(score=...) (what the encode passes: the PSNR on sampled voxels): where the
+    first fit drops bits, every fit tried is scored on the model it stores and the best is kept."""
+    from warpgauss.analysis import normalise
+    from warpgauss.evaluate import evaluate_field
+
+    vol = generate("vortex", 24, seed=3)
+    m = warpgauss.encode(vol, budget=600, device=cpu, format="full", iterations=40, samples=512, self_test=False)
+    m.coded_bits = {"mu": 8, "log_s": 8, "q": 10, "a": 12, "w": 10}
+    f = normalise(vol)
+    seen = []
+
+    def psnr(fitted):
+        seen.append(fitted.params.copy())
+        return evaluate_field(fitted.field(cpu), f)["psnr_db"]
+
+    budget = int(m.fit_bytes(10**9)[1]["first_bytes"] * 0.8)
+    fitted, info = m.fit_bytes(budget, score=psnr)
+    assert len(seen) == len(info["choice"]) >= 2 and any(s.endswith("-1") for s in info["choice"][0]["steps"])
+    scores = [c["psnr_db"] for c in info["choice"]]
+    assert info["chosen"] == int(np.argmax(scores)) and info["bytes"] <= budget
+    np.testing.assert_array_equal(fitted.params, seen[info["chosen"]])
+    assert evaluate_field(fitted.field(cpu), f)["psnr_db"] == pytest.approx(max(scores))
+
+
 def test_cli_bytes_budget(tmp_path, cpu):
     from typer.testing import CliRunner
 

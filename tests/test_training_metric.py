@@ -122,8 +122,40 @@ def test_fit_bytes_prunes_within_its_share_and_reports_the_rows_kept():
     dropped = np.setdiff1d(np.arange(3000), kept)
     imp = coded.importance(p)
     assert imp[dropped].max() <= imp[kept].min()  # the least important went
+    # importance is the primitive's share of the blend (weight x sigma volume), not its value
+    assert np.allclose(imp, np.abs(p[:, 11]) * np.exp(p[:, 3:6].astype(np.float64).sum(1)), rtol=1e-6)
     _, bits, info = coded.fit_bytes(p, int(full * 0.8), prune_share=0.03)
     assert any(s.endswith("-1") for s in info["steps"])
+
+
+def test_fit_bytes_with_a_score_keeps_the_fit_that_scores_best():
+    """Where the first fit drops bits, a scored fit also tries the larger prune shares and keeps
+    the best-scoring one, every candidate within the budget and reported."""
+    from test_wgs import realistic_params
+
+    from warpgauss import coded
+
+    p = realistic_params(np.random.default_rng(9), 3000)
+    budget = int(len(coded.encode_coded(p)[0]) * 0.8)
+    plain = coded.fit_bytes(p, budget)
+    assert any(s.endswith("-1") for s in plain[2]["steps"]) and "choice" not in plain[2]
+
+    def rows(stored, bits):  # prefers the fewest pruned: the first fit (bits dropped)
+        return float(len(stored))
+
+    def depth(stored, bits):  # prefers the most bits kept: pruning alone
+        return float(sum(bits.values()))
+
+    kept_rows = coded.fit_bytes(p, budget, score=rows)
+    kept_bits = coded.fit_bytes(p, budget, score=depth)
+    for stored, bits, info in (kept_rows, kept_bits):
+        assert info["bytes"] <= budget and len(info["choice"]) >= 2
+        assert [c["prune_share"] for c in info["choice"]] == list(coded.CHOICE_SHARES[: len(info["choice"])])
+    assert kept_rows[2]["chosen"] == 0 and kept_rows[2]["pruned"] == plain[2]["pruned"]
+    np.testing.assert_array_equal(kept_rows[0], plain[0])
+    last = kept_bits[2]["choice"][kept_bits[2]["chosen"]]
+    assert kept_bits[2]["chosen"] > 0 and last["pruned"] > plain[2]["pruned"]
+    assert sum(kept_bits[1].values()) > sum(plain[1].values())
 
 
 def test_silenced_primitives_stay_out_and_come_last(cpu):

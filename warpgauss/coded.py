@@ -29,6 +29,7 @@ decompresses into at most the declared size, and rejects codes outside their ran
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -349,12 +350,11 @@ GROW_ORDER = ("q", "log_s", "a", "mu", "w")
 _MIN_BITS = {"mu": 0, "log_s": 1, "q": 3, "a": 3, "w": 2}
 _MAX_BITS = {"mu": 8, "log_s": 8, "q": 10, "a": 12, "w": 10}
 # an excess up to this share of the budget is pruned (the least important primitives), beyond it
-# bits are dropped first. Measured on an H100 (benchmarks/results/accuracy/sweep_mri_vortex256_h100.json,
-# three head MRIs and vortex 256^3 at ratios 30 and 300): pruning up to a 10 % excess instead lost
-# 0.6-2.7 dB on the MRIs and 21.7 dB on vortex at 300 (a 71 dB model with holes); up to 50 % with
-# a short refit from fresh Adam moments (see warpgauss.driver.replan.REFIT_SHARE) was mixed on the MRIs
-# (-4.0 to +1.7 dB) and lost 10-21 dB on vortex. Too large an N is re-planned during refinement
-# instead, where the rest of the run fills in (warpgauss.driver.replan.REPLAN_AT)
+# bits are dropped first, unless the caller can score the fits (fit_bytes' score; the encode can),
+# which then also tries CHOICE_SHARES. Measured on an H100 before importance ranked by weight
+# (benchmarks/results/accuracy/sweep_mri_vortex256_h100.json): pruning up to a 10 % excess by
+# weight x |value| x volume lost 0.6-2.7 dB on the MRIs and 21.7 dB on vortex at 300; that ranking
+# took the Gaussians of value 0 first (benchmarks/results/accuracy/prune_order_cpu.json)
 PRUNE_SHARE = 0.03
 FILL_SHARE = 0.002  # the prune search stops once the model is within this share under the budget
 SEARCH_CODINGS = 12  # codings the prune search may spend after the first fit (to within one primitive)
@@ -363,9 +363,15 @@ _BIT_COLUMNS = {"mu": 3, "log_s": 3, "q": 3, "a": 1, "w": 1}  # stored values pe
 
 
 def importance(params: np.ndarray) -> np.ndarray:
-    """What a primitive adds to the model, for pruning: weight x |value| x sigma volume."""
+    """What a primitive adds to the model, for pruning: weight x sigma volume, its share of the
+    blend's denominator around it. Not its value: the model is a normalised blend, so a
+    primitive of value 0 holds its neighbourhood at 0 as much as any other holds its value.
+    Measured (CPU, 400 iterations, float32 models, ``benchmarks/results/accuracy/prune_order_cpu.json``):
+    pruning 3 / 10 % by weight x sigma volume cost 0.0-0.1 / 0.0-1.4 dB on vortex and interface
+    96^3 and two head MRIs, where weight x |value| x volume (before) cost 0.3-9.1 / 1.9-12.9 dB,
+    worse than a random choice."""
     p = np.asarray(params, np.float64)
-    return np.abs(p[:, 11] * p[:, 10]) * np.exp(np.clip(p[:, 3:6].sum(1), -60.0, 60.0))
+    return np.abs(p[:, 11]) * np.exp(np.clip(p[:, 3:6].sum(1), -60.0, 60.0))
 
 
 def _bit_bytes(n: int, k: str) -> float:
@@ -374,7 +380,45 @@ def _bit_bytes(n: int, k: str) -> float:
     return n * _BIT_COLUMNS[k] / 8.0
 
 
+# where a caller can measure a fitted model's accuracy (fit_bytes' score), the rate control fits at
+# each of these prune shares (an excess up to the share pruned, beyond it bits dropped first; 1.0:
+# pruning alone up to twice the budget) and keeps the one that scores best. Measured with the
+# weight ranking (benchmarks/results/accuracy/prune_order_cpu.json): which pays depends on the
+# volume and the excess, so it is measured per model rather than fixed
+CHOICE_SHARES = (PRUNE_SHARE, 0.15, 1.0)
+
+
 def fit_bytes(
+    params: np.ndarray,
+    budget: int,
+    bits: dict[str, int] | None = None,
+    size_of=None,
+    prune_share: float | None = None,
+    score: Callable[[np.ndarray, dict[str, int]], float] | None = None,
+) -> tuple[np.ndarray, dict, dict]:
+    """The coded model that fits ``budget`` bytes, as :func:`fit_at_share` fits it; with ``score``
+    (and no ``prune_share``) at each of :data:`CHOICE_SHARES` where the first fit had to drop bits,
+    keeping the fit that ``score(stored, bits)`` (a PSNR) rates best. The info then holds
+    ``choice``: each fit's share, steps, pruned count and score, and ``chosen``: its index."""
+    first = fit_at_share(params, budget, bits, size_of, prune_share)
+    if score is None or prune_share is not None or not any(s.endswith("-1") for s in first[2]["steps"]):
+        return first
+    tried = [first]
+    for share in CHOICE_SHARES[1:]:
+        tried.append(fit_at_share(params, budget, bits, size_of, share))
+        if not any(s.endswith("-1") for s in tried[-1][2]["steps"]):
+            break  # pruning alone fitted: a larger share fits the same way
+    scores = [float(score(stored, b)) for stored, b, _ in tried]
+    best = int(np.argmax(scores))
+    stored, b, info = tried[best]
+    choice = [
+        {"prune_share": t[2]["prune_share"], "steps": t[2]["steps"], "pruned": t[2]["pruned"], "psnr_db": sc}
+        for t, sc in zip(tried, scores)
+    ]
+    return stored, b, {**info, "codings": sum(t[2]["codings"] for t in tried), "choice": choice, "chosen": best}
+
+
+def fit_at_share(
     params: np.ndarray, budget: int, bits: dict[str, int] | None = None, size_of=None, prune_share: float | None = None
 ) -> tuple[np.ndarray, dict, dict]:
     """The coded model that fits ``budget`` bytes, as closely as bit depths and primitives allow.

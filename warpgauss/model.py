@@ -261,8 +261,11 @@ class Model:
         m.report, m.coded_bits, m.format = self.report, self.coded_bits, "coded"
         return m  # no residual: it belongs to the exact parameters it was coded against
 
-    def fit_bytes(self, total_bytes: int, prune_share: float | None = None) -> tuple[Model, dict]:
-        """This model coded to fit ``total_bytes`` (header included): see :func:`warpgauss.coded.fit_bytes`.
+    def fit_bytes(
+        self, total_bytes: int, prune_share: float | None = None, score: Callable[[Model], float] | None = None
+    ) -> tuple[Model, dict]:
+        """This model coded to fit ``total_bytes`` (header included): see :func:`warpgauss.coded.fit_bytes`
+        (``score(model)``: a fitted model's PSNR, where the rate control may choose by it).
         The rows of this model that the result keeps are its ``kept_rows`` (for a refit)."""
         from .coded import fit_bytes
         from .wgs import wgs_bytes
@@ -270,7 +273,11 @@ class Model:
         def size_of(params, bits) -> int:
             return len(wgs_bytes(params, self.header, encoding="coded", bits=bits))
 
-        stored, bits, info = fit_bytes(self.params, total_bytes, self.coded_bits, size_of, prune_share)
+        def rate(params, bits) -> float:
+            assert score is not None
+            return score(Model(params, self.header))
+
+        stored, bits, info = fit_bytes(self.params, total_bytes, self.coded_bits, size_of, prune_share, None if score is None else rate)
         m = Model(stored, self.header)
         m.report, m.coded_bits, m.format = self.report, bits, "coded"
         m.kept_rows = info.pop("kept")

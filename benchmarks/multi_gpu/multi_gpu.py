@@ -51,7 +51,7 @@ def cluster(k: int, device: str):
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--field", default="vortex")
-    ap.add_argument("--sizes", default="1024", help="comma list of cube sizes (\"\": none, the series alone)")
+    ap.add_argument("--sizes", default="1024", help='comma list of cube sizes ("": none, the series alone)')
     ap.add_argument("--budget", type=int, default=None, help="N (default: 1,000,000 at 1024^3, scaled with the voxel count)")
     ap.add_argument("--bricks", default="4x4x4")
     ap.add_argument("--gpus", default="1,2")

@@ -119,10 +119,16 @@ class EncodeRun(replan.Replan):
     def stored(self, m: Model) -> tuple[Model, dict | None]:
         """The model as the file will hold it (coded: fitted to the byte budget)."""
         if self.enc == "coded" and self.budget_bytes is not None:
-            return m.fit_bytes(self.budget_bytes)
+            # where bits would be dropped, pruning instead is tried too and the better PSNR kept
+            return m.fit_bytes(self.budget_bytes, score=lambda fitted: float(self._evaluate_sampled(fitted)["psnr_db"]))
         m = m.stored(self.enc)
         m.format = self.enc
         return m, None
+
+    def _evaluate_sampled(self, m: Model) -> dict:
+        from ..evaluate import evaluate_field
+
+        return evaluate_field(m.field(self.dev), self.f)
 
     def _evaluate(self, m: Model) -> dict:
         from ..evaluate import evaluate_field

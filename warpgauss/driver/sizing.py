@@ -163,8 +163,15 @@ def coded_choice(sizing: dict | None, fit: dict | None, note: dict | None, repla
         pruned = f"{fit['pruned']:,} least important Gaussians pruned"
         if fit.get("refit"):
             pruned += f", the rest refined again for {fit['refit']['iterations']} iterations"
-        parts.append(
-            f"rate control: {did}; {pruned} (an excess up to {fit.get('prune_share', 0):.0%} is pruned, beyond it bits "
-            "are dropped first: a pruned model keeps holes that cost more)"
-        )
+        if fit.get("choice"):
+            tried = "; ".join(
+                f"{c['pruned']:,} pruned with {', '.join(s for s in c['steps'] if s.endswith('-1')) or 'no bit dropped'}: {c['psnr_db']:.2f} dB"
+                for c in fit["choice"]
+            )
+            parts.append(f"rate control: {did}; {pruned}, the best of the fits tried ({tried})")
+        else:
+            parts.append(
+                f"rate control: {did}; {pruned} (an excess up to {fit.get('prune_share', 0):.0%} is pruned, beyond it bits "
+                "are dropped first)"
+            )
     return "; ".join(parts)
