@@ -148,7 +148,7 @@ def test_fit_bytes_with_a_score_keeps_the_fit_that_scores_best():
 
     kept_rows = coded.fit_bytes(p, budget, score=rows)
     kept_bits = coded.fit_bytes(p, budget, score=depth)
-    for stored, bits, info in (kept_rows, kept_bits):
+    for _, _, info in (kept_rows, kept_bits):
         assert info["bytes"] <= budget and len(info["choice"]) >= 2
         assert [c["prune_share"] for c in info["choice"]] == list(coded.CHOICE_SHARES[: len(info["choice"])])
     assert kept_rows[2]["chosen"] == 0 and kept_rows[2]["pruned"] == plain[2]["pruned"]
