@@ -354,7 +354,7 @@ _MAX_BITS = {"mu": 8, "log_s": 8, "q": 10, "a": 12, "w": 10}
 # which then also tries CHOICE_SHARES. Measured on an H100 before importance ranked by weight
 # (benchmarks/results/accuracy/sweep_mri_vortex256_h100.json): pruning up to a 10 % excess by
 # weight x |value| x volume lost 0.6-2.7 dB on the MRIs and 21.7 dB on vortex at 300; that ranking
-# took the Gaussians of value 0 first (benchmarks/results/accuracy/prune_order_cpu.json)
+# took the Gaussians of value 0 first (benchmarks/results/accuracy/prune_order_*_cpu.json)
 PRUNE_SHARE = 0.03
 FILL_SHARE = 0.002  # the prune search stops once the model is within this share under the budget
 SEARCH_CODINGS = 12  # codings the prune search may spend after the first fit (to within one primitive)
@@ -366,7 +366,7 @@ def importance(params: np.ndarray) -> np.ndarray:
     """What a primitive adds to the model, for pruning: weight x sigma volume, its share of the
     blend's denominator around it. Not its value: the model is a normalised blend, so a
     primitive of value 0 holds its neighbourhood at 0 as much as any other holds its value.
-    Measured (CPU, 400 iterations, float32 models, ``benchmarks/results/accuracy/prune_order_cpu.json``):
+    Measured (CPU, 400 iterations, float32 models, ``benchmarks/results/accuracy/prune_order_*_cpu.json``):
     pruning 3 / 10 % by weight x sigma volume cost 0.0-0.1 / 0.0-1.4 dB on vortex and interface
     96^3 and two head MRIs, where weight x |value| x volume (before) cost 0.3-9.1 / 1.9-12.9 dB,
     worse than a random choice."""
@@ -383,9 +383,12 @@ def _bit_bytes(n: int, k: str) -> float:
 # where a caller can measure a fitted model's accuracy (fit_bytes' score), the rate control fits at
 # each of these prune shares (an excess up to the share pruned, beyond it bits dropped first; 1.0:
 # pruning alone up to twice the budget) and keeps the one that scores best. Measured with the
-# weight ranking (benchmarks/results/accuracy/prune_order_cpu.json): which pays depends on the
+# weight ranking (benchmarks/results/accuracy/prune_order_*_cpu.json): which pays depends on the
 # volume and the excess, so it is measured per model rather than fixed
 CHOICE_SHARES = (PRUNE_SHARE, 0.15, 1.0)
+# prune-search codings of an alternative before it is scored (a winner is fitted again in full):
+# the choice cost 1.5-5.3 s of coding on 200,000-570,000-Gaussian models with the whole search
+CHOICE_SEARCH_CODINGS = 1
 
 
 def fit_bytes(
@@ -404,22 +407,31 @@ def fit_bytes(
     if score is None or prune_share is not None or not any(s.endswith("-1") for s in first[2]["steps"]):
         return first
     tried = [first]
-    for share in CHOICE_SHARES[1:]:
-        tried.append(fit_at_share(params, budget, bits, size_of, share))
+    for share in CHOICE_SHARES[1:]:  # the alternatives with a short prune search (a little less full)
+        tried.append(fit_at_share(params, budget, bits, size_of, share, search=CHOICE_SEARCH_CODINGS))
         if not any(s.endswith("-1") for s in tried[-1][2]["steps"]):
             break  # pruning alone fitted: a larger share fits the same way
     scores = [float(score(stored, b)) for stored, b, _ in tried]
     best = int(np.argmax(scores))
-    stored, b, info = tried[best]
+    codings = sum(t[2]["codings"] for t in tried)
     choice = [
         {"prune_share": t[2]["prune_share"], "steps": t[2]["steps"], "pruned": t[2]["pruned"], "psnr_db": sc}
         for t, sc in zip(tried, scores)
     ]
-    return stored, b, {**info, "codings": sum(t[2]["codings"] for t in tried), "choice": choice, "chosen": best}
+    if best > 0:  # the winner fitted again with the whole search, to fill the budget
+        tried[best] = fit_at_share(params, budget, bits, size_of, tried[best][2]["prune_share"])
+        codings += tried[best][2]["codings"]
+    stored, b, info = tried[best]
+    return stored, b, {**info, "codings": codings, "choice": choice, "chosen": best}
 
 
 def fit_at_share(
-    params: np.ndarray, budget: int, bits: dict[str, int] | None = None, size_of=None, prune_share: float | None = None
+    params: np.ndarray,
+    budget: int,
+    bits: dict[str, int] | None = None,
+    size_of=None,
+    prune_share: float | None = None,
+    search: int = SEARCH_CODINGS,
 ) -> tuple[np.ndarray, dict, dict]:
     """The coded model that fits ``budget`` bytes, as closely as bit depths and primitives allow.
 
@@ -443,6 +455,7 @@ def fit_at_share(
         size_of: ``size_of(params, bits)`` -> bytes (default: the coded payload alone; a model
             passes its whole file, header included).
         prune_share: See above.
+        search: Codings the prune search may spend after the first fit.
 
     Returns:
         ``(stored, bits, info)``: the parameters as the file will hold them (projected, Morton
@@ -504,7 +517,7 @@ def fit_at_share(
                 lo, lo_size = cut, cur
         assert hi is not None and hi_size is not None  # the loop ends only where a size fits
         # then fewer pruned while more fit: interpolate between the two, halving when that stalls
-        for _ in range(SEARCH_CODINGS):
+        for _ in range(search):
             if hi - lo <= 1 or budget - hi_size <= FILL_SHARE * budget:
                 break
             t = (lo_size - budget) / max(lo_size - hi_size, 1)

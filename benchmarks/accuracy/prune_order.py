@@ -16,8 +16,10 @@ of the decode against the source, over its value range. Volumes: example fields 
 files of ``../shared/data``.
 
     python benchmarks/accuracy/prune_order.py --fields vortex,interface --size 96 --budget 20000 \\
+        --iterations 400 --out benchmarks/results/accuracy/prune_order_fields_cpu.json
+    python benchmarks/accuracy/prune_order.py --fields "" --iterations 400 \\
         --real mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz:10000,mean_reg2mean.nii.gz:20000 \\
-        --iterations 400 --out benchmarks/results/accuracy/prune_order_cpu.json
+        --out benchmarks/results/accuracy/prune_order_mri_cpu.json
 """
 
 from __future__ import annotations
