@@ -368,8 +368,8 @@ def importance(params: np.ndarray) -> np.ndarray:
     primitive of value 0 holds its neighbourhood at 0 as much as any other holds its value.
     Measured (CPU, 400 iterations, float32 models, ``benchmarks/results/accuracy/prune_order_*_cpu.json``):
     pruning 3 / 10 % by weight x sigma volume cost 0.0-0.1 / 0.0-1.4 dB on vortex and interface
-    96^3 and two head MRIs, where weight x |value| x volume (before) cost 0.3-9.1 / 1.9-12.9 dB,
-    worse than a random choice."""
+    96^3 and two head MRIs, where weight x |value| x volume (before) cost 0.3-9.1 / 1.9-12.9 dB
+    (on the fields, worse than a random choice)."""
     p = np.asarray(params, np.float64)
     return np.abs(p[:, 11]) * np.exp(np.clip(p[:, 3:6].sum(1), -60.0, 60.0))
 
