@@ -220,6 +220,18 @@ def test_cli_encodes_a_time_axis_and_several_variables(tmp_path):
     assert r.exit_code == 2 and "no variable 'wind'" in r.output
 
 
+def test_a_series_with_a_byte_budget_takes_timestep_0s_n(cpu):
+    """file_bytes= sizes timestep 0's N like ratio= does, and the later timesteps take that N
+    (they failed with "give one of --budget, --ratio and --bytes" before)."""
+    from warpgauss.series import encode_series
+
+    steps = list(generate_series("vortex", 16, 3))
+    models = encode_series(steps, file_bytes=9000, iterations=5, samples=128, device=cpu, self_test=False)
+    first = warpgauss.encode(steps[0], file_bytes=9000, iterations=5, samples=128, device=cpu, self_test=False)
+    assert [m.n for m in models] == [first.n] * 3
+    assert [m.report["series"]["warm_start"] for m in models] == [False, True, True]
+
+
 def test_a_series_on_a_local_dask_cluster(tmp_path, monkeypatch):
     pytest.importorskip("distributed")
     import warpgauss.lazy

@@ -325,6 +325,7 @@ def iter_segment(seg: Segment) -> Iterator[Model]:
             kw.update(budget=seg.budget, ratio=seg.ratio)
         else:
             kw.update(budget=n)
+            kw.pop("file_bytes", None)  # a byte budget sized timestep 0's N; the rest take that N
         out = None if seg.outputs is None else seg.outputs[k]
         cold_kw = dict(kw)
         if warm:
