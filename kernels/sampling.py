@@ -164,6 +164,33 @@ def support_counts(
     counts[bk, bj, bi] = n
 
 
+@wp.kernel
+def unreached_squares(
+    vol: wp.array3d(dtype=float),
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    support_counts_: wp.array3d(dtype=int),  # [bz, by, bx] support_counts' output
+    out: wp.array3d(dtype=float),  # [bz, by, bx] out: sum of V^2 over the brick's unreached voxels
+):
+    """Per 4^3 brick, the sum of V^2 over the usable voxels the draw cannot reach when its
+    uniform stratum is drawn over the support: empty (in neither stratum) and in an unsupported
+    brick. No primitive reaches them, so the decode writes 0 there and V^2 is their squared error."""
+    bk, bj, bi = wp.tid()
+    s = float(0.0)
+    if support_counts_[bk, bj, bi] == 0:
+        for dz in range(BRICK):
+            for dy in range(BRICK):
+                for dx in range(BRICK):
+                    k = bk * BRICK + dz
+                    j = bj * BRICK + dy
+                    i = bi * BRICK + dx
+                    if usable(vol, mask, has_mask, k, j, i):
+                        if stratum_of(vol, mask, has_mask, k, j, i) < 0:
+                            v = vol[k, j, i]
+                            s += v * v
+    out[bk, bj, bi] = s
+
+
 @wp.func
 def find_brick(cum: wp.array(dtype=int), r: int) -> wp.vec2i:
     """(brick, rank within it) of rank r, for inclusive prefix sums ``cum`` of per-brick counts."""

@@ -129,6 +129,7 @@ def main(argv=None) -> dict:
                     "ratio": rep["budget"]["compression_ratio"],
                     "psnr_db": truth.psnr(dec, normalised=True),
                     "sample_psnr_db": hist[-1].get("sample_psnr_db"),
+                    "grid_psnr_db_from_samples": hist[-1].get("grid_psnr_db"),  # one iteration's samples: noisy
                     "encode_s": secs,
                     "refinement_s": rep["refinement"].get("seconds"),
                     "coded_sizing": rep["budget"]["coded_sizing"],

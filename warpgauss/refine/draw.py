@@ -167,6 +167,37 @@ class Sampler:
         self._wp.launch(ks.support_counts, dim=marks.shape, inputs=[marks, everything, nz, ny, nx], outputs=[counts], device=self.device)
         self._wp.utils.array_scan(counts.flatten(), self.support, inclusive=True)
 
+    def reach(self) -> int:
+        """D of the importance weights (see :func:`warpgauss.kernels.sampling.sample_weight`): the
+        larger of the uniform stratum's domain and the two strata together (syncs)."""
+        n_occ = self.n_high + self.n_mid
+        supported = int(self.support[-1:].numpy()[0]) if self.uniform_support else 0
+        if self.uniform_occupied:
+            n_uni = n_occ
+        elif supported > 0:
+            n_uni = supported
+        else:
+            n_uni = int(self.dv.values.size)
+        return max(n_uni, n_occ)
+
+    def unreached_error(self) -> float | None:
+        """Sum of squared errors over the voxels the draw cannot reach, where the model is 0 (the
+        empty voxels of unsupported bricks: their V^2); None where that is not known (the
+        uniform stratum drawn among the occupied voxels: the model is not 0 off them). Syncs."""
+        from ..kernels import sampling as ks
+
+        if self.uniform_occupied:
+            return None
+        if not self.uniform_support or int(self.support[-1:].numpy()[0]) == 0:
+            return 0.0  # the uniform stratum reaches every voxel
+        wp, dv = self._wp, self.dv
+        counts = self.support_marks[2]
+        out = wp.empty(counts.shape, dtype=float, device=self.device)
+        wp.launch(
+            ks.unreached_squares, dim=counts.shape, inputs=[dv.values, dv.mask, dv.has_mask, counts], outputs=[out], device=self.device
+        )
+        return float(out.numpy().astype(np.float64).sum())  # per-brick partials summed in a fixed order
+
     def support_share(self) -> float | None:
         """Share of the grid's voxels the uniform stratum is drawn from now (None: whole grid or
         occupied voxels); reads back from the device."""

@@ -521,7 +521,9 @@ class Refiner:
     # -- reports -----------------------------------------------------------------------------
 
     def losses(self) -> dict:
-        """Loss terms of the last iteration and a running PSNR estimate over its samples (syncs)."""
+        """Loss terms of the last iteration, a running PSNR estimate over its samples and, with
+        importance weights, their estimate of the decoded model's full-grid PSNR
+        (``grid_psnr_db``, see :meth:`grid_mse_estimate`; syncs)."""
         if self.state.clean:
             self.updater.finish_grads()  # per-primitive terms of the current parameters (pair buffers are zero)
         pl = self.point_loss.numpy().astype(np.float64).sum(0)
@@ -534,7 +536,28 @@ class Refiner:
         terms = {k: float(x) for k, x in terms.items()}
         terms["total"] = float(sum(terms.values()))
         terms["sample_psnr_db"] = float(10 * np.log10(1 / max(mse, 1e-20)))
+        grid = self.grid_mse_estimate(v, t, om)
+        if grid is not None:
+            terms["grid_psnr_db"] = float(10 * np.log10(1 / max(grid, 1e-20)))
         return terms
+
+    def grid_mse_estimate(self, v: np.ndarray, t: np.ndarray, om: np.ndarray) -> float | None:
+        """The full-grid MSE of the decoded model (values clamped as the decode clamps them)
+        estimated from this iteration's samples: with importance weights 1 / (D q(v)) the mean of
+        w e^2 times D estimates the squared error summed over the voxels the draw reaches; the
+        voxels it cannot reach decode to 0 and add their V^2 (:meth:`.draw.Sampler.unreached_error`);
+        over the grid's valid voxels. None without importance weights, or where the unreached
+        voxels' model values are not known. ``sample_psnr_db`` is the MSE over the reach alone
+        (the rate control's input, as calibrated)."""
+        if not self.cfg.importance:
+            return None
+        unreached = self.sampler.unreached_error()
+        if unreached is None:
+            return None
+        e = np.clip(v, 0.0, 1.0) - t
+        valid = int(getattr(self.dv.field, "n_valid", 0)) or int(self.dv.values.size)
+        reached = float(np.sum(om * e * e)) * self.sampler.reach() / max(self.m, 1)
+        return (reached + unreached) / valid
 
     def skipped_steps(self) -> int:
         """Primitive updates skipped because their gradient or result was not finite, so far."""
