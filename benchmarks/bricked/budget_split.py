@@ -1,0 +1,56 @@
+"""The budget split over the bricks (stage Sb of a bricked encode): every brick's statistics (occupied
+and detail-eligible voxels, the sum of |grad V|, its seed limit) on this process's cores, then N
+split over them. It runs on the host before any brick starts, whatever the GPUs, so it bounds what
+more GPUs can gain (issue #35 part 2: 12-15 s of a 1024^3 encode on 32 cores).
+
+    python benchmarks/bricked/budget_split.py --size 512 --bricks 2x2x2,4x4x4 --out benchmarks/results/bricked/budget_split_512_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from warpgauss.analysis import normalise
+from warpgauss.bench import result_header
+from warpgauss.brickplan import default_halo, plan_bricks, split_bricks
+from warpgauss.synthetic import generate
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--field", default="vortex")
+    ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--bricks", default="2x2x2,4x4x4")
+    ap.add_argument("--budget", type=int, default=400_000)
+    ap.add_argument("--halo", type=int, default=default_halo(4.0))
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args(argv)
+    result = {**result_header("budget split over the bricks (stage Sb), host cores", __file__, argv, "cpu"), "cores": os.cpu_count(), "rows": []}
+    t0 = time.perf_counter()
+    f = normalise(generate(args.field, args.size))
+    print(f"{args.field} {args.size}^3 generated and analysed in {time.perf_counter() - t0:.1f} s")
+    for spec in args.bricks.split(","):
+        counts = tuple(int(x) for x in spec.split("x"))
+        plan = plan_bricks(f.shape_xyz, counts, args.halo)
+        times, split = [], None
+        for _ in range(args.repeats):
+            t = time.perf_counter()
+            split, _ = split_bricks(f, plan, args.budget)
+            times.append(time.perf_counter() - t)
+        row = {"field": args.field, "size": args.size, "bricks": spec, "halo": args.halo, "seconds": min(times), "all_seconds": times, "counts": split}
+        result["rows"].append(row)
+        print(f"{spec}: {min(times):.2f} s (best of {args.repeats}), {len(plan)} bricks")
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=1))
+    return result
+
+
+if __name__ == "__main__":
+    main()
