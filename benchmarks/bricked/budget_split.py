@@ -14,8 +14,6 @@ import os
 import time
 from pathlib import Path
 
-import numpy as np
-
 from warpgauss.analysis import normalise
 from warpgauss.bench import result_header
 from warpgauss.brickplan import default_halo, plan_bricks, split_bricks
@@ -32,7 +30,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    result = {**result_header("budget split over the bricks (stage Sb), host cores", __file__, argv, "cpu"), "cores": os.cpu_count(), "rows": []}
+    result = {
+        **result_header("budget split over the bricks (stage Sb), host cores", __file__, argv, "cpu"),
+        "cores": os.cpu_count(),
+        "rows": [],
+    }
     t0 = time.perf_counter()
     f = normalise(generate(args.field, args.size))
     print(f"{args.field} {args.size}^3 generated and analysed in {time.perf_counter() - t0:.1f} s")
@@ -44,7 +46,15 @@ def main(argv=None) -> dict:
             t = time.perf_counter()
             split, _ = split_bricks(f, plan, args.budget)
             times.append(time.perf_counter() - t)
-        row = {"field": args.field, "size": args.size, "bricks": spec, "halo": args.halo, "seconds": min(times), "all_seconds": times, "counts": split}
+        row = {
+            "field": args.field,
+            "size": args.size,
+            "bricks": spec,
+            "halo": args.halo,
+            "seconds": min(times),
+            "all_seconds": times,
+            "counts": split,
+        }
         result["rows"].append(row)
         print(f"{spec}: {min(times):.2f} s (best of {args.repeats}), {len(plan)} bricks")
         args.out.parent.mkdir(parents=True, exist_ok=True)
