@@ -20,7 +20,7 @@ and no gradient, so a sample there would only dilute the batch.
 
 import warp as wp
 
-from .analysis import OCCUPIED, trilinear, usable
+from .analysis import OCCUPIED, in_grid, trilinear, usable
 
 wp.set_module_options({"enable_backward": False})
 
@@ -43,6 +43,12 @@ def stratum_of(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), h
 BRICK = wp.constant(4)  # stratum index granularity: voxels per brick edge
 
 
+@wp.func
+def brick_voxel(bk: int, bj: int, bi: int, d: int) -> wp.vec3i:
+    """(k, j, i) of the d-th voxel (z, then y, then x) of 4^3 brick (bk, bj, bi); may lie past the grid."""
+    return wp.vec3i(bk * BRICK + d / (BRICK * BRICK), bj * BRICK + (d / BRICK) % BRICK, bi * BRICK + d % BRICK)
+
+
 @wp.kernel
 def brick_counts(
     vol: wp.array3d(dtype=float),
@@ -56,18 +62,14 @@ def brick_counts(
     bk, bj, bi = wp.tid()
     nh = int(0)
     nm = int(0)
-    for dk in range(BRICK):
-        for dj in range(BRICK):
-            for di in range(BRICK):
-                k = bk * BRICK + dk
-                j = bj * BRICK + dj
-                i = bi * BRICK + di
-                if k < vol.shape[0] and j < vol.shape[1] and i < vol.shape[2]:
-                    st = stratum_of(vol, mask, has_mask, k, j, i)
-                    if st == 0:
-                        nh += 1
-                    elif st == 1:
-                        nm += 1
+    for d in range(BRICK * BRICK * BRICK):
+        v = brick_voxel(bk, bj, bi, d)
+        if in_grid(vol, v[0], v[1], v[2]):
+            st = stratum_of(vol, mask, has_mask, v[0], v[1], v[2])
+            if st == 0:
+                nh += 1
+            elif st == 1:
+                nm += 1
     high[bk, bj, bi] = nh
     mid[bk, bj, bi] = nm
 
@@ -178,16 +180,11 @@ def unreached_squares(
     bk, bj, bi = wp.tid()
     s = float(0.0)
     if support_counts_[bk, bj, bi] == 0:
-        for dz in range(BRICK):
-            for dy in range(BRICK):
-                for dx in range(BRICK):
-                    k = bk * BRICK + dz
-                    j = bj * BRICK + dy
-                    i = bi * BRICK + dx
-                    if usable(vol, mask, has_mask, k, j, i):
-                        if stratum_of(vol, mask, has_mask, k, j, i) < 0:
-                            v = vol[k, j, i]
-                            s += v * v
+        for d in range(BRICK * BRICK * BRICK):
+            v = brick_voxel(bk, bj, bi, d)
+            if stratum_of(vol, mask, has_mask, v[0], v[1], v[2]) < 0 and usable(vol, mask, has_mask, v[0], v[1], v[2]):
+                x = vol[v[0], v[1], v[2]]
+                s += x * x
     out[bk, bj, bi] = s
 
 
