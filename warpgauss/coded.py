@@ -403,13 +403,17 @@ def fit_bytes(
     (and no ``prune_share``) at each of :data:`CHOICE_SHARES` where the first fit had to drop bits,
     keeping the fit that ``score(stored, bits)`` (a PSNR) rates best. The info then holds
     ``choice``: each fit's share, steps, pruned count and score, and ``chosen``: its index."""
+
+    def drops_bits(fit: tuple) -> bool:
+        return any(step.endswith("-1") for step in fit[2]["steps"])
+
     first = fit_at_share(params, budget, bits, size_of, prune_share)
-    if score is None or prune_share is not None or not any(s.endswith("-1") for s in first[2]["steps"]):
+    if score is None or prune_share is not None or not drops_bits(first):
         return first
     tried = [first]
     for share in CHOICE_SHARES[1:]:  # the alternatives with a short prune search (a little less full)
         tried.append(fit_at_share(params, budget, bits, size_of, share, search=CHOICE_SEARCH_CODINGS))
-        if not any(s.endswith("-1") for s in tried[-1][2]["steps"]):
+        if not drops_bits(tried[-1]):
             break  # pruning alone fitted: a larger share fits the same way
     scores = [float(score(stored, b)) for stored, b, _ in tried]
     best = int(np.argmax(scores))

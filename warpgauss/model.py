@@ -273,11 +273,8 @@ class Model:
         def size_of(params, bits) -> int:
             return len(wgs_bytes(params, self.header, encoding="coded", bits=bits))
 
-        def rate(params, bits) -> float:
-            assert score is not None
-            return score(Model(params, self.header))
-
-        stored, bits, info = fit_bytes(self.params, total_bytes, self.coded_bits, size_of, prune_share, None if score is None else rate)
+        rate = None if score is None else (lambda params, bits: score(Model(params, self.header)))
+        stored, bits, info = fit_bytes(self.params, total_bytes, self.coded_bits, size_of, prune_share, rate)
         m = Model(stored, self.header)
         m.report, m.coded_bits, m.format = self.report, bits, "coded"
         m.kept_rows = info.pop("kept")

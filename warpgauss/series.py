@@ -380,17 +380,16 @@ def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
     def parts_of(seg: Segment) -> list[Segment]:
         return seg.split(len(seg.steps) if seg.cold else workers) if seg.steps else []
 
-    known = [seg.budget is not None for seg in plan]  # N given: no timestep 0 to wait for
+    waiting = [seg for seg in plan if seg.budget is None]  # N from a ratio or byte budget: timestep 0 first
     firsts = [
         dataclasses.replace(seg, steps=seg.steps[:1], items=seg.items[:1], outputs=None if seg.outputs is None else seg.outputs[:1])
-        for seg, k in zip(plan, known)
-        if not k
+        for seg in waiting
     ]
-    at_once = [part for seg, k in zip(plan, known) if k for part in parts_of(seg)]
-    done = _gather(client, firsts + at_once, on_step)
-    heads, parts = done[: len(firsts)], at_once
+    parts = [part for seg in plan if seg.budget is not None for part in parts_of(seg)]
+    done = _gather(client, firsts + parts, on_step)
+    heads, done = done[: len(firsts)], done[len(firsts) :]
     rests: list[Segment] = []
-    for seg, head in zip([s for s, k in zip(plan, known) if not k], heads):
+    for seg, head in zip(waiting, heads):
         rest = dataclasses.replace(
             seg,
             steps=seg.steps[1:],
@@ -400,10 +399,10 @@ def _on_cluster(plan: list[Segment], client, on_step) -> list[Model]:
             n=head[0].n,
         )
         rests += parts_of(rest)
-    done = done[len(firsts) :] + _gather(client, rests, on_step)
-    parts = parts + rests
+    done += _gather(client, rests, on_step)
+    parts += rests
     by_var: dict = {}
-    for seg, head in zip([s for s, k in zip(plan, known) if not k], heads):
+    for seg, head in zip(waiting, heads):
         by_var.setdefault(seg.var, []).extend(head)
     for part, models in zip(parts, done):
         by_var.setdefault(part.var, []).extend(models)

@@ -120,20 +120,17 @@ class EncodeRun(replan.Replan):
         """The model as the file will hold it (coded: fitted to the byte budget)."""
         if self.enc == "coded" and self.budget_bytes is not None:
             # where bits would be dropped, pruning instead is tried too and the better PSNR kept
-            return m.fit_bytes(self.budget_bytes, score=lambda fitted: float(self._evaluate_sampled(fitted)["psnr_db"]))
+            return m.fit_bytes(self.budget_bytes, score=lambda fitted: float(self._evaluate(fitted, full=False)["psnr_db"]))
         m = m.stored(self.enc)
         m.format = self.enc
         return m, None
 
-    def _evaluate_sampled(self, m: Model) -> dict:
+    def _evaluate(self, m: Model, full: bool | None = None) -> dict:
+        """Stage EV's figures for ``m`` (``full``: every voxel rather than the sample; default:
+        as the run was asked)."""
         from ..evaluate import evaluate_field
 
-        return evaluate_field(m.field(self.dev), self.f)
-
-    def _evaluate(self, m: Model) -> dict:
-        from ..evaluate import evaluate_field
-
-        return evaluate_field(m.field(self.dev), self.f, full=self.full_eval)
+        return evaluate_field(m.field(self.dev), self.f, full=self.full_eval if full is None else full)
 
     # -- S1a ---------------------------------------------------------------------------------
     def analyse(self, cache: dict | None, on_stats) -> None:

@@ -171,7 +171,7 @@ class Sampler:
         """D of the importance weights (see :func:`warpgauss.kernels.sampling.sample_weight`): the
         larger of the uniform stratum's domain and the two strata together (syncs)."""
         n_occ = self.n_high + self.n_mid
-        supported = int(self.support[-1:].numpy()[0]) if self.uniform_support else 0
+        supported = self.supported_voxels()
         if self.uniform_occupied:
             n_uni = n_occ
         elif supported > 0:
@@ -188,7 +188,7 @@ class Sampler:
 
         if self.uniform_occupied:
             return None
-        if not self.uniform_support or int(self.support[-1:].numpy()[0]) == 0:
+        if self.supported_voxels() == 0:
             return 0.0  # the uniform stratum reaches every voxel
         wp, dv = self._wp, self.dv
         counts = self.support_marks[2]
@@ -203,4 +203,9 @@ class Sampler:
         occupied voxels); reads back from the device."""
         if not self.uniform_support:
             return None
-        return float(self.support[-1:].numpy()[0]) / float(self.dv.values.size)
+        return self.supported_voxels() / float(self.dv.values.size)
+
+    def supported_voxels(self) -> int:
+        """Voxels of the support bricks the uniform stratum is drawn from now (0 without a
+        support; reads back from the device)."""
+        return int(self.support[-1:].numpy()[0]) if self.uniform_support else 0
