@@ -100,6 +100,41 @@ def test_the_samples_estimate_the_decoded_models_full_grid_mse(cpu):
     assert losses["grid_psnr_db"] == pytest.approx(10 * np.log10(1 / estimate), abs=1e-6)
 
 
+def test_the_end_estimate_averages_draws_without_changing_the_model(cpu):
+    """Refiner.end_estimate scores the current model on several draws (forward passes only): its
+    grid estimate is close to the decoded model's full-grid PSNR (float64 reference from the
+    decode), and the parameters, the iteration and the steps after it are what they would have
+    been without it (bit for bit); the driver reports it."""
+    import warpgauss
+    from warpgauss.allocate import AllocationConfig, allocate
+    from warpgauss.field import GaussianField
+    from warpgauss.profiling import StageRecorder
+    from warpgauss.synthetic import generate
+
+    f = normalise(generate("bubbles", 32, seed=3).astype(np.float32))
+    dv = DeviceVolume(f, cpu)
+    params, _ = allocate(dv, 200, 0, AllocationConfig(), StageRecorder())
+    r, twin = (Refiner(dv, params, RefineConfig(iterations=40, samples=2048), 0, 0.3, 6.0) for _ in range(2))
+    assert r.end_estimate() == {}  # nothing trained yet
+    for _ in range(20):
+        r.step()
+        twin.step()
+    before = r.model_params().copy()
+    end = r.end_estimate(draws=16)
+    assert (end["draws"], end["samples"]) == (16, 16 * r.m)
+    assert r.iteration == 20 and np.array_equal(r.model_params(), before)
+    gf = GaussianField(before, f.values.shape[::-1], cpu)
+    model = gf.evaluate(np.argwhere(np.ones_like(f.values, bool))[:, ::-1].astype(np.float32)).astype(np.float64)
+    exact = 10 * np.log10(1 / float(np.mean((np.clip(model, 0.0, 1.0) - f.values.reshape(-1).astype(np.float64)) ** 2)))
+    assert end["grid_psnr_db"] == pytest.approx(exact, abs=0.5), (end, exact)
+    for _ in range(20):
+        r.step()
+        twin.step()
+    assert np.array_equal(r.model_params(), twin.model_params())  # the draws left no trace
+    rep = warpgauss.encode(f.values, budget=60, iterations=20, samples=512, device=cpu, evaluate=False).report
+    assert rep["refinement"]["end_estimate"]["draws"] > 1 and np.isfinite(rep["refinement"]["end_estimate"]["grid_psnr_db"])
+
+
 def test_presets_keep_the_papers_sampling():
     """--preset paper and --preset fast train as the paper does: jittered samples, trilinear
     targets, equal weights; the library default samples voxel centres with importance weights."""

@@ -21,6 +21,8 @@ Variants (``--variants``, comma list):
     keepbits   the refined model coded at the depths N was sized for (no refit; rows measured
                before a fix started from the default grids)
     refit-lo   pruning up to a 50 % excess, refit for 20 % of the iterations at 0.02 x the rate
+    s16k       the defaults at 16,384 samples an iteration (whatever N and the grid)
+    s32k       the defaults at 32,768 samples an iteration
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -66,6 +68,8 @@ VARIANTS: dict[str, tuple] = {
     "prune10": ({}, (0.10, 0.0)),
     "keepbits": ({}, (None, 0.0), "sizing"),
     "refit-lo": ({}, (None, 0.2), "accuracy", 0.02),
+    "s16k": ({"samples": 16384, "auto_samples": False}, (None, None)),
+    "s32k": ({"samples": 32768, "auto_samples": False}, (None, None)),
 }
 
 
@@ -130,8 +134,10 @@ def main(argv=None) -> dict:
                     "psnr_db": truth.psnr(dec, normalised=True),
                     "sample_psnr_db": hist[-1].get("sample_psnr_db"),
                     "grid_psnr_db_from_samples": hist[-1].get("grid_psnr_db"),  # one iteration's samples: noisy
+                    "end_estimate": rep["refinement"].get("end_estimate"),  # Refiner.end_estimate: several draws
                     "encode_s": secs,
                     "refinement_s": rep["refinement"].get("seconds"),
+                    "samples": rep["refinement"].get("samples"),
                     "coded_sizing": rep["budget"]["coded_sizing"],
                     "coded_fit": rep["budget"]["coded_fit"],
                     "bits_note": rep["budget"]["coded_bits_from_accuracy"],
@@ -147,6 +153,7 @@ def main(argv=None) -> dict:
                 print(
                     f"{label:44s} R {r:6g} {v:9s} N {model.n:8d} CR {row['ratio']:7.1f} psnr {row['psnr_db']:6.2f} "
                     f"sample {row['sample_psnr_db'] or float('nan'):6.2f} "
+                    f"end grid est {(row['end_estimate'] or {}).get('grid_psnr_db', float('nan')):6.2f} "
                     + (f"float {row['float_same_n_psnr_db']:6.2f} " if args.float else "")
                     + f"{secs:6.1f} s pruned {(row['coded_fit'] or {}).get('pruned')} steps {(row['coded_fit'] or {}).get('steps')}",
                     flush=True,

@@ -33,9 +33,14 @@ REFIT_SHARE = 0.0
 REPLAN_AT = 0.25
 REPLAN_REST_GAIN_DB = 2.0
 # the sample PSNR grows faster than linearly in log(iterations) as the learning rate decays: from
-# K = T / 4 to T it gained 1.4-7.5x its gain from K / 2 to K (median 2.8, three MRIs at CR 10-1000,
-# H100), on vortex and interface 256^3 about 2x (rd_*_replan_h100.json): 1.25 x log2(T / K)
-REPLAN_EXTRAPOLATE = 1.25
+# K = T / 4 to T it gained 0.54-3.19x its gain from K / 2 to K times log2(T / K) (three MRIs at CR
+# 10-1000, vortex and interface at 512^3 CR 100-1000; H200, sweep_*_choice_h200.json), the most
+# where N is large (interface 512^3: 2.1-2.6). The costs are lopsided: a plan below the end's bit
+# depths codes over budget and drops a bit from every primitive at export (0.8-1.6 dB on the
+# interface), one above it gives up 6-8 % of N for a bit it did not need (about 0.2 dB). At 1.25
+# three of 21 rows planned a bit short, at 2.5 none and four a bit over
+# (benchmarks/accuracy/replan_extrapolation.py, results/accuracy/replan_extrapolation_h200.json)
+REPLAN_EXTRAPOLATE = 2.5
 REPLAN_MAX_GAIN_DB = 30.0
 REPLAN_GROWTH = 1.05
 REPLAN_TOLERANCE = 0.01

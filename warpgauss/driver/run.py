@@ -303,6 +303,7 @@ class EncodeRun(replan.Replan):
             seconds = time.perf_counter() - t0
             if refiner.interrupted:
                 ckpt.save(refiner)
+            end = {} if refiner.interrupted else refiner.end_estimate()
             params = refiner.model_params()
             refined = Model(params[: refiner.n_live], self.header)  # without those the re-plan took out
             if replan.REFINED_BITS == "sizing" and self.sizing is not None:  # the depths N was sized for
@@ -343,6 +344,7 @@ class EncodeRun(replan.Replan):
                 "strata_samples": dict(zip(("high", "mid", "uniform"), refiner.strata)),
                 "uniform_support_share": refiner.support_share(),
                 "loss_history": history,
+                "end_estimate": end,
             }
         )
         if refiner.stop_reason is not None:

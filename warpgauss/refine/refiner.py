@@ -66,6 +66,8 @@ def load_kernels(device: str) -> None:
 
 
 SILENT_LOGIT = 1.0e4  # sigmoid(-1e4) is exactly 0 in float32: a silenced (frozen) primitive's weight
+# draws of samples the end-of-training estimates (Refiner.end_estimate) average over
+END_DRAWS = 8
 
 
 class Refiner:
@@ -556,8 +558,34 @@ class Refiner:
             return None
         e = np.clip(v, 0.0, 1.0) - t
         valid = int(getattr(self.dv.field, "n_valid", 0)) or int(self.dv.values.size)
-        reached = float(np.sum(om * e * e)) * self.sampler.reach() / max(self.m, 1)
+        reached = float(np.sum(om * e * e)) * self.sampler.reach() / max(len(v), 1)
         return (reached + unreached) / valid
+
+    def end_estimate(self, draws: int = END_DRAWS) -> dict:
+        """The current model's ``sample_psnr_db`` and ``grid_psnr_db`` (see :meth:`losses`) over
+        ``draws`` sample draws, forward passes only, on the streams of the last ``draws``
+        iterations: one iteration's draw misses most of the heavy-tailed squared errors (its
+        grid estimate read 0.8 dB high at 3,000-20,000 samples on the CPU). Parameters and the
+        iteration count are left as they were; empty before the first iteration. Syncs."""
+        if self.iteration == 0 or draws <= 0:
+            return {}
+        done = self.iteration
+        vs, ts, oms = [], [], []
+        for j in range(draws):
+            self.schedule.set_iteration(max(0, done - draws + j))
+            self.sample()
+            self.forward()
+            vs.append(self.value.numpy()[: self.m].astype(np.float64))
+            ts.append(self.target.numpy().astype(np.float64))
+            oms.append(self.weight.numpy().astype(np.float64))
+        self.schedule.set_iteration(done)
+        v, t, om = np.concatenate(vs), np.concatenate(ts), np.concatenate(oms)
+        mse = float(np.sum(om * (v - t) ** 2) / max(om.sum(), 1.0))
+        out = {"draws": draws, "samples": len(v), "sample_psnr_db": float(10 * np.log10(1 / max(mse, 1e-20)))}
+        grid = self.grid_mse_estimate(v, t, om)
+        if grid is not None:
+            out["grid_psnr_db"] = float(10 * np.log10(1 / max(grid, 1e-20)))
+        return out
 
     def skipped_steps(self) -> int:
         """Primitive updates skipped because their gradient or result was not finite, so far."""
