@@ -315,3 +315,34 @@ def test_the_measured_alternatives_still_run(tmp_path, cpu, monkeypatch):
         bits[step[:-2]] += 1 if step.endswith("+1") else -1
     assert bits == bud["coded_fit"]["bits"]
     assert (tmp_path / "sizing.wgs").stat().st_size <= m.report["budget"]["requested_bytes"]
+
+
+def test_a_scored_fit_spends_bits_where_they_are_worth_most():
+    """With a score, fit_bytes measures each attribute's bit (one more, one fewer, projected and
+    scored) and drops the bits that lose least per byte first, adds those that gain most first;
+    a score that sees no difference keeps the fixed orders' fit exactly."""
+    from test_wgs import realistic_params
+
+    from warpgauss import coded
+
+    p = realistic_params(np.random.default_rng(4), 2000)
+    bits = dict(coded.CODED_BITS)
+    full = len(coded.encode_coded(p, bits)[0])
+    care = {"mu": 100.0, "log_s": 1.0, "q": 1.0, "a": 1.0, "w": 1.0}
+
+    def mu_matters(stored, b):  # a PSNR-like score: noise power falls 4x a bit, mu's 100x the rest's
+        return -10 * np.log10(sum(care[k] * 4.0 ** -b[k] for k in b))
+
+    def blind(stored, b):
+        return 0.0
+
+    roomy = coded.fit_bytes(p, int(full * 1.2), bits, score=mu_matters)
+    assert roomy[2]["steps"][0] == "mu+1" and coded.fit_bytes(p, int(full * 1.2), bits)[2]["steps"][0] == "q+1"
+    worth = roomy[2]["bit_worth"]
+    assert max(worth, key=lambda k: worth[k]["gain"]) == "mu" and min(worth, key=lambda k: worth[k]["loss"]) != "mu"
+    tight = coded.fit_bytes(p, int(full * 0.8), bits, score=mu_matters)
+    assert tight[2]["bytes"] <= int(full * 0.8) and "mu-1" not in tight[2]["choice"][0]["steps"]
+    for budget in (int(full * 1.2), int(full * 0.8)):
+        fixed, same = coded.fit_at_share(p, budget, bits), coded.fit_bytes(p, budget, bits, score=blind)
+        first = same[2]["choice"][0]["steps"] if budget < full else same[2]["steps"]  # tight: the choice's first fit
+        assert first == fixed[2]["steps"] and any(s.endswith("-1" if budget < full else "+1") for s in first)

@@ -29,6 +29,7 @@ decompresses into at most the declared size, and rejects codes outside their ran
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -380,6 +381,64 @@ def _bit_bytes(n: int, k: str) -> float:
     return n * _BIT_COLUMNS[k] / 8.0
 
 
+# which attribute's bits are worth most depends on the volume: on the head MRIs a bit of mu costs
+# least (the orders above), on the interface field (96^3, benchmarks/results/accuracy/
+# prune_order_fields_cpu.json) it costs 4x more PSNR per byte than any other. Where the caller can
+# score a model (fit_bytes' score), each attribute's bit is measured on the model itself: one bit
+# more and one fewer on it alone, projected (no coding) and scored; a bit's worth is taken to
+# fall 4x with each bit beyond (its noise power quarters)
+BIT_WORTH_DECAY = 4.0
+MEASURE_BIT_WORTH = True  # off: the fixed orders even with a score (benchmarks/accuracy/bit_order.py)
+BitWorth = dict[str, tuple[float | None, float | None]]  # per attribute: (gain, loss) per byte of a bit
+
+
+def bit_worth(params: np.ndarray, bits: dict[str, int], score) -> BitWorth:
+    """Per attribute, the PSNR one bit more gains and one bit fewer loses, per predicted byte
+    (:func:`_bit_bytes`), measured by ``score(projected, bits)`` on the model projected onto those
+    grids (:func:`project_coded`: the stored values in the model's own order; None where the depth
+    is at its bound): ``{k: (gain, loss)}``."""
+    p = np.asarray(params, np.float32)
+    b = check_bits(dict(bits))
+    base = float(score(project_coded(p, b), b))
+    out: BitWorth = {}
+    for k in SHRINK_ORDER:
+        per = max(_bit_bytes(len(p), k), 1e-9)
+        more = {**b, k: b[k] + 1}
+        fewer = {**b, k: b[k] - 1}
+        gain = (float(score(project_coded(p, more), more)) - base) / per if b[k] < _MAX_BITS[k] else None
+        loss = (base - float(score(project_coded(p, fewer), fewer))) / per if b[k] > _MIN_BITS[k] else None
+        out[k] = (gain, loss)
+    return out
+
+
+def _next_drop(b: dict[str, int], start: dict[str, int], worth: BitWorth | None, turn: int) -> tuple[str | None, int]:
+    """The attribute whose bit to drop next: the least loss per byte (falling 4x a bit dropped)
+    with ``worth``, else :data:`SHRINK_ORDER` in turn; and the next turn."""
+    if worth is None:
+        for _ in range(len(SHRINK_ORDER)):
+            k = SHRINK_ORDER[turn % len(SHRINK_ORDER)]
+            turn += 1
+            if b[k] > _MIN_BITS[k]:
+                return k, turn
+        return None, turn
+    loss = {k: v for k, (_, v) in worth.items() if v is not None and b[k] > _MIN_BITS[k]}
+    if not loss:
+        return None, turn
+    order = len(SHRINK_ORDER)  # ties go in turn, as without worth
+    k = min(loss, key=lambda k: (loss[k] * BIT_WORTH_DECAY ** (start[k] - b[k]), (SHRINK_ORDER.index(k) - turn) % order))
+    return k, SHRINK_ORDER.index(k) + 1
+
+
+def _grow_order(b: dict[str, int], start: dict[str, int], worth: BitWorth | None) -> list[str]:
+    """Attributes to try a bit more on, best first: :data:`GROW_ORDER` without ``worth``, else by
+    gain per byte (falling 4x with each bit above ``start``; the budget is filled either way)."""
+    if worth is None:
+        return list(GROW_ORDER)
+    gain = {k: g for k, (g, _) in worth.items() if g is not None}
+    grown = {k: max(0, b[k] - start[k]) for k in gain}  # ties: the fewest bits grown first, then GROW_ORDER
+    return sorted(gain, key=lambda k: (-gain[k] / BIT_WORTH_DECAY ** grown[k], grown[k], GROW_ORDER.index(k)))
+
+
 # where a caller can measure a fitted model's accuracy (fit_bytes' score), the rate control fits at
 # each of these prune shares (an excess up to the share pruned, beyond it bits dropped first; 1.0:
 # pruning alone up to twice the budget) and keeps the one that scores best. Measured with the
@@ -407,12 +466,17 @@ def fit_bytes(
     def drops_bits(fit: tuple) -> bool:
         return any(step.endswith("-1") for step in fit[2]["steps"])
 
-    first = fit_at_share(params, budget, bits, size_of, prune_share)
+    t0 = time.perf_counter()
+    worth = None if score is None or not MEASURE_BIT_WORTH else bit_worth(params, dict(CODED_BITS if bits is None else bits), score)
+    facts = {}
+    if worth is not None:
+        facts = {"bit_worth": {k: {"gain": g, "loss": v} for k, (g, v) in worth.items()}, "bit_worth_seconds": time.perf_counter() - t0}
+    first = fit_at_share(params, budget, bits, size_of, prune_share, worth=worth)
     if score is None or prune_share is not None or not drops_bits(first):
-        return first
+        return first[0], first[1], {**first[2], **facts}
     tried = [first]
     for share in CHOICE_SHARES[1:]:  # the alternatives with a short prune search (a little less full)
-        tried.append(fit_at_share(params, budget, bits, size_of, share, search=CHOICE_SEARCH_CODINGS))
+        tried.append(fit_at_share(params, budget, bits, size_of, share, search=CHOICE_SEARCH_CODINGS, worth=worth))
         if not drops_bits(tried[-1]):
             break  # pruning alone fitted: a larger share fits the same way
     scores = [float(score(stored, b)) for stored, b, _ in tried]
@@ -423,10 +487,10 @@ def fit_bytes(
         for t, sc in zip(tried, scores)
     ]
     if best > 0:  # the winner fitted again with the whole search, to fill the budget
-        tried[best] = fit_at_share(params, budget, bits, size_of, tried[best][2]["prune_share"])
+        tried[best] = fit_at_share(params, budget, bits, size_of, tried[best][2]["prune_share"], worth=worth)
         codings += tried[best][2]["codings"]
     stored, b, info = tried[best]
-    return stored, b, {**info, "codings": codings, "choice": choice, "chosen": best}
+    return stored, b, {**info, **facts, "codings": codings, "choice": choice, "chosen": best}
 
 
 def fit_at_share(
@@ -436,6 +500,7 @@ def fit_at_share(
     size_of=None,
     prune_share: float | None = None,
     search: int = SEARCH_CODINGS,
+    worth: BitWorth | None = None,
 ) -> tuple[np.ndarray, dict, dict]:
     """The coded model that fits ``budget`` bytes, as closely as bit depths and primitives allow.
 
@@ -460,6 +525,8 @@ def fit_at_share(
             passes its whole file, header included).
         prune_share: See above.
         search: Codings the prune search may spend after the first fit.
+        worth: :func:`bit_worth` of the model at ``bits``: bits are then dropped where they lose
+            least and added where they gain most per byte, rather than in the fixed orders.
 
     Returns:
         ``(stored, bits, info)``: the parameters as the file will hold them (projected, Morton
@@ -482,20 +549,17 @@ def fit_at_share(
     cur = first = size(p, b)
     turn = 0
     pred: float  # the predicted size: less a bit's (fractional) bytes at each drop
+    start = dict(b)
     while cur > budget * (1.0 + share):
         pred, dropped = cur, 0
         while pred > budget * (1.0 + share):
-            for _ in range(len(SHRINK_ORDER)):
-                k = SHRINK_ORDER[turn % len(SHRINK_ORDER)]
-                turn += 1
-                if b[k] > _MIN_BITS[k]:
-                    b[k] -= 1
-                    steps.append(f"{k}-1")
-                    pred -= _bit_bytes(len(p), k)
-                    dropped += 1
-                    break
-            else:
+            k, turn = _next_drop(b, start, worth, turn)
+            if k is None:
                 break  # every depth at its least: pruning does the rest
+            b[k] -= 1
+            steps.append(f"{k}-1")
+            pred -= _bit_bytes(len(p), k)
+            dropped += 1
         if not dropped:
             break
         cur = size(p, b)
@@ -536,13 +600,15 @@ def fit_at_share(
     grown = True
     while grown:
         grown = False
-        for k in GROW_ORDER:
+        for k in _grow_order(b, start, worth):
             if b[k] < _MAX_BITS[k] and cur + _bit_bytes(len(p), k) * GROW_MARGIN <= budget:
                 trial = {**b, k: b[k] + 1}
                 t = size(p, trial)
                 if t <= budget:
                     b, cur, grown = trial, t, True
                     steps.append(f"{k}+1")
+                    if worth is not None:
+                        break  # the order changes with each bit added
     info = {"steps": steps, "pruned": pruned, "bytes": cur, "first_bytes": first, "codings": codings, "prune_share": share, "kept": keep}
     return as_stored(p, b), b, info
 

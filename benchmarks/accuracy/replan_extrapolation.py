@@ -7,8 +7,9 @@ sample PSNR at K / 2), and takes primitives out where that would not fit the bud
 this prints the factor its own end needed, and for each candidate factor the bits it would have
 planned (``coded.bits_for_psnr``) against the bits the end's sample PSNR asks for: a row planned
 below its end (``under``) codes over budget at the end and loses bits there (measured 0.8-1.6 dB
-on the interface at 512^3), a row planned above it (``over``) gave up about 6-8 % of its
-primitives for a bit it did not need.
+on the interface at 512^3), a row planned above it (``over``) gives up primitives for a bit it
+did not need. Counting bit depths is not the whole cost: a factor of 2.5 (no row under) lost
+0.18-0.40 dB on every row it changed when encoded again (``sweep_*_replan25_h200.json``).
 
     python benchmarks/accuracy/replan_extrapolation.py \\
         benchmarks/results/accuracy/sweep_mri_choice_h200.json \\

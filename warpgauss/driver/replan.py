@@ -35,12 +35,12 @@ REPLAN_REST_GAIN_DB = 2.0
 # the sample PSNR grows faster than linearly in log(iterations) as the learning rate decays: from
 # K = T / 4 to T it gained 0.54-3.19x its gain from K / 2 to K times log2(T / K) (three MRIs at CR
 # 10-1000, vortex and interface at 512^3 CR 100-1000; H200, sweep_*_choice_h200.json), the most
-# where N is large (interface 512^3: 2.1-2.6). The costs are lopsided: a plan below the end's bit
-# depths codes over budget and drops a bit from every primitive at export (0.8-1.6 dB on the
-# interface), one above it gives up 6-8 % of N for a bit it did not need (about 0.2 dB). At 1.25
-# three of 21 rows planned a bit short, at 2.5 none and four a bit over
-# (benchmarks/accuracy/replan_extrapolation.py, results/accuracy/replan_extrapolation_h200.json)
-REPLAN_EXTRAPOLATE = 2.5
+# where N is large (interface 512^3: 2.1-2.6). At 1.25 three of those 21 rows planned a bit depth
+# short of the end's (benchmarks/accuracy/replan_extrapolation.py); at 2.5 none, but encoded again
+# (sweep_*_replan25_h200.json) the six rows it changed all lost 0.18-0.40 dB (fewer primitives),
+# the interface's too: its coded - float32 gap at the same N (-1.17 / -1.94 dB at CR 100 / 300)
+# comes from the quantisation at the planned depths, not from bits dropped at export
+REPLAN_EXTRAPOLATE = 1.25
 REPLAN_MAX_GAIN_DB = 30.0
 REPLAN_GROWTH = 1.05
 REPLAN_TOLERANCE = 0.01
