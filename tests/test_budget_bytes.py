@@ -90,11 +90,15 @@ def test_fit_bytes_shrinks_prunes_and_grows():
     np.testing.assert_array_equal(big, coded.project_coded(p, bits)[coded.encode_coded(p, bits)[2]])
 
 
-def test_a_model_fitted_with_a_score_keeps_the_best_scoring_fit(cpu):
-    """Model.fit_bytes(score=...) (what the encode passes: the PSNR on sampled voxels): each
-    attribute's bit is first scored one more and one fewer (the bit worth that orders the fit);
-    where the first fit drops bits, every fit tried is scored on the model it stores and the best
-    is kept."""
+@pytest.mark.parametrize("measure_bits", [False, True])
+def test_a_model_fitted_with_a_score_keeps_the_best_scoring_fit(cpu, monkeypatch, measure_bits):
+    """Model.fit_bytes(score=...) (what the encode passes: the PSNR on sampled voxels): where the
+    first fit drops bits, every fit tried is scored on the model it stores and the best is kept;
+    with coded.MEASURE_BIT_WORTH (off by default) each attribute's bit is first scored one more
+    and one fewer (the bit worth that orders the fit)."""
+    from warpgauss import coded
+
+    monkeypatch.setattr(coded, "MEASURE_BIT_WORTH", measure_bits)
     from warpgauss.analysis import normalise
     from warpgauss.evaluate import evaluate_field
 
@@ -110,9 +114,9 @@ def test_a_model_fitted_with_a_score_keeps_the_best_scoring_fit(cpu):
 
     budget = int(m.fit_bytes(10**9)[1]["first_bytes"] * 0.8)
     fitted, info = m.fit_bytes(budget, score=psnr)
-    worth = info["bit_worth"]
-    probes = 1 + sum((w["gain"] is not None) + (w["loss"] is not None) for w in worth.values())
-    assert probes == 6 and all(w["gain"] is None for w in worth.values())  # every depth at its most: none to add
+    worth = info.get("bit_worth", {})
+    probes = (1 + sum((w["gain"] is not None) + (w["loss"] is not None) for w in worth.values())) if measure_bits else 0
+    assert (probes == 6 and all(w["gain"] is None for w in worth.values())) if measure_bits else not worth  # depths at their most
     assert len(seen) - probes == len(info["choice"]) >= 2 and any(s.endswith("-1") for s in info["choice"][0]["steps"])
     scores = [c["psnr_db"] for c in info["choice"]]
     assert info["chosen"] == int(np.argmax(scores)) and info["bytes"] <= budget

@@ -317,13 +317,17 @@ def test_the_measured_alternatives_still_run(tmp_path, cpu, monkeypatch):
     assert (tmp_path / "sizing.wgs").stat().st_size <= m.report["budget"]["requested_bytes"]
 
 
-def test_a_scored_fit_spends_bits_where_they_are_worth_most():
-    """With a score, fit_bytes measures each attribute's bit (one more, one fewer, projected and
-    scored) and drops the bits that lose least per byte first, adds those that gain most first;
-    a score that sees no difference keeps the fixed orders' fit exactly."""
+def test_a_scored_fit_spends_bits_where_they_are_worth_most(monkeypatch):
+    """With coded.MEASURE_BIT_WORTH (off by default: measured, it does not pay) and a score,
+    fit_bytes measures each attribute's bit (one more, one fewer, projected and scored) and drops
+    the bits that lose least per byte first, adds those that gain most first; a score that sees
+    no difference keeps the fixed orders' fit exactly."""
     from test_wgs import realistic_params
 
     from warpgauss import coded
+
+    assert coded.MEASURE_BIT_WORTH is False
+    monkeypatch.setattr(coded, "MEASURE_BIT_WORTH", True)
 
     p = realistic_params(np.random.default_rng(4), 2000)
     bits = dict(coded.CODED_BITS)

@@ -383,12 +383,18 @@ def _bit_bytes(n: int, k: str) -> float:
 
 # which attribute's bits are worth most depends on the volume: on the head MRIs a bit of mu costs
 # least (the orders above), on the interface field (96^3, benchmarks/results/accuracy/
-# prune_order_fields_cpu.json) it costs 4x more PSNR per byte than any other. Where the caller can
-# score a model (fit_bytes' score), each attribute's bit is measured on the model itself: one bit
-# more and one fewer on it alone, projected (no coding) and scored; a bit's worth is taken to
-# fall 4x with each bit beyond (its noise power quarters)
+# prune_order_fields_cpu.json) it costs 4x more PSNR per byte than any other. With
+# MEASURE_BIT_WORTH and a score (fit_bytes'), each attribute's bit is measured on the model itself:
+# one bit more and one fewer on it alone, projected (no coding) and scored; a bit's worth is taken
+# to fall 4x with each bit beyond (its noise power quarters). Off: measured, it does not pay. On
+# float32 CPU models at equal bytes (benchmarks/results/accuracy/bit_order_*_cpu.json) it gained
+# 0.00-0.10 dB over the scored choice alone; in the encode on an H200
+# (sweep_interface512_worth_h200.json, sweep_mri300_worth_h200.json) the interface at 512^3 gained
+# 0.18 dB at CR 100 and lost 0.45 at CR 300 (one bit's worth, measured alone, did not predict the
+# drops together), the MRIs at CR 300 were unchanged, and the eleven scores cost 0.4-0.6 s on the
+# MRIs and 2.8 / 8.5 s at 180,000 / 575,000 Gaussians
 BIT_WORTH_DECAY = 4.0
-MEASURE_BIT_WORTH = True  # off: the fixed orders even with a score (benchmarks/accuracy/bit_order.py)
+MEASURE_BIT_WORTH = False
 BitWorth = dict[str, tuple[float | None, float | None]]  # per attribute: (gain, loss) per byte of a bit
 
 

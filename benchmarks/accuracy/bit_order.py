@@ -24,53 +24,27 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
+from float_models import add_arguments, float_models  # beside this script
 
-import warpgauss
 from warpgauss import coded
 from warpgauss.bench import result_header
-from warpgauss.model import Model
-from warpgauss.readers import read_volume
-from warpgauss.synthetic import generate
-
-DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--fields", default="vortex,interface")
-    ap.add_argument("--size", type=int, default=96)
-    ap.add_argument("--budget", type=int, default=20000, help="N of the example fields' models")
-    ap.add_argument("--real", default="", help="FILE:N comma list, files in --data-dir")
-    ap.add_argument("--data-dir", type=Path, default=DATA_DIR)
-    ap.add_argument("--iterations", type=int, default=400)
+    add_arguments(ap)
     ap.add_argument("--scales", default="0.8,1.0,1.2", help="budgets as shares of the size at the accuracy's depths")
-    ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     result = {
         **result_header("fixed against measured bit orders at the same bytes (float32 models)", __file__, argv, args.device),
         "rows": [],
     }
-    jobs = [(f"{name} {args.size}^3", lambda name=name: generate(name, args.size), args.budget) for name in args.fields.split(",") if name]
-    for item in (x for x in args.real.split(",") if x):
-        fname, n = item.rsplit(":", 1)
-        jobs.append((fname, lambda fname=fname: np.asarray(read_volume(args.data_dir / fname).data), int(n)))
-    for label, load, n in jobs:
-        vol = load()
-        t0 = time.perf_counter()
-        m = warpgauss.encode(vol, budget=n, format="full", iterations=args.iterations, device=args.device, self_test=False)
-        ref = vol.astype(np.float64)
-        span = float(ref.max() - ref.min())
-
-        def psnr(params: np.ndarray, m: Model = m, ref: np.ndarray = ref, span: float = span) -> float:
-            d = Model(params, m.header).decode(device=args.device).astype(np.float64)
-            return float(10 * np.log10(span**2 / np.mean((d - ref) ** 2)))
-
+    for label, m, psnr, seconds in float_models(args):
         base = psnr(m.params)
         bits, _ = coded.bits_for_psnr(base)
         at = len(coded.encode_coded(m.params, bits)[0])
-        row: dict = {"volume": label, "n": m.n, "iterations": args.iterations, "encode_s": time.perf_counter() - t0, "psnr_db": base}
+        row: dict = {"volume": label, "n": m.n, "iterations": args.iterations, "encode_s": seconds, "psnr_db": base}
         row["bits"], row["bytes_at_bits"], row["fits"] = dict(bits), at, []
         print(f"{label}: float {base:.2f} dB, N {m.n}, coded at {bits}: {at} B")
         for scale in (float(s) for s in args.scales.split(",")):
@@ -78,13 +52,15 @@ def main(argv=None) -> dict:
             t1 = time.perf_counter()
             fixed, fb, finfo = coded.fit_bytes(m.params, budget, bits)
             t2 = time.perf_counter()
-            measured, mb, minfo = coded.fit_bytes(m.params, budget, bits, score=lambda stored, b: psnr(stored))
-            t3 = time.perf_counter()
-            coded.MEASURE_BIT_WORTH = False  # the scored choice of prune shares alone, fixed orders
+            coded.MEASURE_BIT_WORTH = True  # the orders measured on the model (off by default)
             try:
-                chosen, cb, cinfo = coded.fit_bytes(m.params, budget, bits, score=lambda stored, b: psnr(stored))
+                measured, mb, minfo = coded.fit_bytes(m.params, budget, bits, score=lambda stored, b, psnr=psnr: psnr(stored))
             finally:
-                coded.MEASURE_BIT_WORTH = True
+                coded.MEASURE_BIT_WORTH = False
+            t3 = time.perf_counter()
+            chosen, cb, cinfo = coded.fit_bytes(
+                m.params, budget, bits, score=lambda stored, b, psnr=psnr: psnr(stored)
+            )  # the scored choice alone
             fit = {
                 "scale": scale,
                 "budget": budget,

@@ -26,19 +26,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from pathlib import Path
 
 import numpy as np
+from float_models import add_arguments, float_models  # beside this script
 
-import warpgauss
 from warpgauss import coded
 from warpgauss.bench import result_header
 from warpgauss.model import Model
-from warpgauss.readers import read_volume
-from warpgauss.synthetic import generate
 
-DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data"
 SHARES = (0.03, 0.10, 0.30)
 
 
@@ -61,33 +57,13 @@ def rankings(m: Model, device: str) -> dict[str, np.ndarray]:
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--fields", default="vortex,interface")
-    ap.add_argument("--size", type=int, default=96)
-    ap.add_argument("--budget", type=int, default=20000, help="N of the example fields' models")
-    ap.add_argument("--real", default="", help="FILE:N comma list, files in --data-dir")
-    ap.add_argument("--data-dir", type=Path, default=DATA_DIR)
-    ap.add_argument("--iterations", type=int, default=400)
-    ap.add_argument("--device", default="cpu")
+    add_arguments(ap)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     result = {**result_header("pruning order and bit depths against bytes (float32 models)", __file__, argv, args.device), "rows": []}
-    jobs = [(f"{name} {args.size}^3", lambda name=name: generate(name, args.size), args.budget) for name in args.fields.split(",") if name]
-    for item in (x for x in args.real.split(",") if x):
-        fname, n = item.rsplit(":", 1)
-        jobs.append((fname, lambda fname=fname: np.asarray(read_volume(args.data_dir / fname).data), int(n)))
-    for label, load, n in jobs:
-        vol = load()
-        t0 = time.perf_counter()
-        m = warpgauss.encode(vol, budget=n, format="full", iterations=args.iterations, device=args.device, self_test=False)
-        ref = vol.astype(np.float64)
-        span = float(ref.max() - ref.min())
-
-        def psnr(params: np.ndarray, m: Model = m, ref: np.ndarray = ref, span: float = span) -> float:
-            d = Model(params, m.header).decode(device=args.device).astype(np.float64)
-            return float(10 * np.log10(span**2 / np.mean((d - ref) ** 2)))
-
+    for label, m, psnr, seconds in float_models(args):
         base = psnr(m.params)
-        row: dict = {"volume": label, "n": m.n, "iterations": args.iterations, "encode_s": time.perf_counter() - t0, "psnr_db": base}
+        row: dict = {"volume": label, "n": m.n, "iterations": args.iterations, "encode_s": seconds, "psnr_db": base}
         ranks = rankings(m, args.device)
         row["pruned_psnr_db"] = {
             name: {f"{s:.0%}": psnr(m.params[np.sort(np.argsort(r, kind="stable")[int(s * m.n) :])]) for s in SHARES}

@@ -41,7 +41,7 @@ def default_budget(size: int) -> int:
     return int(round(400_000 * (size / 512) ** 3 if size <= 512 else 1_400_000 * (size / 1024) ** 3))
 
 
-def profile_brick(v: np.ndarray, n: int, bricks: str, dev: str, steps: int = 60) -> dict:
+def profile_brick(v: np.ndarray, n: int, bricks: str, dev: str, steps: int = 60, split: bool | None = None) -> dict:
     """One brick of the first wave, set up as the bricked encode does, its iteration timed phase by phase."""
     from warpgauss.allocate import AllocationConfig
     from warpgauss.refine import RefineConfig, load_kernels
@@ -52,7 +52,7 @@ def profile_brick(v: np.ndarray, n: int, bricks: str, dev: str, steps: int = 60)
     alloc = AllocationConfig(scale_cap=bp.brick_cap(alloc.resolved_cap(f.shape_xyz), f.shape_xyz, n))
     plan = bp.plan_bricks(f.shape_xyz, bp.parse_bricks(bricks), bp.default_halo(alloc.scale_cap))
     _, stats = bp.split_bricks(f, plan, n)
-    tasks = wb.brick_tasks(f, plan, stats, 0, alloc, RefineConfig(), dev, n)
+    tasks = wb.brick_tasks(f, plan, stats, 0, alloc, RefineConfig(split_cells=split), dev, n)
     task = wb.wave_tasks(tasks, {}, [0])[0]
     t0 = time.perf_counter()
     load_kernels(dev)
@@ -98,10 +98,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--budget", type=int, default=None, help="N (default 400,000 at 512^3, 1,400,000 at 1024^3, by voxels between)")
     ap.add_argument("--serial", action="store_true", help="also each bricking one brick at a time (the model must be the same)")
     ap.add_argument("--profile", default="", help="brickings whose first brick is profiled phase by phase")
+    ap.add_argument("--split-cells", choices=("auto", "on", "off"), default="auto", help="the forward pass (RefineConfig.split_cells)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     dev = resolve_device(args.device)
+    split = {"auto": None, "on": True, "off": False}[args.split_cells]
     warpgauss.encode(generate("vortex", 24), budget=60, device=dev, iterations=3, samples=64, format="full", self_test=False)
     warpgauss.encode(
         generate("vortex", 24), budget=60, device=dev, iterations=3, samples=64, format="full", bricks="2x1x1", self_test=False
@@ -116,6 +118,10 @@ def main(argv=None) -> dict:
             f = normalise(v)
             print(f"{name} {size}^3 generated in {time.perf_counter() - t:.1f} s", flush=True)
             kw = dict(budget=n, device=dev, format="full", self_test=False, evaluate=False)
+            if split is not None:
+                from warpgauss.refine import RefineConfig
+
+                kw["refine"] = RefineConfig(split_cells=split)
             t = time.perf_counter()
             mono = warpgauss.encode(v, **kw)
             mono_s = time.perf_counter() - t
@@ -126,7 +132,7 @@ def main(argv=None) -> dict:
             del mono
             for bricks in filter(None, args.bricks.split(",")):
                 if bricks in args.profile.split(","):
-                    result["profiles"].append({"field": name, "size": size, **profile_brick(v, n, bricks, dev)})
+                    result["profiles"].append({"field": name, "size": size, **profile_brick(v, n, bricks, dev, split=split)})
                 models = {}
                 for mode in ["side by side", "serial"] if args.serial else ["side by side"]:
                     wb.MAX_AT_ONCE = 1 if mode == "serial" else 8

@@ -64,6 +64,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--bricks", default="2x2x2,4x4x4,1x1x4")
     ap.add_argument("--samples", default="3000,10000,20000,40000,80000,131072")
     ap.add_argument("--steps", type=int, default=60)
+    ap.add_argument("--split-cells", choices=("auto", "on", "off"), default="auto", help="the forward pass (RefineConfig.split_cells)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -100,7 +101,8 @@ def main(argv=None) -> dict:
     a = AllocationConfig()
     dv = DeviceVolume(f, dev)
     params, _ = allocate(dv, n, 0, a, StageRecorder())
-    cfg = RefineConfig().for_budget(n, int(np.prod(f.shape_xyz)), dev)
+    base = RefineConfig(split_cells={"auto": None, "on": True, "off": False}[args.split_cells])
+    cfg = base.for_budget(n, int(np.prod(f.shape_xyz)), dev)
     mono = Refiner(dv, np.asarray(params, np.float32), cfg, 0, a.scale_min, a.resolved_cap(f.shape_xyz))
     samples_rows("monolithic", mono, list(f.shape_xyz))
     del mono, dv
@@ -108,7 +110,7 @@ def main(argv=None) -> dict:
         alloc = AllocationConfig(scale_cap=bp.brick_cap(a.resolved_cap(f.shape_xyz), f.shape_xyz, n))
         plan = bp.plan_bricks(f.shape_xyz, bp.parse_bricks(bricks), bp.default_halo(alloc.scale_cap))
         _, stats = bp.split_bricks(f, plan, n)
-        tasks = wb.brick_tasks(f, plan, stats, 0, alloc, RefineConfig(), dev, n)
+        tasks = wb.brick_tasks(f, plan, stats, 0, alloc, base, dev, n)
         wave = [t.index for t in tasks if wb.brick_colour(t.brick) == 0]
         batch = wb.wave_tasks(tasks, {}, wave)
         first = brick_refiner(batch[0], dev)
