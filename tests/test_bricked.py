@@ -175,11 +175,12 @@ def test_a_wave_sees_its_finished_neighbours_frozen_and_stand_ins_for_the_rest()
     f, bricks, tasks = _tasks()
     first = wave_tasks(tasks, {}, [0])[0]
     assert len(first.frozen) == 0 and len(first.pending) == 3  # the other three interiors reach its box
-    done = {0: np.array([[5.0, 5.0, 5.0, 1, 1, 1, 1, 0, 0, 0, 0.5, 0.5], [1.0, 1.0, 1.0, 0.5, 0.5, 0.5, 1, 0, 0, 0, 0.5, 0.5]], np.float32)}
-    second = wave_tasks(tasks, done, [1])[0]  # brick 1 (x 10..20, box from 8): only the first reaches it
+    ln2 = float(np.log(2.0))  # columns 3:6 hold log-sigmas: sigma 2 reaches 10 voxels at 5 sigma (5 log-sigmas: 3.5)
+    done = {0: np.array([[2.0, 5.0, 5.0, ln2, ln2, ln2, 1, 0, 0, 0, 0.5, 0.5], [1.0, 1.0, 1.0, 0, 0, 0, 1, 0, 0, 0, 0.5, 0.5]], np.float32)}
+    second = wave_tasks(tasks, done, [1])[0]  # brick 1 (x 10..20, box from 8): only the first reaches it (2 + 10 >= 7.5 > 1 + 5)
     assert len(second.frozen) == 1 and len(second.pending) == 2
     x0 = second.brick.box[2][0]
-    assert second.frozen[0, 0] == pytest.approx(5.0 - x0)  # box coordinates
+    assert second.frozen[0, 0] == pytest.approx(2.0 - x0)  # box coordinates
     r = run_bricks(tasks)
     assert [x["frozen"] for x in r][0] == 0 and all(x["frozen"] > 0 for x in r[1:])
     assert sum(len(x["params"]) for x in r) == 200

@@ -344,7 +344,9 @@ def _reaching(params: np.ndarray, brick: Brick) -> np.ndarray:
     coordinates."""
     if len(params) == 0:
         return params
-    ext = 5.0 * params[:, 3:6].max(axis=1)
+    # 5 sigma: columns 3:6 hold log-sigmas (clamped as the field kernels clamp them). Until
+    # 2026-11-27 this read 5 x log-sigma, which left out frozen neighbours that reach the box
+    ext = 5.0 * np.exp(np.clip(params[:, 3:6].max(axis=1).astype(np.float64), -9.0, 12.0))
     keep = np.ones(len(params), bool)
     for col, (lo, hi) in zip((2, 1, 0), brick.box):  # z, y, x box ranges against mu columns
         keep &= (params[:, col] + ext >= lo - 0.5) & (params[:, col] - ext <= hi - 0.5)

@@ -567,7 +567,7 @@ class Refiner:
         """The current model's ``sample_psnr_db`` and ``grid_psnr_db`` (see :meth:`losses`) over
         ``draws`` fresh sample draws (RNG streams of their own, :data:`END_SALT`; forward passes
         only). Fresh, because the model has stepped on the last iterations' samples: scored on
-        those it read 0.5-1.6 dB above the decoded model's grid PSNR (H200, three MRIs and two
+        those it read 0.1-1.6 dB above the decoded model's grid PSNR (H200, three MRIs and two
         512^3 fields), where one iteration's draw scored before its step was within 0.7 dB.
         Parameters and the iteration count are left as they were; empty before the first
         iteration. Syncs."""
