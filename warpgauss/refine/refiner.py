@@ -532,18 +532,25 @@ class Refiner:
             self.updater.finish_grads()  # per-primitive terms of the current parameters (pair buffers are zero)
         pl = self.point_loss.numpy().astype(np.float64).sum(0)
         rl = self.state.reg_loss.numpy().astype(np.float64).sum(0)
-        v = self.value.numpy()[: self.m].astype(np.float64)
-        t = self.target.numpy().astype(np.float64)
-        om = self.weight.numpy().astype(np.float64)
-        mse = float(np.sum(om * (v - t) ** 2) / max(om.sum(), 1.0))
         terms = {"value": pl[0], "density": pl[1], "smooth": pl[2], "anchor": rl[0], "aniso": rl[1], "cap": rl[2]}
         terms = {k: float(x) for k, x in terms.items()}
         terms["total"] = float(sum(terms.values()))
-        terms["sample_psnr_db"] = float(10 * np.log10(1 / max(mse, 1e-20)))
+        return terms | self._psnr_terms(*self._drawn())
+
+    def _drawn(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The current samples' model values, targets and weights (float64; syncs)."""
+        v = self.value.numpy()[: self.m].astype(np.float64)
+        return v, self.target.numpy().astype(np.float64), self.weight.numpy().astype(np.float64)
+
+    def _psnr_terms(self, v: np.ndarray, t: np.ndarray, om: np.ndarray) -> dict:
+        """``sample_psnr_db`` (the weighted MSE over the samples) and, where it can be estimated,
+        ``grid_psnr_db`` (:meth:`grid_mse_estimate`) of these model values, targets and weights."""
+        mse = float(np.sum(om * (v - t) ** 2) / max(om.sum(), 1.0))
+        out = {"sample_psnr_db": float(10 * np.log10(1 / max(mse, 1e-20)))}
         grid = self.grid_mse_estimate(v, t, om)
         if grid is not None:
-            terms["grid_psnr_db"] = float(10 * np.log10(1 / max(grid, 1e-20)))
-        return terms
+            out["grid_psnr_db"] = float(10 * np.log10(1 / max(grid, 1e-20)))
+        return out
 
     def grid_mse_estimate(self, v: np.ndarray, t: np.ndarray, om: np.ndarray) -> float | None:
         """The full-grid MSE of the decoded model (values clamped as the decode clamps them)
@@ -576,21 +583,14 @@ class Refiner:
         from ..allocate import rng_stream
 
         stream = self._wp.zeros(1, dtype=int, device=self.device)
-        vs, ts, oms = [], [], []
+        drawn = []
         for j in range(draws):
             stream.assign(np.array([rng_stream(self.seed, j, salt=END_SALT)], np.int32))
             self.sampler.draw(stream)
             self.forward()
-            vs.append(self.value.numpy()[: self.m].astype(np.float64))
-            ts.append(self.target.numpy().astype(np.float64))
-            oms.append(self.weight.numpy().astype(np.float64))
-        v, t, om = np.concatenate(vs), np.concatenate(ts), np.concatenate(oms)
-        mse = float(np.sum(om * (v - t) ** 2) / max(om.sum(), 1.0))
-        out = {"draws": draws, "samples": len(v), "sample_psnr_db": float(10 * np.log10(1 / max(mse, 1e-20)))}
-        grid = self.grid_mse_estimate(v, t, om)
-        if grid is not None:
-            out["grid_psnr_db"] = float(10 * np.log10(1 / max(grid, 1e-20)))
-        return out
+            drawn.append(self._drawn())
+        v, t, om = (np.concatenate(parts) for parts in zip(*drawn))
+        return {"draws": draws, "samples": len(v)} | self._psnr_terms(v, t, om)
 
     def skipped_steps(self) -> int:
         """Primitive updates skipped because their gradient or result was not finite, so far."""
