@@ -164,6 +164,9 @@ def test_the_encoder_keeps_to_a_time_budget(wp, tmp_path):
     short = enc.encode(steps[0], time_budget=0.6, output=tmp_path / "t0.wgs")  # per-call override
     assert (tmp_path / "t0.wgs").is_file() and short.report["encoder"]["time_budget"] == 0.6
     assert short.report["refinement"]["time_budget"] is not None  # refinement was planned to the deadline
+    # figures only the report would show are not paid for on a time budget: the statistics, the end estimate
+    assert short.report["refinement"]["end_estimate"] == {}
+    assert any(s["what"] == "end-of-training estimate" for s in short.report["skipped"])
     m = enc.encode(steps[1], time_budget=3.0)
     assert m.report["encoder"]["warm_start"] and m.report["refinement"]["time_budget"]["planned_iterations"] >= 1
     with pytest.raises(WarpgaussError, match="positive number of seconds"):

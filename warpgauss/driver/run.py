@@ -303,7 +303,11 @@ class EncodeRun(replan.Replan):
             seconds = time.perf_counter() - t0
             if refiner.interrupted:
                 ckpt.save(refiner)
-            end = {} if refiner.interrupted else refiner.end_estimate()
+            end = {}
+            if opts.deadline is not None:  # as for the statistics: an in situ call pays for no figure only the report shows
+                self.skip("end-of-training estimate", "an Encoder call on a time budget: only the report would show it")
+            elif not refiner.interrupted:
+                end = refiner.end_estimate()
             params = refiner.model_params()
             refined = Model(params[: refiner.n_live], self.header)  # without those the re-plan took out
             if replan.REFINED_BITS == "sizing" and self.sizing is not None:  # the depths N was sized for
