@@ -191,7 +191,7 @@ def test_strata_shares_and_reassignment():
     assert stratum_counts(1000, 0, 0) == (0, 0, 1000)
 
 
-def _toy(device, seed=0, iterations=120):
+def _toy(device, seed=0, iterations=120, split_cells=None):
     from warpgauss.allocate import AllocationConfig, allocate
     from warpgauss.profiling import StageRecorder
     from warpgauss.synthetic import generate
@@ -200,7 +200,7 @@ def _toy(device, seed=0, iterations=120):
     dv = DeviceVolume(f, device)
     cfg = AllocationConfig()
     params, _ = allocate(dv, 300, seed, cfg, StageRecorder())
-    rc = RefineConfig(iterations=iterations, samples=1024)
+    rc = RefineConfig(iterations=iterations, samples=1024, split_cells=split_cells)
     return Refiner(dv, params, rc, seed, cfg.scale_min, cfg.resolved_cap(f.shape_xyz)), f, params
 
 
@@ -605,3 +605,17 @@ def test_support_marks_count_the_boxes_reaching_each_brick(device):
     assert int(everything.numpy()[0]) == 0
     np.testing.assert_array_equal(marks.numpy(), expect)
     assert expect.min() >= 1 and expect.max() > 2  # the huge box everywhere, overlaps elsewhere
+
+
+def test_the_forward_pass_is_chosen_by_the_points_an_iteration(cpu):
+    """split_cells None: split on CUDA up to SPLIT_MAX_POINTS points (measured faster there),
+    point-major above and on the CPU; True or False is kept whatever the sample count."""
+    from warpgauss.refine.passes import SPLIT_MAX_POINTS, picks_split
+
+    assert picks_split(True, SPLIT_MAX_POINTS) and not picks_split(True, SPLIT_MAX_POINTS + 1)
+    assert not picks_split(False, 16)
+    auto, _, _ = _toy(cpu, iterations=1)
+    assert auto.cfg.split_cells is None and not auto.split
+    forced, _, _ = _toy(cpu, iterations=1, split_cells=True)
+    forced.set_samples(SPLIT_MAX_POINTS)  # 2x the points with partners: above the automatic limit
+    assert forced.split and forced.n_points > SPLIT_MAX_POINTS

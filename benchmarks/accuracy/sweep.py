@@ -23,6 +23,8 @@ Variants (``--variants``, comma list):
     refit-lo   pruning up to a 50 % excess, refit for 20 % of the iterations at 0.02 x the rate
     s16k       the defaults at 16,384 samples an iteration (whatever N and the grid)
     s32k       the defaults at 32,768 samples an iteration
+    split      the defaults with the split forward pass wherever its partial sums fit (the CUDA
+               choice before ``SPLIT_MAX_POINTS``; the same model to float32 rounding)
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -70,6 +72,7 @@ VARIANTS: dict[str, tuple] = {
     "refit-lo": ({}, (None, 0.2), "accuracy", 0.02),
     "s16k": ({"samples": 16384, "auto_samples": False}, (None, None)),
     "s32k": ({"samples": 32768, "auto_samples": False}, (None, None)),
+    "split": ({"split_cells": True}, (None, None)),
 }
 
 

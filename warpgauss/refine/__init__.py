@@ -14,7 +14,7 @@ training state of ``state``; ``config`` holds the settings, ``selftest`` the pre
 
 from .config import AUTO_BATCH_PRIMITIVES, AUTO_MAX_BATCHES, PRESETS, LossWeights, RefineConfig
 from .draw import STRATA, stratum_counts
-from .passes import MAX_CHUNKS, MIN_CHUNK, PARTIAL_MAX_ENTRIES, chunk_capacity
+from .passes import MAX_CHUNKS, MIN_CHUNK, PARTIAL_MAX_ENTRIES, SPLIT_MAX_POINTS, chunk_capacity
 from .refiner import SELF_TESTS, Refiner, load_kernels
 from .schedule import BUDGET_PROBE, BUDGET_SAFETY, BUDGET_SAMPLE_STEPS, MAX_BUDGET_ITERATIONS, SAMPLER_SALT
 from .selftest import self_test
@@ -31,6 +31,7 @@ __all__ = [
     "MIN_CHUNK",
     "PARTIAL_MAX_ENTRIES",
     "PRESETS",
+    "SPLIT_MAX_POINTS",
     "SAMPLER_SALT",
     "SELF_TESTS",
     "STRATA",

@@ -19,6 +19,19 @@ MIN_CHUNK = 128  # candidate points per chunk of the backward pass at least
 # x 307,200 samples: about 600 chunks each took 1.6 ms to sum, a quarter of the pass)
 MAX_CHUNKS = 128
 PARTIAL_MAX_ENTRIES = 1 << 24  # (point, neighbour cell) partial sums of the split forward pass (192 MiB)
+# points an iteration at most for which the refiner picks the split forward pass by itself
+# (RefineConfig.split_cells None, CUDA). One H200, five volumes, N 20,000 and 200,000
+# (benchmarks/refine/forward_split.py, results/refine/forward_split_h200.json): the split pass
+# steps 1.1-2.1x faster at 16,384 points (8,192 samples and partners), is 0.9-1.4x at 32,768 (1.4x
+# faster at N 200,000, 0.1-0.25 ms slower at N 20,000) and 0.6-0.9x of the point-major pass at
+# 65,536, where one thread per point already fills the GPU
+SPLIT_MAX_POINTS = 1 << 15
+
+
+def picks_split(cuda: bool, n_points: int) -> bool:
+    """The forward pass ``RefineConfig.split_cells`` None picks: split on CUDA up to
+    :data:`SPLIT_MAX_POINTS` points an iteration, point-major otherwise."""
+    return bool(cuda) and int(n_points) <= SPLIT_MAX_POINTS
 
 
 def chunk_capacity(n_points: int) -> int:

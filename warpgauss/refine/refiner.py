@@ -31,7 +31,7 @@ from ..together import finish
 from .bins import Binner
 from .config import RefineConfig
 from .draw import Sampler
-from .passes import PairPasses
+from .passes import PairPasses, picks_split
 from .schedule import MAX_BUDGET_ITERATIONS, BudgetPlan, Schedule, smooth_weight
 from .state import Primitives
 from .stop import VALIDATION_POINTS, StopRule
@@ -111,9 +111,10 @@ class Refiner:
         self.sampler = Sampler(
             dv, config.uniform_support, config.weights.value_empty, config.partner_distance, config.jitter, config.importance
         )
-        split = wp.get_device(dev).is_cuda if config.split_cells is None else bool(config.split_cells)
+        # split_cells None: the forward pass is re-chosen by the points an iteration in set_samples
+        self._split_cuda = wp.get_device(dev).is_cuda if config.split_cells is None else None
         # partners serve only the smoothness term: with its weight 0 they are not evaluated
-        self.passes = PairPasses(self.state, self.sampler, dv.field.shape_xyz, split, config.weights.smooth > 0)
+        self.passes = PairPasses(self.state, self.sampler, dv.field.shape_xyz, bool(config.split_cells), config.weights.smooth > 0)
         self.updater = Update(self.state, dv, config, self.quant)
         self.schedule = Schedule(dev, seed)
         self.stops = StopRule(dev)
@@ -191,6 +192,8 @@ class Refiner:
         if self.cfg.samples != m:
             self.cfg = dataclasses.replace(self.cfg, samples=m)
         self.sampler.resize(m)
+        if self._split_cuda is not None:
+            self.passes.split = picks_split(self._split_cuda, self.passes.n_points)
         self.passes.resize()
         self._graph = None
 
