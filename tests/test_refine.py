@@ -610,10 +610,12 @@ def test_support_marks_count_the_boxes_reaching_each_brick(device):
 def test_the_forward_pass_is_chosen_by_the_points_an_iteration(cpu):
     """split_cells None: split on CUDA up to SPLIT_MAX_POINTS points (measured faster there),
     point-major above and on the CPU; True or False is kept whatever the sample count."""
-    from warpgauss.refine.passes import SPLIT_MAX_POINTS, picks_split
+    from warpgauss.refine.passes import SPLIT_DENSE_POINTS, SPLIT_DENSE_PRIMITIVES, SPLIT_MAX_POINTS, picks_split
 
     assert picks_split(True, SPLIT_MAX_POINTS) and not picks_split(True, SPLIT_MAX_POINTS + 1)
-    assert not picks_split(False, 16)
+    assert picks_split(True, SPLIT_MAX_POINTS + 1, SPLIT_DENSE_PRIMITIVES)  # a dense model keeps it longer
+    assert not picks_split(True, SPLIT_DENSE_POINTS, SPLIT_DENSE_PRIMITIVES)
+    assert not picks_split(False, 16, SPLIT_DENSE_PRIMITIVES)
     auto, _, _ = _toy(cpu, iterations=1)
     assert auto.cfg.split_cells is None and not auto.split
     forced, _, _ = _toy(cpu, iterations=1, split_cells=True)

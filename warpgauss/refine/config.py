@@ -112,7 +112,8 @@ class RefineConfig:
         split_cells: Forward pass with one thread per (point, neighbour cell) instead of per
             point, the partial sums stored and added in a fixed order; None picks it on CUDA
             devices up to :data:`SPLIT_MAX_POINTS` points an iteration (where one thread per point
-            leaves a GPU idle; above it the point-major pass is faster) and never on the CPU
+            leaves a GPU idle; above it the point-major pass is faster, see
+            :func:`warpgauss.refine.passes.picks_split` for dense models) and never on the CPU
             (where it only adds work). Either way reruns are bit-identical. Above
             :data:`PARTIAL_MAX_ENTRIES` partials the point-major pass is used.
         quantise: Bit depths of the coded format (:data:`warpgauss.coded.CODED_BITS`) the model

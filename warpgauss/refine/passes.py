@@ -26,12 +26,22 @@ PARTIAL_MAX_ENTRIES = 1 << 24  # (point, neighbour cell) partial sums of the spl
 # faster at N 200,000, 0.1-0.25 ms slower at N 20,000) and 0.6-0.9x of the point-major pass at
 # 65,536, where one thread per point already fills the GPU
 SPLIT_MAX_POINTS = 1 << 15
+# between SPLIT_MAX_POINTS and this many points (exclusive) the split pass is kept for at least
+# SPLIT_DENSE_PRIMITIVES primitives, whose points each visit more of them: vortex 512^3 on one H200
+# at 20,000 samples (40,000 points), N 400,000: split 4.9 ms a step against 6.7; a 2x2x2 brick of
+# it (72,218 primitives, 20,089 samples): 3.0 against 3.1 ms, the bricked encode 54.3 s against
+# 61.0 (results/bricked/profile_wave_512_split{on,off}_h200.json, one_gpu_512_split*_h200.json)
+SPLIT_DENSE_POINTS = 1 << 16
+SPLIT_DENSE_PRIMITIVES = 50_000
 
 
-def picks_split(cuda: bool, n_points: int) -> bool:
+def picks_split(cuda: bool, n_points: int, n_primitives: int = 0) -> bool:
     """The forward pass ``RefineConfig.split_cells`` None picks: split on CUDA up to
-    :data:`SPLIT_MAX_POINTS` points an iteration, point-major otherwise."""
-    return bool(cuda) and int(n_points) <= SPLIT_MAX_POINTS
+    :data:`SPLIT_MAX_POINTS` points an iteration, and below :data:`SPLIT_DENSE_POINTS` for
+    :data:`SPLIT_DENSE_PRIMITIVES` primitives or more; point-major otherwise."""
+    n_points = int(n_points)
+    dense = n_points < SPLIT_DENSE_POINTS and int(n_primitives) >= SPLIT_DENSE_PRIMITIVES
+    return bool(cuda) and (n_points <= SPLIT_MAX_POINTS or dense)
 
 
 def chunk_capacity(n_points: int) -> int:

@@ -193,7 +193,7 @@ class Refiner:
             self.cfg = dataclasses.replace(self.cfg, samples=m)
         self.sampler.resize(m)
         if self._split_cuda is not None:
-            self.passes.split = picks_split(self._split_cuda, self.passes.n_points)
+            self.passes.split = picks_split(self._split_cuda, self.passes.n_points, self.n)
         self.passes.resize()
         self._graph = None
 
