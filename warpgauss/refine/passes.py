@@ -22,8 +22,8 @@ PARTIAL_MAX_ENTRIES = 1 << 24  # (point, neighbour cell) partial sums of the spl
 # points an iteration at most for which the refiner picks the split forward pass by itself
 # (RefineConfig.split_cells None, CUDA). One H200, five volumes, N 20,000 and 200,000
 # (benchmarks/refine/forward_split.py, results/refine/forward_split_h200.json): the split pass
-# steps 1.1-2.1x faster at 16,384 points (8,192 samples and partners), is 0.9-1.4x at 32,768 (1.4x
-# faster at N 200,000, 0.1-0.25 ms slower at N 20,000) and 0.6-0.9x of the point-major pass at
+# steps 1.26-2.15x faster at 16,384 points (8,192 samples and partners), is 0.9-1.4x at 32,768 (1.3-1.4x
+# faster at N 200,000, 0.1-0.3 ms slower at N 20,000) and 0.58-0.96x of the point-major pass at
 # 65,536, where one thread per point already fills the GPU
 SPLIT_MAX_POINTS = 1 << 15
 # between SPLIT_MAX_POINTS and this many points (exclusive) the split pass is kept for at least
