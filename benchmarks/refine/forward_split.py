@@ -12,7 +12,9 @@ times both passes on the same Gaussians (allocated by the library on each volume
 
 For each volume, N and samples count, with ``split_cells`` True and False: a refiner stepped 20
 times, then the median of the step time over ``--steps`` steps (re-bins included) and the
-sample + forward time alone (CUDA events on a GPU, wall time on the CPU).
+sample + forward time alone (CUDA events on a GPU, wall time on the CPU), and the primitives a
+point visits (mean and max of the forward pass's pairs): the point-major pass's cost follows the
+busiest point's visits, the split pass's all visits, so the crossover moves with them.
 
     python benchmarks/refine/forward_split.py --device cuda:0 --fields vortex:512,interface:512 \\
         --volumes benchmarks/build/rdvol/*.npz --budgets 20000,200000 \\
@@ -76,8 +78,13 @@ def main(argv=None) -> dict:
                     t0 = time.perf_counter()
                     steps = [timer.ms(r.step, 1, warmup=0) for _ in range(args.steps)]
                     key = "split" if split else "point_major"
+                    r.sample()
+                    r.forward()
+                    pairs = r.pairs.numpy()[: r.n_points].astype(np.float64)
                     row[key] = {
                         "partials_used": bool(r.passes.use_partials()),
+                        "pairs_per_point": float(pairs.mean()),  # the primitives a point visits (same for both passes)
+                        "pairs_per_point_max": int(pairs.max()),
                         "step_ms_median": float(np.median(steps)),
                         "forward_ms": timer.ms(lambda r=r: (r.sample(), r.forward()), 20),
                         "wall_s": time.perf_counter() - t0,
@@ -87,7 +94,7 @@ def main(argv=None) -> dict:
                 result["rows"].append(row)
                 print(
                     f"{label:28s} N {row['n']:8d} samples {m:7d}: step split {row['split']['step_ms_median']:7.2f} ms "
-                    f"(partials {row['split']['partials_used']}), point-major {row['point_major']['step_ms_median']:7.2f} ms; "
+                    f"(partials {row['split']['partials_used']}, {row['split']['pairs_per_point']:.0f} pairs a point), point-major {row['point_major']['step_ms_median']:7.2f} ms; "
                     f"forward {row['split']['forward_ms']:7.2f} / {row['point_major']['forward_ms']:7.2f} ms",
                     flush=True,
                 )
