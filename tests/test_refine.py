@@ -621,3 +621,5 @@ def test_the_forward_pass_is_chosen_by_the_points_an_iteration(cpu):
     forced, _, _ = _toy(cpu, iterations=1, split_cells=True)
     forced.set_samples(SPLIT_MAX_POINTS)  # 2x the points with partners: above the automatic limit
     assert forced.split and forced.n_points > SPLIT_MAX_POINTS
+    assert auto.forward_pass == "point-major: the CPU"
+    assert forced.forward_pass == "split: split_cells=True"

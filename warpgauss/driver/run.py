@@ -343,6 +343,7 @@ class EncodeRun(replan.Replan):
                 "skipped_nonfinite_updates": refiner.skipped_steps(),
                 "deferred_updates": refiner.deferred_steps(),
                 "rebins": refiner.rebins,
+                "forward_pass": refiner.forward_pass,
                 "cuda_graph": refiner.use_graph,
                 "cuda_graph_error": refiner.graph_error,
                 "strata_samples": dict(zip(("high", "mid", "uniform"), refiner.strata)),

@@ -31,7 +31,7 @@ from ..together import finish
 from .bins import Binner
 from .config import RefineConfig
 from .draw import Sampler
-from .passes import PairPasses, picks_split
+from .passes import PARTIAL_MAX_ENTRIES, PairPasses, picks_split
 from .schedule import MAX_BUDGET_ITERATIONS, BudgetPlan, Schedule, smooth_weight
 from .state import Primitives
 from .stop import VALIDATION_POINTS, StopRule
@@ -170,6 +170,20 @@ class Refiner:
         self.passes.split = bool(value)
         self.passes.invalidate()  # the partial-sum buffer exists only for the split pass
         self._graph = None
+
+    @property
+    def forward_pass(self) -> str:
+        """The forward pass the iterations run and why (the report's ``refinement.forward_pass``)."""
+        kind = "split" if self.passes.use_partials() else "point-major"
+        if self._split_cuda is None:
+            why = f"split_cells={self.cfg.split_cells}"
+            if self.split and not self.passes.use_partials():
+                why += f" (its partial sums would pass {PARTIAL_MAX_ENTRIES:,} entries)"
+        elif not self._split_cuda:
+            why = "the CPU"
+        else:
+            why = f"{self.n_points:,} points an iteration, {self.n:,} primitives on CUDA"
+        return f"{kind}: {why}"
 
     @property
     def partners(self) -> bool:
