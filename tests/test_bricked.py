@@ -402,3 +402,25 @@ def test_the_bricks_statistics_on_a_thread_pool_equal_one_brick_at_a_time():
         alone = brick_stats(f, b)
         assert {k: st[k] for k in alone} == alone
     assert sum(st["occupied"] for st in stats) > 0 and all(st["grad_sum"] > 0 for st in stats)
+
+
+def test_bricks_started_together_run_in_one_wave_beside_stand_ins_for_every_neighbour(monkeypatch):
+    """Without NEIGHBOURS_FIRST every brick starts at once: one wave, no frozen rows, every other
+    brick pending; the same seed gives the same model, another than the waves'."""
+    import warpgauss.bricked as wb
+
+    _, _, tasks = _tasks(size=32, n=240, counts=(2, 2, 1))
+    waves_default: list[dict] = []
+    default = run_bricks(tasks, waves_out=waves_default)
+    monkeypatch.setattr(wb, "NEIGHBOURS_FIRST", False)
+    assert {wb.brick_wave(t.brick) for t in tasks} == {0}
+    waves: list[dict] = []
+    a = run_bricks(tasks, waves_out=waves)
+    b = run_bricks(tasks, at_once=1)
+    assert len(waves_default) == 4 and len(waves) == 1 and waves[0]["bricks"] == 4
+    assert all(r["frozen"] == 0 and r["stand_ins"] > 0 for r in a)
+    assert [len(t.pending) for t in wb.wave_tasks(tasks, {}, [0, 1, 2, 3])] == [3, 3, 3, 3]
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x["params"], y["params"])
+    assert any(not np.array_equal(x["params"], d["params"]) for x, d in zip(a, default))
+    assert sum(len(r["params"]) for r in a) == sum(t.n for t in tasks)

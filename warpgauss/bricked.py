@@ -297,6 +297,22 @@ def brick_colour(b: Brick) -> int:
     return (i % 2) + 2 * (j % 2) + 4 * (k % 2)
 
 
+# True: a brick waits for its finished neighbours (the waves of brick_colour, up to 8, each brick
+# refined beside the primitives its finished neighbours left in its box). False: every brick starts
+# at once, with stand-ins for all its neighbours (what the first wave does), so that a GPU steps
+# them side by side: a 2x2x2 bricking is otherwise 8 waves of one brick. Stand-ins do not do the
+# frozen neighbours' work: 2x2x2 at 48^3 on the CPU (benchmarks/bricked/seam_cpu.py --together,
+# results/bricked/seam_together_cpu.json) lost 10.5 / 9.7 dB on the vortex (halo 6 / 8; 14.4 dB at
+# the seams) and 3.0 / 2.4 dB on the interface against the waves. Kept for that measurement.
+NEIGHBOURS_FIRST = True
+
+
+def brick_wave(b: Brick) -> int:
+    """The wave the brick runs in: its :func:`brick_colour`, or 0 for every brick without
+    :data:`NEIGHBOURS_FIRST`."""
+    return brick_colour(b) if NEIGHBOURS_FIRST else 0
+
+
 def brick_samples(refine: RefineConfig, n: int, shape_xyz, brick: Brick, device: str) -> RefineConfig:
     """The brick's refinement settings: the monolithic encode's samples per iteration (for ``n``
     on the whole grid) times the brick box's share of the grid's voxels, at least
@@ -392,7 +408,7 @@ def run_bricks(
     limit: int | None = None,
     waves_out: list[dict] | None = None,
 ) -> list[dict]:
-    """Every brick's result, in brick order, wave by wave (:func:`brick_colour`): in this process
+    """Every brick's result, in brick order, wave by wave (:func:`brick_wave`): in this process
     (``client`` None), the bricks of a wave stepping side by side on the device (``at_once`` of
     them, default :func:`bricks_at_once` under ``limit`` bytes of device memory), or on a Dask cluster, a wave's bricks split into one
     group per worker, each group run side by side there (:func:`encode_bricks`); a failed task is
@@ -402,7 +418,7 @@ def run_bricks(
     reaching the workers cost)."""
     waves: dict[int, list[int]] = {}
     for t in tasks:
-        waves.setdefault(brick_colour(t.brick), []).append(t.index)
+        waves.setdefault(brick_wave(t.brick), []).append(t.index)
     finished: dict[int, np.ndarray] = {}
     results: dict[int, dict] = {}
     for colour in sorted(waves):

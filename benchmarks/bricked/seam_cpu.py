@@ -1,5 +1,7 @@
 """Seam quality of the bricked encode (issue #20), CPU: full-grid PSNR on voxels within 2 voxels of
 an inner brick face against the rest, 2x2x2 bricks, the default halo and 8, two example fields at 48^3.
+``--together``: also every brick started at once, beside stand-ins for all its neighbours
+(``warpgauss.bricked.NEIGHBOURS_FIRST`` False), the rows marked ``"waves": "together"``.
 
     python benchmarks/bricked/seam_cpu.py --out benchmarks/results/bricked/seam_cpu.json
 """
@@ -14,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
+import warpgauss.bricked as wb
 from warpgauss._warp import warp
 from warpgauss.analysis import normalise
 from warpgauss.brickplan import face_band, plan_bricks
@@ -29,6 +32,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--size", type=int, default=48)
     ap.add_argument("--budget", type=int, default=1500)
     ap.add_argument("--iterations", type=int, default=150)
+    ap.add_argument("--together", action="store_true", help="also every brick at once (no waves)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     rows = []
@@ -40,11 +44,16 @@ def main(argv=None) -> dict:
         mm = warpgauss.encode(v, **kw)
         e0 = (mm.decode(device="cpu", normalised=True) - f.values) ** 2
         mono = {"monolithic_psnr_db": psnr(e0), "monolithic_seam_psnr_db": psnr(e0[near]), "monolithic_interior_psnr_db": psnr(e0[~near])}
-        for halo in (None, 8):
-            m = warpgauss.encode(v, bricks="2x2x2", halo=halo, **kw)
+        for halo, first in [(h, True) for h in (None, 8)] + ([(h, False) for h in (None, 8)] if args.together else []):
+            wb.NEIGHBOURS_FIRST = first
+            try:
+                m = warpgauss.encode(v, bricks="2x2x2", halo=halo, **kw)
+            finally:
+                wb.NEIGHBOURS_FIRST = True
             err = (m.decode(device="cpu", normalised=True) - f.values) ** 2
             row = {
                 "field": name,
+                "waves": "neighbours first" if first else "together",
                 "halo": m.report["bricking"]["halo"],
                 "scale_cap": m.report["bricking"]["scale_cap"],
                 **mono,
