@@ -21,6 +21,7 @@ PHASES: tuple[tuple[str, str], ...] = (
     ("S1", "place the Gaussians"),
     ("S1-S2b", "encode the bricks (place and refine)"),
     ("S2", "refine"),
+    ("S2s", "refit the seams between the bricks"),
     ("EV", "measure the accuracy"),
     ("S3", "write the model"),
     ("S4", "code the bounded residual"),

@@ -5,8 +5,9 @@ near the inner faces are refined together afterwards?
 For each example field at ``--size`` (2x2x2 bricks, the default halo, format full): the
 monolithic encode, the bricked encode in waves (the default), the bricked encode with every brick
 at once (``warpgauss.bricked.NEIGHBOURS_FIRST`` False), and that model refined again over the
-whole grid for each share of ``--refit`` x the iterations, with only the primitives whose 3-sigma
-box reaches within ``--band`` voxels of an inner face stepped (the rest frozen). Rows: full-grid
+whole grid for each share of ``--refit`` x the iterations (``warpgauss.bricked.refit_seams``), with
+only the primitives whose 3-sigma box reaches within ``--band`` voxels of an inner face stepped (the
+rest frozen). Rows: full-grid
 PSNR, at the seams (within 2 voxels of an inner face) and elsewhere, the primitives refit, and
 the seconds of each step (the CPU's: only the accuracy transfers to a GPU).
 
@@ -25,11 +26,11 @@ import numpy as np
 import warpgauss
 import warpgauss.bricked as wb
 from warpgauss.allocate import AllocationConfig
-from warpgauss.analysis import DeviceVolume, normalise
+from warpgauss.analysis import normalise
 from warpgauss.bench import result_header
 from warpgauss.brickplan import brick_cap, face_band, plan_bricks
 from warpgauss.field import GaussianField
-from warpgauss.refine import RefineConfig, Refiner
+from warpgauss.refine import RefineConfig
 from warpgauss.synthetic import generate
 
 
@@ -41,20 +42,6 @@ def scores(params: np.ndarray, f, near: np.ndarray) -> dict:
     d = np.concatenate([s for _, s in GaussianField(params, f.shape_xyz, "cpu").iter_slabs()])
     e = (d.astype(np.float64) - f.values) ** 2
     return {"psnr_db": psnr(e), "seam_psnr_db": psnr(e[near]), "interior_psnr_db": psnr(e[~near])}
-
-
-def near_faces(params: np.ndarray, bricks, shape_xyz, band: float) -> np.ndarray:
-    """Rows whose 3-sigma box comes within ``band`` voxels of an inner brick face."""
-    reach = 3.0 * np.exp(params[:, 3:6].max(axis=1).astype(np.float64)) + band
-    shape_zyx = tuple(int(s) for s in shape_xyz)[::-1]
-    hit = np.zeros(len(params), bool)
-    for b in bricks:
-        for axis, (i0, i1) in enumerate(b.interior):
-            col = 2 - axis  # z, y, x axes against the mu columns
-            for face in (i0, i1):
-                if 0 < face < shape_zyx[axis]:
-                    hit |= np.abs(params[:, col] - (face - 0.5)) <= reach
-    return hit
 
 
 def main(argv=None) -> dict:
@@ -75,7 +62,7 @@ def main(argv=None) -> dict:
         bricks = plan_bricks(f.shape_xyz, (2, 2, 2), 0)
         near = face_band(f.shape_xyz, bricks)
 
-        def row(label: str, params: np.ndarray, seconds: float, **more) -> None:
+        def row(label: str, params: np.ndarray, seconds: float, name=name, f=f, near=near, **more) -> None:
             r = {"field": name, "run": label, "seconds": seconds, **scores(params, f, near), **more}
             out["rows"].append(r)
             print(r, flush=True)
@@ -93,18 +80,18 @@ def main(argv=None) -> dict:
                     wb.NEIGHBOURS_FIRST = True
             row(label, np.asarray(m.params, np.float32), time.perf_counter() - t)
         together = np.asarray(m.params, np.float32)
-        cap = brick_cap(AllocationConfig().resolved_cap(f.shape_xyz), f.shape_xyz, args.budget)
-        seam = near_faces(together, bricks, f.shape_xyz, args.band)
-        train, frozen = together[seam], together[~seam]
-        dv = DeviceVolume(f, "cpu")
+        alloc = AllocationConfig(scale_cap=brick_cap(AllocationConfig().resolved_cap(f.shape_xyz), f.shape_xyz, args.budget))
+        wb.SEAM_BAND = args.band
         for share in (float(s) for s in args.refit.split(",")):
-            its = max(1, int(round(share * args.iterations)))
-            cfg = RefineConfig(iterations=its, samples=RefineConfig().for_budget(args.budget).samples)
             t = time.perf_counter()
-            r = Refiner(dv, np.concatenate([train, frozen]), cfg, 0, AllocationConfig().scale_min, cap, frozen=len(frozen))
-            r.run(log_every=its)
-            refit = np.concatenate([r.model_params()[: len(train)], frozen])
-            row(f"together + refit {share:g}", refit, time.perf_counter() - t, refit_primitives=int(seam.sum()), refit_iterations=its)
+            refit, facts = wb.refit_seams(f, bricks, together, RefineConfig(iterations=args.iterations), alloc, 0, "cpu", share)
+            row(
+                f"together + refit {share:g}",
+                refit,
+                time.perf_counter() - t,
+                refit_primitives=facts["primitives"],
+                refit_iterations=facts["iterations"],
+            )
     args.out.write_text(json.dumps(out, indent=1))
     return out
 

@@ -43,9 +43,10 @@ def encode_bricked(
     Dask cluster, the primitives merged into one model of exactly N (then stored in the format,
     coded budgets fitted as in the monolithic encode).
     """
+    from .. import bricked as wb
     from .._warp import resolve_device
     from ..analysis import DeviceVolume
-    from ..bricked import brick_tasks, run_bricks
+    from ..bricked import brick_seed, brick_tasks, refit_seams, run_bricks
     from ..brickplan import brick_cap, default_halo, parse_bricks, plan_bricks, split_bricks
     from ..cluster import share_arrays
     from ..lazy import is_lazy
@@ -96,6 +97,10 @@ def encode_bricked(
             results = run_bricks(tasks, client, on_progress, limit=max_device_memory, waves_out=waves)
         wall = time.perf_counter() - t0
     params = np.concatenate([r["params"] for r in results]) if results else np.zeros((0, 12), np.float32)
+    seams = None  # a joint refit of the seams (bricked.SEAM_REFIT; the whole volume on one device)
+    if wb.SEAM_REFIT > 0 and opts.refine.iterations > 0 and len(params) and not is_lazy(f.values):
+        with timer.stage("S2s", "joint refit of the seams"):
+            params, seams = refit_seams(f, plan, params, opts.refine, allocation, brick_seed(opts.seed, len(plan)), dev, wb.SEAM_REFIT)
     merged = Model(params, header)
     merged.coded_bits = None if sizing is None else sizing["bits"]
     fit = None
@@ -140,6 +145,7 @@ def encode_bricked(
             "wall_seconds": wall,
             "volume_to_workers": sharing,
             "waves": waves,
+            "seam_refit": seams,
             "workers": _workers(results),
             "bricks": bricks_report,
             "rule": "detail share by interior sum of |grad V|, coverage share by occupied voxels, largest remainders, seed limits",
