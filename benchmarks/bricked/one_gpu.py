@@ -9,6 +9,9 @@ same model bit for bit. Rows: ``size``, ``bricks``, ``at_once``, ``seconds``,
 against the monolithic), the per-brick setup and refinement seconds. ``--profile`` times one
 brick's iteration phase by phase (sample, forward, backward, update, re-bin) with the device
 synchronised around each, and a captured iteration, to show where a brick's time goes.
+``--together 0,0.5`` adds each bricking with every brick started at once (no waves:
+``warpgauss.bricked.NEIGHBOURS_FIRST`` False), then the seams refit together for that share of the
+iterations (``SEAM_REFIT``; 0: none), rows with ``"waves": "together"`` and ``seam_refit``.
 
     python benchmarks/bricked/one_gpu.py --sizes 512 --fields vortex,interface --bricks 2x2x2,4x4x4 --out $OUT/one_gpu_512_h200.json
 """
@@ -99,6 +102,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--serial", action="store_true", help="also each bricking one brick at a time (the model must be the same)")
     ap.add_argument("--profile", default="", help="brickings whose first brick is profiled phase by phase")
     ap.add_argument("--split-cells", choices=("auto", "on", "off"), default="auto", help="the forward pass (RefineConfig.split_cells)")
+    ap.add_argument("--together", default="", help="seam-refit shares for bricks started at once, comma list (0: no refit)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -134,10 +138,17 @@ def main(argv=None) -> dict:
                 if bricks in args.profile.split(","):
                     result["profiles"].append({"field": name, "size": size, **profile_brick(v, n, bricks, dev, split=split)})
                 models = {}
-                for mode in ["side by side", "serial"] if args.serial else ["side by side"]:
+                modes = ["side by side"] + (["serial"] if args.serial else [])
+                modes += [f"together {x}" for x in filter(None, args.together.split(","))]
+                for mode in modes:
                     wb.MAX_AT_ONCE = 1 if mode == "serial" else 8
+                    together = mode.startswith("together")
+                    wb.NEIGHBOURS_FIRST, wb.SEAM_REFIT = not together, float(mode.split()[1]) if together else 0.0
                     t = time.perf_counter()
-                    m = warpgauss.encode(v, bricks=bricks, **kw)
+                    try:
+                        m = warpgauss.encode(v, bricks=bricks, **kw)
+                    finally:
+                        wb.NEIGHBOURS_FIRST, wb.SEAM_REFIT = True, 0.0
                     secs = time.perf_counter() - t
                     p = psnr(f, m, dev)
                     br = m.report["bricking"]
@@ -147,6 +158,8 @@ def main(argv=None) -> dict:
                         "n": n,
                         "mode": "bricked",
                         "bricks": bricks,
+                        "waves": "together" if together else "neighbours first",
+                        "seam_refit": m.report["bricking"]["seam_refit"],
                         "at_once": max(b.get("at_once", 1) for b in br["bricks"]),
                         "seconds": secs,
                         "bricked_over_monolithic": secs / mono_s,
@@ -159,7 +172,7 @@ def main(argv=None) -> dict:
                         "brick_samples": sorted({b["samples"] for b in br["bricks"]}),
                     }
                     models[mode] = m.params
-                    if "serial" in models and "side by side" in models:
+                    if mode == "serial":
                         row["same_model_as_side_by_side"] = bool(np.array_equal(models["serial"], models["side by side"]))
                     result["rows"].append(row)
                     print(row, flush=True)
