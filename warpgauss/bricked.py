@@ -366,7 +366,7 @@ def refit_seams(
         DeviceVolume(f, device),
         np.concatenate([train, frozen]),
         cfg,
-        brick_seed(seed, 1 << 20),
+        seed,
         allocation.scale_min,
         allocation.resolved_cap(f.shape_xyz),
         frozen=len(frozen),
