@@ -315,11 +315,14 @@ def brick_wave(b: Brick) -> int:
 
 # A joint refit of the seams after the bricks (off: 0): this share of the iterations, the primitives
 # whose 3-sigma box comes within SEAM_BAND voxels of an inner face refined together over the whole
-# grid, every other primitive frozen. It needs the whole volume on one device. For bricks started at
-# once (NEIGHBOURS_FIRST False), CPU at 48^3 (benchmarks/bricked/seam_refit_cpu.py): at 0.5 the
-# vortex scored 49.29 dB against 48.77 with the waves, the interface 34.94 against 33.43.
+# grid, every other primitive frozen, at SEAM_LR x the learning rate. It needs the whole volume on
+# one device. For bricks started at once (NEIGHBOURS_FIRST False), CPU at 96^3, N 12,000
+# (benchmarks/bricked/seam_refit_cpu.py, results/bricked/seam_refit96*_cpu.json; full-grid PSNR,
+# waves 53.47 / 37.30 dB on vortex / interface, together without refit 47.39 / 35.62): 0.25 at
+# 0.3x 52.54 / 37.24, 0.5 at 1x 52.55 / 37.27, 0.25 at 1x 48.74 / 35.12, 0.1 at 0.3x 50.15 / 36.32.
 SEAM_REFIT = 0.0
 SEAM_BAND = 2.0
+SEAM_LR = 0.3
 
 
 def seam_rows(params: np.ndarray, bricks: list[Brick], shape_xyz, band: float | None = None) -> np.ndarray:
@@ -355,11 +358,11 @@ def refit_seams(
 
     rows = seam_rows(params, bricks, f.shape_xyz)
     its = int(round(share * refine.iterations))
-    facts = {"share": share, "iterations": its, "primitives": int(rows.sum()), "band_voxels": SEAM_BAND}
+    facts = {"share": share, "iterations": its, "primitives": int(rows.sum()), "band_voxels": SEAM_BAND, "lr_scale": SEAM_LR}
     if its <= 0 or not rows.any():
         return params, facts
     load_kernels(device)
-    cfg = dataclasses.replace(refine.for_budget(len(params), int(np.prod(f.shape_xyz)), device), iterations=its)
+    cfg = dataclasses.replace(refine.for_budget(len(params), int(np.prod(f.shape_xyz)), device), iterations=its, lr=refine.lr * SEAM_LR)
     train, frozen = params[rows], params[~rows]
     t0 = time.perf_counter()
     r = Refiner(

@@ -51,6 +51,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--iterations", type=int, default=150)
     ap.add_argument("--refit", default="0.1,0.25,0.5", help="refit iterations as shares of --iterations")
     ap.add_argument("--band", type=float, default=2.0)
+    ap.add_argument("--lr", default="1", help="the refit's learning-rate scales (bricked.SEAM_LR), comma list")  # 1: the first runs
+    ap.add_argument("--no-baselines", action="store_true", help="skip the monolithic and waves encodes")
     ap.add_argument("--fields", default="vortex,interface")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -68,7 +70,8 @@ def main(argv=None) -> dict:
             print(r, flush=True)
             args.out.write_text(json.dumps(out, indent=1))
 
-        for label, first in (("monolithic", None), ("waves", True), ("together", False)):
+        runs = (("monolithic", None), ("waves", True), ("together", False))
+        for label, first in runs[2:] if args.no_baselines else runs:
             t = time.perf_counter()
             if first is None:
                 m = warpgauss.encode(v, **kw)
@@ -82,16 +85,20 @@ def main(argv=None) -> dict:
         together = np.asarray(m.params, np.float32)
         alloc = AllocationConfig(scale_cap=brick_cap(AllocationConfig().resolved_cap(f.shape_xyz), f.shape_xyz, args.budget))
         wb.SEAM_BAND = args.band
-        for share in (float(s) for s in args.refit.split(",")):
-            t = time.perf_counter()
-            refit, facts = wb.refit_seams(f, bricks, together, RefineConfig(iterations=args.iterations), alloc, 0, "cpu", share)
-            row(
-                f"together + refit {share:g}",
-                refit,
-                time.perf_counter() - t,
-                refit_primitives=facts["primitives"],
-                refit_iterations=facts["iterations"],
-            )
+        for lr in (float(x) for x in args.lr.split(",")):
+            wb.SEAM_LR = lr
+            for share in (float(x) for x in args.refit.split(",")):
+                t = time.perf_counter()
+                refit, facts = wb.refit_seams(f, bricks, together, RefineConfig(iterations=args.iterations), alloc, 0, "cpu", share)
+                row(
+                    f"together + refit {share:g}" + (f" at {lr:g}x the rate" if lr != 1 else ""),
+                    refit,
+                    time.perf_counter() - t,
+                    refit_primitives=facts["primitives"],
+                    refit_iterations=facts["iterations"],
+                    lr_scale=lr,
+                )
+        wb.SEAM_LR = 0.3
     args.out.write_text(json.dumps(out, indent=1))
     return out
 
