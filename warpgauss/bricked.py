@@ -320,7 +320,8 @@ def brick_wave(b: Brick) -> int:
 # (benchmarks/bricked/seam_refit_cpu.py, results/bricked/seam_refit96*_cpu.json; full-grid PSNR,
 # waves 53.47 / 37.30 dB on vortex / interface, together without refit 47.39 / 35.62): 0.25 at
 # 0.3x 52.54 / 37.24, 0.5 at 1x 52.55 / 37.27, 0.25 at 1x 48.74 / 35.12, 0.1 at 0.3x 50.15 / 36.32;
-# at 128^3, N 28,000, 0.25 at 0.3x: 50.85 / 36.81 against the waves' 51.88 / 36.24.
+# at 128^3, N 28,000, 0.25 at 0.3x: 50.85 / 36.81 against the waves' 51.88 / 36.24; 0.5 at 0.3x
+# 52.29 on the vortex (0.5 at 1x: 50.14).
 SEAM_REFIT = 0.0
 SEAM_BAND = 2.0
 SEAM_LR = 0.3

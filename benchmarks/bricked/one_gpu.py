@@ -9,7 +9,7 @@ same model bit for bit. Rows: ``size``, ``bricks``, ``at_once``, ``seconds``,
 against the monolithic), the per-brick setup and refinement seconds. ``--profile`` times one
 brick's iteration phase by phase (sample, forward, backward, update, re-bin) with the device
 synchronised around each, and a captured iteration, to show where a brick's time goes.
-``--together 0,0.25`` adds each bricking with every brick started at once (no waves:
+``--together 0,0.25,0.5`` adds each bricking with every brick started at once (no waves:
 ``warpgauss.bricked.NEIGHBOURS_FIRST`` False), then the seams refit together for that share of the
 iterations (``SEAM_REFIT``; 0: none), rows with ``"waves": "together"`` and ``seam_refit``.
 
