@@ -30,10 +30,11 @@ and settings between our own workers; no model or checkpoint is ever loaded thro
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import time
-from collections.abc import Generator
+from collections.abc import Generator, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -41,7 +42,7 @@ import numpy as np
 
 from .allocate import AllocationConfig
 from .analysis import Field, count_seed_candidates, seed_limit
-from .brickplan import Brick, grad_sum
+from .brickplan import Brick, grad_sum, inner_faces
 from .limits import brick_device_bytes, default_device_limit
 from .refine.config import RefineConfig
 from .together import finish
@@ -327,18 +328,27 @@ SEAM_BAND = 2.0
 SEAM_LR = 0.3
 
 
+@contextlib.contextmanager
+def schedule(neighbours_first: bool = True, seam_refit: float = 0.0) -> Iterator[None]:
+    """:data:`NEIGHBOURS_FIRST` and :data:`SEAM_REFIT` set for a block (the benchmarks that
+    compare the schedules), the values before it restored after it."""
+    global NEIGHBOURS_FIRST, SEAM_REFIT
+    saved = NEIGHBOURS_FIRST, SEAM_REFIT
+    NEIGHBOURS_FIRST, SEAM_REFIT = bool(neighbours_first), float(seam_refit)
+    try:
+        yield
+    finally:
+        NEIGHBOURS_FIRST, SEAM_REFIT = saved
+
+
 def seam_rows(params: np.ndarray, bricks: list[Brick], shape_xyz, band: float | None = None) -> np.ndarray:
     """Which rows of ``params`` (volume coordinates) have a 3-sigma box within ``band`` (default
     :data:`SEAM_BAND`) voxels of an inner face of ``bricks`` (booleans)."""
     band = SEAM_BAND if band is None else float(band)
     reach = 3.0 * np.exp(np.clip(params[:, 3:6].max(axis=1).astype(np.float64), -9.0, 12.0)) + band
-    shape_zyx = tuple(int(v) for v in shape_xyz)[::-1]
     hit = np.zeros(len(params), bool)
-    for b in bricks:
-        for axis, (i0, i1) in enumerate(b.interior):
-            for face in (i0, i1):
-                if 0 < face < shape_zyx[axis]:  # mu columns are x, y, z; face sits between voxels
-                    hit |= np.abs(params[:, 2 - axis].astype(np.float64) - (face - 0.5)) <= reach
+    for axis, face in inner_faces(shape_xyz, bricks):  # mu columns are x, y, z; a face sits between voxels
+        hit |= np.abs(params[:, 2 - axis].astype(np.float64) - (face - 0.5)) <= reach
     return hit
 
 

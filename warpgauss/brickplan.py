@@ -130,17 +130,21 @@ def grad_sum(values: np.ndarray, select: np.ndarray | None, threads: int | None 
     return float(sum(map_slabs(part, nz, GRAD_SLAB, threads)))
 
 
+def inner_faces(shape_xyz, bricks: list[Brick]) -> list[tuple[int, int]]:
+    """The inner faces between ``bricks`` as ``(axis, index)`` pairs, axis in (z, y, x) order, the
+    face lying between voxels ``index - 1`` and ``index`` (each face once, sorted)."""
+    shape_zyx = tuple(int(s) for s in shape_xyz)[::-1]
+    faces = {(axis, face) for b in bricks for axis, pair in enumerate(b.interior) for face in pair}
+    return sorted((axis, face) for axis, face in faces if 0 < face < shape_zyx[axis])
+
+
 def face_band(shape_xyz, bricks: list[Brick], width: int = 2) -> np.ndarray:
     """Voxels within ``width`` of an inner brick face, (z, y, x) booleans: where seams show."""
-    shape_zyx = tuple(int(s) for s in shape_xyz)[::-1]
-    near = np.zeros(shape_zyx, bool)
-    for b in bricks:
-        for axis, (i0, i1) in enumerate(b.interior):
-            for face in (i0, i1):
-                if 0 < face < shape_zyx[axis]:
-                    sl = [slice(None)] * 3
-                    sl[axis] = slice(max(0, face - width), face + width)
-                    near[tuple(sl)] = True
+    near = np.zeros(tuple(int(s) for s in shape_xyz)[::-1], bool)
+    for axis, face in inner_faces(shape_xyz, bricks):
+        sl = [slice(None)] * 3
+        sl[axis] = slice(max(0, face - width), face + width)
+        near[tuple(sl)] = True
     return near
 
 

@@ -143,12 +143,9 @@ def main(argv=None) -> dict:
                 for mode in modes:
                     wb.MAX_AT_ONCE = 1 if mode == "serial" else 8
                     together = mode.startswith("together")
-                    wb.NEIGHBOURS_FIRST, wb.SEAM_REFIT = not together, float(mode.split()[1]) if together else 0.0
                     t = time.perf_counter()
-                    try:
+                    with wb.schedule(not together, float(mode.split()[1]) if together else 0.0):
                         m = warpgauss.encode(v, bricks=bricks, **kw)
-                    finally:
-                        wb.NEIGHBOURS_FIRST, wb.SEAM_REFIT = True, 0.0
                     secs = time.perf_counter() - t
                     p = psnr(f, m, dev)
                     br = m.report["bricking"]

@@ -45,11 +45,8 @@ def main(argv=None) -> dict:
         e0 = (mm.decode(device="cpu", normalised=True) - f.values) ** 2
         mono = {"monolithic_psnr_db": psnr(e0), "monolithic_seam_psnr_db": psnr(e0[near]), "monolithic_interior_psnr_db": psnr(e0[~near])}
         for halo, first in [(h, True) for h in (None, 8)] + ([(h, False) for h in (None, 8)] if args.together else []):
-            wb.NEIGHBOURS_FIRST = first
-            try:
+            with wb.schedule(neighbours_first=first):
                 m = warpgauss.encode(v, bricks="2x2x2", halo=halo, **kw)
-            finally:
-                wb.NEIGHBOURS_FIRST = True
             err = (m.decode(device="cpu", normalised=True) - f.values) ** 2
             row = {
                 "field": name,

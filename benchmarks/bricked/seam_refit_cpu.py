@@ -76,14 +76,12 @@ def main(argv=None) -> dict:
             if first is None:
                 m = warpgauss.encode(v, **kw)
             else:
-                wb.NEIGHBOURS_FIRST = first
-                try:
+                with wb.schedule(neighbours_first=first):
                     m = warpgauss.encode(v, bricks="2x2x2", **kw)
-                finally:
-                    wb.NEIGHBOURS_FIRST = True
             row(label, np.asarray(m.params, np.float32), time.perf_counter() - t)
         together = np.asarray(m.params, np.float32)
         alloc = AllocationConfig(scale_cap=brick_cap(AllocationConfig().resolved_cap(f.shape_xyz), f.shape_xyz, args.budget))
+        saved = wb.SEAM_BAND, wb.SEAM_LR
         wb.SEAM_BAND = args.band
         for lr in (float(x) for x in args.lr.split(",")):
             wb.SEAM_LR = lr
@@ -98,7 +96,7 @@ def main(argv=None) -> dict:
                     refit_iterations=facts["iterations"],
                     lr_scale=lr,
                 )
-        wb.SEAM_LR = 0.3
+        wb.SEAM_BAND, wb.SEAM_LR = saved
     args.out.write_text(json.dumps(out, indent=1))
     return out
 
