@@ -5,7 +5,10 @@ For each size: an example field generated here, encoded with the same bricking a
 Dask cluster of 1 GPU worker, then of 2 (``--gpus``), each worker a process with its own GPU
 (``warpgauss.cluster.gpu_client``: CUDA_VISIBLE_DEVICES per worker, Dask's own TCP transport).
 Each row: gpus, seconds, speedup against gpus=1, PSNR, and whether the model equals the one-GPU
-model bit for bit (same seed, same bricking: it must). Then ``--series`` timesteps of an evolving
+model bit for bit (same seed, same bricking: it must). ``--together 0.25`` adds each worker count
+with every brick started at once (``warpgauss.bricked.schedule``: no waves, stand-ins for every
+neighbour) and the seams then refit together on this process's GPU for that share of the
+iterations (0: none), rows with ``"schedule": "together"``. Then ``--series`` timesteps of an evolving
 example encoded across the workers: timesteps per second against one GPU.
 
 Every cluster first encodes a small field (kernels compiled in each worker, then cached on disk);
@@ -29,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
+import warpgauss.bricked as wb
 import warpgauss.cluster
 from warpgauss._warp import resolve_device
 from warpgauss.bench import result_header
@@ -65,10 +69,13 @@ def main(argv=None) -> dict:
         default="",
         help="also these worker counts with each wave's boxes sent through the Dask graph (the path before the volume was shared as a file)",
     )
+    ap.add_argument("--together", default="", help="seam-refit shares for bricks started at once, comma list (0: no refit)")
+    ap.add_argument("--no-waves", action="store_true", help="leave out the default schedule (the waves; with --together)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     dev = resolve_device(args.device)
+    schedules = ([] if args.no_waves else [None]) + [float(x) for x in filter(None, args.together.split(","))]
     counts = [int(g) for g in args.gpus.split(",")]
     assert counts[0] == 1, "the first --gpus entry is the one-GPU baseline (1)"
     extra = {} if args.iterations is None else {"iterations": args.iterations}
@@ -99,7 +106,7 @@ def main(argv=None) -> dict:
             t0 = time.perf_counter()
             vol = generate(args.field, size)
             gen = time.perf_counter() - t0
-            base = None
+            mono = None
             if args.monolithic:  # the whole field on one GPU in this process: what bricks on several GPUs must beat
                 t0 = time.perf_counter()
                 m = warpgauss.encode(vol, budget=budget, **common)
@@ -109,15 +116,19 @@ def main(argv=None) -> dict:
                 )
                 print(f"{size}^3 N {m.n:,} monolithic on one GPU: {sec:.1f} s, PSNR {m.report['psnr_db']:.2f} dB", flush=True)
                 save()
+                mono = sec
                 del m
-            graph = [(k, True) for k in counts if str(k) in args.graph_gpus.split(",")]
-            for k, through_graph in [(k, False) for k in counts] + graph:
+            graph = [(k, True, None) for k in counts if str(k) in args.graph_gpus.split(",")]
+            runs = [(k, False, share) for share in schedules for k in counts] + graph
+            bases: dict = {}
+            for k, through_graph, share in runs:
                 t0 = time.perf_counter()
                 if through_graph:  # as before the volume was shared: every brick's box in the task graph
                     local = warpgauss.cluster.is_local
                     warpgauss.cluster.is_local = lambda client: False  # type: ignore[assignment]
                 try:
-                    m = warpgauss.encode(vol, budget=budget, bricks=args.bricks, client=clients[k], **common)
+                    with wb.schedule(share is None, share or 0.0):
+                        m = warpgauss.encode(vol, budget=budget, bricks=args.bricks, client=clients[k], **common)
                 finally:
                     if through_graph:
                         warpgauss.cluster.is_local = local  # type: ignore[assignment]
@@ -126,6 +137,8 @@ def main(argv=None) -> dict:
                 devices = sorted({x["device"] for x in b["bricks"]})
                 row = {
                     "what": "bricked encode" + (" (boxes through the graph)" if through_graph else ""),
+                    "schedule": "neighbours first" if share is None else "together",
+                    "seam_refit": b.get("seam_refit"),
                     "volume_to_workers": b["volume_to_workers"],
                     "stages": [{"stage": x["stage"], "seconds": x["seconds"]} for x in m.report.get("stages", [])],
                     "waves": b["waves"],
@@ -139,21 +152,22 @@ def main(argv=None) -> dict:
                     "worker_devices": devices,
                     "generate_seconds": gen,
                 }
-                if base is None:
-                    base = (sec, m)
+                base = bases.setdefault(share, (sec, m.params))  # the one-GPU row of the same schedule
                 row["speedup"] = base[0] / sec
-                row["identical_to_one_gpu"] = bool(np.array_equal(m.params, base[1].params))
+                row["identical_to_one_gpu"] = bool(np.array_equal(m.params, base[1]))
+                if mono is not None:
+                    row["over_monolithic_one_gpu"] = sec / mono
                 result["rows"].append(row)
                 save()
                 print(
-                    f"{size}^3 N {m.n:,} on {k} GPU(s): {sec:.1f} s, speed-up {row['speedup']:.2f}x, PSNR {row['psnr_db']:.2f} dB, "
+                    f"{size}^3 N {m.n:,} on {k} GPU(s), {row['schedule']}: {sec:.1f} s, speed-up {row['speedup']:.2f}x, PSNR {row['psnr_db']:.2f} dB, "
                     f"same model as one GPU: {row['identical_to_one_gpu']} ({row['volume_to_workers']}; waves {sum(w['seconds'] for w in b['waves']):.1f} s, "
                     f"of which on the workers {sum(w['worker_seconds'] for w in b['waves']):.1f} s; stages "
                     + ", ".join(f"{x['stage']} {x['seconds']:.1f}" for x in row["stages"])
                     + ")",
                     flush=True,
                 )
-            del vol, base
+            del vol, bases
         if args.series > 0:
             steps = list(generate_series(args.field, args.series_size, args.series))
             base_rate = None
