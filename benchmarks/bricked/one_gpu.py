@@ -103,6 +103,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--profile", default="", help="brickings whose first brick is profiled phase by phase")
     ap.add_argument("--split-cells", choices=("auto", "on", "off"), default="auto", help="the forward pass (RefineConfig.split_cells)")
     ap.add_argument("--together", default="", help="seam-refit shares for bricks started at once, comma list (0: no refit)")
+    ap.add_argument("--no-waves", action="store_true", help="leave out the default schedule (the waves; with --together)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -138,7 +139,7 @@ def main(argv=None) -> dict:
                 if bricks in args.profile.split(","):
                     result["profiles"].append({"field": name, "size": size, **profile_brick(v, n, bricks, dev, split=split)})
                 models = {}
-                modes = ["side by side"] + (["serial"] if args.serial else [])
+                modes = ([] if args.no_waves else ["side by side"]) + (["serial"] if args.serial else [])
                 modes += [f"together {x}" for x in filter(None, args.together.split(","))]
                 for mode in modes:
                     wb.MAX_AT_ONCE = 1 if mode == "serial" else 8

@@ -7,7 +7,7 @@ bricking, set up as the encode sets them up; then
 - ``samples``: ms per step (device synchronised) of the monolithic refiner and of the first brick of
   each bricking at several samples per step (the cost as fixed + per-sample parts);
 - ``host``: ms the host takes to enqueue one captured step (no synchronisation);
-- ``wave``: the first wave's bricks, ``--steps`` steps each, one brick after another and then side
+- ``wave``: the first wave's bricks (``--together``: every brick, as when they start at once), ``--steps`` steps each, one brick after another and then side
   by side (round robin, a stream each): ms per step of the wave.
 
     python benchmarks/bricked/profile_wave.py --size 512 --bricks 2x2x2,4x4x4,1x1x4 --out $OUT/profile_wave_512_h200.json
@@ -65,6 +65,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--samples", default="3000,10000,20000,40000,80000,131072")
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--split-cells", choices=("auto", "on", "off"), default="auto", help="the forward pass (RefineConfig.split_cells)")
+    ap.add_argument("--together", action="store_true", help="the wave is every brick, started at once (bricked.schedule(False))")
+    ap.add_argument("--waves-only", action="store_true", help="leave out the samples sweeps (monolithic and first brick)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -103,19 +105,23 @@ def main(argv=None) -> dict:
     params, _ = allocate(dv, n, 0, a, StageRecorder())
     base = RefineConfig(split_cells={"auto": None, "on": True, "off": False}[args.split_cells])
     cfg = base.for_budget(n, int(np.prod(f.shape_xyz)), dev)
-    mono = Refiner(dv, np.asarray(params, np.float32), cfg, 0, a.scale_min, a.resolved_cap(f.shape_xyz))
-    samples_rows("monolithic", mono, list(f.shape_xyz))
-    del mono, dv
+    if not args.waves_only:
+        mono = Refiner(dv, np.asarray(params, np.float32), cfg, 0, a.scale_min, a.resolved_cap(f.shape_xyz))
+        samples_rows("monolithic", mono, list(f.shape_xyz))
+        del mono
+    del dv
     for bricks in filter(None, args.bricks.split(",")):
         alloc = AllocationConfig(scale_cap=bp.brick_cap(a.resolved_cap(f.shape_xyz), f.shape_xyz, n))
         plan = bp.plan_bricks(f.shape_xyz, bp.parse_bricks(bricks), bp.default_halo(alloc.scale_cap))
         _, stats = bp.split_bricks(f, plan, n)
         tasks = wb.brick_tasks(f, plan, stats, 0, alloc, base, dev, n)
-        wave = [t.index for t in tasks if wb.brick_colour(t.brick) == 0]
-        batch = wb.wave_tasks(tasks, {}, wave)
-        first = brick_refiner(batch[0], dev)
-        samples_rows(f"brick of {bricks}", first, [hi - lo for lo, hi in batch[0].brick.box])
-        del first
+        with wb.schedule(not args.together):
+            wave = [t.index for t in tasks if wb.brick_wave(t.brick) == 0]
+            batch = wb.wave_tasks(tasks, {}, wave)
+        if not args.waves_only:
+            first = brick_refiner(batch[0], dev)
+            samples_rows(f"brick of {bricks}", first, [hi - lo for lo, hi in batch[0].brick.box])
+            del first
         cuda = wp.get_device(dev).is_cuda
         streams = [wp.Stream(dev) if cuda else None for _ in batch]
         refiners = []
@@ -137,6 +143,8 @@ def main(argv=None) -> dict:
         side = ms_per_step(wp, dev, [on(r, s) for r, s in zip(refiners, streams)], args.steps)
         row = {
             "bricks": bricks,
+            "together": args.together,
+            "forward_pass": refiners[0].forward_pass,
             "wave_bricks": len(batch),
             "samples": [t.refine.samples for t in batch],
             "one_after_another_ms": serial,
