@@ -465,16 +465,32 @@ def _pending_regions(brick: Brick, others: list[Brick]) -> tuple:
     return tuple(out)
 
 
+# The forward pass of a brick that steps beside others (a wave of more than one brick), unless the
+# settings name one: the split pass fills an idle GPU (one thread per point and neighbour cell) and
+# is the faster for a brick alone, but beside other bricks its extra work only competes. Measured
+# (one H200, 512^3, N 400,000, bricks started together, benchmarks/bricked/profile_wave.py
+# --together, results/bricked/profile_wave_512_together_*_h200.json): 8 bricks of 2x2x2 side by
+# side 21.7 ms a round split against 11.5 point-major (vortex), 13.5 against 8.5 (interface); 64 of
+# 4x4x4 36.3 against 35.5. A function of the bricking alone (the wave's size), not of the workers,
+# so that one GPU and several give the same model.
+SIDE_BY_SIDE_SPLIT = False
+
+
 def wave_tasks(tasks: list[BrickTask], finished: dict[int, np.ndarray], wave: list[int]) -> list[BrickTask]:
     """This wave's tasks, given the finished bricks' primitives (volume coordinates, by index): each
-    with the finished primitives that reach its box frozen and the rest of its neighbours pending."""
+    with the finished primitives that reach its box frozen and the rest of its neighbours pending,
+    and, in a wave of several bricks, the forward pass :data:`SIDE_BY_SIDE_SPLIT` names (where
+    the settings leave it to the refiner)."""
     # in brick order, whatever order the bricks finished in (the frozen rows' order is part of the result)
     done = np.concatenate([finished[i] for i in sorted(finished)]) if finished else np.zeros((0, 12), np.float32)
     out = []
     for i in wave:
         t = tasks[i]
         others = [u.brick for u in tasks if u.index != i and u.index not in finished]
-        out.append(dataclasses.replace(t, frozen=_reaching(done, t.brick), pending=_pending_regions(t.brick, others)))
+        refine = t.refine
+        if len(wave) > 1 and refine.split_cells is None:
+            refine = dataclasses.replace(refine, split_cells=SIDE_BY_SIDE_SPLIT)
+        out.append(dataclasses.replace(t, frozen=_reaching(done, t.brick), pending=_pending_regions(t.brick, others), refine=refine))
     return out
 
 
@@ -525,8 +541,11 @@ def run_bricks(
 # benchmarks/results/bricked/): the 8 bricks of a 4x4x4 wave took 5.0 ms a round side by side
 # against 7.6 one after another when stepped alone, about 6.3 inside the encode; a wave of one
 # brick (2x2x2) gains nothing. The split forward pass fills the GPU with 27 L threads a sample, so
-# streams overlap only what it leaves idle.
-MAX_AT_ONCE = 8
+# streams overlap only what it leaves idle. With the point-major pass for bricks side by side
+# (SIDE_BY_SIDE_SPLIT) and every brick started at once (profile_wave.py --together): 64 bricks of
+# 4x4x4 side by side 35.5 ms a round (0.55 ms a brick's step), where 8 at a time took 0.91 ms a
+# brick's step inside the encode (one_gpu_512_together_pm_h200.json).
+MAX_AT_ONCE = 32
 
 
 def bricks_at_once(tasks: list[BrickTask], device: str, limit: int | None) -> int:

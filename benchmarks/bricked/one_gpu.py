@@ -141,8 +141,9 @@ def main(argv=None) -> dict:
                 models = {}
                 modes = ([] if args.no_waves else ["side by side"]) + (["serial"] if args.serial else [])
                 modes += [f"together {x}" for x in filter(None, args.together.split(","))]
+                most = wb.MAX_AT_ONCE
                 for mode in modes:
-                    wb.MAX_AT_ONCE = 1 if mode == "serial" else 8
+                    wb.MAX_AT_ONCE = 1 if mode == "serial" else most
                     together = mode.startswith("together")
                     t = time.perf_counter()
                     with wb.schedule(not together, float(mode.split()[1]) if together else 0.0):
@@ -175,7 +176,7 @@ def main(argv=None) -> dict:
                     result["rows"].append(row)
                     print(row, flush=True)
                     args.out.write_text(json.dumps(result, indent=1))
-                wb.MAX_AT_ONCE = 8
+                wb.MAX_AT_ONCE = most
             del v, f
     args.out.write_text(json.dumps(result, indent=1))
     print(f"wrote {args.out}")
