@@ -179,6 +179,8 @@ def test_a_wave_sees_its_finished_neighbours_frozen_and_stand_ins_for_the_rest()
     done = {0: np.array([[2.0, 5.0, 5.0, ln2, ln2, ln2, 1, 0, 0, 0, 0.5, 0.5], [1.0, 1.0, 1.0, 0, 0, 0, 1, 0, 0, 0, 0.5, 0.5]], np.float32)}
     second = wave_tasks(tasks, done, [1])[0]  # brick 1 (x 10..20, box from 8): only the first reaches it (2 + 10 >= 7.5 > 1 + 5)
     assert len(second.frozen) == 1 and len(second.pending) == 2
+    assert not first.beside and not second.beside  # a brick alone on its device keeps the split pass's dense rule
+    assert all(t.beside for t in wave_tasks(tasks, {}, [0, 1]))  # bricks side by side drop it (SIDE_BY_SIDE_SPLIT)
     x0 = second.brick.box[2][0]
     assert second.frozen[0, 0] == pytest.approx(2.0 - x0)  # box coordinates
     r = run_bricks(tasks)

@@ -616,6 +616,8 @@ def test_the_forward_pass_is_chosen_by_the_points_an_iteration(cpu):
     assert picks_split(True, SPLIT_MAX_POINTS + 1, SPLIT_DENSE_PRIMITIVES)  # a dense model keeps it longer
     assert not picks_split(True, SPLIT_DENSE_POINTS, SPLIT_DENSE_PRIMITIVES)
     assert not picks_split(False, 16, SPLIT_DENSE_PRIMITIVES)
+    assert not picks_split(True, SPLIT_MAX_POINTS + 1, SPLIT_DENSE_PRIMITIVES, dense_rule=False)  # beside other bricks
+    assert picks_split(True, SPLIT_MAX_POINTS, SPLIT_DENSE_PRIMITIVES, dense_rule=False)
     auto, _, _ = _toy(cpu, iterations=1)
     assert auto.cfg.split_cells is None and not auto.split
     forced, _, _ = _toy(cpu, iterations=1, split_cells=True)

@@ -128,6 +128,7 @@ class BrickTask:
     frozen: np.ndarray | None = None
     pending: tuple = ()
     volume: tuple | None = None  # (values, mask or None) of the whole volume, read box by box
+    beside: bool = False  # steps beside other bricks (a wave of several): see SIDE_BY_SIDE_SPLIT
 
     def box_arrays(self) -> tuple[np.ndarray, np.ndarray | None]:
         """The brick's box: normalised values and validity (read now from ``volume``)."""
@@ -275,6 +276,7 @@ def brick_refiner(task: BrickTask, dev: str):
         task.allocation.scale_min,
         task.allocation.resolved_cap(f.shape_xyz),  # set by the bricked driver (brick_cap)
         frozen=len(frozen),
+        split_dense=SIDE_BY_SIDE_SPLIT or not task.beside,
     )
     return params, refiner, k
 
@@ -465,32 +467,31 @@ def _pending_regions(brick: Brick, others: list[Brick]) -> tuple:
     return tuple(out)
 
 
-# The forward pass of a brick that steps beside others (a wave of more than one brick), unless the
-# settings name one: the split pass fills an idle GPU (one thread per point and neighbour cell) and
-# is the faster for a brick alone, but beside other bricks its extra work only competes. Measured
-# (one H200, 512^3, N 400,000, bricks started together, benchmarks/bricked/profile_wave.py
-# --together, results/bricked/profile_wave_512_together_*_h200.json): 8 bricks of 2x2x2 side by
-# side 21.7 ms a round split against 11.5 point-major (vortex), 13.5 against 8.5 (interface); 64 of
-# 4x4x4 36.3 against 35.5. A function of the bricking alone (the wave's size), not of the workers,
-# so that one GPU and several give the same model.
+# Bricks that step beside others (a wave of more than one brick) drop the split forward pass's rule
+# for dense models (SIDE_BY_SIDE_SPLIT False; the split pass stays up to SPLIT_MAX_POINTS points an
+# iteration, where the settings leave the pass to the refiner): beside other bricks the split
+# pass's extra work competes where alone it fills an idle GPU. Measured (H200, bricks started
+# together, benchmarks/bricked/profile_wave.py --together, results/bricked/profile_wave_*_together_*):
+# 512^3 N 400,000, 8 bricks of 2x2x2 (40,178 points, 72k primitives each) side by side 21.7 ms a
+# round split against 11.5 point-major (vortex), 13.5 against 8.5 (interface); 64 bricks of 4x4x4
+# (6-9k points) 36.3 against 35.5; 1024^3 N 1,000,000, 64 bricks of 4x4x4 (5-7k points) 32.6
+# against 36.8, and the waves of 8 slower with point-major (multi_gpu1024_together_h200x2.json:
+# 167 s against 122-151 s in earlier runs). A function of the bricking alone (the wave's size),
+# not of the workers, so that one GPU and several give the same model.
 SIDE_BY_SIDE_SPLIT = False
 
 
 def wave_tasks(tasks: list[BrickTask], finished: dict[int, np.ndarray], wave: list[int]) -> list[BrickTask]:
     """This wave's tasks, given the finished bricks' primitives (volume coordinates, by index): each
     with the finished primitives that reach its box frozen and the rest of its neighbours pending,
-    and, in a wave of several bricks, the forward pass :data:`SIDE_BY_SIDE_SPLIT` names (where
-    the settings leave it to the refiner)."""
+    and whether it steps beside others (a wave of several bricks; :data:`SIDE_BY_SIDE_SPLIT`)."""
     # in brick order, whatever order the bricks finished in (the frozen rows' order is part of the result)
     done = np.concatenate([finished[i] for i in sorted(finished)]) if finished else np.zeros((0, 12), np.float32)
     out = []
     for i in wave:
         t = tasks[i]
         others = [u.brick for u in tasks if u.index != i and u.index not in finished]
-        refine = t.refine
-        if len(wave) > 1 and refine.split_cells is None:
-            refine = dataclasses.replace(refine, split_cells=SIDE_BY_SIDE_SPLIT)
-        out.append(dataclasses.replace(t, frozen=_reaching(done, t.brick), pending=_pending_regions(t.brick, others), refine=refine))
+        out.append(dataclasses.replace(t, frozen=_reaching(done, t.brick), pending=_pending_regions(t.brick, others), beside=len(wave) > 1))
     return out
 
 

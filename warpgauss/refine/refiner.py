@@ -96,7 +96,15 @@ class Refiner:
     """
 
     def __init__(
-        self, dv: DeviceVolume, params: np.ndarray, config: RefineConfig, seed: int, scale_min: float, scale_cap: float, frozen: int = 0
+        self,
+        dv: DeviceVolume,
+        params: np.ndarray,
+        config: RefineConfig,
+        seed: int,
+        scale_min: float,
+        scale_cap: float,
+        frozen: int = 0,
+        split_dense: bool = True,
     ):
         wp = self._wp = warp()
         load_kernels(dv.device)
@@ -113,6 +121,7 @@ class Refiner:
         )
         # split_cells None: the forward pass is re-chosen by the points an iteration in set_samples
         self._split_cuda = wp.get_device(dev).is_cuda if config.split_cells is None else None
+        self._split_dense = bool(split_dense)  # False: a refiner stepping beside others (picks_split)
         # partners serve only the smoothness term: with its weight 0 they are not evaluated
         self.passes = PairPasses(self.state, self.sampler, dv.field.shape_xyz, bool(config.split_cells), config.weights.smooth > 0)
         self.updater = Update(self.state, dv, config, self.quant)
@@ -207,7 +216,7 @@ class Refiner:
             self.cfg = dataclasses.replace(self.cfg, samples=m)
         self.sampler.resize(m)
         if self._split_cuda is not None:
-            self.passes.split = picks_split(self._split_cuda, self.passes.n_points, self.n)
+            self.passes.split = picks_split(self._split_cuda, self.passes.n_points, self.n, self._split_dense)
         self.passes.resize()
         self._graph = None
 
