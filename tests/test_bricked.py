@@ -460,3 +460,38 @@ def test_a_joint_refit_of_the_seams_moves_only_the_primitives_near_the_faces(mon
     assert a.n == plain.n
     np.testing.assert_array_equal(a.params[~rows], plain.params[~rows])
     assert not np.array_equal(a.params[rows], plain.params[rows])
+
+
+def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volume(monkeypatch):
+    """bricked.choose_schedule: with nothing set, every brick at once and the seams refit on a GPU
+    of this process that holds the whole volume for the refit; the waves on the CPU, on a
+    cluster, for a volume read brick by brick, without refinement or where the device is too
+    small; NEIGHBOURS_FIRST and SEAM_REFIT, where set, decide."""
+    import types
+
+    import warpgauss._warp as ww
+    import warpgauss.bricked as wb
+
+    shape, n = (64, 64, 64), 4000
+    cpu = wb.choose_schedule("cpu", None, False, shape, n, 100, None)
+    assert not cpu.together and cpu.seam_refit == 0.0 and "CPU" in cpu.why
+    real = ww.warp()
+    fake = types.SimpleNamespace(get_device=lambda d: types.SimpleNamespace(is_cuda=True))
+    monkeypatch.setattr(ww, "warp", lambda: fake)
+    need = wb.brick_device_bytes(64**3, 1.5 * n)
+    gpu = wb.choose_schedule("cuda:0", None, False, shape, n, 100, need)
+    assert gpu.together and gpu.seam_refit == wb.TOGETHER_SEAM_REFIT and gpu.report()["waves"] == "together"
+    small = wb.choose_schedule("cuda:0", None, False, shape, n, 100, need - 1)
+    assert not small.together and small.seam_refit == 0.0 and "GiB" in small.why
+    assert not wb.choose_schedule("cuda:0", object(), False, shape, n, 100, need).together  # a cluster
+    assert not wb.choose_schedule("cuda:0", None, True, shape, n, 100, need).together  # read brick by brick
+    assert not wb.choose_schedule("cuda:0", None, False, shape, n, 0, need).together  # no refinement
+    monkeypatch.setattr(ww, "warp", lambda: real)
+    with wb.schedule(False, None):
+        set_ = wb.choose_schedule("cpu", None, False, shape, n, 100, None)
+        assert set_.together and set_.seam_refit == wb.TOGETHER_SEAM_REFIT and "set" in set_.why
+    with wb.schedule(True, 0.5):
+        assert wb.choose_schedule("cpu", None, False, shape, n, 100, None) == wb.Schedule(False, 0.5, "set (bricked.NEIGHBOURS_FIRST)")
+    assert wb.NEIGHBOURS_FIRST is None and wb.SEAM_REFIT is None  # restored
+    m = warpgauss.encode(generate("vortex", 20), budget=150, bricks="2x1x1", halo=2, **FAST)
+    assert m.report["bricking"]["schedule"] == {"waves": "neighbours first", "seam_refit_share": 0.0, "why": cpu.why}

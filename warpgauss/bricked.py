@@ -303,40 +303,96 @@ def brick_colour(b: Brick) -> int:
 # True: a brick waits for its finished neighbours (the waves of brick_colour, up to 8, each brick
 # refined beside the primitives its finished neighbours left in its box). False: every brick starts
 # at once, with stand-ins for all its neighbours (what the first wave does), so that a GPU steps
-# them side by side: a 2x2x2 bricking is otherwise 8 waves of one brick. Stand-ins do not do the
-# frozen neighbours' work: 2x2x2 at 48^3 on the CPU (benchmarks/bricked/seam_cpu.py --together,
-# results/bricked/seam_together_cpu.json) lost 10.5 / 9.7 dB on the vortex (halo 6 / 8; 14.4 dB at
-# the seams) and 3.0 / 2.4 dB on the interface against the waves. Kept for that measurement.
-NEIGHBOURS_FIRST = True
+# them side by side (a 2x2x2 bricking is otherwise 8 waves of one brick), and the seams are then
+# refit together (SEAM_REFIT). None (the default): :func:`choose_schedule` decides per encode.
+# Stand-ins alone do not do the frozen neighbours' work: 2x2x2 at 48^3 on the CPU
+# (benchmarks/bricked/seam_cpu.py --together, results/bricked/seam_together_cpu.json) lost 10.5 /
+# 9.7 dB on the vortex and 3.0 / 2.4 dB on the interface against the waves without a refit.
+NEIGHBOURS_FIRST: bool | None = None
 
 
-def brick_wave(b: Brick) -> int:
-    """The wave the brick runs in: its :func:`brick_colour`, or 0 for every brick without
-    :data:`NEIGHBOURS_FIRST`."""
-    return brick_colour(b) if NEIGHBOURS_FIRST else 0
+def brick_wave(b: Brick, together: bool | None = None) -> int:
+    """The wave the brick runs in: its :func:`brick_colour`, or 0 for every brick when the bricks
+    start ``together`` (None: :data:`NEIGHBOURS_FIRST` is False)."""
+    together = NEIGHBOURS_FIRST is False if together is None else together
+    return 0 if together else brick_colour(b)
 
 
-# A joint refit of the seams after the bricks (off: 0): this share of the iterations, the primitives
+# A joint refit of the seams after the bricks: this share of the iterations, the primitives
 # whose 3-sigma box comes within SEAM_BAND voxels of an inner face refined together over the whole
 # grid, every other primitive frozen, at SEAM_LR x the learning rate. It needs the whole volume on
-# one device. For bricks started at once (NEIGHBOURS_FIRST False), CPU at 96^3, N 12,000
+# one device. None (the default): TOGETHER_SEAM_REFIT for bricks started together, none after the
+# waves. For bricks started at once, CPU at 96^3, N 12,000
 # (benchmarks/bricked/seam_refit_cpu.py, results/bricked/seam_refit96*_cpu.json; full-grid PSNR,
 # waves 53.47 / 37.30 dB on vortex / interface, together without refit 47.39 / 35.62): 0.25 at
 # 0.3x 52.54 / 37.24, 0.5 at 1x 52.55 / 37.27, 0.25 at 1x 48.74 / 35.12, 0.1 at 0.3x 50.15 / 36.32;
 # at 128^3, N 28,000, 0.25 at 0.3x: 50.85 / 36.81 against the waves' 51.88 / 36.24; 0.5 at 0.3x
 # 52.29 on the vortex (0.5 at 1x: 50.14).
-SEAM_REFIT = 0.0
+SEAM_REFIT: float | None = None
 SEAM_BAND = 2.0
 SEAM_LR = 0.3
+# One H200, format full, N 400,000 at 512^3 and 1,400,000 at 1024^3, against the monolithic encode
+# of the same run (benchmarks/bricked/one_gpu.py --together 0.25, results/bricked/one_gpu_*together*_h200.json):
+# 512^3 2x2x2 vortex +0.32 dB in 1.64x its time, interface +0.83 dB in 1.71x (the waves: -0.23 /
+# +0.02 dB in 2.67x / 2.59x); 4x4x4 +0.37 / +0.50 dB in 4.08x / 3.87x (the waves, an earlier run:
+# -1.11 / -0.90 dB in 5.11x / 4.38x); 1024^3 2x2x2 +0.00 / +2.13 dB in 1.86x / 2.00x; half the
+# iterations: +0.58 / +1.52 dB at 512^3 2x2x2 in 2.56x / 2.16x (split forward pass).
+TOGETHER_SEAM_REFIT = 0.25
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """How an encode runs its bricks: ``together`` (every brick at once) or in waves, the share of
+    the iterations the seams are then refit for (0: none), and why."""
+
+    together: bool
+    seam_refit: float
+    why: str
+
+    def report(self) -> dict:
+        return {"waves": "together" if self.together else "neighbours first", "seam_refit_share": self.seam_refit, "why": self.why}
+
+
+def choose_schedule(device: str, client, lazy: bool, shape_xyz, n: int, iterations: int, limit: int | None) -> Schedule:
+    """The bricks' :class:`Schedule`: :data:`NEIGHBOURS_FIRST` and :data:`SEAM_REFIT` where set;
+    otherwise every brick at once and the seams refit (:data:`TOGETHER_SEAM_REFIT`) in this
+    process on a GPU whose ``limit`` (default :func:`default_device_limit`) holds the whole volume
+    for the refit, and the waves everywhere else: on the CPU (bricks step one at a time there,
+    so starting them together buys no time, and at 96-128^3 it cost 0.9-1.0 dB on the vortex),
+    on a Dask cluster (measured with the waves; bit for bit the same model on any number of
+    workers either way), for a volume read brick by brick (the refit needs it whole), without
+    refinement."""
+    from ._warp import warp
+
+    if NEIGHBOURS_FIRST is not None:
+        together, why = not NEIGHBOURS_FIRST, "set (bricked.NEIGHBOURS_FIRST)"
+    elif iterations <= 0:
+        together, why = False, "no refinement"
+    elif lazy:
+        together, why = False, "the volume is read brick by brick (the seams' refit needs it whole on one device)"
+    elif client is not None:
+        together, why = False, "a Dask cluster"
+    elif not warp().get_device(device).is_cuda:
+        together, why = False, "the CPU steps bricks one at a time"
+    else:
+        limit = default_device_limit(device) if limit is None else limit
+        need = brick_device_bytes(int(np.prod(shape_xyz)), 1.5 * n)
+        together = limit is None or need <= limit
+        why = "one GPU that holds the whole volume for the seams' refit"
+        if limit is not None and not together:
+            why = f"the seams' refit would need about {need / 2**30:.1f} GiB of the device, {limit / 2**30:.1f} GiB allowed"
+    share = (TOGETHER_SEAM_REFIT if together else 0.0) if SEAM_REFIT is None else float(SEAM_REFIT)
+    return Schedule(together, share, why)
 
 
 @contextlib.contextmanager
-def schedule(neighbours_first: bool = True, seam_refit: float = 0.0) -> Iterator[None]:
+def schedule(neighbours_first: bool | None = True, seam_refit: float | None = 0.0) -> Iterator[None]:
     """:data:`NEIGHBOURS_FIRST` and :data:`SEAM_REFIT` set for a block (the benchmarks that
-    compare the schedules), the values before it restored after it."""
+    compare the schedules; None: the default rule), the values before it restored after it."""
     global NEIGHBOURS_FIRST, SEAM_REFIT
     saved = NEIGHBOURS_FIRST, SEAM_REFIT
-    NEIGHBOURS_FIRST, SEAM_REFIT = bool(neighbours_first), float(seam_refit)
+    NEIGHBOURS_FIRST = None if neighbours_first is None else bool(neighbours_first)
+    SEAM_REFIT = None if seam_refit is None else float(seam_refit)
     try:
         yield
     finally:
@@ -503,6 +559,7 @@ def run_bricks(
     at_once: int | None = None,
     limit: int | None = None,
     waves_out: list[dict] | None = None,
+    together: bool | None = None,
 ) -> list[dict]:
     """Every brick's result, in brick order, wave by wave (:func:`brick_wave`): in this process
     (``client`` None), the bricks of a wave stepping side by side on the device (``at_once`` of
@@ -511,10 +568,11 @@ def run_bricks(
     retried once and one that fails twice fails the run. ``fn``: what runs one task (tests inject
     failures; a task at a time then). ``waves_out``: a list that gets each wave's timing (its wall
     seconds here, and the longest time a process spent on its bricks: the difference is what
-    reaching the workers cost)."""
+    reaching the workers cost). ``together``: every brick in one wave (None: as
+    :data:`NEIGHBOURS_FIRST` says)."""
     waves: dict[int, list[int]] = {}
     for t in tasks:
-        waves.setdefault(brick_wave(t.brick), []).append(t.index)
+        waves.setdefault(brick_wave(t.brick, together), []).append(t.index)
     finished: dict[int, np.ndarray] = {}
     results: dict[int, dict] = {}
     for colour in sorted(waves):

@@ -92,15 +92,16 @@ def encode_bricked(
             elif why is not None:
                 sharing = f"the boxes in the task graph ({why})"
         tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n, volume=volume)
+        order = wb.choose_schedule(dev, client, is_lazy(f.values), f.shape_xyz, n, opts.refine.iterations, max_device_memory)
         t0 = time.perf_counter()
         with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
-            results = run_bricks(tasks, client, on_progress, limit=max_device_memory, waves_out=waves)
+            results = run_bricks(tasks, client, on_progress, limit=max_device_memory, waves_out=waves, together=order.together)
         wall = time.perf_counter() - t0
     params = np.concatenate([r["params"] for r in results]) if results else np.zeros((0, 12), np.float32)
-    seams = None  # a joint refit of the seams (bricked.SEAM_REFIT; the whole volume on one device)
-    if wb.SEAM_REFIT > 0 and opts.refine.iterations > 0 and len(params) and not is_lazy(f.values):
+    seams = None  # a joint refit of the seams (the schedule's share; the whole volume on one device)
+    if order.seam_refit > 0 and opts.refine.iterations > 0 and len(params) and not is_lazy(f.values):
         with timer.stage("S2s", "joint refit of the seams"):
-            params, seams = refit_seams(f, plan, params, opts.refine, allocation, brick_seed(opts.seed, len(plan)), dev, wb.SEAM_REFIT)
+            params, seams = refit_seams(f, plan, params, opts.refine, allocation, brick_seed(opts.seed, len(plan)), dev, order.seam_refit)
     merged = Model(params, header)
     merged.coded_bits = None if sizing is None else sizing["bits"]
     fit = None
@@ -144,6 +145,7 @@ def encode_bricked(
             "scheduler": "this process" if client is None else str(client.scheduler.address),
             "wall_seconds": wall,
             "volume_to_workers": sharing,
+            "schedule": order.report(),
             "waves": waves,
             "seam_refit": seams,
             "workers": _workers(results),
