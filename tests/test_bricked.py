@@ -491,7 +491,7 @@ def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volu
         set_ = wb.choose_schedule("cpu", None, False, shape, n, 100, None)
         assert set_.together and set_.seam_refit == wb.TOGETHER_SEAM_REFIT and "set" in set_.why
     with wb.schedule(True, 0.5):
-        assert wb.choose_schedule("cpu", None, False, shape, n, 100, None) == wb.Schedule(False, 0.5, "set (bricked.NEIGHBOURS_FIRST)")
+        assert wb.choose_schedule("cpu", None, False, shape, n, 100, None) == wb.BrickSchedule(False, 0.5, "set (bricked.NEIGHBOURS_FIRST)")
     assert wb.NEIGHBOURS_FIRST is None and wb.SEAM_REFIT is None  # restored
     m = warpgauss.encode(generate("vortex", 20), budget=150, bricks="2x1x1", halo=2, **FAST)
     assert m.report["bricking"]["schedule"] == {"waves": "neighbours first", "seam_refit_share": 0.0, "why": cpu.why}

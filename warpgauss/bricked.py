@@ -189,6 +189,14 @@ def encode_bricks(tasks: list[BrickTask], at_once: int | None = None, limit: int
     return [r | facts for r in out]
 
 
+def prepare_brick(task: BrickTask) -> tuple[Field, BrickFields]:
+    """A brick's host work before its device work: its box (read or copied) as a :class:`Field`
+    and its :class:`BrickFields` (a pure function of the task: any thread may run it)."""
+    values, valid = task.box_arrays()
+    f = Field(values, valid, **task.field_meta)
+    return f, brick_fields(f, dataclasses.replace(task.brick, interior=_local(task.brick), box=_whole(task.brick)), task.pending)
+
+
 def _group_facts(dev: str, seconds: float, at_once: int) -> dict:
     """What a group of bricks reports of the process that ran it: bricks at once, the group's
     seconds, the process (a Dask worker's name, else "this process") and its high-water marks of
@@ -252,9 +260,7 @@ def brick_refiner(task: BrickTask, dev: str):
     from .analysis import DeviceVolume
     from .profiling import StageRecorder
 
-    values, valid = task.box_arrays()
-    f = Field(values, valid, **task.field_meta)
-    fields = brick_fields(f, dataclasses.replace(task.brick, interior=_local(task.brick), box=_whole(task.brick)), task.pending)
+    f, fields = prepare_brick(task)
     params, _ = allocate(DeviceVolume(fields.interior, dev), task.n, task.seed, task.allocation, StageRecorder())
     if task.refine.iterations <= 0:
         return params, None, 0
@@ -341,7 +347,7 @@ TOGETHER_SEAM_REFIT = 0.25
 
 
 @dataclass(frozen=True)
-class Schedule:
+class BrickSchedule:
     """How an encode runs its bricks: ``together`` (every brick at once) or in waves, the share of
     the iterations the seams are then refit for (0: none), and why."""
 
@@ -353,8 +359,8 @@ class Schedule:
         return {"waves": "together" if self.together else "neighbours first", "seam_refit_share": self.seam_refit, "why": self.why}
 
 
-def choose_schedule(device: str, client, lazy: bool, shape_xyz, n: int, iterations: int, limit: int | None) -> Schedule:
-    """The bricks' :class:`Schedule`: :data:`NEIGHBOURS_FIRST` and :data:`SEAM_REFIT` where set;
+def choose_schedule(device: str, client, lazy: bool, shape_xyz, n: int, iterations: int, limit: int | None) -> BrickSchedule:
+    """The bricks' :class:`BrickSchedule`: :data:`NEIGHBOURS_FIRST` and :data:`SEAM_REFIT` where set;
     otherwise every brick at once and the seams refit (:data:`TOGETHER_SEAM_REFIT`) in this
     process on a GPU whose ``limit`` (default :func:`default_device_limit`) holds the whole volume
     for the refit, and the waves everywhere else: on the CPU (bricks step one at a time there,
@@ -382,7 +388,7 @@ def choose_schedule(device: str, client, lazy: bool, shape_xyz, n: int, iteratio
         if limit is not None and not together:
             why = f"the seams' refit would need about {need / 2**30:.1f} GiB of the device, {limit / 2**30:.1f} GiB allowed"
     share = (TOGETHER_SEAM_REFIT if together else 0.0) if SEAM_REFIT is None else float(SEAM_REFIT)
-    return Schedule(together, share, why)
+    return BrickSchedule(together, share, why)
 
 
 @contextlib.contextmanager
