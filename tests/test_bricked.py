@@ -460,6 +460,24 @@ def test_a_joint_refit_of_the_seams_moves_only_the_primitives_near_the_faces(mon
     assert a.n == plain.n
     np.testing.assert_array_equal(a.params[~rows], plain.params[~rows])
     assert not np.array_equal(a.params[rows], plain.params[rows])
+    from warpgauss.allocate import AllocationConfig
+    from warpgauss.analysis import DeviceVolume
+    from warpgauss.refine import RefineConfig
+
+    f = normalise(v)  # the field the coded path has already put on the device serves the refit as well
+    args = (
+        f,
+        plan_bricks(f.shape_xyz, (2, 1, 1), 2),
+        plain.params,
+        RefineConfig(iterations=8, samples=128),
+        AllocationConfig(),
+        3,
+        "cpu",
+        0.5,
+    )
+    fresh, _ = wb.refit_seams(*args)
+    given, _ = wb.refit_seams(*args, dv=DeviceVolume(f, "cpu"))
+    np.testing.assert_array_equal(fresh, given)
 
 
 def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volume(monkeypatch):

@@ -425,10 +425,12 @@ def refit_seams(
     seed: int,
     device: str,
     share: float,
+    dv=None,
 ) -> tuple[np.ndarray, dict]:
     """The merged bricks' ``params`` with the primitives near the inner faces (:func:`seam_rows`)
     refined together for ``share`` x ``refine.iterations`` over the whole field (``seed``: the
-    refinement's), the others frozen; the same rows in the same order, and what was done."""
+    refinement's), the others frozen; the same rows in the same order, and what was done. ``dv``:
+    the field already on ``device`` (a :class:`~warpgauss.analysis.DeviceVolume`; None: put there)."""
     from .analysis import DeviceVolume
     from .refine import Refiner, load_kernels
 
@@ -442,7 +444,7 @@ def refit_seams(
     train, frozen = params[rows], params[~rows]
     t0 = time.perf_counter()
     r = Refiner(
-        DeviceVolume(f, device),
+        DeviceVolume(f, device) if dv is None else dv,
         np.concatenate([train, frozen]),
         cfg,
         seed,
