@@ -608,10 +608,11 @@ def run_bricks(
 # benchmarks/results/bricked/): the 8 bricks of a 4x4x4 wave took 5.0 ms a round side by side
 # against 7.6 one after another when stepped alone, about 6.3 inside the encode; a wave of one
 # brick (2x2x2) gains nothing. The split forward pass fills the GPU with 27 L threads a sample, so
-# streams overlap only what it leaves idle. With the point-major pass for bricks side by side
-# (SIDE_BY_SIDE_SPLIT) and every brick started at once (profile_wave.py --together): 64 bricks of
-# 4x4x4 side by side 35.5 ms a round (0.55 ms a brick's step), where 8 at a time took 0.91 ms a
-# brick's step inside the encode (one_gpu_512_together_pm_h200.json).
+# streams overlap only what it leaves idle. Every brick started at once (profile_wave.py
+# --together): 64 bricks of 4x4x4 side by side 35.5-36.3 ms a round (0.55 ms a brick's step), where
+# 8 at a time took 0.91 ms a brick's step inside the encode; the encode with up to 32 at once took
+# 85.1 s against 95.6 s with 8 (vortex 512^3; one_gpu_512_together44_h200.json, split pass, against
+# one_gpu_512_together_pm_h200.json, point-major).
 MAX_AT_ONCE = 32
 
 

@@ -37,8 +37,8 @@ SPLIT_DENSE_PRIMITIVES = 50_000
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
     """The forward pass ``RefineConfig.split_cells`` None picks: split on CUDA up to
-    :data:`SPLIT_MAX_POINTS` points an iteration, and (``dense_rule``: ``RefineConfig.split_dense``)
-    below :data:`SPLIT_DENSE_POINTS` for :data:`SPLIT_DENSE_PRIMITIVES` primitives or more;
+    :data:`SPLIT_MAX_POINTS` points an iteration, and (``dense_rule``; a refiner stepping beside
+    others drops it, ``Refiner(split_dense=False)``) below :data:`SPLIT_DENSE_POINTS` for :data:`SPLIT_DENSE_PRIMITIVES` primitives or more;
     point-major otherwise."""
     n_points = int(n_points)
     dense = dense_rule and n_points < SPLIT_DENSE_POINTS and int(n_primitives) >= SPLIT_DENSE_PRIMITIVES
