@@ -101,7 +101,9 @@ def encode_bricked(
     seams = None  # a joint refit of the seams (the schedule's share; the whole volume on one device)
     if order.seam_refit > 0 and opts.refine.iterations > 0 and len(params) and not is_lazy(f.values):
         with timer.stage("S2s", "joint refit of the seams"):
-            params, seams = refit_seams(f, plan, params, opts.refine, allocation, brick_seed(opts.seed, len(plan)), dev, order.seam_refit, dv=dv)
+            params, seams = refit_seams(
+                f, plan, params, opts.refine, allocation, brick_seed(opts.seed, len(plan)), dev, order.seam_refit, dv=dv
+            )
     merged = Model(params, header)
     merged.coded_bits = None if sizing is None else sizing["bits"]
     fit = None
