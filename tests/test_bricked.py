@@ -464,6 +464,7 @@ def test_a_joint_refit_of_the_seams_moves_only_the_primitives_near_the_faces(mon
     from warpgauss.analysis import DeviceVolume
     from warpgauss.refine import RefineConfig
 
+    monkeypatch.setattr(wb, "SEAM_SAMPLES_BAND", False)  # over the whole grid (the default): the device's copy of the field serves
     f = normalise(v)  # the field the coded path has already put on the device serves the refit as well
     args = (
         f,
@@ -475,9 +476,14 @@ def test_a_joint_refit_of_the_seams_moves_only_the_primitives_near_the_faces(mon
         "cpu",
         0.5,
     )
-    fresh, _ = wb.refit_seams(*args)
+    fresh, grid = wb.refit_seams(*args)
     given, _ = wb.refit_seams(*args, dv=DeviceVolume(f, "cpu"))
     np.testing.assert_array_equal(fresh, given)
+    monkeypatch.setattr(wb, "SEAM_SAMPLES_BAND", True)  # samples only where a stepped primitive reaches
+    band, facts = wb.refit_seams(*args)
+    assert 0 < facts["sampled_share"] <= 1 and facts["samples"] <= grid["samples"]
+    np.testing.assert_array_equal(band[~rows], plain.params[~rows])
+    np.testing.assert_array_equal(band, wb.refit_seams(*args)[0])
 
 
 def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volume(monkeypatch):
@@ -513,3 +519,28 @@ def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volu
     assert wb.NEIGHBOURS_FIRST is None and wb.SEAM_REFIT is None  # restored
     m = warpgauss.encode(generate("vortex", 20), budget=150, bricks="2x1x1", halo=2, **FAST)
     assert m.report["bricking"]["schedule"] == {"waves": "neighbours first", "seam_refit_share": 0.0, "why": cpu.why}
+
+
+def test_the_seams_refit_samples_only_cells_a_stepped_primitive_reaches():
+    """bricked.seam_support: the cells (4^3) that some row's 3-sigma box overlaps, against a
+    voxel-by-voxel check of each box."""
+    from warpgauss.bricked import seam_support
+
+    shape = (21, 18, 13)  # x, y, z
+    rng = np.random.default_rng(3)
+    p = np.zeros((5, 12), np.float32)
+    p[:, 0], p[:, 1], p[:, 2] = rng.uniform(-2, 22, 5), rng.uniform(0, 17, 5), rng.uniform(0, 12, 5)
+    p[:, 3:6] = np.log(rng.uniform(0.2, 1.5, (5, 3)))
+    got = seam_support(p, shape, cell=4)
+    assert got.shape == (13, 18, 21) and got.dtype == bool
+    z, y, x = np.meshgrid(*(np.arange(n) for n in (13, 18, 21)), indexing="ij")
+    want = np.zeros(got.shape, bool)
+    for row in p:
+        r = 3.0 * np.exp(row[3:6].max())
+        box = np.ones(got.shape, bool)
+        for a, coord in zip(range(3), (x, y, z)):  # the cells the box's ends fall in, and those between
+            lo, hi = np.floor((row[a] - r + 0.5) / 4), np.floor((row[a] + r + 0.5) / 4)
+            box &= (coord // 4 >= lo) & (coord // 4 <= hi)
+        want |= box
+    np.testing.assert_array_equal(got, want)
+    assert not seam_support(p[:0], shape).any()

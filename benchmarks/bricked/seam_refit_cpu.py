@@ -52,6 +52,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--refit", default="0.1,0.25,0.5", help="refit iterations as shares of --iterations")
     ap.add_argument("--band", type=float, default=2.0)
     ap.add_argument("--lr", default="1", help="the refit's learning-rate scales (bricked.SEAM_LR), comma list")  # 1: the first runs
+    ap.add_argument(
+        "--samples-band",
+        default="0",
+        help="the refit's samples where its primitives reach (1) or over the grid (0), comma list (bricked.SEAM_SAMPLES_BAND)",
+    )
     ap.add_argument("--no-baselines", action="store_true", help="skip the monolithic and waves encodes")
     ap.add_argument("--fields", default="vortex,interface")
     ap.add_argument("--out", type=Path, required=True)
@@ -81,22 +86,28 @@ def main(argv=None) -> dict:
             row(label, np.asarray(m.params, np.float32), time.perf_counter() - t)
         together = np.asarray(m.params, np.float32)
         alloc = AllocationConfig(scale_cap=brick_cap(AllocationConfig().resolved_cap(f.shape_xyz), f.shape_xyz, args.budget))
-        saved = wb.SEAM_BAND, wb.SEAM_LR
+        saved = wb.SEAM_BAND, wb.SEAM_LR, wb.SEAM_SAMPLES_BAND
         wb.SEAM_BAND = args.band
-        for lr in (float(x) for x in args.lr.split(",")):
-            wb.SEAM_LR = lr
-            for share in (float(x) for x in args.refit.split(",")):
-                t = time.perf_counter()
-                refit, facts = wb.refit_seams(f, bricks, together, RefineConfig(iterations=args.iterations), alloc, 0, "cpu", share)
-                row(
-                    f"together + refit {share:g}" + (f" at {lr:g}x the rate" if lr != 1 else ""),
-                    refit,
-                    time.perf_counter() - t,
-                    refit_primitives=facts["primitives"],
-                    refit_iterations=facts["iterations"],
-                    lr_scale=lr,
-                )
-        wb.SEAM_BAND, wb.SEAM_LR = saved
+        for band in (bool(int(x)) for x in args.samples_band.split(",")):
+            wb.SEAM_SAMPLES_BAND = band
+            for lr in (float(x) for x in args.lr.split(",")):
+                wb.SEAM_LR = lr
+                for share in (float(x) for x in args.refit.split(",")):
+                    t = time.perf_counter()
+                    refit, facts = wb.refit_seams(f, bricks, together, RefineConfig(iterations=args.iterations), alloc, 0, "cpu", share)
+                    row(
+                        f"together + refit {share:g}"
+                        + (f" at {lr:g}x the rate" if lr != 1 else "")
+                        + (", samples where it reaches" if band else ""),
+                        refit,
+                        time.perf_counter() - t,
+                        refit_primitives=facts["primitives"],
+                        refit_iterations=facts["iterations"],
+                        refit_samples=facts.get("samples"),
+                        sampled_share=facts.get("sampled_share", 1.0),
+                        lr_scale=lr,
+                    )
+        wb.SEAM_BAND, wb.SEAM_LR, wb.SEAM_SAMPLES_BAND = saved
     args.out.write_text(json.dumps(out, indent=1))
     return out
 
