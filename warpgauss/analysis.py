@@ -439,7 +439,9 @@ def check_budget(f: Field, n: int, header_bytes: int, bytes_per_primitive: int =
 class DeviceVolume:
     """The normalised field and its validity mask resident on a Warp device."""
 
-    def __init__(self, f: Field, device: str):
+    def __init__(self, f: Field, device: str, same_values: DeviceVolume | None = None):
+        """``same_values``: a volume on ``device`` whose field holds the very same values array
+        (another mask over one box): its device values are shared, not copied again."""
         from ._warp import warp
 
         wp = warp()
@@ -447,7 +449,9 @@ class DeviceVolume:
         self.device = device
         self.values: Any
         self.mask: Any
-        if hasattr(f.values, "array"):  # normalised on a device (warpgauss.devicefield): used where it is
+        if same_values is not None and same_values.field.values is f.values and str(same_values.device) == str(device):
+            self.values = same_values.values
+        elif hasattr(f.values, "array"):  # normalised on a device (warpgauss.devicefield): used where it is
             self.values = _on(f.values.array, device)
         else:
             self.values = wp.array(f.values, dtype=float, device=device)

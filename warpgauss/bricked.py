@@ -261,7 +261,8 @@ def brick_refiner(task: BrickTask, dev: str):
     from .profiling import StageRecorder
 
     f, fields = prepare_brick(task)
-    params, _ = allocate(DeviceVolume(fields.interior, dev), task.n, task.seed, task.allocation, StageRecorder())
+    train = DeviceVolume(fields.train, dev)  # the box's values go to the device once, for all three masks
+    params, _ = allocate(DeviceVolume(fields.interior, dev, train), task.n, task.seed, task.allocation, StageRecorder())
     if task.refine.iterations <= 0:
         return params, None, 0
     from .refine import Refiner, load_kernels
@@ -269,13 +270,13 @@ def brick_refiner(task: BrickTask, dev: str):
     parts = [np.asarray(params, np.float32)]
     k = stand_in_count(fields, task.rates)
     if k:
-        stand_ins, _ = allocate(DeviceVolume(fields.halo, dev), k, task.seed + 1, task.allocation, StageRecorder())
+        stand_ins, _ = allocate(DeviceVolume(fields.halo, dev, train), k, task.seed + 1, task.allocation, StageRecorder())
         parts.append(np.asarray(stand_ins, np.float32))
     frozen = np.zeros((0, 12), np.float32) if task.frozen is None else task.frozen
     parts.append(frozen)
     load_kernels(dev)
     refiner = Refiner(
-        DeviceVolume(fields.train, dev),
+        train,
         np.concatenate(parts),
         task.refine,
         task.seed,
