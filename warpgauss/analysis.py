@@ -457,7 +457,11 @@ class DeviceVolume:
             self.values = wp.array(f.values, dtype=float, device=device)
         if f.mask is not None:
             m = f.mask
-            self.mask = _on(m.array, device) if hasattr(m, "array") else wp.array(m.astype(np.uint8), dtype=wp.uint8, device=device)
+            if hasattr(m, "array"):  # on a device already
+                self.mask = _on(m.array, device)
+            else:  # booleans are bytes already: viewed as uint8, not converted (a copy on the host)
+                host = np.ascontiguousarray(m).view(np.uint8) if m.dtype == np.bool_ else m.astype(np.uint8)
+                self.mask = wp.array(host, dtype=wp.uint8, device=device)
             self.has_mask = 1
         else:
             self.mask = wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)
