@@ -406,11 +406,18 @@ def schedule(neighbours_first: bool | None = True, seam_refit: float | None = 0.
         NEIGHBOURS_FIRST, SEAM_REFIT = saved
 
 
+def sigma_reach(params: np.ndarray, k: float) -> np.ndarray:
+    """``k`` times each row's largest sigma, in voxels (float64): the half-width of the isotropic
+    box :func:`seam_rows`, :func:`seam_support` and the frozen neighbours' selection use. Columns
+    3:6 hold log-sigmas, clamped as the field kernels clamp them."""
+    return k * np.exp(np.clip(params[:, 3:6].max(axis=1).astype(np.float64), -9.0, 12.0))
+
+
 def seam_rows(params: np.ndarray, bricks: list[Brick], shape_xyz, band: float | None = None) -> np.ndarray:
     """Which rows of ``params`` (volume coordinates) have a 3-sigma box within ``band`` (default
     :data:`SEAM_BAND`) voxels of an inner face of ``bricks`` (booleans)."""
     band = SEAM_BAND if band is None else float(band)
-    reach = 3.0 * np.exp(np.clip(params[:, 3:6].max(axis=1).astype(np.float64), -9.0, 12.0)) + band
+    reach = sigma_reach(params, 3.0) + band
     hit = np.zeros(len(params), bool)
     for axis, face in inner_faces(shape_xyz, bricks):  # mu columns are x, y, z; a face sits between voxels
         hit |= np.abs(params[:, 2 - axis].astype(np.float64) - (face - 0.5)) <= reach
@@ -434,7 +441,7 @@ def seam_support(params: np.ndarray, shape_xyz, cell: int = 4) -> np.ndarray:
     dims = np.array([-(-nx // cell), -(-ny // cell), -(-nz // cell)])
     if len(params) == 0:
         return np.zeros((nz, ny, nx), bool)
-    reach = 3.0 * np.exp(np.clip(params[:, 3:6].max(axis=1).astype(np.float64), -9.0, 12.0))
+    reach = sigma_reach(params, 3.0)
     mu = params[:, :3].astype(np.float64) + 0.5  # voxel i spans [i - 0.5, i + 0.5): cell of a point
     lo = np.clip(np.floor((mu - reach[:, None]) / cell).astype(np.int64), 0, dims - 1)
     hi = np.clip(np.floor((mu + reach[:, None]) / cell).astype(np.int64), 0, dims - 1) + 1
@@ -547,9 +554,8 @@ def _reaching(params: np.ndarray, brick: Brick) -> np.ndarray:
     coordinates."""
     if len(params) == 0:
         return params
-    # 5 sigma: columns 3:6 hold log-sigmas (clamped as the field kernels clamp them). Until
-    # 2026-11-27 this read 5 x log-sigma, which left out frozen neighbours that reach the box
-    ext = 5.0 * np.exp(np.clip(params[:, 3:6].max(axis=1).astype(np.float64), -9.0, 12.0))
+    # 5 sigma. Until 2026-11-27 this read 5 x log-sigma, which left out frozen neighbours that reach the box
+    ext = sigma_reach(params, 5.0)
     keep = np.ones(len(params), bool)
     for col, (lo, hi) in zip((2, 1, 0), brick.box):  # z, y, x box ranges against mu columns
         keep &= (params[:, col] + ext >= lo - 0.5) & (params[:, col] - ext <= hi - 0.5)

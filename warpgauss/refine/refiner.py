@@ -192,6 +192,8 @@ class Refiner:
             why = "the CPU"
         else:
             why = f"{self.n_points:,} points an iteration, {self.n:,} primitives on CUDA"
+            if not self._split_dense:
+                why += ", beside other refiners (no dense-model rule)"
         return f"{kind}: {why}"
 
     @property
