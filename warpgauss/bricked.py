@@ -250,41 +250,50 @@ def brick_job(task: BrickTask) -> Generator[None, None, dict]:
     return done | {"params": out, "seconds": time.perf_counter() - t0}
 
 
-def brick_refiner(task: BrickTask, dev: str):
+def brick_refiner(task: BrickTask, dev: str, timer=None):
     """A brick's start: ``(own, refiner, stand-ins)``: its own primitives allocated in its interior
     (box coordinates), and, when it refines, the refiner over its box that holds them, the
     stand-ins for the pending neighbours (another RNG stream than the brick's own seeds) and the
     finished neighbours' primitives (frozen), with the number of stand-ins (``refiner`` None and
-    0 without refinement)."""
+    0 without refinement). ``timer``: a :class:`~warpgauss.profiling.StageRecorder` that times
+    each phase (with its ``device`` set, synchronised: a profile; None: untimed)."""
     from .allocate import allocate
     from .analysis import DeviceVolume
     from .profiling import StageRecorder
 
-    f, fields = prepare_brick(task)
-    train = DeviceVolume(fields.train, dev)  # the box's values go to the device once, for all three masks
-    params, _ = allocate(DeviceVolume(fields.interior, dev, train), task.n, task.seed, task.allocation, StageRecorder())
+    timer = StageRecorder() if timer is None else timer
+    with timer.stage("Bh", "box cut, masks and seed-candidate counts (host)"):
+        f, fields = prepare_brick(task)
+    with timer.stage("Bu", "box values and masks to the device"):
+        train = DeviceVolume(fields.train, dev)  # the box's values go to the device once, for all three masks
+        inner = DeviceVolume(fields.interior, dev, train)
+    params, _ = allocate(inner, task.n, task.seed, task.allocation, timer)
     if task.refine.iterations <= 0:
         return params, None, 0
     from .refine import Refiner, load_kernels
 
     parts = [np.asarray(params, np.float32)]
-    k = stand_in_count(fields, task.rates)
+    with timer.stage("Bs", "stand-in count (host)"):
+        k = stand_in_count(fields, task.rates)
     if k:
-        stand_ins, _ = allocate(DeviceVolume(fields.halo, dev, train), k, task.seed + 1, task.allocation, StageRecorder())
+        with timer.stage("Bu", "box values and masks to the device"):
+            halo = DeviceVolume(fields.halo, dev, train)
+        stand_ins, _ = allocate(halo, k, task.seed + 1, task.allocation, timer)
         parts.append(np.asarray(stand_ins, np.float32))
     frozen = np.zeros((0, 12), np.float32) if task.frozen is None else task.frozen
     parts.append(frozen)
     load_kernels(dev)
-    refiner = Refiner(
-        train,
-        np.concatenate(parts),
-        task.refine,
-        task.seed,
-        task.allocation.scale_min,
-        task.allocation.resolved_cap(f.shape_xyz),  # set by the bricked driver (brick_cap)
-        frozen=len(frozen),
-        split_dense=SIDE_BY_SIDE_SPLIT or not task.beside,
-    )
+    with timer.stage("Br", "refiner set-up"):
+        refiner = Refiner(
+            train,
+            np.concatenate(parts),
+            task.refine,
+            task.seed,
+            task.allocation.scale_min,
+            task.allocation.resolved_cap(f.shape_xyz),  # set by the bricked driver (brick_cap)
+            frozen=len(frozen),
+            split_dense=SIDE_BY_SIDE_SPLIT or not task.beside,
+        )
     return params, refiner, k
 
 
