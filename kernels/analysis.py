@@ -357,3 +357,81 @@ def structure_samples(
             if usable(vol, mask, has_mask, kk, jj, ii):
                 out[s, 2 + 2 * which] += wp.abs(vol[kk, jj, ii] - v)
                 out[s, 3 + 2 * which] += 1.0
+
+
+@wp.kernel
+def region_mask(
+    valid: wp.array3d(dtype=wp.uint8),  # [nz, ny, nx] or [1, 1, 1] when has_valid == 0
+    has_valid: int,
+    regions: wp.array2d(dtype=int),  # [r, 6] boxes (z0, z1, y0, y1, x0, x1), half-open
+    exclude: wp.array(dtype=int),  # [6] a box left out (z0 >= z1: none)
+    out: wp.array3d(dtype=wp.uint8),  # [nz, ny, nx]
+):
+    """1 where a voxel is valid, inside one of ``regions`` and outside ``exclude`` (a brick's
+    interior, or the part of its halo where its pending neighbours lie)."""
+    k, j, i = wp.tid()
+    inside = bool(False)
+    for r in range(regions.shape[0]):
+        if k >= regions[r, 0] and k < regions[r, 1] and j >= regions[r, 2] and j < regions[r, 3]:
+            if i >= regions[r, 4] and i < regions[r, 5]:
+                inside = True
+    if inside and exclude[0] < exclude[1]:
+        if k >= exclude[0] and k < exclude[1] and j >= exclude[2] and j < exclude[3] and i >= exclude[4] and i < exclude[5]:
+            inside = False
+    if inside and not valid_at(valid, has_valid, k, j, i):
+        inside = False
+    out[k, j, i] = wp.where(inside, wp.uint8(1), wp.uint8(0))
+
+
+@wp.func
+def box_difference(vol: wp.array3d(dtype=float), k: int, j: int, i: int, dk: int, dj: int, di: int, at: int, n: int) -> float:
+    """numpy.gradient along one axis at index ``at`` of ``n``: central differences, one-sided at
+    the box's faces, 0 on an axis of one voxel (no mask)."""
+    if n < 2:
+        return 0.0
+    if at == 0:
+        return vol[k + dk, j + dj, i + di] - vol[k, j, i]
+    if at == n - 1:
+        return vol[k, j, i] - vol[k - dk, j - dj, i - di]
+    return (vol[k + dk, j + dj, i + di] - vol[k - dk, j - dj, i - di]) * 0.5
+
+
+@wp.kernel
+def row_box_counts(
+    vol: wp.array3d(dtype=float),
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    row_valid: wp.array2d(dtype=int),
+    row_occupied: wp.array2d(dtype=int),
+    row_eligible: wp.array2d(dtype=int),
+    row_grad: wp.array2d(dtype=wp.float64),
+):
+    """Per (z, y) row of a box: its valid voxels, the occupied ones, those with a non-zero gradient
+    (``analysis.count_seed_candidates``) and the float64 sum of |grad V| over the occupied ones
+    (``brickplan.grad_sum``: float32 differences that ignore the mask, one-sided at the box's faces)."""
+    k, j = wp.tid()
+    nz = vol.shape[0]
+    ny = vol.shape[1]
+    nx = vol.shape[2]
+    n_ok = int(0)
+    occ = int(0)
+    elig = int(0)
+    total = wp.float64(0.0)
+    for i in range(nx):
+        if valid_at(mask, has_mask, k, j, i):
+            n_ok += 1
+            if vol[k, j, i] > OCCUPIED:
+                occ += 1
+                if gradient_at(vol, mask, has_mask, k, j, i)[3] != 0.0:
+                    elig += 1
+                dz = box_difference(vol, k, j, i, 1, 0, 0, k, nz)
+                dy = box_difference(vol, k, j, i, 0, 1, 0, j, ny)
+                dx = box_difference(vol, k, j, i, 0, 0, 1, i, nx)
+                g = dz * dz
+                g = g + dy * dy
+                g = g + dx * dx
+                total += wp.float64(wp.sqrt(g))
+    row_valid[k, j] = n_ok
+    row_occupied[k, j] = occ
+    row_eligible[k, j] = elig
+    row_grad[k, j] = total

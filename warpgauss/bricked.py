@@ -73,6 +73,59 @@ class BrickFields:
     interior: Field
     halo: Field
     train: Field
+    halo_grad_sum: float | None = None  # |grad V| over the halo's occupied voxels, where taken on the device
+
+
+# A brick's start on the device (its masks, counts and sums by warpgauss.boxstats, its box a view of
+# the volume put there once or uploaded) rather than on the host: None (the default) where the
+# brick runs on CUDA. At 1024^3 in 2x2x2 bricks (one H200) the host's passes took 1.9 s of each
+# brick's 2.2 s start while the GPU waited (results/bricked/setup_profile_1024_h200.json). The
+# counts are the host's exactly; the stand-ins' |grad V| sum differs in its last bits.
+DEVICE_SETUP: bool | None = None
+
+
+def device_setup(device: str) -> bool:
+    """Whether a brick on ``device`` starts on the device (:data:`DEVICE_SETUP`)."""
+    from ._warp import warp
+
+    return bool(warp().get_device(device).is_cuda) if DEVICE_SETUP is None else DEVICE_SETUP
+
+
+def resident_volume(dv) -> tuple[Any, Any]:
+    """A :class:`~warpgauss.analysis.DeviceVolume` as a task's ``volume``: the bricks of this
+    process cut their boxes from it on the device (no host copy, no upload)."""
+    from .devicefield import DeviceMask, DeviceValues
+
+    return DeviceValues(dv.values), DeviceMask(dv.mask) if dv.has_mask else None
+
+
+def resident_bytes(dv) -> int:
+    """The device bytes a :class:`~warpgauss.analysis.DeviceVolume` holds (values and mask)."""
+    return int(dv.values.capacity) + (int(dv.mask.capacity) if dv.has_mask else 0)
+
+
+def device_brick_fields(values: Any, valid: Any, brick: Brick, pending: tuple | None, meta: dict) -> BrickFields:
+    """:func:`brick_fields` where the box is on a device: ``values`` (Warp float32, the box alone)
+    and ``valid`` (Warp uint8 or None); ``brick`` in box coordinates. The fields hold device
+    arrays (:class:`~warpgauss.devicefield.DeviceValues`, :class:`~warpgauss.devicefield.DeviceMask`)."""
+    from .boxstats import box_counts, region_mask
+    from .devicefield import DeviceMask, DeviceValues
+
+    shape = tuple(int(s) for s in values.shape)
+    dev = str(values.device)
+    inner = tuple(brick.interior)
+    regions = [tuple((0, n) for n in shape)] if pending is None else [tuple(r) for r in pending]
+    own = region_mask(shape, dev, [inner], valid=valid)
+    halo = region_mask(shape, dev, regions, exclude=inner, valid=valid)
+    box: Any = DeviceValues(values)  # a Field's values where they live, as devicefield's fields hold them
+
+    def masked(m: Any) -> tuple[Field, float]:
+        c = box_counts(values, m)
+        on: Any = None if m is None else DeviceMask(m)
+        return Field(box, on, occupied=c.occupied, eligible=c.eligible, n_valid=c.n_valid, **meta), c.grad_sum
+
+    (fi, _), (fh, g), (ft, _) = masked(own), masked(halo), masked(valid)
+    return BrickFields(fi, fh, ft, halo_grad_sum=g)
 
 
 def brick_fields(f: Field, brick: Brick, pending: tuple | None = None) -> BrickFields:
@@ -138,9 +191,35 @@ class BrickTask:
         values, mask = self.volume
         return np.ascontiguousarray(values[box]), None if mask is None else np.ascontiguousarray(mask[box])
 
+    def on_device(self) -> bool:
+        """Whether the box comes from a volume on this process's device (:func:`resident_volume`)."""
+        from .devicefield import DeviceValues
+
+        return self.values is None and self.volume is not None and isinstance(self.volume[0], DeviceValues)
+
+    def device_box(self, device: str) -> tuple[Any, Any]:
+        """The brick's box on ``device``: Warp values and validity (uint8, or None), a contiguous
+        copy of a view where the volume is on that device already, else the box uploaded."""
+        from ._warp import warp
+
+        wp = warp()
+        if self.volume is not None and self.on_device():
+            from .boxstats import box_view
+
+            values, mask = self.volume
+            return (
+                wp.clone(box_view(values.array, self.brick.box), device=device),
+                None if mask is None else wp.clone(box_view(mask.array, self.brick.box), device=device),
+            )
+        values, valid = self.box_arrays()
+        up = None if valid is None else np.ascontiguousarray(valid).view(np.uint8) if valid.dtype == np.bool_ else valid.astype(np.uint8)
+        return wp.array(values, dtype=float, device=device), None if up is None else wp.array(up, dtype=wp.uint8, device=device)
+
     def shipped(self) -> BrickTask:
         """This task as it may travel to any process: a volume held in this process's memory is
         replaced by the box's own copy (files, read on demand or shared, travel by name)."""
+        if self.on_device():
+            raise ValueError("internal: a task whose volume is on this process's device cannot travel")
         if self.volume is None or not isinstance(self.volume[0], np.ndarray):
             return self
         values, valid = self.box_arrays()
@@ -158,7 +237,8 @@ def stand_in_count(fields: BrickFields, rates: tuple[float, float]) -> int:
     h = fields.halo
     if h.occupied == 0:
         return 0
-    want = rates[0] * grad_sum(h.values, h.mask) + rates[1] * h.occupied
+    g = grad_sum(h.values, h.mask) if fields.halo_grad_sum is None else fields.halo_grad_sum
+    want = rates[0] * g + rates[1] * h.occupied
     return int(min(round(want), seed_limit(h.eligible, h.occupied)))
 
 
@@ -189,12 +269,18 @@ def encode_bricks(tasks: list[BrickTask], at_once: int | None = None, limit: int
     return [r | facts for r in out]
 
 
-def prepare_brick(task: BrickTask) -> tuple[Field, BrickFields]:
-    """A brick's host work before its device work: its box (read or copied) as a :class:`Field`
-    and its :class:`BrickFields` (a pure function of the task: any thread may run it)."""
+def prepare_brick(task: BrickTask, device: str | None = None) -> tuple[Field, BrickFields]:
+    """A brick's work before its refinement: its box (read or copied) as a :class:`Field` and its
+    :class:`BrickFields`, on the host, or on ``device`` where :func:`device_setup` says so (a pure
+    function of the task)."""
+    local = dataclasses.replace(task.brick, interior=task.brick.interior_local(), box=_whole(task.brick))
+    if device is not None and device_setup(device):
+        values, valid = task.device_box(device)
+        fields = device_brick_fields(values, valid, local, task.pending, task.field_meta)
+        return fields.train, fields
     values, valid = task.box_arrays()
     f = Field(values, valid, **task.field_meta)
-    return f, brick_fields(f, dataclasses.replace(task.brick, interior=_local(task.brick), box=_whole(task.brick)), task.pending)
+    return f, brick_fields(f, local, task.pending)
 
 
 def _group_facts(dev: str, seconds: float, at_once: int) -> dict:
@@ -262,8 +348,8 @@ def brick_refiner(task: BrickTask, dev: str, timer=None):
     from .profiling import StageRecorder
 
     timer = StageRecorder() if timer is None else timer
-    with timer.stage("Bh", "box cut, masks and seed-candidate counts (host)"):
-        f, fields = prepare_brick(task)
+    with timer.stage("Bh", "box cut, masks and seed-candidate counts"):
+        f, fields = prepare_brick(task, dev)
     with timer.stage("Bu", "box values and masks to the device"):
         train = DeviceVolume(fields.train, dev)  # the box's values go to the device once, for all three masks
         inner = DeviceVolume(fields.interior, dev, train)
@@ -273,7 +359,7 @@ def brick_refiner(task: BrickTask, dev: str, timer=None):
     from .refine import Refiner, load_kernels
 
     parts = [np.asarray(params, np.float32)]
-    with timer.stage("Bs", "stand-in count (host)"):
+    with timer.stage("Bs", "stand-in count"):
         k = stand_in_count(fields, task.rates)
     if k:
         with timer.stage("Bu", "box values and masks to the device"):
@@ -303,10 +389,6 @@ def _origin_xyz(b: Brick) -> np.ndarray:
 
 def _whole(b: Brick) -> tuple[tuple[int, int], ...]:
     return tuple((0, hi - lo) for lo, hi in b.box)
-
-
-def _local(b: Brick) -> tuple[tuple[int, int], ...]:
-    return tuple((i0 - b0, i1 - b0) for (i0, i1), (b0, _) in zip(b.interior, b.box))
 
 
 def brick_colour(b: Brick) -> int:

@@ -57,8 +57,12 @@ class Brick:
     def slices(self, which: str = "box") -> tuple[slice, ...]:
         return tuple(slice(a, b) for a, b in getattr(self, which))
 
+    def interior_local(self) -> tuple[tuple[int, int], ...]:
+        """The interior in box coordinates, ``(start, stop)`` pairs."""
+        return tuple((i0 - b0, i1 - b0) for (i0, i1), (b0, _) in zip(self.interior, self.box))
+
     def interior_in_box(self) -> tuple[slice, ...]:
-        return tuple(slice(i0 - b0, i1 - b0) for (i0, i1), (b0, _) in zip(self.interior, self.box))
+        return tuple(slice(a, b) for a, b in self.interior_local())
 
 
 def parse_bricks(text) -> tuple[int, int, int]:
@@ -148,11 +152,15 @@ def face_band(shape_xyz, bricks: list[Brick], width: int = 2) -> np.ndarray:
     return near
 
 
-def split_bricks(f: Field, bricks: list[Brick], n: int) -> tuple[list[int], list[dict]]:
+def split_bricks(f: Field, bricks: list[Brick], n: int, dv=None) -> tuple[list[int], list[dict]]:
     """Exactly ``n`` primitives over the bricks (see the module docstring), and each brick's
     statistics, among them ``rates``: primitives per unit of |grad V| sum and per occupied voxel,
-    by which a brick sizes the stand-ins for its pending neighbours."""
-    stats = map_bricks(functools.partial(brick_stats, f), bricks)
+    by which a brick sizes the stand-ins for its pending neighbours. ``dv``: the volume on a
+    device (:class:`~warpgauss.analysis.DeviceVolume`), where the statistics are then taken."""
+    if dv is not None:
+        stats = [device_brick_stats(dv, b) for b in bricks]
+    else:
+        stats = map_bricks(functools.partial(brick_stats, f), bricks)
     nd, nc = split_budget(n)
     grad_total = sum(s["grad_sum"] for s in stats) or 1.0
     occ_total = sum(s["occupied"] for s in stats) or 1
@@ -188,6 +196,17 @@ def brick_stats(f: Field, b: Brick, threads: int | None = None) -> dict[str, Any
         own &= valid
     occ, elig = count_seed_candidates(values, own, threads)
     return {"occupied": occ, "eligible": elig, "grad_sum": grad_sum(values, own, threads), "n_max": seed_limit(elig, occ)}
+
+
+def device_brick_stats(dv, b: Brick) -> dict[str, Any]:
+    """:func:`brick_stats` of the volume on a device (views of its box; :mod:`warpgauss.boxstats`)."""
+    from .boxstats import box_counts, box_view, region_mask
+
+    values = box_view(dv.values, b.box)
+    valid = box_view(dv.mask, b.box) if dv.has_mask else None
+    own = region_mask(values.shape, str(dv.device), [b.interior_local()], valid=valid)
+    c = box_counts(values, own)
+    return {"occupied": c.occupied, "eligible": c.eligible, "grad_sum": c.grad_sum, "n_max": seed_limit(c.eligible, c.occupied)}
 
 
 STATS_BYTES_PER_VOXEL = 24  # a box's copy and its slabs' temporaries, per box voxel, while its statistics are taken

@@ -46,7 +46,7 @@ def encode_bricked(
     from .. import bricked as wb
     from .._warp import resolve_device
     from ..analysis import DeviceVolume
-    from ..bricked import brick_seed, brick_tasks, refit_seams, run_bricks
+    from ..bricked import brick_seed, brick_tasks, refit_seams, resident_bytes, resident_volume, run_bricks
     from ..brickplan import brick_cap, default_halo, parse_bricks, plan_bricks, split_bricks
     from ..cluster import share_arrays
     from ..lazy import is_lazy
@@ -77,8 +77,15 @@ def encode_bricked(
     allocation = dataclasses.replace(opts.allocation, scale_cap=cap)
     halo = default_halo(cap) if halo is None else int(halo)
     plan = plan_bricks(f.shape_xyz, counts_xyz, halo)
+    order = wb.choose_schedule(dev, client, is_lazy(f.values), f.shape_xyz, n, opts.refine.iterations, max_device_memory)
+    resident = None  # the whole volume on this process's device: the bricks' statistics and boxes are taken there
+    if client is None and not is_lazy(f.values) and wb.device_setup(dev) and (dv is not None or order.seam_refit > 0):
+        if dv is None:
+            with timer.stage("Su", "the volume to the device"):
+                dv = DeviceVolume(f, dev)
+        resident = dv
     with timer.stage("Sb", "budget split over the bricks"):
-        counts, stats = split_bricks(f, plan, n)
+        counts, stats = split_bricks(f, plan, n, dv=resident)
     waves: list[dict] = []
     with contextlib.ExitStack() as stack:
         volume, sharing = None, "this process" if client is None else "the boxes in the task graph"
@@ -91,11 +98,15 @@ def encode_bricked(
                 volume, sharing = tuple(files), "a temporary file the workers read"
             elif why is not None:
                 sharing = f"the boxes in the task graph ({why})"
+        if resident is not None:
+            volume, sharing = resident_volume(resident), "this process, the volume on its device"
         tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n, volume=volume)
-        order = wb.choose_schedule(dev, client, is_lazy(f.values), f.shape_xyz, n, opts.refine.iterations, max_device_memory)
+        limit = max_device_memory
+        if limit is not None and resident is not None:  # the volume held there counts against the bricks' share
+            limit = max(1, limit - resident_bytes(resident))
         t0 = time.perf_counter()
         with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
-            results = run_bricks(tasks, client, on_progress, limit=max_device_memory, waves_out=waves, together=order.together)
+            results = run_bricks(tasks, client, on_progress, limit=limit, waves_out=waves, together=order.together)
         wall = time.perf_counter() - t0
     params = np.concatenate([r["params"] for r in results]) if results else np.zeros((0, 12), np.float32)
     seams = None  # a joint refit of the seams (the schedule's share; the whole volume on one device)
