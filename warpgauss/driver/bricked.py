@@ -78,8 +78,10 @@ def encode_bricked(
     halo = default_halo(cap) if halo is None else int(halo)
     plan = plan_bricks(f.shape_xyz, counts_xyz, halo)
     order = wb.choose_schedule(dev, client, is_lazy(f.values), f.shape_xyz, n, opts.refine.iterations, max_device_memory)
-    resident = None  # the whole volume on this process's device: the bricks' statistics and boxes are taken there
-    if client is None and not is_lazy(f.values) and wb.device_setup(dev) and (dv is not None or order.seam_refit > 0):
+    # the whole volume on this process's device (the coded pilot's, or for the seams' refit): the
+    # bricks' statistics are taken there, and the bricks of this process cut their boxes from it
+    resident = None
+    if not is_lazy(f.values) and wb.device_setup(dev) and (dv is not None or order.seam_refit > 0):
         if dv is None:
             with timer.stage("Su", "the volume to the device"):
                 dv = DeviceVolume(f, dev)
@@ -98,11 +100,11 @@ def encode_bricked(
                 volume, sharing = tuple(files), "a temporary file the workers read"
             elif why is not None:
                 sharing = f"the boxes in the task graph ({why})"
-        if resident is not None:
+        if resident is not None and client is None:
             volume, sharing = resident_volume(resident), "this process, the volume on its device"
         tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n, volume=volume)
         limit = max_device_memory
-        if limit is not None and resident is not None:  # the volume held there counts against the bricks' share
+        if limit is not None and resident is not None and client is None:  # the volume held there counts against the bricks
             limit = max(1, limit - resident_bytes(resident))
         t0 = time.perf_counter()
         with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
