@@ -9,7 +9,7 @@ import pytest
 
 import warpgauss
 from warpgauss.analysis import normalise
-from warpgauss.brickplan import choose_bricks
+from warpgauss.brickplan import choose_bricks, smallest_wave
 from warpgauss.errors import WarpgaussError
 from warpgauss.io import read_volume
 from warpgauss.lazy import LazyValues, is_lazy
@@ -78,6 +78,12 @@ def test_a_device_memory_limit_chooses_the_bricking(tmp_path):
     assert choose_bricks((64, 32, 32), 100, one) == (1, 1, 1)
     assert choose_bricks((64, 32, 32), 100, one - 1, 2) == (2, 1, 1)  # the longest axis first
     assert choose_bricks((64, 64, 64), 100, brick_device_bytes(36 * 36 * 36, 1.5 * 100 / 8), 2) == (2, 2, 2)
+    # a cluster of two workers: every wave holds a brick for each (2x2x2 runs 8 waves of one)
+    assert choose_bricks((64, 64, 64), 100, brick_device_bytes(36 * 36 * 36, 1.5 * 100 / 8), 2, workers=2) == (4, 2, 2)
+    assert smallest_wave((4, 2, 2)) == 2 and smallest_wave((2, 2, 2)) == 1 and smallest_wave((4, 4, 1)) == 4
+    assert choose_bricks((64, 32, 32), 100, None, workers=2) == (1, 1, 1)  # a grid that fits stays whole
+    thin = brick_device_bytes(38 * 38 * 38, 1.5 * 100 / 8)  # halo 6: 2x2x2 fits; bricks of 16 would be thinner than 4 halos
+    assert choose_bricks((64, 64, 64), 100, thin, 6, workers=2) == (2, 2, 2)
     with pytest.raises(WarpgaussError, match="no bricking"):
         choose_bricks((64, 64, 64), 100, DEVICE_FIXED_BYTES + 10, 2)
     assert parse_memory("24GiB") == 24 * 2**30 and parse_memory("1.5GB") == 1_500_000_000

@@ -238,11 +238,38 @@ def map_bricks(fn, bricks: list[Brick]) -> list:
 # -- choosing the bricking from device and host memory limits (see warpgauss.limits) ------------
 
 
-def choose_bricks(shape_xyz, n: int, limit: int | None, halo: int = DEFAULT_HALO, host_limit: int | None = None) -> tuple[int, int, int]:
+def smallest_wave(counts) -> int:
+    """Bricks in the smallest wave of a bricking of ``counts`` (x, y, z) run in waves: along an
+    axis of c bricks, c // 2 have odd index (at least 1: one brick has even)."""
+    return int(np.prod([max(1, int(c) // 2) for c in counts]))
+
+
+def choose_bricks(
+    shape_xyz, n: int, limit: int | None, halo: int = DEFAULT_HALO, host_limit: int | None = None, workers: int = 1
+) -> tuple[int, int, int]:
     """The fewest bricks (x, y, z) whose largest box fits ``limit`` bytes of device memory (by
     :func:`brick_device_bytes`, ``n`` primitives over them), ``host_limit`` bytes of host memory
     (:data:`HOST_BYTES_PER_VOXEL`) and the kernels' voxel index; more bricks go along the axis
-    whose bricks are longest. (1, 1, 1) when the whole grid fits."""
+    whose bricks are longest. (1, 1, 1) when the whole grid fits. A grid that must be bricked for
+    ``workers`` > 1 (a Dask cluster) is split further, the same way, until every wave holds a
+    brick for each worker (:func:`smallest_wave`): a 2x2x2 bricking runs in 8 waves of one brick,
+    which leaves every worker but one idle; where the grid cannot be split that far, what fits."""
+    counts = _fitting_bricks(shape_xyz, n, limit, halo, host_limit)
+    if counts == (1, 1, 1) or workers <= 1:
+        return counts
+    more = list(counts)
+    shape = [int(s) for s in shape_xyz]
+    while smallest_wave(more) < workers:
+        axis = int(np.argmax([s / c for s, c in zip(shape, more)]))
+        grown = 2 * (more[axis] // 2 + 1)  # the next count that adds an odd-indexed brick on the axis
+        if shape[axis] // grown < max(2, 4 * halo):
+            break
+        more[axis] = grown
+    return (more[0], more[1], more[2])
+
+
+def _fitting_bricks(shape_xyz, n: int, limit: int | None, halo: int, host_limit: int | None) -> tuple[int, int, int]:
+    """:func:`choose_bricks` for one worker."""
     from .analysis import MAX_VOXELS
 
     counts = [1, 1, 1]

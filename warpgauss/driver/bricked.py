@@ -224,11 +224,12 @@ def check_bricking(source, read, example, example_size, bricks, halo) -> None:
     plan_bricks(shape_xyz, counts, 0 if halo is None else int(halo))
 
 
-def bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory=None):
+def bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory=None, workers: int = 1):
     """(bricks, read lazily, device limit, bricks chosen here) of an encode: given bricks are kept;
     otherwise a file whose monolithic encode would not fit the device or host limit (or the
-    kernels' voxel index) is bricked by :func:`~warpgauss.brickplan.choose_bricks`. Only a format
-    that can be read on demand is looked at before it is read."""
+    kernels' voxel index) is bricked by :func:`~warpgauss.brickplan.choose_bricks` (with a wave
+    for each of a cluster's ``workers``). Only a format that can be read on demand is looked at
+    before it is read."""
     from .._warp import resolve_device
     from ..brickplan import brick_cap, choose_bricks, default_halo
     from ..limits import HOST_SHARE, brick_device_bytes, default_device_limit, parse_memory
@@ -248,7 +249,7 @@ def bricking(source, read, example, bricks, halo, budget, device, max_device_mem
     if halo is None:  # as the bricked encode will choose it (without a budget: for 1 Gaussian per 300 voxels)
         n_guess = int(budget) if budget else max(1, voxels // 300)
         halo = default_halo(brick_cap(max(2.0, max(shape_xyz) / 16.0), shape_xyz, n_guess))
-    counts = choose_bricks(shape_xyz, int(budget or 0), limit, int(halo), host)
+    counts = choose_bricks(shape_xyz, int(budget or 0), limit, int(halo), host, workers)
     if counts == (1, 1, 1):
         return None, False, limit, False
     return counts, True, limit, True

@@ -331,8 +331,9 @@ def encode_with(
     encoding_of(opts)  # an unknown format is refused before any work
     timer = StageRecorder(on_stage=on_stage)
     example, example_size = reading.example, reading.example_size
+    workers = 1 if client is None else max(1, len(client.scheduler_info().get("workers", {})))
     bricks, lazy, limit, auto = bricking(
-        source, read, example, bricks, bricking_.halo, cfg.budget.n, device, bricking_.max_device_memory, bricking_.max_host_memory
+        source, read, example, bricks, bricking_.halo, cfg.budget.n, device, bricking_.max_device_memory, bricking_.max_host_memory, workers
     )
     with timer.stage("P", "load and normalise"):
         buffers = None if session is None else session.buffers
