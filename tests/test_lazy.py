@@ -198,3 +198,26 @@ def test_zarr_stores_are_read_whole_or_by_bricks(tmp_path):
     np.testing.assert_array_equal(from_store.params, mem.params)
     with pytest.raises(WarpgaussError, match="has no array 'nope'"):
         read_volume(path, dataset="nope")
+
+
+def test_brick_statistics_run_within_the_host_limit():
+    """The budget split takes several bricks' statistics at once only as far as the host limit
+    holds their boxes (at 2048^3 the thread pool once peaked at 61.7 GB under a 16 GiB limit)."""
+    import os
+
+    from warpgauss.brickplan import STATS_BYTES_PER_VOXEL, map_bricks, plan_bricks
+
+    bricks = plan_bricks((32, 32, 32), (2, 2, 1), 2)
+    seen: list[dict] = []
+
+    def fn(b, **kw):
+        seen.append(kw)
+        return b.index
+
+    box = max(b.box_voxels for b in bricks)
+    assert map_bricks(fn, bricks, host_limit=STATS_BYTES_PER_VOXEL * box) == [b.index for b in bricks]
+    assert all("threads" not in kw for kw in seen)  # one box at a time: the bricks one after another
+    if (os.cpu_count() or 1) >= 2:
+        seen.clear()
+        assert map_bricks(fn, bricks, host_limit=2 * STATS_BYTES_PER_VOXEL * box) == [b.index for b in bricks]
+        assert all(kw.get("threads", 0) >= 1 for kw in seen) and len(seen) == 4

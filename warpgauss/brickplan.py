@@ -152,15 +152,16 @@ def face_band(shape_xyz, bricks: list[Brick], width: int = 2) -> np.ndarray:
     return near
 
 
-def split_bricks(f: Field, bricks: list[Brick], n: int, dv=None) -> tuple[list[int], list[dict]]:
+def split_bricks(f: Field, bricks: list[Brick], n: int, dv=None, host_limit: int | None = None) -> tuple[list[int], list[dict]]:
     """Exactly ``n`` primitives over the bricks (see the module docstring), and each brick's
     statistics, among them ``rates``: primitives per unit of |grad V| sum and per occupied voxel,
     by which a brick sizes the stand-ins for its pending neighbours. ``dv``: the volume on a
-    device (:class:`~warpgauss.analysis.DeviceVolume`), where the statistics are then taken."""
+    device (:class:`~warpgauss.analysis.DeviceVolume`), where the statistics are then taken;
+    else on the host, within ``host_limit`` bytes (:func:`map_bricks`)."""
     if dv is not None:
         stats = [device_brick_stats(dv, b) for b in bricks]
     else:
-        stats = map_bricks(functools.partial(brick_stats, f), bricks)
+        stats = map_bricks(functools.partial(brick_stats, f), bricks, host_limit)
     nd, nc = split_budget(n)
     grad_total = sum(s["grad_sum"] for s in stats) or 1.0
     occ_total = sum(s["occupied"] for s in stats) or 1
@@ -212,9 +213,11 @@ def device_brick_stats(dv, b: Brick) -> dict[str, Any]:
 STATS_BYTES_PER_VOXEL = 24  # a box's copy and its slabs' temporaries, per box voxel, while its statistics are taken
 
 
-def map_bricks(fn, bricks: list[Brick]) -> list:
+def map_bricks(fn, bricks: list[Brick], host_limit: int | None = None) -> list:
     """``fn(brick, threads=t)`` for every brick, the bricks on a thread pool (one per core, as many
-    as half the available host memory holds at :data:`STATS_BYTES_PER_VOXEL`), each brick's slabs
+    as half the available host memory, and ``host_limit`` bytes, hold at
+    :data:`STATS_BYTES_PER_VOXEL`: at 2048^3 in 36 bricks, half of 250 GB let 16 run at once and
+    the process peaked at 61.7 GB against a --max-host-memory of 16 GiB), each brick's slabs
     on the ``t`` cores left to it: many small bricks scale with the cores where one box's slabs did
     not (the 64 bricks of 1024^3 took 18.5 s on 32 cores slab by slab). Results in brick order, the
     same as one at a time."""
@@ -225,8 +228,9 @@ def map_bricks(fn, bricks: list[Brick]) -> list:
     if len(bricks) <= 1:
         return [fn(b) for b in bricks]
     free = available_memory()
+    room = [x for x in (None if free is None else free // 2, host_limit) if x is not None]
     largest = max(b.box_voxels for b in bricks)
-    fit = len(bricks) if free is None else max(1, int(free // 2 // (STATS_BYTES_PER_VOXEL * largest)))
+    fit = len(bricks) if not room else max(1, int(min(room) // (STATS_BYTES_PER_VOXEL * largest)))
     cores = os.cpu_count() or 1
     k = max(1, min(len(bricks), cores, fit))
     if k == 1:

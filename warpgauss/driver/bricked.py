@@ -37,6 +37,7 @@ def encode_bricked(
     full_eval: bool = False,
     on_progress: Callable[[int, int], None] | None = None,
     max_device_memory: int | None = None,
+    max_host_memory: int | None = None,
 ) -> Model:
     """The bricked encode (see :mod:`warpgauss.bricked`): the budget split over ``bricks`` (counts
     x, y, z) before any refinement, each brick encoded in this process (``client`` None) or on a
@@ -87,7 +88,7 @@ def encode_bricked(
                 dv = DeviceVolume(f, dev)
         resident = dv
     with timer.stage("Sb", "budget split over the bricks"):
-        counts, stats = split_bricks(f, plan, n, dv=resident)
+        counts, stats = split_bricks(f, plan, n, dv=resident, host_limit=max_host_memory)
     waves: list[dict] = []
     with contextlib.ExitStack() as stack:
         volume, sharing = None, "this process" if client is None else "the boxes in the task graph"
@@ -224,6 +225,13 @@ def check_bricking(source, read, example, example_size, bricks, halo) -> None:
     plan_bricks(shape_xyz, counts, 0 if halo is None else int(halo))
 
 
+def host_limit(max_host_memory) -> int | None:
+    """``--max-host-memory`` in bytes (None: not given)."""
+    from ..limits import parse_memory
+
+    return None if max_host_memory is None else parse_memory(max_host_memory, "--max-host-memory", 2**20)
+
+
 def bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory=None, workers: int = 1):
     """(bricks, read lazily, device limit, bricks chosen here) of an encode: given bricks are kept;
     otherwise a file whose monolithic encode would not fit the device or host limit (or the
@@ -235,7 +243,7 @@ def bricking(source, read, example, bricks, halo, budget, device, max_device_mem
     from ..limits import HOST_SHARE, brick_device_bytes, default_device_limit, parse_memory
 
     limit = None if max_device_memory is None else parse_memory(max_device_memory, "--max-device-memory")
-    host = None if max_host_memory is None else parse_memory(max_host_memory, "--max-host-memory", 2**20)
+    host = host_limit(max_host_memory)
     is_file = _read_on_demand(source, example)
     if bricks is not None or not is_file:
         return bricks, bricks is not None and is_file, limit, False

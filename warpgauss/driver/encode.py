@@ -23,7 +23,7 @@ from ..model import Model
 from ..optimize import RefineConfig
 from ..profiling import StageRecorder
 from ..residual import Bound
-from .bricked import bricking, encode_bricked
+from .bricked import bricking, encode_bricked, host_limit
 from .config import EncodeConfig, config_of
 from .load import load_field
 from .options import encoding_of
@@ -368,6 +368,7 @@ def encode_with(
             full_eval=run.full_eval,
             on_progress=on_bricks,
             max_device_memory=limit,
+            max_host_memory=host_limit(bricking_.max_host_memory),
         )
         model.run_report["bricking"].update(
             chosen="by the device and host limits" if auto else "given",
