@@ -14,7 +14,6 @@ report's ``workers`` gives each one's peak device memory (Warp's pool) and peak 
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import resource
 import subprocess
@@ -52,7 +51,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     import warpgauss
-    from warpgauss._warp import device_name, resolve_device, warp
+    from warpgauss._warp import resolve_device
+    from warpgauss.bench import result_header
     from warpgauss.synthetic import generate
 
     dev = resolve_device(args.device)
@@ -115,15 +115,8 @@ def main(argv=None) -> dict:
         "bricks": [{k: x.get(k) for k in ("n", "seconds", "samples", "stand_ins", "frozen", "box_zyx")} for x in b["bricks"]],
         "generate_s": gen_s,
     }
-    result = {
-        "benchmark": "out-of-core bricked encode of a raw float32 volume under a device-memory limit",
-        "command": "python benchmarks/bricked/out_of_core.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "device": dev,
-        "device_name": device_name(dev),
-        "warp_version": warp().config.version,
-        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-        "rows": [row],
-    }
+    result = result_header("out-of-core bricked encode of a raw float32 volume under a device-memory limit", __file__, argv, dev)
+    result["rows"] = [row]
     print({k: v for k, v in row.items() if k not in ("stages", "bricks", "waves")}, flush=True)
     if client is not None:
         client.close()
