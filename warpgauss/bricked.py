@@ -434,7 +434,9 @@ SEAM_LR = 0.3
 # 512^3 2x2x2 vortex +0.32 dB in 1.64x its time, interface +0.83 dB in 1.71x (the waves: -0.23 /
 # +0.02 dB in 2.67x / 2.59x); 4x4x4 +0.37 / +0.50 dB in 4.08x / 3.87x (the waves, an earlier run:
 # -1.11 / -0.90 dB in 5.11x / 4.38x); 1024^3 2x2x2 +0.00 / +2.13 dB in 1.86x / 2.00x; half the
-# iterations: +0.58 / +1.52 dB at 512^3 2x2x2 in 2.56x / 2.16x (split forward pass).
+# iterations: +0.58 / +1.52 dB at 512^3 2x2x2 in 2.56x / 2.16x (split forward pass). Since the
+# bricks start on the device (DEVICE_SETUP; one_gpu_*_device_setup_h200.json): the same models in
+# 1.42x / 1.46x at 512^3 and 1.17x / 1.19x at 1024^3.
 TOGETHER_SEAM_REFIT = 0.25
 
 
