@@ -12,8 +12,6 @@ from typing import Any
 
 import warp as wp
 
-from .analysis import OCCUPIED, gradient_at, valid_at
-
 wp.set_module_options({"enable_backward": False})
 
 
@@ -103,27 +101,6 @@ def normalise_values(
     out[k, j, i] = v
     if has_mask != 0:
         mask[k, j, i] = wp.where(ok, wp.uint8(1), wp.uint8(0))
-
-
-@wp.kernel
-def row_candidates(
-    vol: wp.array3d(dtype=float),
-    mask: wp.array3d(dtype=wp.uint8),
-    has_mask: int,
-    row_occupied: wp.array2d(dtype=int),
-    row_eligible: wp.array2d(dtype=int),
-):
-    """Per (z, y) row: occupied voxels and those with a non-zero gradient (``count_seed_candidates``)."""
-    k, j = wp.tid()
-    occ = int(0)
-    elig = int(0)
-    for i in range(vol.shape[2]):
-        if valid_at(mask, has_mask, k, j, i) and vol[k, j, i] > OCCUPIED:
-            occ += 1
-            if gradient_at(vol, mask, has_mask, k, j, i)[3] != 0.0:
-                elig += 1
-    row_occupied[k, j] = occ
-    row_eligible[k, j] = elig
 
 
 @wp.kernel

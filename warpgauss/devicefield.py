@@ -236,10 +236,10 @@ def normalise_on_device(
     )
     f = new_field(DeviceValues(values), DeviceMask(mask) if has_mask else None, lo, hi, spacing, origin, name, np_dtype, n_invalid)
     if count_candidates:
-        occ_r, elig_r = (wp.empty(rows, dtype=int, device=dev) for _ in range(2))
-        wp.launch(ki.row_candidates, dim=rows, inputs=[values, mask, has_mask], outputs=[occ_r, elig_r], device=dev)
-        f.occupied = int(occ_r.numpy().astype(np.int64).sum())
-        f.eligible = int(elig_r.numpy().astype(np.int64).sum())
+        from .boxstats import box_counts
+
+        c = box_counts(values, mask if has_mask else None)
+        f.occupied, f.eligible = c.occupied, c.eligible
     return f
 
 
