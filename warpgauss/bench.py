@@ -88,6 +88,19 @@ def result_header(benchmark: str, script: str, argv, device: str) -> dict:
     }
 
 
+def warmed_device(device: str | None = None) -> str:
+    """``device`` resolved (None: CUDA when present), its refinement kernels loaded and a tiny
+    encode run, so that no timed encode pays for compiling or loading them."""
+    from .driver import encode
+    from .refine import load_kernels
+    from .synthetic import generate
+
+    dev = resolve_device(device)
+    load_kernels(dev)
+    encode(generate("vortex", 24), budget=60, device=dev, iterations=3, samples=64, format="full", self_test=False)
+    return dev
+
+
 def bench_field(size: int):
     """A smooth, fully occupied field of size^3 voxels in [0.1, 0.9] (cheap to make at 1024^3)."""
     c = ((np.arange(size, dtype=np.float32) + 0.5) / size) * np.float32(2 * math.pi)

@@ -23,15 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-import warpgauss
 import warpgauss.bricked as wb
 import warpgauss.brickplan as bp
-from warpgauss._warp import resolve_device, warp
+from warpgauss._warp import warp
 from warpgauss.allocate import AllocationConfig, allocate
 from warpgauss.analysis import DeviceVolume, normalise
-from warpgauss.bench import result_header
+from warpgauss.bench import result_header, warmed_device
 from warpgauss.profiling import StageRecorder
-from warpgauss.refine import RefineConfig, Refiner, load_kernels
+from warpgauss.refine import RefineConfig, Refiner
 from warpgauss.synthetic import generate
 
 
@@ -71,9 +70,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     wp = warp()
-    dev = resolve_device(args.device)
-    load_kernels(dev)
-    warpgauss.encode(generate("vortex", 24), budget=60, device=dev, iterations=3, samples=64, format="full", self_test=False)
+    dev = warmed_device(args.device)
     out = result_header("one brick's step against the monolithic step, and a wave side by side", __file__, argv, dev)
     out.update(field=args.field, size=args.size, n=args.budget, samples=[], host=[], waves=[])
     f = normalise(generate(args.field, args.size))

@@ -18,15 +18,14 @@ import pstats
 import time
 from pathlib import Path
 
-import warpgauss
 import warpgauss.bricked as wb
 import warpgauss.brickplan as bp
-from warpgauss._warp import resolve_device, warp
+from warpgauss._warp import warp
 from warpgauss.allocate import AllocationConfig
 from warpgauss.analysis import normalise
-from warpgauss.bench import result_header
+from warpgauss.bench import result_header, warmed_device
 from warpgauss.profiling import StageRecorder
-from warpgauss.refine import RefineConfig, load_kernels
+from warpgauss.refine import RefineConfig
 from warpgauss.synthetic import generate
 
 
@@ -52,9 +51,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     wp = warp()
-    dev = resolve_device(args.device)
-    load_kernels(dev)
-    warpgauss.encode(generate("vortex", 24), budget=60, device=dev, iterations=3, samples=64, format="full", self_test=False)
+    dev = warmed_device(args.device)
     n = args.budget or int(round(400_000 * (args.size / 512) ** 3))
     out = result_header("a brick's start phase by phase (bricks started together)", __file__, argv, dev)
     out.update(field=args.field, size=args.size, n=n, bricks=args.bricks, rows=[], cprofile=[])
