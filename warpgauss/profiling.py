@@ -17,7 +17,9 @@ POLL_SECONDS = 0.01
 PHASES: tuple[tuple[str, str], ...] = (
     ("P", "read the volume"),
     ("Sh", "share the volume with the workers"),
+    ("Su", "put the volume on the device"),
     ("Sb", "split the budget over the bricks"),
+    ("B", "start a brick"),
     ("S1", "place the Gaussians"),
     ("S1-S2b", "encode the bricks (place and refine)"),
     ("S2", "refine"),
