@@ -91,15 +91,6 @@ def device_setup(device: str) -> bool:
     return bool(warp().get_device(device).is_cuda) if DEVICE_SETUP is None else DEVICE_SETUP
 
 
-def volume_fits(f: Field, device: str, limit: int | None = None) -> bool:
-    """Whether the whole normalised volume (values and mask) takes at most half of ``device``'s
-    ``limit`` (default :func:`default_device_limit`): then the budget split's statistics are taken
-    there (stage Su, then Sb), where the host read every brick's box (7.6 s at 1024^3 in 4x4x4 on 32 cores)."""
-    limit = default_device_limit(device) if limit is None else limit
-    need = f.n_voxels * (4 + (0 if f.mask is None else 1))
-    return limit is not None and need <= limit // 2
-
-
 def resident_volume(dv) -> tuple[Any, Any]:
     """A :class:`~warpgauss.analysis.DeviceVolume` as a task's ``volume``: the bricks of this
     process cut their boxes from it on the device (no host copy, no upload)."""

@@ -79,23 +79,16 @@ def encode_bricked(
     halo = default_halo(cap) if halo is None else int(halo)
     plan = plan_bricks(f.shape_xyz, counts_xyz, halo)
     order = wb.choose_schedule(dev, client, is_lazy(f.values), f.shape_xyz, n, opts.refine.iterations, max_device_memory)
-    # the whole volume on this process's device (the coded pilot's, for the seams' refit, or for
-    # the budget split alone where it fits): the bricks' statistics are taken there, and the bricks
-    # of this process cut their boxes from it
+    # the whole volume on this process's device (the coded pilot's, or for the seams' refit): the
+    # bricks' statistics are taken there, and the bricks of this process cut their boxes from it
     resident = None
-    if (
-        not is_lazy(f.values)
-        and wb.device_setup(dev)
-        and (dv is not None or order.seam_refit > 0 or wb.volume_fits(f, dev, max_device_memory))
-    ):
+    if not is_lazy(f.values) and wb.device_setup(dev) and (dv is not None or order.seam_refit > 0):
         if dv is None:
             with timer.stage("Su", "the volume to the device"):
                 dv = DeviceVolume(f, dev)
         resident = dv
     with timer.stage("Sb", "budget split over the bricks"):
         counts, stats = split_bricks(f, plan, n, dv=resident, host_limit=max_host_memory)
-    if resident is not None and sizing is None and order.seam_refit <= 0 and client is not None:
-        resident = dv = None  # put there for the split alone: the device is the workers' now
     waves: list[dict] = []
     with contextlib.ExitStack() as stack:
         volume, sharing = None, "this process" if client is None else "the boxes in the task graph"
