@@ -457,15 +457,21 @@ class DeviceVolume:
             self.values = wp.array(f.values, dtype=float, device=device)
         if f.mask is not None:
             m = f.mask
-            if hasattr(m, "array"):  # on a device already
-                self.mask = _on(m.array, device)
-            else:  # booleans are bytes already: viewed as uint8, not converted (a copy on the host)
-                host = np.ascontiguousarray(m).view(np.uint8) if m.dtype == np.bool_ else m.astype(np.uint8)
-                self.mask = wp.array(host, dtype=wp.uint8, device=device)
+            self.mask = _on(m.array, device) if hasattr(m, "array") else mask_to_device(m, device)  # hasattr: on a device already
             self.has_mask = 1
         else:
             self.mask = wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)
             self.has_mask = 0
+
+
+def mask_to_device(mask: np.ndarray, device: str):
+    """A host validity mask as a Warp uint8 array on ``device``: booleans are bytes already, so
+    they are viewed as uint8, not converted (a copy on the host)."""
+    from ._warp import warp
+
+    wp = warp()
+    host = np.ascontiguousarray(mask).view(np.uint8) if mask.dtype == np.bool_ else mask.astype(np.uint8)
+    return wp.array(host, dtype=wp.uint8, device=device)
 
 
 def _on(arr, device: str):

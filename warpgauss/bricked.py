@@ -211,9 +211,10 @@ class BrickTask:
                 wp.clone(box_view(values.array, self.brick.box), device=device),
                 None if mask is None else wp.clone(box_view(mask.array, self.brick.box), device=device),
             )
+        from .analysis import mask_to_device
+
         values, valid = self.box_arrays()
-        up = None if valid is None else np.ascontiguousarray(valid).view(np.uint8) if valid.dtype == np.bool_ else valid.astype(np.uint8)
-        return wp.array(values, dtype=float, device=device), None if up is None else wp.array(up, dtype=wp.uint8, device=device)
+        return wp.array(values, dtype=float, device=device), None if valid is None else mask_to_device(valid, device)
 
     def shipped(self) -> BrickTask:
         """This task as it may travel to any process: a volume held in this process's memory is
