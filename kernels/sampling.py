@@ -16,6 +16,14 @@ V <= 0.02 would add nothing to any loss term. Otherwise they are drawn over the 
 the 4^3 bricks that some primitive's 5-sigma box, widened by SUPPORT_MARGIN voxels, reaches
 (:func:`mark_support`, redone at every re-bin). A point outside every 5-sigma box gets exactly 0
 and no gradient, so a sample there would only dilute the batch.
+
+A share of the samples may instead follow the error (:func:`accumulate_errors`,
+:func:`update_errors`, :func:`error_quota`): each sample adds its weighted squared error to its
+4^3 brick (fixed point, integer atomics: the sums do not depend on the order), every re-bin
+decays the bricks' running sums and re-draws the quota of each brick in proportion to
+sqrt(squared error x voxels) (its summed RMS error), and the error stratum picks a brick by
+quota, then one of its voxels uniformly. Its probability joins q(v), so the weighted loss stays an
+estimate of the full-grid MSE while more samples fall where the model is wrong.
 """
 
 import warp as wp
@@ -188,6 +196,67 @@ def unreached_squares(
     out[bk, bj, bi] = s
 
 
+ERROR_FIXED = wp.constant(4294967296.0)  # 2^32: the fixed point of the per-brick error sums
+
+
+@wp.kernel
+def accumulate_errors(
+    points: wp.array(dtype=wp.vec3),  # [2M] samples, then partners
+    loss: wp.array(dtype=wp.vec3),  # [M] point_grads' per-sample loss terms (value first, 1/M x weight x r^2)
+    m: int,
+    acc: wp.array3d(dtype=wp.int64),  # [bz, by, bx] in/out: fixed-point sums of weight x r^2
+):
+    """Add each sample's weighted squared error to its 4^3 brick (one thread per sample)."""
+    s = wp.tid()
+    p = points[s]
+    i = wp.clamp(int(wp.floor(p[0] + 0.5)), 0, acc.shape[2] * BRICK - 1)
+    j = wp.clamp(int(wp.floor(p[1] + 0.5)), 0, acc.shape[1] * BRICK - 1)
+    k = wp.clamp(int(wp.floor(p[2] + 0.5)), 0, acc.shape[0] * BRICK - 1)
+    e = loss[s][0] * float(m)
+    if e > 0.0:
+        wp.atomic_add(acc, k / BRICK, j / BRICK, i / BRICK, wp.int64(e * ERROR_FIXED))
+
+
+@wp.func
+def brick_voxels(bk: int, bj: int, bi: int, nz: int, ny: int, nx: int) -> int:
+    """Voxels of 4^3 brick (bk, bj, bi) inside an nz x ny x nx grid."""
+    return wp.min(BRICK, nz - bk * BRICK) * wp.min(BRICK, ny - bj * BRICK) * wp.min(BRICK, nx - bi * BRICK)
+
+
+@wp.kernel
+def update_errors(
+    acc: wp.array3d(dtype=wp.int64),  # [bz, by, bx] in, zeroed: the sums since the last update
+    decay: float,  # weight of the running sums before them
+    nz: int,
+    ny: int,
+    nx: int,
+    err: wp.array3d(dtype=float),  # [bz, by, bx] in/out: running sums of weight x r^2
+    score: wp.array3d(dtype=float),  # [bz, by, bx] out: sqrt(err x voxels)
+    top: wp.array(dtype=float),  # [1] in/out (zeroed before): the largest score (max: order-free)
+):
+    bk, bj, bi = wp.tid()
+    e = decay * err[bk, bj, bi] + float(acc[bk, bj, bi]) / ERROR_FIXED
+    err[bk, bj, bi] = e
+    acc[bk, bj, bi] = wp.int64(0)
+    sc = wp.sqrt(e * float(brick_voxels(bk, bj, bi, nz, ny, nx)))
+    score[bk, bj, bi] = sc
+    wp.atomic_max(top, 0, sc)
+
+
+@wp.kernel
+def error_quota(
+    score: wp.array3d(dtype=float),  # [bz, by, bx] update_errors' scores
+    top: wp.array(dtype=float),  # [1] the largest
+    cap: int,  # the largest quota (the sum of every brick's must fit an int)
+    quota: wp.array3d(dtype=int),  # [bz, by, bx] out: the error stratum's draws of each brick, in proportion
+):
+    bk, bj, bi = wp.tid()
+    q = int(0)
+    if top[0] > 0.0:
+        q = int(float(cap) * (score[bk, bj, bi] / top[0]))
+    quota[bk, bj, bi] = q
+
+
 @wp.func
 def find_brick(cum: wp.array(dtype=int), r: int) -> wp.vec2i:
     """(brick, rank within it) of rank r, for inclusive prefix sums ``cum`` of per-brick counts."""
@@ -222,6 +291,43 @@ def support_voxel(nz: int, ny: int, nx: int, cum: wp.array(dtype=int), r: int) -
     k = o[2] + br[1] / (hy * hx)
     j = o[1] + (br[1] / hx) % hy
     i = o[0] + br[1] % hx
+    return (k * ny + j) * nx + i
+
+
+@wp.func
+def error_total(err_cum: wp.array(dtype=int), m_err: int) -> int:
+    """The error stratum's quota over every brick; 0 when it draws nothing (off, or no error yet)."""
+    if m_err <= 0:
+        return 0
+    return err_cum[err_cum.shape[0] - 1]
+
+
+@wp.func
+def error_probability(err_cum: wp.array(dtype=int), q_tot: int, k: int, j: int, i: int, nz: int, ny: int, nx: int) -> float:
+    """Probability that one draw of the error stratum picks voxel (k, j, i): its brick's share of
+    the quota over the brick's voxels."""
+    nbx = (nx + BRICK - 1) / BRICK
+    nby = (ny + BRICK - 1) / BRICK
+    b = ((k / BRICK) * nby + j / BRICK) * nbx + i / BRICK
+    qb = err_cum[b]
+    if b > 0:
+        qb -= err_cum[b - 1]
+    return float(qb) / (float(q_tot) * float(brick_voxels(k / BRICK, j / BRICK, i / BRICK, nz, ny, nx)))
+
+
+@wp.func
+def error_voxel(err_cum: wp.array(dtype=int), r: int, d: int, nz: int, ny: int, nx: int) -> int:
+    """Linear index of the voxel the error stratum draws with quota rank r and in-brick draw d
+    (0 <= d < 64, taken modulo the brick's voxels inside the grid)."""
+    br = find_brick(err_cum, r)
+    o = brick_origin(br[0], ny, nx)
+    hx = wp.min(BRICK, nx - o[0])
+    hy = wp.min(BRICK, ny - o[1])
+    hz = wp.min(BRICK, nz - o[2])
+    t = d % (hx * hy * hz)
+    k = o[2] + t / (hy * hx)
+    j = o[1] + (t / hx) % hy
+    i = o[0] + t % hx
     return (k * ny + j) * nx + i
 
 
@@ -308,10 +414,14 @@ def sample_weight(
     support: wp.array(dtype=int),
     support_bricks: wp.array3d(dtype=int),
     support_everything: wp.array(dtype=int),
+    m_err: int,
+    err_cum: wp.array(dtype=int),
+    q_tot: int,
 ) -> float:
     """1 / (D q(v)) for voxel v = (k, j, i): q(v) the probability that :func:`draw_samples` picks
     it, D about the number of voxels it can pick (the larger of the uniform domain and the two
-    strata together), so that the mean weight is about 1."""
+    strata together), so that the mean weight is about 1. ``m_err`` samples follow the error
+    (quota prefix sums ``err_cum``, total ``q_tot``); 0: none."""
     st = stratum_of(vol, mask, has_mask, k, j, i)
     n_occ = float(n_high + n_mid)
     q = float(0.0)
@@ -319,7 +429,10 @@ def sample_weight(
         q += float(m_high) / (float(m) * float(n_high))
     elif st == 1:
         q += float(m_mid) / (float(m) * float(n_mid))
-    m_uni = float(m - m_high - m_mid)
+    if m_err > 0:
+        nz = vol.shape[0]
+        q += float(m_err) / float(m) * error_probability(err_cum, q_tot, k, j, i, nz, vol.shape[1], vol.shape[2])
+    m_uni = float(m - m_high - m_mid - m_err)
     n_uni = float(vol.shape[0] * vol.shape[1] * vol.shape[2])
     in_uni = float(1.0)
     domain = uniform_domain(occ_total, use_support, support)
@@ -358,6 +471,8 @@ def draw_samples(
     importance: int,  # 1: weight each sample by 1 / (D q(v)) (see the module docstring)
     support_bricks: wp.array3d(dtype=int),  # [bz, by, bx] support_counts' output (use_support only)
     support_everything: wp.array(dtype=int),  # [1] mark_support's "everything" flag (use_support only)
+    m_err: int,  # the last m_err samples follow the error (while its quota is not 0; else uniform)
+    err_cum: wp.array(dtype=int),  # [B] inclusive prefix sums of error_quota's output (m_err > 0 only)
     points: wp.array(dtype=wp.vec3),  # [2M] out: samples, then their partners
     target: wp.array(dtype=float),  # [M] out: trilinear V at the sample
     weight: wp.array(dtype=float),  # [M] out: the importance weight; 0 where the target reads a masked voxel
@@ -371,7 +486,11 @@ def draw_samples(
     ny = vol.shape[1]
     idx = int(0)
     domain = uniform_domain(occ_total, use_support, support)
-    if s < m_high:
+    q_tot = error_total(err_cum, m_err)
+    m_err_now = wp.where(q_tot > 0, m_err, 0)
+    if s >= m - m_err_now:  # the error stratum: a brick by its quota, then one of its voxels
+        idx = error_voxel(err_cum, wp.randi(state, 0, q_tot), wp.randi(state, 0, BRICK * BRICK * BRICK), vol.shape[0], ny, nx)
+    elif s < m_high:
         idx = stratum_voxel(vol, mask, has_mask, high, 0, wp.randi(state, 0, n_high))
     elif s < m_high + m_mid:
         idx = stratum_voxel(vol, mask, has_mask, mid, 1, wp.randi(state, 0, n_mid))
@@ -429,6 +548,9 @@ def draw_samples(
             support,
             support_bricks,
             support_everything,
+            m_err_now,
+            err_cum,
+            q_tot,
         )
     weight[s] = ok
     occupied[s] = wp.where(t > OCCUPIED, 1.0, 0.0)

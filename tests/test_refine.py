@@ -441,7 +441,7 @@ def test_uniform_samples_avoid_empty_space_only_when_it_carries_no_loss(cpu, val
     occupied = f.values > 0.02
     assert 0.05 < occupied.mean() < 0.8
     w = LossWeights(value_empty=value_empty)
-    cfg = RefineConfig(iterations=1, samples=4000, weights=w, uniform_support=False)  # support: the next test
+    cfg = RefineConfig(iterations=1, samples=4000, weights=w, uniform_support=False, error_share=0.0)  # support: the next test
     r = Refiner(DeviceVolume(f, cpu), _toy_params(f), cfg, 0, 0.3, 4.0)
     assert r.uniform_occupied == (value_empty == 0.0)
     r.sample()
@@ -469,7 +469,7 @@ def test_uniform_samples_cover_the_model_support_and_nothing_else(device):
     f = normalise(generate("bubbles", 40, seed=3))
     dv = DeviceVolume(f, device)
     params, _ = allocate(dv, 800, 0, AllocationConfig(), StageRecorder())
-    r = Refiner(dv, params, RefineConfig(iterations=20, samples=4000, rebin_every=10), 0, 0.3, 4.0)
+    r = Refiner(dv, params, RefineConfig(iterations=20, samples=4000, rebin_every=10, error_share=0.0), 0, 0.3, 4.0)
     assert r.uniform_support and not r.uniform_occupied
     nz, ny, nx = f.values.shape
     rng = np.random.default_rng(0)

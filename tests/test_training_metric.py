@@ -47,7 +47,7 @@ def test_importance_weights_make_the_value_loss_the_full_grid_mse(cpu, uniform_s
     squared error of a model that predicts 0 everywhere (the value loss of an empty model)."""
     f = _field()
     truth = float(np.mean(f.values.astype(np.float64) ** 2))  # full-grid MSE of the all-zero model
-    cfg = RefineConfig(iterations=1, samples=60_000, jitter=0.0, importance=True, uniform_support=uniform_support)
+    cfg = RefineConfig(iterations=1, samples=60_000, jitter=0.0, importance=True, uniform_support=uniform_support, error_share=0.0)
     r = Refiner(DeviceVolume(f, cpu), _toy_params(f, 400), cfg, 0, 0.3, 4.0)
     r.sample()
     w = r.weight.numpy().astype(np.float64)
@@ -350,3 +350,136 @@ def test_a_scored_fit_spends_bits_where_they_are_worth_most(monkeypatch):
         fixed, same = coded.fit_at_share(p, budget, bits), coded.fit_bytes(p, budget, bits, score=blind)
         first = same[2]["choice"][0]["steps"] if budget < full else same[2]["steps"]  # tight: the choice's first fit
         assert first == fixed[2]["steps"] and any(s.endswith("-1" if budget < full else "+1") for s in first)
+
+
+def test_a_re_plan_holds_bits_back_rather_than_take_out_too_many(tmp_path, cpu, monkeypatch):
+    """replan.REPLAN_MAX_CUT: where the depths of the expected accuracy would take out more than
+    that share of the Gaussians, the re-plan codes one bit fewer on every attribute at a time
+    (down to the default depths) instead; the report says so and the file still fits."""
+    import warpgauss
+    from warpgauss.driver import replan
+    from warpgauss.synthetic import generate
+
+    vol = generate("vortex", 24, seed=0)
+    kw = dict(ratio=8, iterations=120, samples=1024, device=cpu, self_test=False, seed=3)
+    free = warpgauss.encode(vol, **kw).report["budget"]["coded_replan"]
+    assert free["bits_added"] > 0 and free["n_after"] < free["n_before"]
+    assert free["planned_psnr_db"] == free["expected_psnr_db"]
+    monkeypatch.setattr(replan, "REPLAN_MAX_CUT", 0.0)  # no cut is small enough: back to the default depths
+    m = warpgauss.encode(vol, **kw, output=tmp_path / "held.wgs")
+    bud = m.report["budget"]
+    held = bud["coded_replan"]
+    assert held["bits_added"] == 0 and held["planned_psnr_db"] < held["expected_psnr_db"] == free["expected_psnr_db"]
+    assert held["n_after"] >= free["n_after"]
+    assert "planned for" in bud["coded_choice"]
+    assert (tmp_path / "held.wgs").stat().st_size <= bud["requested_bytes"]
+
+
+def _error_field_refiner(cpu, **cfg):
+    f = _field()
+    base = dict(iterations=1, samples=60_000, jitter=0.0, importance=True, uniform_support=False, error_share=0.5)
+    return f, Refiner(DeviceVolume(f, cpu), _toy_params(f, 400), RefineConfig(**{**base, **cfg}), 0, 0.3, 4.0)
+
+
+def test_the_error_sums_are_the_samples_weighted_squared_errors(cpu):
+    """Sampler.record_errors adds each sample's weight x squared error (point_grads' value term
+    x M) to its 4^3 brick in 2^-32 fixed point: equal to a numpy reference bit for bit (integer
+    sums do not depend on the order), and folded into the running sums at a re-bin."""
+    f, r = _error_field_refiner(cpu)
+    r.sample()
+    r.forward()
+    smp = r.sampler
+    smp.record_errors(r.passes.point_loss)
+    loss = r.passes.point_loss.numpy()[:, 0].astype(np.float32)
+    e = loss * np.float32(r.m)
+    fixed = (e.astype(np.float64) * 2.0**32).astype(np.int64)
+    ijk = np.rint(r.points.numpy()[: r.m]).astype(int) // 4
+    want = np.zeros(smp.bricks, np.int64)
+    np.add.at(want, (ijk[:, 2], ijk[:, 1], ijk[:, 0]), np.where(e > 0, fixed, 0))
+    np.testing.assert_array_equal(smp.err_acc.numpy(), want)
+    assert want.sum() > 0
+    smp.refresh_errors()
+    np.testing.assert_allclose(smp.err_sum.numpy(), want.astype(np.float64) / 2.0**32, rtol=1e-6)
+    assert not smp.err_acc.numpy().any()
+
+
+def test_the_error_stratum_follows_its_quota_and_keeps_the_loss_the_full_grid_mse(cpu):
+    """With error_share 0.5: the quota of each brick is cap x sqrt(sum x voxels) over the largest
+    (numpy float32 reference, exactly), the error stratum's samples fall in the bricks in
+    proportion to it, every sample's weight is 1 / (D q(v)) with the stratum's probability in
+    q(v) (float64 reference), and the weighted mean of a per-voxel quantity still estimates its
+    full-grid mean."""
+    f, r = _error_field_refiner(cpu)
+    smp = r.sampler
+    rng = np.random.default_rng(5)
+    acc = rng.integers(0, 2**36, size=smp.bricks, dtype=np.int64) * (rng.random(smp.bricks) < 0.6)
+    smp.err_acc.assign(acc)
+    smp.refresh_errors()
+    nz, ny, nx = f.values.shape
+    bz, by, bx = smp.bricks
+    nb = np.einsum(
+        "k,j,i->kji",
+        np.minimum(4, nz - 4 * np.arange(bz)),
+        np.minimum(4, ny - 4 * np.arange(by)),
+        np.minimum(4, nx - 4 * np.arange(bx)),
+    ).astype(np.float32)
+    s = np.float32(0.7) * np.float32(0) + acc.astype(np.float32) / np.float32(2.0**32)
+    score = np.sqrt(s * nb)
+    quota = (np.float32(smp.err_cap) * (score / score.max())).astype(np.int64)
+    np.testing.assert_array_equal(smp.err_quota.numpy(), quota)
+    r.sample()
+    m, m_err = r.m, smp.m_err
+    m_high, m_mid, m_uni = r.strata
+    assert m_err == 30_000 and m_high + m_mid + m_uni + m_err == m
+    pts = np.rint(r.points.numpy()[:m]).astype(int)
+    b = (pts[:, 2] // 4 * by + pts[:, 1] // 4) * bx + pts[:, 0] // 4
+    hist = np.bincount(b[m - m_err :], minlength=bz * by * bx) / m_err
+    p = quota.reshape(-1) / quota.sum()
+    assert 0.5 * np.abs(hist - p).sum() < 0.05  # total variation
+    assert hist[p == 0].sum() == 0
+    # the weights: float64 reference of 1 / (D q(v))
+    v = f.values.astype(np.float64)
+    high, mid = v > 0.4, (v > 0.02) & (v <= 0.4)
+    n_high, n_mid, n_all = int(high.sum()), int(mid.sum()), v.size
+    k, j, i = pts[:, 2], pts[:, 1], pts[:, 0]
+    q = np.where(high[k, j, i], m_high / (m * n_high), 0.0) + np.where(mid[k, j, i], m_mid / (m * n_mid), 0.0)
+    q += m_err / m * quota.reshape(-1)[b] / (quota.sum() * nb.reshape(-1)[b])
+    q += m_uni / (m * n_all)
+    want = 1.0 / (max(n_all, n_high + n_mid) * q)
+    np.testing.assert_allclose(r.weight.numpy(), want, rtol=1e-5)
+    w = r.weight.numpy().astype(np.float64)
+    t2 = r.target.numpy().astype(np.float64) ** 2
+    truth = float(np.mean(v**2))
+    assert abs(float(np.sum(w * t2) / np.sum(w)) - truth) < 0.05 * truth
+
+
+def test_with_the_error_stratum_the_same_seed_gives_the_same_model(cpu):
+    """Same seed, same device => same model with samples following the error (integer sums, an
+    order-free max, integer prefix sums): two runs across three re-bins agree bit for bit, and
+    the stratum changes the model (it is not a no-op)."""
+    from warpgauss.allocate import AllocationConfig, allocate
+    from warpgauss.profiling import StageRecorder
+    from warpgauss.synthetic import generate
+
+    f = normalise(generate("interface", 24, seed=2))
+    dv = DeviceVolume(f, cpu)
+    params, _ = allocate(dv, 300, 0, AllocationConfig(), StageRecorder())
+    out = []
+    for share in (0.5, 0.5, 0.0):
+        r = Refiner(dv, params, RefineConfig(iterations=30, samples=2048, error_share=share), 7, 0.3, 4.0)
+        for _ in range(30):
+            r.step()
+        out.append(r.model_params())
+    assert int(r.sampler.err_cum.numpy()[-1]) == 0  # off: the placeholder index
+    np.testing.assert_array_equal(out[0], out[1])
+    assert not np.array_equal(out[0], out[2])
+
+
+def test_error_share_is_validated():
+    from warpgauss.errors import WarpgaussError
+
+    for bad in (-0.1, 1.0, float("nan")):
+        with pytest.raises(WarpgaussError, match="error_share"):
+            RefineConfig(error_share=bad).validate()
+    with pytest.raises(WarpgaussError, match="error_decay"):
+        RefineConfig(error_decay=1.5).validate()

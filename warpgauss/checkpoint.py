@@ -22,7 +22,7 @@ from ._fs import atomic_path
 from .errors import WarpgaussError
 
 FORMAT = "warpgauss-checkpoint"
-VERSION = 3  # 2: deferred-step reach; 3: the uniform stratum's support bricks
+VERSION = 4  # 2: deferred-step reach; 3: the uniform stratum's support bricks; 4: the error stratum's sums
 META = "__meta__"
 MAX_META_BYTES = 1 << 24
 ARRAYS = {  # name: (dtype, trailing shape) of every array a checkpoint must hold
@@ -38,6 +38,8 @@ ARRAYS = {  # name: (dtype, trailing shape) of every array a checkpoint must hol
     "counts": (np.int32, ()),
     "reach": (np.float32, ()),
     "support": (np.uint8, ()),  # support bricks of the uniform stratum as last marked (empty when unused)
+    "errors_new": (np.int64, ()),  # the error stratum's per-brick sums since the last re-bin (empty when unused)
+    "errors": (np.float32, ()),  # and its running sums as of the last re-bin
 }
 
 
@@ -88,6 +90,6 @@ def load(path: str | os.PathLike) -> tuple[dict, dict]:
         a = arrays[name]
         if a.dtype != dtype or a.shape[1:] != tail:
             raise WarpgaussError(f"{bad} (array {name} has dtype {a.dtype} and shape {a.shape}); delete it")
-        if name not in ("cell_start", "cell_end", "counts", "support") and a.shape[0] != n:
+        if name not in ("cell_start", "cell_end", "counts", "support", "errors_new", "errors") and a.shape[0] != n:
             raise WarpgaussError(f"{bad} (array {name} holds {a.shape[0]} entries, not {n}); delete it")
     return arrays, meta

@@ -30,6 +30,10 @@ Variants (``--variants``, comma list):
     bits34     the same from 6 dB lower (34)
     bits43     one bit fewer: every bit 3 dB later (``coded.BITS_REFERENCE_DB`` 43)
     it1000     the defaults at 1,000 iterations instead of 1,500 (the encode-time target)
+    err0, err25, err50, err75
+               that share of the samples drawn where the error is (``RefineConfig.error_share``
+               0 / 0.25 / 0.5 / 0.75), the rest as the defaults
+    err50-s16k the error stratum at half the samples, at 16,384 samples an iteration
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -82,6 +86,11 @@ VARIANTS: dict[str, tuple] = {
     "bits34": ({}, (None, None)),
     "bits43": ({}, (None, None)),
     "it1000": ({"iterations": 1000}, (None, None)),
+    "err0": ({"error_share": 0.0}, (None, None)),
+    "err25": ({"error_share": 0.25}, (None, None)),
+    "err50": ({"error_share": 0.5}, (None, None)),
+    "err75": ({"error_share": 0.75}, (None, None)),
+    "err50-s16k": ({"error_share": 0.5, "samples": 16384, "auto_samples": False}, (None, None)),
 }
 # variants that change a constant of warpgauss.coded for their encodes
 CODED_CONSTANTS: dict[str, dict[str, float]] = {

@@ -146,6 +146,8 @@ def coded_choice(sizing: dict | None, fit: dict | None, note: dict | None, repla
             f"{sizing['refine_growth']:.2f} (refined models code larger); {grids}"
         )
     if replan is not None:
+        from .replan import REPLAN_MAX_CUT
+
         took = replan["n_before"] - replan["n_after"]
         parts.append(
             f"at iteration {replan['iteration']} the model scored {replan['sample_psnr_db']:.1f} dB on its samples and "
@@ -154,6 +156,12 @@ def coded_choice(sizing: dict | None, fit: dict | None, note: dict | None, repla
                 "important Gaussians were taken out and the rest refined on"
                 if took
                 else "fitted its budget on the grids that accuracy needs"
+            )
+            + (
+                f" (planned for {replan['planned_psnr_db']:.1f} dB, not the {replan['expected_psnr_db']:.1f} expected: "
+                f"more bits would have taken out over {REPLAN_MAX_CUT:.0%} of them)"
+                if replan.get("planned_psnr_db", replan["expected_psnr_db"]) < replan["expected_psnr_db"]
+                else ""
             )
         )
     if note is not None and note["bits_added"]:

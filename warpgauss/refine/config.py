@@ -14,8 +14,8 @@ from ..errors import WarpgaussError
 # the paper configuration in 7.1 / 4.7 s of refinement (paper: 2.2 / 1.7 s); doubling the samples
 # again adds only 0.3-0.6 dB for twice the time, and doubling iterations instead gains the same.
 PRESETS: dict[str, dict[str, Any]] = {  # exactly these settings: no sample count raised for large budgets
-    "paper": {"iterations": 1500, "samples": 3072, "auto_samples": False, "jitter": 0.5, "importance": False},
-    "fast": {"iterations": 300, "samples": 3072, "auto_samples": False, "jitter": 0.5, "importance": False},
+    "paper": {"iterations": 1500, "samples": 3072, "auto_samples": False, "jitter": 0.5, "importance": False, "error_share": 0.0},
+    "fast": {"iterations": 300, "samples": 3072, "auto_samples": False, "jitter": 0.5, "importance": False, "error_share": 0.0},
     "quality": {"iterations": 1500, "samples": 12288, "auto_samples": False},
 }
 AUTO_BATCH_PRIMITIVES = 350_000  # the default raises the samples by one batch per this many primitives
@@ -109,6 +109,14 @@ class RefineConfig:
             (see :mod:`warpgauss.kernels.sampling`), so that the value loss (and the sample PSNR
             the loss history reports) estimates the full-grid MSE rather than the strata's mix;
             the paper weights every sample alike (False).
+        error_share: Share of the samples drawn where the model's error is (with ``importance``):
+            a 4^3 brick by its summed RMS error, estimated from the samples' weighted squared
+            errors since the start (decayed by ``error_decay`` at every re-bin), then one of its
+            voxels uniformly; the other strata keep their proportions in the rest. Their
+            probability joins the importance weights, so the loss still estimates the
+            full-grid MSE. 0: none (the paper; every preset).
+        error_decay: Weight of a brick's earlier error sums at each re-bin (every
+            ``rebin_every`` iterations).
         split_cells: Forward pass with one thread per (point, neighbour cell) instead of per
             point, the partial sums stored and added in a fixed order; None picks it on CUDA
             devices up to :data:`SPLIT_MAX_POINTS` points an iteration (where one thread per point
@@ -153,6 +161,8 @@ class RefineConfig:
     partner_distance: tuple[float, float] = (0.5, 1.5)
     jitter: float = 0.0
     importance: bool = True
+    error_share: float = 0.5
+    error_decay: float = 0.7
     split_cells: bool | None = None
     budget_samples: bool = True
     auto_samples: bool = True
@@ -244,6 +254,10 @@ class RefineConfig:
             from ..coded import check_bits
 
             check_bits(self.quantise)
+        if not (finite(self.error_share) and 0 <= self.error_share < 1):
+            raise WarpgaussError(f"error_share must be in [0, 1), got {self.error_share}")
+        if not (finite(self.error_decay) and 0 <= self.error_decay <= 1):
+            raise WarpgaussError(f"error_decay must be in [0, 1], got {self.error_decay}")
         if not (finite(self.jitter) and 0 <= self.jitter <= 1):
             raise WarpgaussError(f"jitter must be in [0, 1] voxels, got {self.jitter}")
         lo, hi = self.partner_distance

@@ -5,7 +5,9 @@ jitters them by up to half a voxel, with trilinear targets), weighted so that th
 estimates the full-grid MSE, with a partner point for the smoothness term
 (:func:`warpgauss.kernels.sampling.draw_samples`). The
 strata are indexed once (prefix sums of per-brick counts); the uniform stratum's support (the
-bricks some primitive reaches) is re-marked after every re-bin.
+bricks some primitive reaches) is re-marked after every re-bin. With ``error_share`` that share of
+the samples follows the model's error instead (per-brick running sums of the samples' weighted
+squared errors, re-drawn at every re-bin; see :mod:`warpgauss.kernels.sampling`).
 """
 
 from __future__ import annotations
@@ -39,6 +41,9 @@ class Sampler:
         partner_distance: Range of the partner offset in voxels.
         jitter: Largest offset of a sample from its voxel centre along each axis (voxels).
         importance: Weight samples so that the value loss estimates the full-grid MSE.
+        error_share: Share of the samples drawn where the error is (see
+            :class:`warpgauss.refine.config.RefineConfig`); 0: none. Needs ``importance``.
+        error_decay: Weight of a brick's error sums at each re-bin (running sums).
     """
 
     def __init__(
@@ -49,12 +54,17 @@ class Sampler:
         partner_distance: tuple[float, float],
         jitter: float = 0.5,
         importance: bool = False,
+        error_share: float = 0.0,
+        error_decay: float = 0.7,
     ):
         self._wp = wp = warp()
         self.dv, self.device = dv, dv.device
         self.partner_distance = partner_distance
         self.jitter, self.importance = float(jitter), bool(importance)
+        self.error_share = float(error_share) if importance else 0.0
+        self.error_decay = float(error_decay)
         self._build_strata()
+        self._build_errors()
         self.uniform_occupied = value_empty == 0 and self.n_high + self.n_mid > 0
         self.uniform_support = uniform_support and not self.uniform_occupied
         dev = self.device
@@ -72,7 +82,7 @@ class Sampler:
             unused = wp.zeros((1, 1, 1), dtype=int, device=dev)
             self.marks = None
             self._no_marks = (unused, wp.zeros(1, dtype=int, device=dev))
-        self.m = 0
+        self.m = self.m_err = 0
 
     def _build_strata(self) -> None:
         """Prefix sums of per-brick stratum counts: the index the sampler draws stratum voxels from."""
@@ -90,13 +100,81 @@ class Sampler:
         last = int(np.prod(shape)) - 1
         self.n_high, self.n_mid = (int(cum[last:].numpy()[0]) for cum in (self.high, self.mid))
 
+    def _build_errors(self) -> None:
+        """The error stratum's per-brick buffers (a placeholder index without one)."""
+        wp, dev, shape = self._wp, self.device, self.bricks
+        nb = int(np.prod(shape))
+        self.err_cum = wp.zeros(nb if self.error_share > 0 else 1, dtype=int, device=dev)
+        if self.error_share > 0:
+            self.err_acc = wp.zeros(shape, dtype=wp.int64, device=dev)
+            self.err_sum, self.err_score = (wp.zeros(shape, dtype=float, device=dev) for _ in range(2))
+            self.err_quota = wp.zeros(shape, dtype=int, device=dev)
+            self.err_top = wp.zeros(1, dtype=float, device=dev)
+            self.err_cap = max(1, min((2**31 - 1) // nb, 1 << 16))  # every brick's quota summed fits an int
+
     def resize(self, m: int) -> None:
         """(Re)allocate the buffers for ``m`` samples (points holds 2 m: samples, then partners)."""
         wp, dev = self._wp, self.device
         self.m = m
         self.points = wp.zeros(2 * m, dtype=wp.vec3, device=dev)
         self.target, self.weight, self.occupied = (wp.zeros(m, dtype=float, device=dev) for _ in range(3))
-        self.strata = stratum_counts(m, self.n_high, self.n_mid)
+        self.m_err = min(m - 1, int(round(m * self.error_share))) if self.error_share > 0 else 0
+        self.strata = stratum_counts(m - self.m_err, self.n_high, self.n_mid)
+
+    def error_arrays(self) -> dict[str, np.ndarray]:
+        """The error stratum's state for a checkpoint: the sums since the last re-bin and the
+        running sums (empty arrays without an error stratum)."""
+        if self.error_share <= 0:
+            return {"errors_new": np.zeros(0, np.int64), "errors": np.zeros(0, np.float32)}
+        return {"errors_new": self.err_acc.numpy().reshape(-1), "errors": self.err_sum.numpy().reshape(-1)}
+
+    def restore_errors(self, new: np.ndarray, running: np.ndarray) -> None:
+        """Continue from :meth:`error_arrays`: the running sums, the quota drawn from them at that
+        re-bin (the same index), then the sums since."""
+        from ..errors import WarpgaussError
+
+        size = int(np.prod(self.bricks)) if self.error_share > 0 else 0
+        if new.size != size or running.size != size:
+            raise WarpgaussError(f"checkpoint holds {running.size} error-stratum bricks, this run has {size}")
+        if size == 0:
+            return
+        self.err_sum.assign(running.reshape(self.bricks))
+        self.err_acc.zero_()
+        self.refresh_errors(decay=1.0)  # the running sums as they were: x 1 + 0 is x
+        self.err_acc.assign(new.reshape(self.bricks))
+
+    def record_errors(self, loss) -> None:
+        """Add this iteration's weighted squared errors (``loss``: point_grads' per-sample terms)
+        to their bricks' sums (nothing without an error stratum)."""
+        from ..kernels import sampling as ks
+
+        if self.error_share > 0:
+            self._wp.launch(
+                ks.accumulate_errors, dim=self.m, inputs=[self.points, loss, self.m], outputs=[self.err_acc], device=self.device
+            )
+
+    def refresh_errors(self, decay: float | None = None) -> None:
+        """Fold the sums since the last call into the bricks' running sums (those weighted by
+        ``decay``, default ``error_decay``) and re-draw the error stratum's quota from them
+        (nothing without an error stratum)."""
+        from ..kernels import sampling as ks
+
+        if self.error_share <= 0:
+            return
+        wp, dev = self._wp, self.device
+        nz, ny, nx = self.dv.values.shape
+        self.err_top.zero_()
+        wp.launch(
+            ks.update_errors,
+            dim=self.bricks,
+            inputs=[self.err_acc, self.error_decay if decay is None else float(decay), nz, ny, nx],
+            outputs=[self.err_sum, self.err_score, self.err_top],
+            device=dev,
+        )
+        wp.launch(
+            ks.error_quota, dim=self.bricks, inputs=[self.err_score, self.err_top, self.err_cap], outputs=[self.err_quota], device=dev
+        )
+        wp.utils.array_scan(self.err_quota.flatten(), self.err_cum, inclusive=True)
 
     def draw(self, stream) -> None:
         """Draw this iteration's samples from the RNG stream id in ``stream`` (a device int)."""
@@ -130,6 +208,8 @@ class Sampler:
                 int(self.importance),
                 bricks,
                 everything,
+                self.m_err,
+                self.err_cum,
             ],
             outputs=[self.points, self.target, self.weight, self.occupied],
             device=self.device,

@@ -117,7 +117,14 @@ class Refiner:
         self.quant = _quant_grid(config.quantise)
         self.binner = Binner(self.state, dv.field.shape_xyz, self.quant)
         self.sampler = Sampler(
-            dv, config.uniform_support, config.weights.value_empty, config.partner_distance, config.jitter, config.importance
+            dv,
+            config.uniform_support,
+            config.weights.value_empty,
+            config.partner_distance,
+            config.jitter,
+            config.importance,
+            config.error_share,
+            config.error_decay,
         )
         # split_cells None: the forward pass is re-chosen by the points an iteration in set_samples
         self._split_cuda = wp.get_device(dev).is_cuda if config.split_cells is None else None
@@ -251,6 +258,7 @@ class Refiner:
         if not self.state.clean:
             self.state.zero_grads()
         self.sampler.mark_support(self.binner.prep[0], self.binner.prep[3])
+        self.sampler.refresh_errors()
 
     def sample(self) -> None:
         """Draw this iteration's samples (without advancing)."""
@@ -273,6 +281,7 @@ class Refiner:
     def _iteration_launches(self) -> None:
         self.sample()
         self.forward()
+        self.sampler.record_errors(self.passes.point_loss)
         self.backward()
         self.update()
         self.schedule.end()
@@ -466,6 +475,7 @@ class Refiner:
             "reach": s.reach.numpy(),
             # the support as marked at the last re-bin, not as the current primitives would mark it
             "support": (smp.support_marks[0].numpy().reshape(-1) != 0).astype(np.uint8) if smp.uniform_support else np.zeros(0, np.uint8),
+            **smp.error_arrays(),
         }
         plan = s.binned
         scalars = {
@@ -535,6 +545,7 @@ class Refiner:
             marks.assign(arrays["support"].reshape(marks.shape).astype(np.int32))
             everything.fill_(int(scalars.get("support_everything", 0)))
             smp.index_support()
+        smp.restore_errors(arrays["errors_new"], arrays["errors"])
         if int(scalars["samples"]) != self.m:
             self.set_samples(int(scalars["samples"]))
         if int(scalars["iterations"]) != self.cfg.iterations:
