@@ -114,7 +114,12 @@ class RefineConfig:
             errors since the start (decayed by ``error_decay`` at every re-bin), then one of its
             voxels uniformly; the other strata keep their proportions in the rest. Their
             probability joins the importance weights, so the loss still estimates the
-            full-grid MSE. 0: none (the paper; every preset).
+            full-grid MSE. 0: none (the paper; every preset). Measured on an H200
+            (``benchmarks/results/accuracy/sweep_*_err_h200.json``, coded files at CR 10-1000,
+            0 -> 0.5): mni_icbm152 +0.40 to +5.48 dB, inia19 +0.32 to +4.42, mean_reg2mean
+            +0.02 to +0.09, vortex 512^3 +0.09 to +0.23, interface 512^3 +5.40 at CR 100 (at CR
+            300 -6.2 through the re-plan's cut, now capped: ``replan.REPLAN_MAX_CUT``); 0.75 was
+            up to 0.5 dB better on the MRIs, not measured on the fields.
         error_decay: Weight of a brick's earlier error sums at each re-bin (every
             ``rebin_every`` iterations).
         split_cells: Forward pass with one thread per (point, neighbour cell) instead of per
