@@ -8,7 +8,14 @@ on 500,000 sampled voxels, and the time of each stage.
     python benchmarks/bricked/out_of_core.py --size 2048 --gpus 2 --max-device-memory 24GiB --max-host-memory 16GiB --out $OUT/out_of_core2048_gpus2.json
 
 With ``--gpus K`` the bricks run on a local Dask cluster of one worker process per GPU; the
-report's ``workers`` gives each one's peak device memory (Warp's pool) and peak host RSS.
+report's ``workers`` gives each one's peak device memory (Warp's pool) and peak host RSS. With a
+list (``--gpus 1,2``: issue #35 part 2 at sizes no in-memory array reaches) the same file is
+encoded once per worker count, each on a cluster of that many GPU workers, in this run: rows with
+``size``, ``gpus``, ``speedup`` against the first and whether the model equals the first's bit
+for bit (this process's peak RSS is a lifetime peak: from the second row on it includes the
+rows before).
+
+    python benchmarks/bricked/out_of_core.py --size 2048 --gpus 1,2 --max-device-memory 24GiB --out $OUT/out_of_core2048_gpus12.json
 """
 
 from __future__ import annotations
@@ -20,6 +27,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 GEN = r"""
 import sys, numpy as np
@@ -44,9 +53,14 @@ def main(argv=None) -> dict:
     ap.add_argument("--max-device-memory", default="24GiB")
     ap.add_argument("--max-host-memory", default=None)
     ap.add_argument("--halo", type=int, default=None)
+    ap.add_argument("--bricks", default=None, help="bricks per axis, e.g. 2x2x2 (default: chosen from the limits)")
     ap.add_argument("--iterations", type=int, default=None, help="refinement iterations (default: the encode's)")
     ap.add_argument("--dir", type=Path, default=Path("/tmp"))
-    ap.add_argument("--gpus", type=int, default=1, help="GPU workers (a local Dask cluster, one process per GPU) beyond 1; 1: this process")
+    ap.add_argument(
+        "--gpus",
+        default="1",
+        help="GPU workers (a local Dask cluster, one process per GPU) beyond 1; 1: this process; a comma list: one row per count, each on a cluster",
+    )
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -63,13 +77,41 @@ def main(argv=None) -> dict:
     gen_s = time.perf_counter() - t0
     print(f"wrote {path} ({path.stat().st_size / 2**30:.1f} GiB) in {gen_s:.1f} s", flush=True)
     warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64, format="full")  # compile
-    client = None
-    if args.gpus > 1:
-        from warpgauss.cluster import gpu_client
+    counts = [int(g) for g in str(args.gpus).split(",")]
+    result = result_header("out-of-core bricked encode of a raw float32 volume under a device-memory limit", __file__, argv, dev)
+    result["rows"] = []
+    first = None
+    for k in counts:
+        client = None
+        if k > 1 or len(counts) > 1:
+            from warpgauss.cluster import gpu_client
 
-        client = gpu_client(args.gpus)
-        client.wait_for_workers(args.gpus, timeout=300)
-        warpgauss.encode(generate("vortex", 48), budget=400, bricks="2x1x1", client=client, iterations=20, format="full", self_test=False)
+            client = gpu_client(k)
+            client.wait_for_workers(k, timeout=300)
+            warpgauss.encode(
+                generate("vortex", 48), budget=400, bricks="2x1x1", client=client, iterations=20, format="full", self_test=False
+            )
+        try:
+            row, params = encode_once(args, path, dev, client, k, gen_s)
+        finally:
+            if client is not None:
+                client.close()
+                client.cluster.close()
+        if first is None:
+            first = (row["encode_s"], params)
+        row["speedup"] = first[0] / row["encode_s"]
+        row["identical_to_first"] = bool(np.array_equal(params, first[1]))
+        result["rows"].append(row)
+        args.out.write_text(json.dumps(result, indent=1))  # after every row: a run cut short keeps what it measured
+        print({k_: v for k_, v in row.items() if k_ not in ("stages", "bricks", "waves")}, flush=True)
+    args.out.write_text(json.dumps(result, indent=1))
+    return result
+
+
+def encode_once(args, path, dev, client, gpus: int, gen_s: float):
+    """One encode of the file (on ``client`` when given): its row and its parameters."""
+    import warpgauss
+
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     t0 = time.perf_counter()
     done = []
@@ -82,6 +124,7 @@ def main(argv=None) -> dict:
         max_device_memory=args.max_device_memory,
         max_host_memory=args.max_host_memory,
         halo=args.halo,
+        bricks=args.bricks,
         iterations=args.iterations,
         client=client,
         on_bricks=lambda d, t: (done.append(d), print(f"brick {d}/{t} at {time.perf_counter() - t0:.1f} s", flush=True)),
@@ -108,21 +151,14 @@ def main(argv=None) -> dict:
         "host_rss_before_encode_bytes": rss0,
         "rss_over_file": rss / path.stat().st_size,
         "rss_growth_over_file": (rss - rss0) / path.stat().st_size,
-        "gpus": args.gpus,
+        "gpus": gpus,
         "workers": b.get("workers"),
         "waves": b.get("waves"),
         "stages": [{k: s[k] for k in ("stage", "seconds", "device_peak_bytes", "host_peak_bytes") if k in s} for s in r.get("stages", [])],
         "bricks": [{k: x.get(k) for k in ("n", "seconds", "samples", "stand_ins", "frozen", "box_zyx")} for x in b["bricks"]],
         "generate_s": gen_s,
     }
-    result = result_header("out-of-core bricked encode of a raw float32 volume under a device-memory limit", __file__, argv, dev)
-    result["rows"] = [row]
-    print({k: v for k, v in row.items() if k not in ("stages", "bricks", "waves")}, flush=True)
-    if client is not None:
-        client.close()
-        client.cluster.close()
-    args.out.write_text(json.dumps(result, indent=1))
-    return result
+    return row, m.params
 
 
 if __name__ == "__main__":

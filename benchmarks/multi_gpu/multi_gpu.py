@@ -78,6 +78,14 @@ def main(argv=None) -> dict:
     schedules = ([] if args.no_waves else [None]) + [float(x) for x in filter(None, args.together.split(","))]
     counts = [int(g) for g in args.gpus.split(",")]
     assert counts[0] == 1, "the first --gpus entry is the one-GPU baseline (1)"
+    from warpgauss.analysis import MAX_VOXELS
+
+    for size in (int(x) for x in args.sizes.split(",") if x.strip()):
+        if size**3 > MAX_VOXELS:  # an in-memory array is refused past int32 voxel indices (the encode says --stride 2)
+            ap.error(
+                f"--sizes {size}: {size}^3 voxels exceed the {MAX_VOXELS:,} an in-memory volume may hold; encode it from a file "
+                "instead: benchmarks/bricked/out_of_core.py --size SIZE --gpus 1,2"
+            )
     extra = {} if args.iterations is None else {"iterations": args.iterations}
     common = dict(self_test=False, format="full", seed=0, device=dev, **extra)
     result = {
