@@ -223,6 +223,12 @@ def brick_voxels(bk: int, bj: int, bi: int, nz: int, ny: int, nx: int) -> int:
     return wp.min(BRICK, nz - bk * BRICK) * wp.min(BRICK, ny - bj * BRICK) * wp.min(BRICK, nx - bi * BRICK)
 
 
+@wp.func
+def error_score(e: float, bk: int, bj: int, bi: int, nz: int, ny: int, nx: int) -> float:
+    """sqrt(running sum x voxels): the brick's summed RMS error, what its quota follows."""
+    return wp.sqrt(e * float(brick_voxels(bk, bj, bi, nz, ny, nx)))
+
+
 @wp.kernel
 def update_errors(
     acc: wp.array3d(dtype=wp.int64),  # [bz, by, bx] in, zeroed: the sums since the last update
@@ -231,29 +237,29 @@ def update_errors(
     ny: int,
     nx: int,
     err: wp.array3d(dtype=float),  # [bz, by, bx] in/out: running sums of weight x r^2
-    score: wp.array3d(dtype=float),  # [bz, by, bx] out: sqrt(err x voxels)
-    top: wp.array(dtype=float),  # [1] in/out (zeroed before): the largest score (max: order-free)
+    top: wp.array(dtype=float),  # [1] in/out (zeroed before): the largest error_score (max: order-free)
 ):
     bk, bj, bi = wp.tid()
     e = decay * err[bk, bj, bi] + float(acc[bk, bj, bi]) / ERROR_FIXED
     err[bk, bj, bi] = e
     acc[bk, bj, bi] = wp.int64(0)
-    sc = wp.sqrt(e * float(brick_voxels(bk, bj, bi, nz, ny, nx)))
-    score[bk, bj, bi] = sc
-    wp.atomic_max(top, 0, sc)
+    wp.atomic_max(top, 0, error_score(e, bk, bj, bi, nz, ny, nx))
 
 
 @wp.kernel
 def error_quota(
-    score: wp.array3d(dtype=float),  # [bz, by, bx] update_errors' scores
-    top: wp.array(dtype=float),  # [1] the largest
+    err: wp.array3d(dtype=float),  # [bz, by, bx] update_errors' running sums
+    top: wp.array(dtype=float),  # [1] the largest score
     cap: int,  # the largest quota (the sum of every brick's must fit an int)
+    nz: int,
+    ny: int,
+    nx: int,
     quota: wp.array3d(dtype=int),  # [bz, by, bx] out: the error stratum's draws of each brick, in proportion
 ):
     bk, bj, bi = wp.tid()
     q = int(0)
     if top[0] > 0.0:
-        q = int(float(cap) * (score[bk, bj, bi] / top[0]))
+        q = int(float(cap) * (error_score(err[bk, bj, bi], bk, bj, bi, nz, ny, nx) / top[0]))
     quota[bk, bj, bi] = q
 
 

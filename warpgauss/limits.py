@@ -11,7 +11,8 @@ from .errors import WarpgaussError
 # Peak device memory of one brick's encode, as a linear model of its box voxels and the primitives
 # it refines (own, stand-ins and frozen neighbours, about 1.5 x its share of N). Measured on an
 # H100 (results/bricked/out_of_core1536_h100.json): bricks of 966M voxels and about 1.5M primitives
-# peaked at 5.19 GB, 3.5 B/voxel once the per-primitive part is taken off; 5 leaves a margin.
+# peaked at 5.19 GB, 3.5 B/voxel once the per-primitive part is taken off; 5 leaves a margin (the
+# error stratum added since, RefineConfig.error_share: 20 B per 4^3 brick, 0.31 B/voxel).
 DEVICE_BYTES_PER_VOXEL = 5.0
 DEVICE_BYTES_PER_PRIMITIVE = 1024.0
 DEVICE_FIXED_BYTES = 256 * 2**20

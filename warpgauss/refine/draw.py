@@ -107,7 +107,7 @@ class Sampler:
         self.err_cum = wp.zeros(nb if self.error_share > 0 else 1, dtype=int, device=dev)
         if self.error_share > 0:
             self.err_acc = wp.zeros(shape, dtype=wp.int64, device=dev)
-            self.err_sum, self.err_score = (wp.zeros(shape, dtype=float, device=dev) for _ in range(2))
+            self.err_sum = wp.zeros(shape, dtype=float, device=dev)
             self.err_quota = wp.zeros(shape, dtype=int, device=dev)
             self.err_top = wp.zeros(1, dtype=float, device=dev)
             self.err_cap = max(1, min((2**31 - 1) // nb, 1 << 16))  # every brick's quota summed fits an int
@@ -168,11 +168,15 @@ class Sampler:
             ks.update_errors,
             dim=self.bricks,
             inputs=[self.err_acc, self.error_decay if decay is None else float(decay), nz, ny, nx],
-            outputs=[self.err_sum, self.err_score, self.err_top],
+            outputs=[self.err_sum, self.err_top],
             device=dev,
         )
         wp.launch(
-            ks.error_quota, dim=self.bricks, inputs=[self.err_score, self.err_top, self.err_cap], outputs=[self.err_quota], device=dev
+            ks.error_quota,
+            dim=self.bricks,
+            inputs=[self.err_sum, self.err_top, self.err_cap, nz, ny, nx],
+            outputs=[self.err_quota],
+            device=dev,
         )
         wp.utils.array_scan(self.err_quota.flatten(), self.err_cum, inclusive=True)
 
