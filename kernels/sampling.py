@@ -213,8 +213,8 @@ def accumulate_errors(
     j = wp.clamp(int(wp.floor(p[1] + 0.5)), 0, acc.shape[1] * BRICK - 1)
     k = wp.clamp(int(wp.floor(p[2] + 0.5)), 0, acc.shape[0] * BRICK - 1)
     e = loss[s][0] * float(m)
-    if e > 0.0:
-        wp.atomic_add(acc, k / BRICK, j / BRICK, i / BRICK, wp.int64(e * ERROR_FIXED))
+    if e > 0.0 and wp.isfinite(e):  # weights stay below about 10 and errors below 1: the cap only stops a diverging run overflowing
+        wp.atomic_add(acc, k / BRICK, j / BRICK, i / BRICK, wp.int64(wp.min(e, 1.0e4) * ERROR_FIXED))
 
 
 @wp.func
