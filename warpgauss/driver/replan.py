@@ -50,7 +50,7 @@ REPLAN_MIN_ITERATIONS = 100
 # error is (RefineConfig.error_share) the interface field at 512^3, CR 300, was 52.2 dB at a
 # quarter of the run, planned 4 more bits, lost 58 % of its primitives, fell to 35.0 dB and ended
 # at 46.4 (52.6 without the error stratum, a 37 % cut; H200, accuracy/sweep_fields512_err_h200.json);
-# of the 70 other rows of that sweep none cut more than 38 %, so this changes none of them
+# of the 83 other rows of the two sweeps (three MRIs too) none cut more than 38 %: this changes none of them
 REPLAN_MAX_CUT = 0.4
 # the bit depths a refined model is coded at: "accuracy" (bits_for_psnr of its sample PSNR) or
 # "sizing" (those N was sized for; more only where the budget leaves room)
