@@ -57,6 +57,12 @@ def brick_voxel(bk: int, bj: int, bi: int, d: int) -> wp.vec3i:
     return wp.vec3i(bk * BRICK + d / (BRICK * BRICK), bj * BRICK + (d / BRICK) % BRICK, bi * BRICK + d % BRICK)
 
 
+@wp.func
+def brick_voxels(bk: int, bj: int, bi: int, nz: int, ny: int, nx: int) -> int:
+    """Voxels of 4^3 brick (bk, bj, bi) inside an nz x ny x nx grid."""
+    return wp.min(BRICK, nz - bk * BRICK) * wp.min(BRICK, ny - bj * BRICK) * wp.min(BRICK, nx - bi * BRICK)
+
+
 @wp.kernel
 def brick_counts(
     vol: wp.array3d(dtype=float),
@@ -170,7 +176,7 @@ def support_counts(
     bk, bj, bi = wp.tid()
     n = int(0)
     if marks[bk, bj, bi] != 0 or everything[0] != 0:
-        n = wp.min(BRICK, nz - bk * BRICK) * wp.min(BRICK, ny - bj * BRICK) * wp.min(BRICK, nx - bi * BRICK)
+        n = brick_voxels(bk, bj, bi, nz, ny, nx)
     counts[bk, bj, bi] = n
 
 
@@ -215,12 +221,6 @@ def accumulate_errors(
     e = loss[s][0] * float(m)
     if e > 0.0 and wp.isfinite(e):  # weights stay below about 10 and errors below 1: the cap only stops a diverging run overflowing
         wp.atomic_add(acc, k / BRICK, j / BRICK, i / BRICK, wp.int64(wp.min(e, 1.0e4) * ERROR_FIXED))
-
-
-@wp.func
-def brick_voxels(bk: int, bj: int, bi: int, nz: int, ny: int, nx: int) -> int:
-    """Voxels of 4^3 brick (bk, bj, bi) inside an nz x ny x nx grid."""
-    return wp.min(BRICK, nz - bk * BRICK) * wp.min(BRICK, ny - bj * BRICK) * wp.min(BRICK, nx - bi * BRICK)
 
 
 @wp.func
@@ -288,16 +288,22 @@ def brick_origin(b: int, ny: int, nx: int) -> wp.vec3i:
 
 
 @wp.func
+def brick_rank_voxel(b: int, t: int, ny: int, nx: int) -> int:
+    """Linear index of the t-th voxel inside the grid (z, then y, then x) of brick b."""
+    o = brick_origin(b, ny, nx)
+    hx = wp.min(BRICK, nx - o[0])
+    hy = wp.min(BRICK, ny - o[1])
+    k = o[2] + t / (hy * hx)
+    j = o[1] + (t / hx) % hy
+    i = o[0] + t % hx
+    return (k * ny + j) * nx + i
+
+
+@wp.func
 def support_voxel(nz: int, ny: int, nx: int, cum: wp.array(dtype=int), r: int) -> int:
     """Linear index of the r-th supported voxel (bricks in order, voxels in z, y, x order)."""
     br = find_brick(cum, r)
-    o = brick_origin(br[0], ny, nx)
-    hx = wp.min(BRICK, nx - o[0])
-    hy = wp.min(BRICK, ny - o[1])
-    k = o[2] + br[1] / (hy * hx)
-    j = o[1] + (br[1] / hx) % hy
-    i = o[0] + br[1] % hx
-    return (k * ny + j) * nx + i
+    return brick_rank_voxel(br[0], br[1], ny, nx)
 
 
 @wp.func
@@ -327,14 +333,7 @@ def error_voxel(err_cum: wp.array(dtype=int), r: int, d: int, nz: int, ny: int, 
     (0 <= d < 64, taken modulo the brick's voxels inside the grid)."""
     br = find_brick(err_cum, r)
     o = brick_origin(br[0], ny, nx)
-    hx = wp.min(BRICK, nx - o[0])
-    hy = wp.min(BRICK, ny - o[1])
-    hz = wp.min(BRICK, nz - o[2])
-    t = d % (hx * hy * hz)
-    k = o[2] + t / (hy * hx)
-    j = o[1] + (t / hx) % hy
-    i = o[0] + t % hx
-    return (k * ny + j) * nx + i
+    return brick_rank_voxel(br[0], d % brick_voxels(o[2] / BRICK, o[1] / BRICK, o[0] / BRICK, nz, ny, nx), ny, nx)
 
 
 @wp.func
