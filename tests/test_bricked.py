@@ -406,6 +406,31 @@ def test_the_bricks_statistics_on_a_thread_pool_equal_one_brick_at_a_time():
     assert sum(st["occupied"] for st in stats) > 0 and all(st["grad_sum"] > 0 for st in stats)
 
 
+def test_a_file_read_on_demand_is_counted_box_by_box_on_the_device_as_if_it_were_there(tmp_path):
+    """split_bricks(device=...) reads each box of a lazy field (a few ahead on threads), uploads it
+    and counts it there: the statistics of the whole volume on that device, bit for bit, with
+    boxes read ahead or one at a time; counts equal to the host's, |grad V| sums to float rounding."""
+    from warpgauss import brickplan
+    from warpgauss.analysis import DeviceVolume
+
+    v = generate("interface", 36).astype(np.float32)
+    v[5:7, 10:20, 3] = np.nan  # masked voxels inside some boxes
+    path = tmp_path / "v.npy"
+    np.save(path, v)
+    lazy = normalise(np.load(path, mmap_mode="r"), lazy=True)
+    f = normalise(v)
+    bricks = plan_bricks(f.shape_xyz, (2, 2, 3), 4)
+    whole = [brickplan.device_brick_stats(DeviceVolume(f, "cpu"), b) for b in bricks]
+    ahead = brickplan.uploaded_brick_stats(lazy, bricks, "cpu")
+    one = brickplan.uploaded_brick_stats(lazy, bricks, "cpu", host_limit=1)  # nothing read ahead
+    assert ahead == one == whole
+    host = [brickplan.brick_stats(f, b) for b in bricks]
+    for d, h in zip(ahead, host):
+        assert (d["occupied"], d["eligible"], d["n_max"]) == (h["occupied"], h["eligible"], h["n_max"])
+        assert d["grad_sum"] == pytest.approx(h["grad_sum"], rel=1e-5)
+    assert split_bricks(lazy, bricks, 300, device="cpu") == split_bricks(f, bricks, 300, dv=DeviceVolume(f, "cpu"))
+
+
 def test_bricks_started_together_run_in_one_wave_beside_stand_ins_for_every_neighbour(monkeypatch):
     """Without NEIGHBOURS_FIRST every brick starts at once: one wave, no frozen rows, every other
     brick pending; the same seed gives the same model, another than the waves'."""

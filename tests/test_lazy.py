@@ -51,8 +51,11 @@ def test_lazy_fields_read_the_same_values_as_in_memory(tmp_path):
         assert (f.vmin, f.vmax) == (ref.vmin, ref.vmax)
         np.testing.assert_array_equal(f.values[2:9, :, 3:17], ref.values[2:9, :, 3:17])
         np.testing.assert_array_equal(f.mask[0:20], ref.mask)
-        idx = np.array([0, 7, 401, 3 * 400 + 4 * 20 + 5, v.size - 1])
+        # out of order, repeated, the masked voxel among them: gathered from a mapped file, by slabs from HDF5
+        idx = np.array([v.size - 1, 7, 0, 3 * 400 + 4 * 20 + 5, 401, 7])
         np.testing.assert_array_equal(f.values.take_flat(idx), ref.values.reshape(-1)[idx])
+        np.testing.assert_array_equal(f.mask.take_flat(idx), ref.mask.reshape(-1)[idx])
+        assert (f.values.source.gather(idx) is None) == (path.suffix == ".nc")
         assert abs(f.eligible - ref.eligible) <= 0.05 * ref.eligible and f.occupied == ref.occupied
         import pickle  # our own object between our own workers: the source is plain data
 

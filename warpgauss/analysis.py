@@ -22,6 +22,9 @@ DETAIL_PERCENT = 55  # detail share of the budget (SPEC section 3); coverage get
 MAX_VOXELS = 2**31 - 1  # linear voxel indices are int32 in the kernels
 SLAB = 32  # z-slices per numpy pass
 LAZY_SLAB_VOXELS = 4 * 2**20  # voxels per pass (and thread) of a volume read on demand
+# threads counting a volume read on demand, each over 4 x LAZY_SLAB_VOXELS voxels (about 0.3 GB
+# with its temporaries): at most 2.4 GB of host memory however many cores
+LAZY_COUNT_THREADS = 8
 STATS_EXACT_VOXELS = 1 << 22  # up to this many voxels the statistics use every voxel
 STATS_SAMPLES = 1 << 21  # voxels drawn (with replacement) for the statistics of larger volumes
 STRUCTURE_LAG = 16
@@ -270,9 +273,11 @@ def _lazy_field(src, plan, fill_value, n_invalid, spacing, origin, name, source_
         step = max(1, 4 * LAZY_SLAB_VOXELS // max(1, values.shape[1] * values.shape[2]))
 
         def count(z0: int):
-            return count_seed_candidates(values[z0 : z0 + step], None if mask is None else mask[z0 : z0 + step])
+            return count_seed_candidates(values[z0 : z0 + step], None if mask is None else mask[z0 : z0 + step], threads=1)
 
-        parts = [count(z0) for z0 in range(0, values.shape[0], step)]
+        # each slab read, normalised and counted on its own thread: one after another, these took
+        # most of stage P (75 s at 2048^3)
+        parts = map_slabs(count, values.shape[0], step, threads=LAZY_COUNT_THREADS)
         f.occupied, f.eligible = sum(p[0] for p in parts), sum(p[1] for p in parts)
     return f
 

@@ -10,6 +10,7 @@ reopens it itself. :class:`LazyValues` and :class:`LazyMask` are a :class:`~warp
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import tempfile
@@ -82,6 +83,19 @@ class ArraySource:
         a = np.asarray(self.open()[key])
         return a if a.dtype.isnative else a.astype(a.dtype.newbyteorder("="))
 
+    def gather(self, idx: np.ndarray) -> np.ndarray | None:
+        """The voxels at linear indices ``idx`` (in that order, native byte order) where the source
+        can read them one by one: a memory-mapped file touches only their pages (500,000 voxels of
+        a 512^3 file: 0.04 s against 0.93 s by z-slabs); None for chunked formats."""
+        if self.kind != "memmap":
+            return None
+        order = np.argsort(idx, kind="stable")  # in file order: each page read once, front to back
+        m = np.memmap(self.path, dtype=np.dtype(self.dtype), mode="r", offset=self.offset, shape=(math.prod(self.shape),))
+        out = np.empty(idx.size, m.dtype.newbyteorder("="))
+        out[order] = m[idx[order]]
+        del m
+        return out
+
 
 class _Lead:
     """An HDF5 dataset with ``lead`` leading length-1 axes, indexed as 3D."""
@@ -150,8 +164,15 @@ class LazyValues:
         return v
 
     def take_flat(self, idx: np.ndarray) -> np.ndarray:
-        """The values at linear voxel indices ``idx``, read z-slab by z-slab."""
-        return _take(self, idx, np.float32)
+        """The values at linear voxel indices ``idx``: gathered where the source can
+        (:meth:`ArraySource.gather`), else read z-slab by z-slab."""
+        s = self.source.gather(idx)
+        if s is None:
+            return _take(self, idx, np.float32)
+        v = self.plan.apply(s)
+        if self.check_valid:
+            v[~valid_mask(s, self.fill_value)] = 0.0
+        return v
 
 
 @dataclass(frozen=True)
@@ -171,7 +192,8 @@ class LazyMask:
         return valid_mask(self.source.read(_key(key)), self.fill_value)
 
     def take_flat(self, idx: np.ndarray) -> np.ndarray:
-        return _take(self, idx, bool)
+        s = self.source.gather(idx)
+        return _take(self, idx, bool) if s is None else valid_mask(s, self.fill_value)
 
 
 def _take(arr, idx: np.ndarray, dtype) -> np.ndarray:

@@ -32,11 +32,11 @@ import numpy as np
 
 GEN = r"""
 import sys, numpy as np
-path, n = sys.argv[1], int(sys.argv[2])
-m = np.memmap(path, dtype=np.float32, mode="w+", shape=(n, n, n))
+path, n, start, stop = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
+m = np.memmap(path, dtype=np.float32, mode="r+", shape=(n, n, n))
 ax = (np.arange(n, dtype=np.float32) + 0.5) / n
 y, x = np.meshgrid(ax, ax, indexing="ij")
-for z0 in range(0, n, 16):
+for z0 in range(start, stop, 16):
     z = ax[z0 : z0 + 16, None, None]
     r2 = (x - 0.5) ** 2 + (y - 0.5) ** 2 + (z - 0.5) ** 2
     v = np.exp(-r2 / 0.08) + 0.3 * np.sin(6 * np.pi * x) * np.sin(4 * np.pi * y) * np.cos(5 * np.pi * z)
@@ -73,7 +73,7 @@ def main(argv=None) -> dict:
     path = args.dir / f"ooc_{args.size}x{args.size}x{args.size}_float32.raw"
     t0 = time.perf_counter()
     if not path.exists() or path.stat().st_size != 4 * args.size**3:
-        subprocess.run([sys.executable, "-c", GEN, str(path), str(args.size)], check=True)
+        write_volume(path, args.size)
     gen_s = time.perf_counter() - t0
     print(f"wrote {path} ({path.stat().st_size / 2**30:.1f} GiB) in {gen_s:.1f} s", flush=True)
     warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64, format="full")  # compile
@@ -106,6 +106,22 @@ def main(argv=None) -> dict:
         print({k_: v for k_, v in row.items() if k_ not in ("stages", "bricks", "waves")}, flush=True)
     args.out.write_text(json.dumps(result, indent=1))
     return result
+
+
+def write_volume(path: Path, n: int) -> None:
+    """The field written by child processes, one z-range each (one per core, at most 16; slabs of 16
+    planes: the same values however many), into a file of its final size."""
+    import os
+
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "wb") as fh:
+        fh.truncate(4 * n**3)
+    k = max(1, min(16, os.cpu_count() or 1, -(-n // 16)))
+    edges = [16 * (i * (-(-n // 16)) // k) for i in range(k)] + [n]
+    procs = [subprocess.Popen([sys.executable, "-c", GEN, str(tmp), str(n), str(a), str(b)]) for a, b in zip(edges, edges[1:]) if a < b]
+    if any(p.wait() != 0 for p in procs):
+        raise SystemExit("writing the volume failed")
+    os.replace(tmp, path)
 
 
 def encode_once(args, path, dev, client, gpus: int, gen_s: float):

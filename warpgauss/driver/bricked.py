@@ -88,7 +88,9 @@ def encode_bricked(
                 dv = DeviceVolume(f, dev)
         resident = dv
     with timer.stage("Sb", "budget split over the bricks"):
-        counts, stats = split_bricks(f, plan, n, dv=resident, host_limit=max_host_memory)
+        # a file read on demand: each box counted on this process's GPU where it has one
+        upload = dev if resident is None and is_lazy(f.values) and wb.device_setup(dev) else None
+        counts, stats = split_bricks(f, plan, n, dv=resident, host_limit=max_host_memory, device=upload)
     waves: list[dict] = []
     with contextlib.ExitStack() as stack:
         volume, sharing = None, "this process" if client is None else "the boxes in the task graph"
