@@ -281,11 +281,15 @@ def test_a_gpu_cluster_gives_each_worker_its_own_gpu(monkeypatch):
     client = gpu_client(2, ids=["3", "8"])
     try:
         seen = client.run(lambda: __import__("os").environ.get("CUDA_VISIBLE_DEVICES"))
+        limits = {w["name"]: w["memory_limit"] for w in client.scheduler_info()["workers"].values()}
         spread = warpgauss.encode(v, budget=150, bricks="2x1x1", halo=2, client=client, **FAST)
     finally:
         client.close()
         client.cluster.close()
     assert sorted(seen.values()) == ["3", "8"]
+    from distributed.system import MEMORY_LIMIT  # each worker half the host's memory, not Dask's share by threads
+
+    assert limits == {"gpu-3": MEMORY_LIMIT // 2, "gpu-8": MEMORY_LIMIT // 2}
     np.testing.assert_array_equal(serial.params, spread.params)
 
 
