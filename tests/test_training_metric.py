@@ -12,6 +12,7 @@ from test_refine import _toy_params
 
 from warpgauss.analysis import DeviceVolume, normalise
 from warpgauss.driver import resolve_refine
+from warpgauss.errors import WarpgaussError
 from warpgauss.optimize import PRESETS, RefineConfig, Refiner
 
 
@@ -259,6 +260,17 @@ def test_silenced_primitives_stay_out_and_come_last(cpu):
     np.testing.assert_array_equal(later[r.n_live :], frozen)
     assert not np.array_equal(later[: r.n_live], after[: r.n_live])  # the rest trains on
     assert r.state_arrays()[1]["n_train"] == len(kept)
+    # taken out again (the late re-plan): indices among those still in; the earlier stay out
+    again = np.arange(3, r.n_live, 11)
+    still = np.setdiff1d(np.arange(r.n_live), again)
+    r.silence(again)
+    now = r.model_params()
+    assert r.n_live == len(still) and r.silenced == 200 - len(still)
+    np.testing.assert_array_equal(now[: r.n_live], later[still])
+    assert (now[r.n_live :, 11] == 0.0).all()
+    with pytest.raises(WarpgaussError, match="those still in"):
+        r.silence(np.array([r.n_live]))
+    assert r.state_arrays()[1]["silenced"] == r.silenced
 
 
 def test_a_coded_budget_re_plans_n_for_the_depths_its_accuracy_needs(tmp_path, cpu):
@@ -283,6 +295,36 @@ def test_a_coded_budget_re_plans_n_for_the_depths_its_accuracy_needs(tmp_path, c
     size = (tmp_path / "a.wgs").stat().st_size
     assert 0.95 * bud["requested_bytes"] <= size <= bud["requested_bytes"]
     assert "taken out" in bud["coded_choice"]
+
+
+def test_the_late_re_plan_takes_out_more_where_the_model_will_need_more_bits(tmp_path, cpu, monkeypatch):
+    """Half-way from the re-plan to the end the model is expected to gain what it gained since;
+    where that asks for more bits than the re-plan planned for, the least important primitives
+    still in are taken out so that it fits at those depths. Forced here by a large extrapolation:
+    the file still fits its budget, the report says what was done, the same seed gives the same
+    file; at the default (1.0) this small run keeps its re-plan's bits and every primitive."""
+    import warpgauss
+    from warpgauss.coded import bits_for_psnr
+    from warpgauss.driver import replan
+    from warpgauss.synthetic import generate
+
+    vol = generate("vortex", 24, seed=0)
+    kw = dict(ratio=20, iterations=120, samples=1024, device=cpu, self_test=False, seed=3)
+    plain = warpgauss.encode(vol, **kw).report["budget"]["coded_replan"]
+    assert plain["late"]["iteration"] == (120 + 30) // 2 and plain["late"]["n_after"] == plain["late"]["n_before"] == plain["n_after"]
+    monkeypatch.setattr(replan, "REPLAN_LATE_EXTRAPOLATE", 12.0)
+    a = warpgauss.encode(vol, **kw, output=tmp_path / "a.wgs")
+    warpgauss.encode(vol, **kw, output=tmp_path / "b.wgs")
+    assert (tmp_path / "a.wgs").read_bytes() == (tmp_path / "b.wgs").read_bytes()
+    bud = a.report["budget"]
+    rp, late = bud["coded_replan"], bud["coded_replan"]["late"]
+    assert late["n_before"] == rp["n_after"] and late["n_after"] < late["n_before"]
+    assert late["n_after"] >= (1 - replan.REPLAN_MAX_CUT) * late["n_before"]
+    assert late["bits_added"] > rp["bits_added"] and late["bits_added"] == bits_for_psnr(late["planned_psnr_db"])[1]
+    assert a.n <= late["n_after"] and (a.params[:, 11] > 0).all()
+    size = (tmp_path / "a.wgs").stat().st_size
+    assert 0.95 * bud["requested_bytes"] <= size <= bud["requested_bytes"]
+    assert "more were taken out" in bud["coded_choice"]
 
 
 def test_the_measured_alternatives_still_run(tmp_path, cpu, monkeypatch):

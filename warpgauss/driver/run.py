@@ -290,12 +290,15 @@ class EncodeRun(replan.Replan):
             after_step = ckpt.maybe_save
             replan_at = self.replan_iteration(deadline)
             if replan_at is not None:
+                late_at = self.replan_late_iteration(replan_at)
 
-                def after_step(r, save=ckpt.maybe_save, at=replan_at):
+                def after_step(r, save=ckpt.maybe_save, at=replan_at, late=late_at):
                     if r.iteration == at // 2:
                         self.replan_half = float(r.losses()["sample_psnr_db"])
                     elif r.iteration == at:
                         self.replan_n(r)
+                    elif r.iteration == late:
+                        self.replan_late(r)
                     save(r)
 
             with stop_on_sigint(refiner):

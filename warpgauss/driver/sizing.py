@@ -164,6 +164,13 @@ def coded_choice(sizing: dict | None, fit: dict | None, note: dict | None, repla
                 else ""
             )
         )
+        late = replan.get("late")
+        if late is not None and late["n_after"] < late["n_before"]:
+            parts.append(
+                f"at iteration {late['iteration']} it scored {late['sample_psnr_db']:.1f} dB and was expected to reach "
+                f"{late['expected_psnr_db']:.1f}, {late['bits_added']} bit(s) over the default grids: "
+                f"{late['n_before'] - late['n_after']:,} more were taken out"
+            )
     if note is not None and note["bits_added"]:
         parts.append(f"{note['bits_added']} bit(s) more on every attribute for a {note['sample_psnr_db']:.1f} dB model")
     if fit is not None:

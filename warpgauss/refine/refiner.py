@@ -141,6 +141,7 @@ class Refiner:
         self.write_schedule(max(config.iterations, 1))
         self.iteration = 0
         self.touch_scale = 1.0  # learning-rate factor from the contact density (see touch_ref)
+        self.silenced = 0  # primitives silence() took out (frozen, the model's last rows)
         self.contacts: float | None = None
         self.stop_requested = False
         self.interrupted = False
@@ -405,18 +406,24 @@ class Refiner:
         so nothing brings them back), adding nothing to any value or density. The count stays N
         (the binned state is unchanged), but the model order changes: the primitives kept come
         first, in their order, the silenced ones last, and :attr:`n_live` counts the first, so
-        ``model_params()[:n_live]`` is the model without them."""
+        ``model_params()[:n_live]`` is the model without them. It may be called again: ``ids`` are
+        then indices among the first ``n_live`` (the primitives still in)."""
         s = self.state
         ids = np.unique(np.asarray(ids, np.int64))
         if ids.size == 0:
             return
-        if s.n_train != s.n:
+        silenced = s.n - s.n_train  # taken out before: the rows after n_live
+        if silenced != self.silenced:
             raise WarpgaussError("primitives can only be taken out of a run without frozen primitives")
+        if ids[0] < 0 or ids[-1] >= s.n_train:
+            raise WarpgaussError(f"primitive indices to take out must lie in 0..{s.n_train - 1} (those still in)")
         gone = np.zeros(s.n, bool)
         gone[ids] = True
+        gone[s.n_train :] = True
+        kept = s.n - int(gone.sum())
         label = np.empty(s.n, np.int64)  # old model index -> new: the kept in order, then the silenced
-        label[~gone] = np.arange(s.n - ids.size)
-        label[gone] = np.arange(s.n - ids.size, s.n)
+        label[~gone] = np.arange(kept)
+        label[gone] = np.arange(kept, s.n)
         slot_ids = s.ids.numpy().astype(np.int64)
         slots = gone[slot_ids]
         raw = s.raw.numpy().reshape(s.n, 12)
@@ -427,7 +434,8 @@ class Refiner:
             arr[slots] = 0.0
             moments.assign(arr)
         s.ids.assign(label[slot_ids].astype(np.int32))
-        s.n_train = s.n - ids.size
+        s.n_train = kept
+        self.silenced = s.n - kept
         self.rebin(replan=True)
         self._graph = None
 
@@ -487,6 +495,7 @@ class Refiner:
             "contacts": self.contacts,
             "rebins": self.rebins,
             "n_train": self.state.n_train,
+            "silenced": self.silenced,
             "split": self.split,
             "support_everything": int(smp.support_marks[1].numpy()[0]) if smp.uniform_support else 0,
             "plan": {
@@ -559,6 +568,8 @@ class Refiner:
         self.contacts = scalars["contacts"]
         self.binner.rebins = int(scalars["rebins"])
         self.state.n_train = int(scalars.get("n_train", self.state.n_train))  # after a silence()
+        # a checkpoint holds no bricked run (no frozen neighbours): every frozen row was silenced
+        self.silenced = int(scalars.get("silenced", self.state.n - self.state.n_train))
         self._graph = None
 
     # -- reports -----------------------------------------------------------------------------
