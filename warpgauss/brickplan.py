@@ -221,10 +221,9 @@ def uploaded_brick_stats(f: Field, bricks: list[Brick], device: str, host_limit:
     available memory and ``host_limit`` hold at :data:`UPLOAD_BYTES_PER_VOXEL`, at most
     :data:`UPLOAD_READERS`), then counted on ``device`` one at a time, in brick order. The numbers
     equal those of the whole volume on the device. On the host, the 36 boxes of a 2048^3 file
-    under a 16 GiB limit took 81 s (two at a time on 16 cores each; H200 host, 32 cores)."""
-    from collections import deque
-    from concurrent.futures import ThreadPoolExecutor
-
+    under a 16 GiB limit took 81 s (two at a time on 16 cores each; H200 host, 32 cores), here
+    24-26 s (2048^3 on two H200, out_of_core2048_gpus12_h200x2.json). Their device memory goes
+    back to the GPU when done (a Dask worker there may need it)."""
     from ._warp import warp
     from .boxstats import box_counts, region_mask
     from .driver.load import available_memory
@@ -246,7 +245,22 @@ def uploaded_brick_stats(f: Field, bricks: list[Brick], device: str, host_limit:
 
     if not bricks:
         return []
-    free = available_memory()
+    try:
+        return _uploaded_stats(bricks, read, count, host_limit, available_memory())
+    finally:  # the boxes' device memory back to the GPU, which a Dask worker may share with this process
+        dev = wp.get_device(device)
+        if dev.is_cuda and wp.is_mempool_enabled(dev):
+            keep = wp.get_mempool_release_threshold(dev)
+            wp.set_mempool_release_threshold(dev, 0)
+            wp.synchronize_device(dev)  # the pool gives back what it holds beyond the threshold here
+            wp.set_mempool_release_threshold(dev, keep)
+
+
+def _uploaded_stats(bricks: list[Brick], read, count, host_limit: int | None, free: int | None) -> list[dict[str, Any]]:
+    """:func:`uploaded_brick_stats`' loop: boxes read ahead on a thread pool, counted in order."""
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
     room = [x for x in (None if free is None else free // 2, host_limit) if x is not None]
     largest = max(b.box_voxels for b in bricks)
     # one box being counted, the others read ahead

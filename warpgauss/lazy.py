@@ -25,6 +25,7 @@ from .errors import WarpgaussError
 
 _OPEN: dict[tuple, Any] = {}  # this process's open handles, by source
 TAKE_SLAB = 128  # z-planes per read when gathering sampled voxels
+GATHER_GAP = 1024  # sampled voxels of a raw file this close read together (4 KiB of float32)
 
 
 def valid_mask(s: np.ndarray, fill_value: float | None) -> np.ndarray:
@@ -85,15 +86,31 @@ class ArraySource:
 
     def gather(self, idx: np.ndarray) -> np.ndarray | None:
         """The voxels at linear indices ``idx`` (in that order, native byte order) where the source
-        can read them one by one: a memory-mapped file touches only their pages (500,000 voxels of
-        a 512^3 file: 0.04 s against 0.93 s by z-slabs); None for chunked formats."""
+        can read them one by one: a raw file by positioned reads, in file order, neighbours within
+        :data:`GATHER_GAP` voxels in one read (500,000 voxels of a 512^3 file: 0.06 s against
+        0.93 s by z-slabs; the evaluation of a 2048^3 file took 34 s by slabs). Not through a
+        mapping: the kernel's read-ahead mapped the whole 32 GiB file into this process's resident
+        memory against a 16 GiB host limit. None for chunked formats."""
         if self.kind != "memmap":
             return None
-        order = np.argsort(idx, kind="stable")  # in file order: each page read once, front to back
-        m = np.memmap(self.path, dtype=np.dtype(self.dtype), mode="r", offset=self.offset, shape=(math.prod(self.shape),))
-        out = np.empty(idx.size, m.dtype.newbyteorder("="))
-        out[order] = m[idx[order]]
-        del m
+        dt = np.dtype(self.dtype)
+        flat = np.asarray(idx, np.int64).reshape(-1)
+        order = np.argsort(flat, kind="stable")  # in file order
+        pos = flat[order]
+        out = np.empty(flat.size, dt.newbyteorder("="))
+        if pos.size == 0:
+            return out
+        total = math.prod(self.shape)
+        if pos[0] < 0 or pos[-1] >= total:
+            raise IndexError(f"voxel index out of range 0..{total - 1}")
+        starts = np.concatenate([[0], np.flatnonzero(np.diff(pos) > GATHER_GAP) + 1])
+        ends = np.append(starts[1:], pos.size)
+        with open(self.path, "rb", buffering=0) as fh:
+            fd = fh.fileno()
+            for a, b in zip(starts.tolist(), ends.tolist()):
+                lo, hi = int(pos[a]), int(pos[b - 1]) + 1
+                span = np.frombuffer(os.pread(fd, (hi - lo) * dt.itemsize, self.offset + lo * dt.itemsize), dt)
+                out[order[a:b]] = span[pos[a:b] - lo]
         return out
 
 
