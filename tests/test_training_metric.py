@@ -298,11 +298,12 @@ def test_a_coded_budget_re_plans_n_for_the_depths_its_accuracy_needs(tmp_path, c
 
 
 def test_the_late_re_plan_takes_out_more_where_the_model_will_need_more_bits(tmp_path, cpu, monkeypatch):
-    """Half-way from the re-plan to the end the model is expected to gain what it gained since;
-    where that asks for more bits than the re-plan planned for, the least important primitives
-    still in are taken out so that it fits at those depths. Forced here by a large extrapolation:
-    the file still fits its budget, the report says what was done, the same seed gives the same
-    file; at the default (1.0) this small run keeps its re-plan's bits and every primitive."""
+    """The late re-plan (off by default, measured to lose): half-way from the re-plan to the end
+    the model is expected to gain what it gained since; where that asks for more bits than the
+    re-plan planned for, the least important primitives still in are taken out so that it fits at
+    those depths. Forced here by a large extrapolation: the file still fits its budget, the report
+    says what was done, the same seed gives the same file; at 1.0 this small run keeps its
+    re-plan's bits and every primitive, and off there is no late look at all."""
     import warpgauss
     from warpgauss.coded import bits_for_psnr
     from warpgauss.driver import replan
@@ -310,6 +311,8 @@ def test_the_late_re_plan_takes_out_more_where_the_model_will_need_more_bits(tmp
 
     vol = generate("vortex", 24, seed=0)
     kw = dict(ratio=20, iterations=120, samples=1024, device=cpu, self_test=False, seed=3)
+    assert "late" not in warpgauss.encode(vol, **kw).report["budget"]["coded_replan"]
+    monkeypatch.setattr(replan, "REPLAN_LATE", True)
     plain = warpgauss.encode(vol, **kw).report["budget"]["coded_replan"]
     assert plain["late"]["iteration"] == (120 + 30) // 2 and plain["late"]["n_after"] == plain["late"]["n_before"] == plain["n_after"]
     monkeypatch.setattr(replan, "REPLAN_LATE_EXTRAPOLATE", 12.0)

@@ -34,6 +34,8 @@ Variants (``--variants``, comma list):
                that share of the samples drawn where the error is (``RefineConfig.error_share``
                0 / 0.25 / 0.5 / 0.75), the rest as the defaults
     err50-s16k the error stratum at half the samples, at 16,384 samples an iteration
+    late       the late re-plan on (``replan.REPLAN_LATE``: more Gaussians taken out half-way
+               from the re-plan to the end where the model will need more bits)
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -91,7 +93,10 @@ VARIANTS: dict[str, tuple] = {
     "err50": ({"error_share": 0.5}, (None, None)),
     "err75": ({"error_share": 0.75}, (None, None)),
     "err50-s16k": ({"error_share": 0.5, "samples": 16384, "auto_samples": False}, (None, None)),
+    "late": ({}, (None, None)),
 }
+# variants that change a constant of warpgauss.driver.replan for their encodes
+REPLAN_CONSTANTS: dict[str, dict[str, object]] = {"late": {"REPLAN_LATE": True}}
 # variants that change a constant of warpgauss.coded for their encodes
 CODED_CONSTANTS: dict[str, dict[str, float]] = {
     "bits37": {"BITS_REFERENCE_DB": 37.0},
@@ -107,6 +112,10 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
     saved_constants = {k: getattr(coded, k) for k in constants}
     for k, v in constants.items():
         setattr(coded, k, v)
+    replan_constants = REPLAN_CONSTANTS.get(variant, {})
+    saved_replan = {k: getattr(replan, k) for k in replan_constants}
+    for k, v in replan_constants.items():
+        setattr(replan, k, v)
     if prune is not None:
         coded.PRUNE_SHARE = prune
     if refit is not None:
@@ -124,6 +133,8 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
         coded.PRUNE_SHARE, replan.REFIT_SHARE, replan.REFINED_BITS, replan.REFIT_LR = saved
         for k, v in saved_constants.items():
             setattr(coded, k, v)
+        for k, v in saved_replan.items():
+            setattr(replan, k, v)
     return model, seconds
 
 
