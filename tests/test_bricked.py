@@ -410,7 +410,7 @@ def test_the_bricks_statistics_on_a_thread_pool_equal_one_brick_at_a_time():
     assert sum(st["occupied"] for st in stats) > 0 and all(st["grad_sum"] > 0 for st in stats)
 
 
-def test_a_file_read_on_demand_is_counted_box_by_box_on_the_device_as_if_it_were_there(tmp_path):
+def test_a_file_read_on_demand_is_counted_box_by_box_on_the_device_as_if_it_were_there(tmp_path, monkeypatch):
     """split_bricks(device=...) reads each box of a lazy field (a few ahead on threads), uploads it
     and counts it there: the statistics of the whole volume on that device, bit for bit, with
     boxes read ahead or one at a time; counts equal to the host's, |grad V| sums to float rounding."""
@@ -427,7 +427,9 @@ def test_a_file_read_on_demand_is_counted_box_by_box_on_the_device_as_if_it_were
     whole = [brickplan.device_brick_stats(DeviceVolume(f, "cpu"), b) for b in bricks]
     ahead = brickplan.uploaded_brick_stats(lazy, bricks, "cpu")
     one = brickplan.uploaded_brick_stats(lazy, bricks, "cpu", host_limit=1)  # nothing read ahead
-    assert ahead == one == whole
+    monkeypatch.setattr(brickplan, "READ_CHUNK_VOXELS", 300)  # each box read in chunks of a plane or two, on threads
+    chunked = brickplan.uploaded_brick_stats(lazy, bricks, "cpu")
+    assert ahead == one == chunked == whole
     host = [brickplan.brick_stats(f, b) for b in bricks]
     for d, h in zip(ahead, host):
         assert (d["occupied"], d["eligible"], d["n_max"]) == (h["occupied"], h["eligible"], h["n_max"])

@@ -73,6 +73,19 @@ def test_a_file_read_brick_by_brick_encodes_as_the_array_in_memory(tmp_path):
         assert lazy.report["bricking"]["read_lazily"] and lazy.report["bricking"]["chosen"] == "given"
         np.testing.assert_array_equal(lazy.params, mem.params)
         assert lazy.report["psnr_db"] == pytest.approx(mem.report["psnr_db"], abs=1e-6)
+        # no counting pass of its own: the bricks' statistics count the file, as the whole array counts
+        assert lazy.report["budget"]["n_max"] == mem.report["budget"]["n_max"]
+
+
+def test_a_budget_past_the_seed_limit_of_a_file_read_brick_by_brick_is_refused_before_refinement(tmp_path):
+    v = np.zeros((16, 16, 16), np.float32)
+    v[6:9, 6:9, 6:9] = 1.0  # 27 occupied voxels: a seed limit far under the budget
+    raw = tmp_path / "v_16x16x16_float32.raw"
+    v.tofile(raw)
+    out = tmp_path / "v.wgs"
+    with pytest.raises(WarpgaussError, match="seed limit|can hold at most"):
+        warpgauss.encode(str(raw), budget=500, bricks="2x1x1", halo=2, output=out, **FAST)
+    assert not out.exists()
 
 
 def test_a_device_memory_limit_chooses_the_bricking(tmp_path):

@@ -40,6 +40,8 @@ class Field:
         vmin, vmax: The finite min/max used for normalisation (original units).
         occupied: Valid voxels with normalised value > 0.02.
         eligible: Occupied voxels with a non-zero gradient (detail-seed candidates).
+        counted: Whether ``occupied`` and ``eligible`` have been counted (a file read on demand
+            for a bricked encode is counted by the bricks' statistics instead, stage Sb).
     """
 
     values: np.ndarray
@@ -55,6 +57,7 @@ class Field:
     eligible: int = 0
     n_valid: int = 0
     notes: list[str] = field(default_factory=list)
+    counted: bool = True
 
     @property
     def shape_xyz(self) -> tuple[int, int, int]:
@@ -238,6 +241,7 @@ def normalise(
 
     map_slabs(fill, nz)
     f = new_field(values, mask, lo, hi, spacing, origin, name, source_dtype or data.dtype, n_invalid)
+    f.counted = count_candidates
     if count_candidates:
         f.occupied, f.eligible = count_seed_candidates(values, mask)
     return f
@@ -269,6 +273,7 @@ def _lazy_field(src, plan, fill_value, n_invalid, spacing, origin, name, source_
     values = LazyValues(src, plan, fill_value, n_invalid > 0)
     mask = LazyMask(src, fill_value) if n_invalid else None
     f = new_field(values, mask, plan.lo_value, plan.hi_value, spacing, origin, name, source_dtype, n_invalid)
+    f.counted = count_candidates
     if count_candidates:
         step = max(1, 4 * LAZY_SLAB_VOXELS // max(1, values.shape[1] * values.shape[2]))
 
@@ -422,6 +427,8 @@ def check_budget(f: Field, n: int, header_bytes: int, bytes_per_primitive: int =
     """Refuse a budget of zero or beyond the seed limit, naming N_max and the nearest feasible ratio."""
     if n < 1:
         raise WarpgaussError(f"the budget must be at least 1 primitive, got {n}")
+    if not f.counted:  # checked once the bricks' statistics have counted it (encode_bricked)
+        return
     n_max = seed_limit(f.eligible, f.occupied)
     if n_max < 1:
         raise WarpgaussError(

@@ -20,7 +20,7 @@ from ..profiling import StageRecorder
 from .load import available_memory
 from .options import EncodeOptions, encoding_of, header_for
 from .report import budget_facts, run_facts
-from .sizing import coded_budget, resolve_budget, target_bytes
+from .sizing import coded_budget, resolve_budget, sizing_bpp, target_bytes
 
 
 def encode_bricked(
@@ -91,6 +91,12 @@ def encode_bricked(
         # a file read on demand: each box counted on this process's GPU where it has one
         upload = dev if resident is None and is_lazy(f.values) and wb.device_setup(dev) else None
         counts, stats = split_bricks(f, plan, n, dv=resident, host_limit=max_host_memory, device=upload)
+    if not f.counted:  # the bricks' interiors partition the grid: their counts are the volume's
+        from ..analysis import check_budget
+
+        f.occupied, f.eligible = sum(int(s["occupied"]) for s in stats), sum(int(s["eligible"]) for s in stats)
+        f.counted = True
+        check_budget(f, n, header_size(header, 1 << 40, encoding=enc), sizing_bpp(enc))
     waves: list[dict] = []
     with contextlib.ExitStack() as stack:
         volume, sharing = None, "this process" if client is None else "the boxes in the task graph"

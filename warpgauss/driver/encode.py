@@ -337,7 +337,8 @@ def encode_with(
     )
     with timer.stage("P", "load and normalise"):
         buffers = None if session is None else session.buffers
-        f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy, buffers=buffers)
+        # a file read on demand is counted by the bricks' statistics (stage Sb), not by a pass of its own
+        f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy, buffers=buffers, count=not lazy)
     if bounded:
         from ..residual import CODE_BYTES_PER_VOXEL, check_memory
 

@@ -31,6 +31,7 @@ def load_field(
     example_size: int | tuple[int, int, int] = 64,
     lazy: bool = False,
     buffers=None,
+    count: bool = True,
 ) -> tuple[Field, dict]:
     """Stage P: read (or generate) the volume, apply the stride, mask and normalise it (``lazy``:
     a file the format lets us leave where it is is read on demand, see :mod:`warpgauss.lazy`).
@@ -42,6 +43,8 @@ def load_field(
         read: Reader options for a path (and stride / fill value for any source).
         example: Name of a built-in example volume (see :mod:`warpgauss.synthetic`).
         buffers: A device array's normalised values go there (:class:`warpgauss.devicefield.DeviceBuffers`).
+        count: Count the seed candidates of a volume read on demand now (False: a bricked encode
+            counts them with its bricks' statistics, one pass over the file fewer).
 
     Returns:
         (normalised field, description of the input for the report)
@@ -98,7 +101,9 @@ def load_field(
     from ..lazy import source_of
 
     lazy = lazy and source_of(data) is not None
-    f = normalise(data, fill_value=fill, spacing=spacing, origin=origin, name=name, source_dtype=dtype, lazy=lazy)
+    f = normalise(
+        data, fill_value=fill, spacing=spacing, origin=origin, name=name, source_dtype=dtype, lazy=lazy, count_candidates=count or not lazy
+    )
     info = {"read_lazily": lazy, "name": name, "path": path, "example": example}
     return f, {**info, **field_facts(f, s, fill)}
 
