@@ -229,6 +229,18 @@ def test_fit_bytes_with_a_score_keeps_the_fit_that_scores_best():
     last = kept_bits[2]["choice"][kept_bits[2]["chosen"]]
     assert kept_bits[2]["chosen"] > 0 and last["pruned"] > plain[2]["pruned"]
     assert sum(kept_bits[1].values()) > sum(plain[1].values())
+    # where the first fit drops bits and prunes the rest of the excess, bits alone (share 0) are
+    # tried too: a score that counts the rows kept picks that fit, nothing pruned, within the budget
+    full = len(coded.encode_coded(p)[0])
+    for scale in np.linspace(0.70, 0.97, 28):
+        first = coded.fit_bytes(p, int(full * scale))[2]
+        if first["pruned"] > 0 and any(s.endswith("-1") for s in first["steps"]):
+            break
+    else:
+        raise AssertionError("no budget where the first fit both drops bits and prunes")
+    _, _, info = coded.fit_bytes(p, int(full * scale), score=rows)
+    assert info["choice"][1]["prune_share"] == 0.0 and info["chosen"] == 1
+    assert info["pruned"] == 0 and info["bytes"] <= int(full * scale)
 
 
 def test_silenced_primitives_stay_out_and_come_last(cpu):

@@ -449,8 +449,15 @@ def _grow_order(b: dict[str, int], start: dict[str, int], worth: BitWorth | None
 # each of these prune shares (an excess up to the share pruned, beyond it bits dropped first; 1.0:
 # pruning alone up to twice the budget) and keeps the one that scores best. Measured with the
 # weight ranking (benchmarks/results/accuracy/prune_order_*_cpu.json): which pays depends on the
-# volume and the excess, so it is measured per model rather than fixed
-CHOICE_SHARES = (PRUNE_SHARE, 0.15, 1.0)
+# volume and the excess, so it is measured per model rather than fixed. 0.0: bits alone, nothing
+# pruned: the interface at 512^3, CR 1000, pruned 949 of 53,338 (1.8 %) beside three bits dropped
+# and scored 6.5 dB under float32 of its N, where 8 % pruned cost 13 dB (H200,
+# accuracy/sweep_fields512_float2_h200.json). On float32 CPU models at 0.85 / 0.92 / 0.97 of the
+# bytes their accuracy asks for (interface and vortex 96^3 N 20,000, mni_icbm152 and inia19 N
+# 10,000, 400 iterations) it was chosen twice in twelve (vortex 58.70 -> 58.74, inia19 41.91 ->
+# 41.92 dB) and, being scored, lost nothing elsewhere (the interface and mni keep pruning: 49.33-
+# 49.82 and 30.98-31.09 dB against 48.06-49.43 and 30.70-30.99 by bits alone). Not yet on a GPU
+CHOICE_SHARES = (PRUNE_SHARE, 0.0, 0.15, 1.0)
 # prune-search codings of an alternative before it is scored (a winner is fitted again in full):
 # the choice cost 1.5-5.3 s of coding on 200,000-570,000-Gaussian models with the whole search
 CHOICE_SEARCH_CODINGS = 1
