@@ -595,3 +595,32 @@ def test_bricks_started_on_the_device_give_the_host_started_model(monkeypatch, t
         resident = m.report["bricking"]["volume_to_workers"] == "this process, the volume on its device"
         assert resident == (on_device and together) and ("Su" in stages) == resident
     np.testing.assert_array_equal(models[False], models[True])
+
+
+def _own_peak(q) -> None:  # a spawned child's own peak RSS (a module-level function: spawn pickles it by name)
+    from warpgauss.profiling import peak_rss_bytes
+
+    q.put(peak_rss_bytes())
+
+
+@pytest.mark.skipif(not __import__("os").path.exists("/proc/self/status"), reason="VmHWM is Linux's /proc")
+def test_a_workers_peak_host_memory_is_its_own_not_its_parents():
+    """A brick group reports its process's peak RSS from /proc's VmHWM: ru_maxrss carries a
+    parent's peak into a process started by fork and exec, as Dask's nannies start workers (the
+    workers of a 2048^3 encode read the client's 35.9 GB)."""
+    import multiprocessing
+    import resource
+
+    from warpgauss.profiling import peak_rss_bytes
+
+    big = np.ones(2**26, np.float64)  # 512 MiB touched here, then let go
+    del big
+    parent = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    assert peak_rss_bytes() >= 2**29
+    ctx = multiprocessing.get_context("spawn")
+    q = ctx.Queue()
+    p = ctx.Process(target=_own_peak, args=(q,))
+    p.start()
+    child = q.get(timeout=120)
+    p.join()
+    assert child < parent - 2**28  # its own peak, far under the parent's

@@ -288,10 +288,8 @@ def _group_facts(dev: str, seconds: float, at_once: int) -> dict:
     """What a group of bricks reports of the process that ran it: bricks at once, the group's
     seconds, the process (a Dask worker's name, else "this process") and its high-water marks of
     device memory (Warp's pool; None on the CPU) and host memory (peak RSS)."""
-    import resource
-    import sys
-
     from ._warp import warp
+    from .profiling import peak_rss_bytes
 
     wp = warp()
     d = wp.get_device(dev)
@@ -303,7 +301,7 @@ def _group_facts(dev: str, seconds: float, at_once: int) -> dict:
         worker = str(get_worker().name)
     except (ImportError, ValueError):
         pass
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * (1 if sys.platform == "darwin" else 1024)
+    rss = peak_rss_bytes()  # this worker's own (ru_maxrss holds the client's peak in a spawned worker)
     return {"at_once": at_once, "group_seconds": seconds, "worker": worker, "device_peak_bytes": peak, "host_peak_rss_bytes": rss}
 
 
