@@ -1,5 +1,5 @@
 """Out-of-core encode (issue #20 part 3): a float32 raw volume larger than the device limit is
-written slab by slab (in a child process), then encoded with ``--max-device-memory``: the bricking
+written slab by slab (by child processes, one z-range each), then encoded with ``--max-device-memory``: the bricking
 is chosen from the limit, each brick reads its own box from the file. Reports the peak device
 memory (Warp's pool high-water mark), this process's peak host RSS against the file's size, PSNR
 on 500,000 sampled voxels, and the time of each stage.
@@ -119,7 +119,7 @@ def write_volume(path: Path, n: int) -> None:
     k = max(1, min(16, os.cpu_count() or 1, -(-n // 16)))
     edges = [16 * (i * (-(-n // 16)) // k) for i in range(k)] + [n]
     procs = [subprocess.Popen([sys.executable, "-c", GEN, str(tmp), str(n), str(a), str(b)]) for a, b in zip(edges, edges[1:]) if a < b]
-    if any(p.wait() != 0 for p in procs):
+    if any([p.wait() != 0 for p in procs]):  # every child waited for, then any failure
         raise SystemExit("writing the volume failed")
     os.replace(tmp, path)
 
