@@ -206,11 +206,18 @@ def brick_stats(f: Field, b: Brick, threads: int | None = None) -> dict[str, Any
 
 def device_brick_stats(dv, b: Brick) -> dict[str, Any]:
     """:func:`brick_stats` of the volume on a device (views of its box; :mod:`warpgauss.boxstats`)."""
-    from .boxstats import box_counts, box_view, region_mask
+    from .boxstats import box_view
 
-    values = box_view(dv.values, b.box)
     valid = box_view(dv.mask, b.box) if dv.has_mask else None
-    own = region_mask(values.shape, str(dv.device), [b.interior_local()], valid=valid)
+    return _box_stats(b, box_view(dv.values, b.box), valid, str(dv.device))
+
+
+def _box_stats(b: Brick, values, valid, device: str) -> dict[str, Any]:
+    """A brick's statistics over its interior from its box's values and validity (Warp arrays or
+    views on ``device``; ``valid`` None: every voxel)."""
+    from .boxstats import box_counts, region_mask
+
+    own = region_mask(values.shape, device, [b.interior_local()], valid=valid)
     c = box_counts(values, own)
     return {"occupied": c.occupied, "eligible": c.eligible, "grad_sum": c.grad_sum, "n_max": seed_limit(c.eligible, c.occupied)}
 
@@ -225,8 +232,6 @@ def uploaded_brick_stats(f: Field, bricks: list[Brick], device: str, host_limit:
     24-26 s (2048^3 on two H200, out_of_core2048_gpus12_h200x2.json). Their device memory goes
     back to the GPU when done (a Dask worker there may need it)."""
     from ._warp import warp
-    from .boxstats import box_counts, region_mask
-    from .driver.load import available_memory
 
     wp = warp()
 
@@ -247,16 +252,13 @@ def uploaded_brick_stats(f: Field, bricks: list[Brick], device: str, host_limit:
         return values, valid
 
     def count(b: Brick, values: np.ndarray, valid: np.ndarray | None) -> dict[str, Any]:
-        v = wp.array(values, dtype=wp.float32, device=device)
         ok = None if valid is None else wp.array(valid, dtype=wp.uint8, device=device)
-        own = region_mask(values.shape, device, [b.interior_local()], valid=ok)
-        c = box_counts(v, own)
-        return {"occupied": c.occupied, "eligible": c.eligible, "grad_sum": c.grad_sum, "n_max": seed_limit(c.eligible, c.occupied)}
+        return _box_stats(b, wp.array(values, dtype=wp.float32, device=device), ok, device)
 
     if not bricks:
         return []
     try:
-        return _uploaded_stats(bricks, read, count, host_limit, available_memory())
+        return _uploaded_stats(bricks, read, count, host_limit)
     finally:  # the boxes' device memory back to the GPU, which a Dask worker may share with this process
         dev = wp.get_device(device)
         if dev.is_cuda and wp.is_mempool_enabled(dev):
@@ -266,15 +268,13 @@ def uploaded_brick_stats(f: Field, bricks: list[Brick], device: str, host_limit:
             wp.set_mempool_release_threshold(dev, keep)
 
 
-def _uploaded_stats(bricks: list[Brick], read, count, host_limit: int | None, free: int | None) -> list[dict[str, Any]]:
+def _uploaded_stats(bricks: list[Brick], read, count, host_limit: int | None) -> list[dict[str, Any]]:
     """:func:`uploaded_brick_stats`' loop: boxes read ahead on a thread pool, counted in order."""
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
 
-    room = [x for x in (None if free is None else free // 2, host_limit) if x is not None]
-    largest = max(b.box_voxels for b in bricks)
-    # one box being counted, the others read ahead
-    ahead = UPLOAD_READERS if not room else int(min(room) // (UPLOAD_BYTES_PER_VOXEL * largest)) - 1
+    fit = boxes_in_room(bricks, UPLOAD_BYTES_PER_VOXEL, host_limit)
+    ahead = UPLOAD_READERS if fit is None else fit - 1  # one box being counted, the others read ahead
     ahead = max(0, min(UPLOAD_READERS, ahead, len(bricks) - 1))
     if ahead == 0:
         return [count(b, *read(b)) for b in bricks]
@@ -297,6 +297,18 @@ UPLOAD_BYTES_PER_VOXEL = 16  # a box's float32 values and validity, and its read
 STATS_BYTES_PER_VOXEL = 24  # a box's copy and its slabs' temporaries, per box voxel, while its statistics are taken
 
 
+def boxes_in_room(bricks: list[Brick], bytes_per_voxel: int, host_limit: int | None = None) -> int | None:
+    """How many of the largest of ``bricks``' boxes, at ``bytes_per_voxel``, half the available
+    host memory and ``host_limit`` bytes hold (None where neither is known)."""
+    from .driver.load import available_memory
+
+    free = available_memory()
+    room = [x for x in (None if free is None else free // 2, host_limit) if x is not None]
+    if not room:
+        return None
+    return int(min(room) // (bytes_per_voxel * max(b.box_voxels for b in bricks)))
+
+
 def map_bricks(fn, bricks: list[Brick], host_limit: int | None = None) -> list:
     """``fn(brick, threads=t)`` for every brick, the bricks on a thread pool (one per core, as many
     as half the available host memory, and ``host_limit`` bytes, hold at
@@ -307,14 +319,10 @@ def map_bricks(fn, bricks: list[Brick], host_limit: int | None = None) -> list:
     same as one at a time."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from .driver.load import available_memory
-
     if len(bricks) <= 1:
         return [fn(b) for b in bricks]
-    free = available_memory()
-    room = [x for x in (None if free is None else free // 2, host_limit) if x is not None]
-    largest = max(b.box_voxels for b in bricks)
-    fit = len(bricks) if not room else max(1, int(min(room) // (STATS_BYTES_PER_VOXEL * largest)))
+    room = boxes_in_room(bricks, STATS_BYTES_PER_VOXEL, host_limit)
+    fit = len(bricks) if room is None else max(1, room)
     cores = os.cpu_count() or 1
     k = max(1, min(len(bricks), cores, fit))
     if k == 1:
