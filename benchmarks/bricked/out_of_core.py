@@ -61,6 +61,7 @@ def main(argv=None) -> dict:
         default="1",
         help="GPU workers (a local Dask cluster, one process per GPU) beyond 1; 1: this process; a comma list: one row per count, each on a cluster",
     )
+    ap.add_argument("--error-share", type=float, default=None, help="share of the samples drawn where the error is (default: the encode's)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -127,6 +128,7 @@ def write_volume(path: Path, n: int) -> None:
 def encode_once(args, path, dev, client, gpus: int, gen_s: float):
     """One encode of the file (on ``client`` when given): its row and its parameters."""
     import warpgauss
+    from warpgauss.refine import RefineConfig
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     t0 = time.perf_counter()
@@ -134,6 +136,7 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
     m = warpgauss.encode(
         str(path),
         budget=args.budget,
+        refine=None if args.error_share is None else RefineConfig(error_share=args.error_share),
         device=dev,
         format="full",
         self_test=False,
@@ -173,6 +176,7 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
         "stages": [{k: s[k] for k in ("stage", "seconds", "device_peak_bytes", "host_peak_bytes") if k in s} for s in r.get("stages", [])],
         "bricks": [{k: x.get(k) for k in ("n", "seconds", "samples", "stand_ins", "frozen", "box_zyx")} for x in b["bricks"]],
         "generate_s": gen_s,
+        "error_share": args.error_share,
     }
     return row, m.params
 
