@@ -5,6 +5,7 @@ sampling kept by its presets, decodes clamped to the source's range, the rate co
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -530,6 +531,34 @@ def test_with_the_error_stratum_the_same_seed_gives_the_same_model(cpu):
     assert int(r.sampler.err_cum.numpy()[-1]) == 0  # off: the placeholder index
     np.testing.assert_array_equal(out[0], out[1])
     assert not np.array_equal(out[0], out[2])
+
+
+def test_the_error_stratum_is_not_drawn_where_its_map_sees_too_few_samples(cpu):
+    """Below draw.ERROR_MIN_SAMPLES_A_CELL samples a 4^3 cell over the map's memory (rebin_every x
+    samples / (1 - error_decay) / cells) nothing is drawn from the error stratum: the model equals
+    error_share 0's bit for bit and the report says so; at the threshold it is drawn."""
+    from warpgauss.allocate import AllocationConfig, allocate
+    from warpgauss.profiling import StageRecorder
+    from warpgauss.refine import draw
+    from warpgauss.synthetic import generate
+
+    f = normalise(generate("interface", 64, seed=2))
+    cells = 16**3
+    dv = DeviceVolume(f, cpu)
+    params, _ = allocate(dv, 200, 0, AllocationConfig(), StageRecorder())
+    sparse = math.ceil(draw.ERROR_MIN_SAMPLES_A_CELL * cells * 0.3 / 10) - 1  # the most samples below the threshold
+    out = []
+    for share, m in ((0.5, sparse), (0.0, sparse), (0.5, sparse + 1)):
+        r = Refiner(dv, params, RefineConfig(iterations=25, samples=m, error_share=share), 3, 0.3, 4.0)
+        for _ in range(25):
+            r.step()
+        out.append((r.model_params(), r.sampler.error_report()))
+    (p_sparse, rep), (p_off, _), (p_dense, rep_dense) = out
+    assert rep["share"] == 0.5 and rep["share_drawn"] == 0.0
+    assert rep["samples_a_cell"] == pytest.approx(10 * sparse / 0.3 / cells) and rep["samples_a_cell"] < draw.ERROR_MIN_SAMPLES_A_CELL
+    np.testing.assert_array_equal(p_sparse, p_off)
+    assert rep_dense["samples_a_cell"] >= draw.ERROR_MIN_SAMPLES_A_CELL
+    assert rep_dense["share_drawn"] == pytest.approx(round((sparse + 1) * 0.5) / (sparse + 1))
 
 
 def test_error_share_is_validated():

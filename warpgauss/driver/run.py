@@ -347,6 +347,7 @@ class EncodeRun(replan.Replan):
                 "deferred_updates": refiner.deferred_steps(),
                 "rebins": refiner.rebins,
                 "forward_pass": refiner.forward_pass,
+                "error_stratum": refiner.sampler.error_report(),
                 "cuda_graph": refiner.use_graph,
                 "cuda_graph_error": refiner.graph_error,
                 "strata_samples": dict(zip(("high", "mid", "uniform"), refiner.strata)),

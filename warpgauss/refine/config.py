@@ -119,7 +119,9 @@ class RefineConfig:
             0 -> 0.5): mni_icbm152 +0.40 to +5.48 dB, inia19 +0.32 to +4.42, mean_reg2mean
             +0.02 to +0.09, vortex 512^3 +0.09 to +0.23, interface 512^3 +5.40 at CR 100 (at CR
             300 -6.2 through the re-plan's cut, now capped: ``replan.REPLAN_MAX_CUT``); 0.75 was
-            up to 0.5 dB better on the MRIs, not measured on the fields.
+            up to 0.5 dB better on the MRIs, not measured on the fields. Not drawn where its
+            map would see under :data:`warpgauss.refine.draw.ERROR_MIN_SAMPLES_A_CELL` samples a
+            cell (a GPU encode beyond about 1,400^3; the report's ``refinement.error_stratum``).
         error_decay: Weight of a brick's earlier error sums at each re-bin (every
             ``rebin_every`` iterations).
         split_cells: Forward pass with one thread per (point, neighbour cell) instead of per

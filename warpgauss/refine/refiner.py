@@ -125,6 +125,7 @@ class Refiner:
             config.importance,
             config.error_share,
             config.error_decay,
+            config.rebin_every,
         )
         # split_cells None: the forward pass is re-chosen by the points an iteration in set_samples
         self._split_cuda = wp.get_device(dev).is_cuda if config.split_cells is None else None
