@@ -264,6 +264,76 @@ def error_quota(
 
 
 @wp.func
+def block_voxels(pk: int, pj: int, pi: int, f: int, nz: int, ny: int, nx: int) -> int:
+    """Voxels of block (pk, pj, pi) of f^3 bricks (edge 4 f) inside an nz x ny x nx grid."""
+    e = BRICK * f
+    return wp.min(e, nz - pk * e) * wp.min(e, ny - pj * e) * wp.min(e, nx - pi * e)
+
+
+@wp.kernel
+def pool_errors(
+    err: wp.array3d(dtype=float),  # [bz, by, bx] update_errors' running sums
+    f: int,  # bricks per block edge
+    pooled: wp.array3d(dtype=float),  # [ceil(bz / f), ceil(by / f), ceil(bx / f)] out: each block's sum
+):
+    """The running sums of each block of f^3 bricks (added in a fixed order)."""
+    pk, pj, pi = wp.tid()
+    s = float(0.0)
+    for dk in range(f):
+        for dj in range(f):
+            for di in range(f):
+                k = pk * f + dk
+                j = pj * f + dj
+                i = pi * f + di
+                if k < err.shape[0] and j < err.shape[1] and i < err.shape[2]:
+                    s += err[k, j, i]
+    pooled[pk, pj, pi] = s
+
+
+@wp.func
+def pooled_score(pooled: wp.array3d(dtype=float), f: int, bk: int, bj: int, bi: int, nz: int, ny: int, nx: int) -> float:
+    """A brick's share of its block's summed RMS error, sqrt(block sum x block voxels), by voxels."""
+    pk = bk / f
+    pj = bj / f
+    pi = bi / f
+    vb = float(block_voxels(pk, pj, pi, f, nz, ny, nx))
+    return wp.sqrt(pooled[pk, pj, pi] * vb) * float(brick_voxels(bk, bj, bi, nz, ny, nx)) / vb
+
+
+@wp.kernel
+def pooled_top(
+    pooled: wp.array3d(dtype=float),
+    f: int,
+    nz: int,
+    ny: int,
+    nx: int,
+    top: wp.array(dtype=float),  # [1] in/out (zeroed before): the largest pooled_score (max: order-free)
+):
+    bk, bj, bi = wp.tid()
+    wp.atomic_max(top, 0, pooled_score(pooled, f, bk, bj, bi, nz, ny, nx))
+
+
+@wp.kernel
+def pooled_quota(
+    pooled: wp.array3d(dtype=float),  # pool_errors' block sums
+    top: wp.array(dtype=float),  # [1] pooled_top's largest score
+    cap: int,  # the largest quota (the sum of every brick's must fit an int)
+    f: int,
+    nz: int,
+    ny: int,
+    nx: int,
+    quota: wp.array3d(dtype=int),  # [bz, by, bx] out: each brick's draws, its block's by voxels
+):
+    """error_quota with every brick scored by its block of f^3 (where bricks see too few samples for
+    their own sums): a block's draws spread over its voxels alike."""
+    bk, bj, bi = wp.tid()
+    q = int(0)
+    if top[0] > 0.0:
+        q = int(float(cap) * (pooled_score(pooled, f, bk, bj, bi, nz, ny, nx) / top[0]))
+    quota[bk, bj, bi] = q
+
+
+@wp.func
 def find_brick(cum: wp.array(dtype=int), r: int) -> wp.vec2i:
     """(brick, rank within it) of rank r, for inclusive prefix sums ``cum`` of per-brick counts."""
     lo = int(0)

@@ -561,6 +561,45 @@ def test_the_error_stratum_is_not_drawn_where_its_map_sees_too_few_samples(cpu):
     assert rep_dense["share_drawn"] == pytest.approx(round((sparse + 1) * 0.5) / (sparse + 1))
 
 
+def test_pooled_quota_scores_blocks_of_cells(cpu, monkeypatch):
+    """draw.ERROR_POOL: where the cells see too few samples the quota scores blocks of f^3 cells,
+    each cell getting its block's sqrt(sum x voxels) by its share of the block's voxels (numpy
+    float64 reference; the blocks at the grid's edge are partial), and the weights still make the
+    loss estimate the full-grid mean."""
+    from warpgauss.refine import draw
+
+    monkeypatch.setattr(draw, "ERROR_POOL", True)
+    monkeypatch.setattr(draw, "ERROR_POOL_SAMPLES_A_CELL", 1e9)  # the largest blocks
+    f, r = _error_field_refiner(cpu)
+    smp = r.sampler
+    assert smp.error_pool == draw.ERROR_MAX_POOL == 8 and smp.error_report()["cell_edge"] == 32
+    rng = np.random.default_rng(3)
+    acc = rng.integers(0, 2**36, size=smp.bricks, dtype=np.int64) * (rng.random(smp.bricks) < 0.3)
+    smp.err_acc.assign(acc)
+    smp.refresh_errors()
+    nz, ny, nx = f.values.shape
+    bz, by, bx = smp.bricks
+    fp = smp.error_pool
+    e = acc.astype(np.float64) / 2.0**32
+    vox = np.einsum(
+        "k,j,i->kji", np.minimum(4, nz - 4 * np.arange(bz)), np.minimum(4, ny - 4 * np.arange(by)), np.minimum(4, nx - 4 * np.arange(bx))
+    ).astype(np.float64)
+    pad = [(0, -(-n // fp) * fp - n) for n in (bz, by, bx)]
+    blocks = lambda a: np.pad(a, pad).reshape(-(-bz // fp), fp, -(-by // fp), fp, -(-bx // fp), fp).sum(axis=(1, 3, 5))  # noqa: E731
+    eb, vb = blocks(e), blocks(vox)
+    up = lambda a: np.repeat(np.repeat(np.repeat(a, fp, 0), fp, 1), fp, 2)[:bz, :by, :bx]  # noqa: E731
+    score = np.sqrt(up(eb) * up(vb)) * vox / up(vb)
+    want = np.floor(smp.err_cap * score / score.max())
+    got = smp.err_quota.numpy()
+    assert np.abs(got - want).max() <= 1 and np.mean(got == want) > 0.99  # float32 against float64 at the floor
+    assert got.sum() > 0
+    r.sample()
+    w = r.weight.numpy().astype(np.float64)
+    t2 = r.target.numpy().astype(np.float64) ** 2
+    truth = float(np.mean(f.values.astype(np.float64) ** 2))
+    assert abs(float(np.sum(w * t2) / np.sum(w)) - truth) < 0.05 * truth
+
+
 def test_error_share_is_validated():
     from warpgauss.errors import WarpgaussError
 

@@ -28,6 +28,13 @@ STRATA = (0.35, 0.40, 0.25)  # high (V > 0.4), occupied mid-range, uniform (SPEC
 # (accuracy/error_density_cpu.json): the interface at 192^3 -0.23 dB at 0.039, +1.17 at 0.15,
 # out_of_core.py's field -0.38 at 0.039, -0.21 at 0.31 (96^3)
 ERROR_MIN_SAMPLES_A_CELL = 0.1
+# True: where the cells see fewer than ERROR_POOL_SAMPLES_A_CELL samples, the quota scores blocks
+# of f^3 cells (f = 2, 4 or 8, the smallest that sees that many; a block's draws spread over its
+# voxels alike), and the stratum is left out only where even f = ERROR_MAX_POOL sees fewer than
+# ERROR_MIN_SAMPLES_A_CELL. Off (False): measured on the CPU only (accuracy/error_density_cpu.json)
+ERROR_POOL = False
+ERROR_POOL_SAMPLES_A_CELL = 1.0
+ERROR_MAX_POOL = 8
 
 
 def stratum_counts(m: int, n_high: int, n_mid: int) -> tuple[int, int, int]:
@@ -99,6 +106,8 @@ class Sampler:
             self._no_marks = (unused, wp.zeros(1, dtype=int, device=dev))
         self.m = self.m_err = 0
         self.samples_a_cell = 0.0
+        self.error_pool = 1  # cells per block edge the quota scores (see ERROR_POOL)
+        self.err_pooled = None
 
     def _build_strata(self) -> None:
         """Prefix sums of per-brick stratum counts: the index the sampler draws stratum voxels from."""
@@ -135,15 +144,26 @@ class Sampler:
         self.points = wp.zeros(2 * m, dtype=wp.vec3, device=dev)
         self.target, self.weight, self.occupied = (wp.zeros(m, dtype=float, device=dev) for _ in range(3))
         memory = self.rebin_every / (1.0 - self.error_decay) if self.error_decay < 1 else float("inf")
-        self.samples_a_cell = memory * m / int(np.prod(self.bricks))
-        drawn = self.error_share > 0 and self.samples_a_cell >= ERROR_MIN_SAMPLES_A_CELL
+        self.samples_a_cell = d = memory * m / int(np.prod(self.bricks))
+        f = 1
+        while ERROR_POOL and f < ERROR_MAX_POOL and d * f**3 < ERROR_POOL_SAMPLES_A_CELL:
+            f *= 2
+        drawn = self.error_share > 0 and d * f**3 >= ERROR_MIN_SAMPLES_A_CELL
         self.m_err = min(m - 1, int(round(m * self.error_share))) if drawn else 0
+        self.error_pool = f if drawn else 1
+        if self.error_pool > 1:
+            self.err_pooled = wp.zeros(tuple(-(-b // f) for b in self.bricks), dtype=float, device=dev)
         self.strata = stratum_counts(m - self.m_err, self.n_high, self.n_mid)
 
     def error_report(self) -> dict:
         """What the error stratum did: its share as set and as drawn, and the samples a cell of its
         map sees (what decided)."""
-        return {"share": self.error_share, "share_drawn": self.m_err / self.m if self.m else 0.0, "samples_a_cell": self.samples_a_cell}
+        return {
+            "share": self.error_share,
+            "share_drawn": self.m_err / self.m if self.m else 0.0,
+            "samples_a_cell": self.samples_a_cell,
+            "cell_edge": 4 * self.error_pool,
+        }
 
     def error_arrays(self) -> dict[str, np.ndarray]:
         """The error stratum's state for a checkpoint: the sums since the last re-bin and the
@@ -195,13 +215,26 @@ class Sampler:
             outputs=[self.err_sum, self.err_top],
             device=dev,
         )
-        wp.launch(
-            ks.error_quota,
-            dim=self.bricks,
-            inputs=[self.err_sum, self.err_top, self.err_cap, nz, ny, nx],
-            outputs=[self.err_quota],
-            device=dev,
-        )
+        if self.err_pooled is not None and self.error_pool > 1:  # blocks of f^3 cells scored (ERROR_POOL)
+            f = self.error_pool
+            wp.launch(ks.pool_errors, dim=self.err_pooled.shape, inputs=[self.err_sum, f], outputs=[self.err_pooled], device=dev)
+            self.err_top.zero_()
+            wp.launch(ks.pooled_top, dim=self.bricks, inputs=[self.err_pooled, f, nz, ny, nx], outputs=[self.err_top], device=dev)
+            wp.launch(
+                ks.pooled_quota,
+                dim=self.bricks,
+                inputs=[self.err_pooled, self.err_top, self.err_cap, f, nz, ny, nx],
+                outputs=[self.err_quota],
+                device=dev,
+            )
+        else:
+            wp.launch(
+                ks.error_quota,
+                dim=self.bricks,
+                inputs=[self.err_sum, self.err_top, self.err_cap, nz, ny, nx],
+                outputs=[self.err_quota],
+                device=dev,
+            )
         wp.utils.array_scan(self.err_quota.flatten(), self.err_cum, inclusive=True)
 
     def draw(self, stream) -> None:
