@@ -45,6 +45,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--budget", type=int, default=3000)
     ap.add_argument("--iterations", type=int, default=400, help="0: the encode's")
     ap.add_argument("--variants", default="off,fine,pool")
+    ap.add_argument("--pool-target", type=float, default=None, help="draw.ERROR_POOL_SAMPLES_A_CELL for the pool variant")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -53,7 +54,9 @@ def main(argv=None) -> dict:
     from warpgauss.refine import RefineConfig, draw
     from warpgauss.synthetic import generate
 
-    saved = draw.ERROR_MIN_SAMPLES_A_CELL, draw.ERROR_POOL
+    saved = draw.ERROR_MIN_SAMPLES_A_CELL, draw.ERROR_POOL, draw.ERROR_POOL_SAMPLES_A_CELL
+    if args.pool_target is not None:
+        draw.ERROR_POOL_SAMPLES_A_CELL = args.pool_target
     result = result_header("the error stratum by the samples its map sees", __file__, argv, args.device)
     result["rows"] = []
     warpgauss.encode(generate("vortex", 16), budget=50, device=args.device, iterations=2, samples=64, format="full", self_test=False)
@@ -87,13 +90,14 @@ def main(argv=None) -> dict:
                     "cells": cells,
                     "samples_a_cell": stratum.get("samples_a_cell"),
                     "error_stratum": stratum,
+                    "pool_target": draw.ERROR_POOL_SAMPLES_A_CELL if variant == "pool" else None,
                     "psnr_db": model.report["psnr_db"],
                     "seconds": time.perf_counter() - t0,
                 }
                 result["rows"].append(row)
                 print(row, flush=True)
                 args.out.write_text(json.dumps(result, indent=1))
-    draw.ERROR_MIN_SAMPLES_A_CELL, draw.ERROR_POOL = saved
+    draw.ERROR_MIN_SAMPLES_A_CELL, draw.ERROR_POOL, draw.ERROR_POOL_SAMPLES_A_CELL = saved
     return result
 
 
