@@ -439,6 +439,21 @@ def _error_field_refiner(cpu, **cfg):
     return f, Refiner(DeviceVolume(f, cpu), _toy_params(f, 400), RefineConfig(**{**base, **cfg}), 0, 0.3, 4.0)
 
 
+def _random_errors(smp, seed: int, share: float) -> np.ndarray:
+    """Random error sums (2^-32 fixed point) on ``share`` of the sampler's bricks, folded in: the sums."""
+    rng = np.random.default_rng(seed)
+    acc = rng.integers(0, 2**36, size=smp.bricks, dtype=np.int64) * (rng.random(smp.bricks) < share)
+    smp.err_acc.assign(acc)
+    smp.refresh_errors()
+    return acc
+
+
+def _brick_voxels(shape, bricks) -> np.ndarray:
+    """Voxels of each 4^3 brick inside a grid of ``shape`` (z, y, x)."""
+    (nz, ny, nx), (bz, by, bx) = shape, bricks
+    return np.einsum("k,j,i->kji", *(np.minimum(4, n - 4 * np.arange(b)) for n, b in ((nz, bz), (ny, by), (nx, bx))))
+
+
 def test_the_error_sums_are_the_samples_weighted_squared_errors(cpu):
     """Sampler.record_errors adds each sample's weight x squared error (point_grads' value term
     x M) to its 4^3 brick in 2^-32 fixed point: equal to a numpy reference bit for bit (integer
@@ -469,18 +484,9 @@ def test_the_error_stratum_follows_its_quota_and_keeps_the_loss_the_full_grid_ms
     full-grid mean."""
     f, r = _error_field_refiner(cpu)
     smp = r.sampler
-    rng = np.random.default_rng(5)
-    acc = rng.integers(0, 2**36, size=smp.bricks, dtype=np.int64) * (rng.random(smp.bricks) < 0.6)
-    smp.err_acc.assign(acc)
-    smp.refresh_errors()
-    nz, ny, nx = f.values.shape
+    acc = _random_errors(smp, 5, 0.6)
     bz, by, bx = smp.bricks
-    nb = np.einsum(
-        "k,j,i->kji",
-        np.minimum(4, nz - 4 * np.arange(bz)),
-        np.minimum(4, ny - 4 * np.arange(by)),
-        np.minimum(4, nx - 4 * np.arange(bx)),
-    ).astype(np.float32)
+    nb = _brick_voxels(f.values.shape, smp.bricks).astype(np.float32)
     s = np.float32(0.7) * np.float32(0) + acc.astype(np.float32) / np.float32(2.0**32)
     score = np.sqrt(s * nb)
     quota = (np.float32(smp.err_cap) * (score / score.max())).astype(np.int64)
@@ -573,17 +579,11 @@ def test_pooled_quota_scores_blocks_of_cells(cpu, monkeypatch):
     f, r = _error_field_refiner(cpu)
     smp = r.sampler
     assert smp.error_pool == draw.ERROR_MAX_POOL == 8 and smp.error_report()["cell_edge"] == 32
-    rng = np.random.default_rng(3)
-    acc = rng.integers(0, 2**36, size=smp.bricks, dtype=np.int64) * (rng.random(smp.bricks) < 0.3)
-    smp.err_acc.assign(acc)
-    smp.refresh_errors()
-    nz, ny, nx = f.values.shape
+    acc = _random_errors(smp, 3, 0.3)
     bz, by, bx = smp.bricks
     fp = smp.error_pool
     e = acc.astype(np.float64) / 2.0**32
-    vox = np.einsum(
-        "k,j,i->kji", np.minimum(4, nz - 4 * np.arange(bz)), np.minimum(4, ny - 4 * np.arange(by)), np.minimum(4, nx - 4 * np.arange(bx))
-    ).astype(np.float64)
+    vox = _brick_voxels(f.values.shape, smp.bricks).astype(np.float64)
     pad = [(0, -(-n // fp) * fp - n) for n in (bz, by, bx)]
     blocks = lambda a: np.pad(a, pad).reshape(-(-bz // fp), fp, -(-by // fp), fp, -(-bx // fp), fp).sum(axis=(1, 3, 5))  # noqa: E731
     eb, vb = blocks(e), blocks(vox)
