@@ -62,6 +62,11 @@ def main(argv=None) -> dict:
         help="GPU workers (a local Dask cluster, one process per GPU) beyond 1; 1: this process; a comma list: one row per count, each on a cluster",
     )
     ap.add_argument("--error-share", type=float, default=None, help="share of the samples drawn where the error is (default: the encode's)")
+    ap.add_argument(
+        "--error-pool",
+        action="store_true",
+        help="draw.ERROR_POOL on: sparse error-map cells scored by blocks of them (this process only: --gpus 1)",
+    )
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -71,6 +76,12 @@ def main(argv=None) -> dict:
     from warpgauss.synthetic import generate
 
     dev = resolve_device(args.device)
+    if args.error_pool:
+        if str(args.gpus) != "1":
+            raise SystemExit("--error-pool sets a module constant of this process: use it with --gpus 1")
+        from warpgauss.refine import draw
+
+        draw.ERROR_POOL = True
     path = args.dir / f"ooc_{args.size}x{args.size}x{args.size}_float32.raw"
     t0 = time.perf_counter()
     if not path.exists() or path.stat().st_size != 4 * args.size**3:
@@ -177,6 +188,7 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
         "bricks": [{k: x.get(k) for k in ("n", "seconds", "samples", "stand_ins", "frozen", "box_zyx")} for x in b["bricks"]],
         "generate_s": gen_s,
         "error_share": args.error_share,
+        "error_pool": bool(args.error_pool),
     }
     return row, m.params
 
