@@ -25,13 +25,16 @@ STRATA = (0.35, 0.40, 0.25)  # high (V > 0.4), occupied mid-range, uniform (SPEC
 # 2048^3 (the same in each brick). Measured: the 2048^3 out-of-core field on one H200 (3x3x4
 # bricks, N 4,000,000) 59.14 dB with the stratum, 62.05 without
 # (bricked/out_of_core2048_err0_h200.json); float32 on the CPU, N 3,000, 400 iterations
-# (accuracy/error_density_cpu.json): the interface at 192^3 -0.23 dB at 0.039, +1.17 at 0.15,
-# out_of_core.py's field -0.38 at 0.039, -0.21 at 0.31 (96^3)
+# (accuracy/error_density_cpu.json): the interface at 192^3 -0.46 / -0.23 dB at 0.019 / 0.039,
+# +1.17 at 0.15; out_of_core.py's field -0.55 / -0.38 / -0.27
 ERROR_MIN_SAMPLES_A_CELL = 0.1
 # True: where the cells see fewer than ERROR_POOL_SAMPLES_A_CELL samples, the quota scores blocks
 # of f^3 cells (f = 2, 4 or 8, the smallest that sees that many; a block's draws spread over its
 # voxels alike), and the stratum is left out only where even f = ERROR_MAX_POOL sees fewer than
-# ERROR_MIN_SAMPLES_A_CELL. Off (False): measured on the CPU only (accuracy/error_density_cpu.json)
+# ERROR_MIN_SAMPLES_A_CELL. On the CPU (accuracy/error_density*_cpu.json, RD.md round 9) the
+# interface gained 1.5-2.2 dB over the stratum left out at 0.019-0.039 samples a cell and 1.7 over
+# the 4^3 cells at 0.15, the smooth field within -0.12 .. +0.22; from about 5 the 4^3 cells were
+# best. Off (False): on a GPU it changes encodes from 1024^3 up and is not measured there
 ERROR_POOL = False
 ERROR_POOL_SAMPLES_A_CELL = 1.0
 ERROR_MAX_POOL = 8
