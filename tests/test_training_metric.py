@@ -600,6 +600,24 @@ def test_pooled_quota_scores_blocks_of_cells(cpu, monkeypatch):
     assert abs(float(np.sum(w * t2) / np.sum(w)) - truth) < 0.05 * truth
 
 
+def test_an_encode_reports_the_error_stratum_and_pools_sparse_cells_on_request(monkeypatch):
+    """The report's refinement.error_stratum: at 0.098 samples a 4^3 cell (64^3, 12 samples) the
+    stratum is left out by default, and with draw.ERROR_POOL drawn from blocks of 4^3 cells (edge
+    16: 6.25 samples a block)."""
+    import warpgauss
+    from warpgauss.refine import draw
+    from warpgauss.synthetic import generate
+
+    vol = generate("interface", 64, seed=1)
+    kw = dict(budget=200, iterations=10, samples=12, format="full", device="cpu", self_test=False)
+    off = warpgauss.encode(vol, **kw).report["refinement"]["error_stratum"]
+    monkeypatch.setattr(draw, "ERROR_POOL", True)
+    pooled = warpgauss.encode(vol, **kw).report["refinement"]["error_stratum"]
+    assert off["samples_a_cell"] == pytest.approx(10 * 12 / 0.3 / 16**3)
+    assert off["share_drawn"] == 0.0 and off["cell_edge"] == 4
+    assert pooled["share_drawn"] == pytest.approx(0.5) and pooled["cell_edge"] == 16
+
+
 def test_error_share_is_validated():
     from warpgauss.errors import WarpgaussError
 
