@@ -58,9 +58,16 @@ def brick_voxel(bk: int, bj: int, bi: int, d: int) -> wp.vec3i:
 
 
 @wp.func
+def block_voxels(pk: int, pj: int, pi: int, f: int, nz: int, ny: int, nx: int) -> int:
+    """Voxels of block (pk, pj, pi) of f^3 bricks (edge 4 f) inside an nz x ny x nx grid."""
+    e = BRICK * f
+    return wp.min(e, nz - pk * e) * wp.min(e, ny - pj * e) * wp.min(e, nx - pi * e)
+
+
+@wp.func
 def brick_voxels(bk: int, bj: int, bi: int, nz: int, ny: int, nx: int) -> int:
     """Voxels of 4^3 brick (bk, bj, bi) inside an nz x ny x nx grid."""
-    return wp.min(BRICK, nz - bk * BRICK) * wp.min(BRICK, ny - bj * BRICK) * wp.min(BRICK, nx - bi * BRICK)
+    return block_voxels(bk, bj, bi, 1, nz, ny, nx)
 
 
 @wp.kernel
@@ -261,13 +268,6 @@ def error_quota(
     if top[0] > 0.0:
         q = int(float(cap) * (error_score(err[bk, bj, bi], bk, bj, bi, nz, ny, nx) / top[0]))
     quota[bk, bj, bi] = q
-
-
-@wp.func
-def block_voxels(pk: int, pj: int, pi: int, f: int, nz: int, ny: int, nx: int) -> int:
-    """Voxels of block (pk, pj, pi) of f^3 bricks (edge 4 f) inside an nz x ny x nx grid."""
-    e = BRICK * f
-    return wp.min(e, nz - pk * e) * wp.min(e, ny - pj * e) * wp.min(e, nx - pi * e)
 
 
 @wp.kernel
