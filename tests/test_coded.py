@@ -97,14 +97,25 @@ def test_storage_order_is_the_full_lexsort(spread):
     np.testing.assert_array_equal(coded.coded_order(c), full)
 
 
-def test_large_planes_use_the_faster_level(monkeypatch):
-    """Above ZSTD_LARGE_RAW the planes are compressed at ZSTD_LEVEL_LARGE; either way they decode."""
-    p = realistic_params(np.random.default_rng(5), 4000)
-    small, quant, _ = coded.encode_coded(p)
-    monkeypatch.setattr(coded, "ZSTD_LARGE_RAW", 1000)
-    large, quant_l, _ = coded.encode_coded(p)
-    assert small != large and quant == quant_l
-    np.testing.assert_array_equal(coded.decode_coded(large, len(p), quant_l), coded.decode_coded(small, len(p), quant))
+def test_each_plane_is_a_block_and_the_smaller_level_is_kept(monkeypatch):
+    """The payload is one frame whose planes end blocks of their own, at the smaller of ZSTD_LEVELS;
+    it codes smaller than one compression of the planes' concatenation (one literal table for all
+    columns) on a model of a few thousand primitives, and any level decodes to the same model."""
+    zstd = coded.zstandard_module()
+    p = realistic_params(np.random.default_rng(5), 3000)
+    payload, quant, _ = coded.encode_coded(p)
+    sizes = {}
+    for level in (1, 9, 19):
+        monkeypatch.setattr(coded, "ZSTD_LEVELS", (level,))
+        one, quant_l, _ = coded.encode_coded(p)
+        assert quant_l == quant
+        np.testing.assert_array_equal(coded.decode_coded(one, len(p), quant_l), coded.decode_coded(payload, len(p), quant))
+        sizes[level] = len(one)
+    assert len(payload) == min(sizes[1], sizes[9])
+    blob = zstd.ZstdDecompressor().decompress(payload, max_output_size=quant["raw_bytes"])
+    joint = zstd.ZstdCompressor(level=19, write_checksum=True).compress(blob)  # the layout before blocks
+    assert len(payload) < 0.97 * len(joint)
+    np.testing.assert_array_equal(coded.decode_coded(joint, len(p), quant), coded.decode_coded(payload, len(p), quant))
 
 
 def test_a_single_primitive_and_huge_values():

@@ -16,11 +16,17 @@ The primitives are sorted by the Morton code of their centre codes (ties by ever
 neighbours along the file are neighbours in space: the centre columns are stored as differences
 from the previous primitive (zigzag), every other column as its offset from the column's minimum.
 Each column takes the fewest whole bytes its values need; the columns' byte planes (all lowest
-bytes first) are concatenated and compressed with Zstandard at level 19. Zstandard rather than a
-range coder of our own: a well-kept, fast, bounded-memory library with a frame checksum and a
-declared content size; an adaptive model-based coder might save a few per cent more (not
-measured). Level 19 codes 5 % smaller than level 3 and 0.3 % larger than level 22 (a 25,000-
-Gaussian model); planes above :data:`ZSTD_LARGE_RAW` bytes use level 12 (see there).
+bytes first) are concatenated into one Zstandard frame, each plane ended as a block of its own so
+that each gets its own literal (Huffman) table: one table for all planes mixed, as a single
+compression of the concatenation gives at small N, cost 7-10 % (refined models of 2,900-3,800
+Gaussians: mni_icbm152 at CR 300 9.35 -> 8.47 B a Gaussian, interface 96^3 at CR 100 8.89 ->
+7.97; 1 % at 75,000, inia19 at CR 30, 7.79 -> 7.70; the order-0 entropy of the columns' values is
+8.02 / 7.64 / 7.50). The frame is coded at :data:`ZSTD_LEVELS` and the smaller kept (matches
+across the planes buy little: level 19 codes them larger than level 1 and takes 80x as long).
+Zstandard rather than a range coder of our own: a well-kept, fast, bounded-memory library with a
+frame checksum and a declared content size; an adaptive model-based coder would save the 2-5 %
+that separate the frame from the order-0 entropy, more with contexts between columns (not
+measured). A reader of any warpgauss version decodes either layout: it is one frame either way.
 
 Decoding checks every declared width, offset and length against the header before it allocates,
 decompresses into at most the declared size, and rejects codes outside their ranges; no pickle.
@@ -39,12 +45,10 @@ from .errors import WarpgaussError
 # measured on four real volumes (benchmarks/results/rate_distortion/coded_loss_mri_cpu.json): every bit here costs less
 # PSNR than the primitives its bytes would buy (about 0.4 dB a byte at these budgets)
 CODED_BITS: dict[str, int] = {"mu": 2, "log_s": 4, "q": 5, "a": 7, "w": 5}
-ZSTD_LEVEL = 19
-# Zstandard 19 codes about 3 MB/s of planes: a 400,000-primitive model (6 MB) took 2.0 s a coding
-# at 19 and 0.25 s at 12, for 2.6 % more bytes (mean_reg2mean analytic model); rate control codes
-# a model several times, so planes above this size use the faster level
-ZSTD_LARGE_RAW = 4 << 20
-ZSTD_LEVEL_LARGE = 12
+# the frame of planes is coded at each level and the smaller kept: level 1 was the smaller on three
+# refined models of four, level 9 on the fourth (mni_icbm152 at CR 1000, 688 Gaussians: 9.67 and
+# 9.31 B a Gaussian); both take 2-11 ms a megabyte of planes, where level 19 took 135
+ZSTD_LEVELS = (1, 9)
 # CODED_BITS keep the quantisation noise below the error of 30-42 dB models; a more accurate model
 # needs finer grids: one bit on every attribute per this many dB above BITS_REFERENCE_DB (each bit
 # halves the noise). Measured: a 51.2 dB vortex model lost 2.07 dB at CODED_BITS, 0.14 dB at +2.
@@ -269,13 +273,30 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tupl
         columns.append([off, w])
         planes.append(v.astype("<u8").view(np.uint8).reshape(-1, 8)[:, :w].T.copy())  # (w, n) planes
         raw += w * len(v)
-    blob = b"".join(p.tobytes() for p in planes)
-    level = ZSTD_LEVEL if raw <= ZSTD_LARGE_RAW else ZSTD_LEVEL_LARGE
-    payload = zstandard_module().ZstdCompressor(level=level, write_checksum=True).compress(blob)
+    payload = _compress_planes([r.tobytes() for p in planes for r in p], raw)
     # columns: [offset, bytes] in CODED_COLUMNS order (centres delta-coded from the offset, the rest
     # offset-coded), kept terse: at high compression ratios the header is part of the budget
     quant = {"bits": b, "columns": columns, "raw_bytes": raw}
     return payload, quant, order
+
+
+def _compress_planes(planes: list[bytes], raw: int) -> bytes:
+    """One Zstandard frame of ``planes`` (``raw`` bytes in all), a block ended after each plane, at
+    each of :data:`ZSTD_LEVELS`; the smallest (the first of equals)."""
+    zstd = zstandard_module()
+    best = None
+    for level in ZSTD_LEVELS:
+        co = zstd.ZstdCompressor(level=level, write_checksum=True).compressobj(size=raw)
+        out = []
+        for plane in planes:
+            out.append(co.compress(plane))
+            out.append(co.flush(zstd.COMPRESSOBJ_FLUSH_BLOCK))
+        out.append(co.flush())
+        frame = b"".join(out)
+        if best is None or len(frame) < len(best):
+            best = frame
+    assert best is not None
+    return best
 
 
 def _offset(name: str, v) -> int:

@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .coded import ZSTD_LARGE_RAW, zstandard_module
+from .coded import zstandard_module
 from .errors import WarpgaussError
 
 # the Gaussians' ratio in a bounded file when no budget is given: at 1e-2..1e-4 of the range, 1000
@@ -60,6 +60,7 @@ MIN_GAUSSIAN_BYTES = 8192  # and at least this (a small volume's thousandth hold
 MARGIN_REL = 1e-9  # of the value range: how far two readers' float64 predictions may differ
 ZSTD_MAX_RATIO = 1 << 16  # Zstandard never expands past ~32,768 : 1 (an RLE block of 128 KiB in 4 bytes)
 ZSTD_LEVEL = 9  # streams up to ZSTD_LARGE_RAW; larger ones level 3 (symbols past a prediction are noise-like)
+ZSTD_LARGE_RAW = 4 << 20
 # on a tie the first: it needs no prediction. "-linear": linear interpolation where cubic would be used
 # (cubic codes smaller on smooth fields and mean_reg2mean, linear on inia19: 83.7 against 76.9 at 1e-2)
 PREDICTORS = ("interp", "interp-linear", "gaussians+interp", "gaussians+interp-linear", "gaussians")
