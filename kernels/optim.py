@@ -224,12 +224,91 @@ class QuantGrid:
     geometry_only: int  # 1: leave a and w as they are (refitted after the geometry is fixed)
 
 
+_R2 = 0.7071067811865476  # 1 / sqrt 2
+_mat24x4 = wp.types.matrix(shape=(24, 4), dtype=float)
+_mat24x3i = wp.types.matrix(shape=(24, 3), dtype=int)
+# the 24 turns of a box's axes onto themselves, (x, y, z, w), the identity first, and the old axis
+# each new axis is: as warpgauss.coded.OCTAHEDRAL_Q and OCTAHEDRAL_AXES (a test holds them equal)
+OCTAHEDRAL_Q = wp.constant(
+    _mat24x4(
+        *(0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0),
+        *(_R2, 0.0, 0.0, _R2, -_R2, 0.0, 0.0, _R2, 0.0, _R2, 0.0, _R2, 0.0, -_R2, 0.0, _R2),
+        *(0.0, 0.0, _R2, _R2, 0.0, 0.0, -_R2, _R2, _R2, _R2, 0.0, 0.0, _R2, -_R2, 0.0, 0.0),
+        *(_R2, 0.0, _R2, 0.0, _R2, 0.0, -_R2, 0.0, 0.0, _R2, _R2, 0.0, 0.0, _R2, -_R2, 0.0),
+        *(0.5, 0.5, 0.5, 0.5, 0.5, 0.5, -0.5, 0.5, 0.5, -0.5, 0.5, 0.5, 0.5, -0.5, -0.5, 0.5),
+        *(-0.5, 0.5, 0.5, 0.5, -0.5, 0.5, -0.5, 0.5, -0.5, -0.5, 0.5, 0.5, -0.5, -0.5, -0.5, 0.5),
+    )
+)
+OCTAHEDRAL_AXES = wp.constant(
+    _mat24x3i(
+        *(0, 1, 2, 0, 1, 2, 0, 1, 2, 0, 1, 2, 0, 2, 1, 0, 2, 1, 2, 1, 0, 2, 1, 0),
+        *(1, 0, 2, 1, 0, 2, 1, 0, 2, 1, 0, 2, 2, 1, 0, 2, 1, 0, 0, 2, 1, 0, 2, 1),
+        *(1, 2, 0, 2, 0, 1, 2, 0, 1, 1, 2, 0, 2, 0, 1, 1, 2, 0, 1, 2, 0, 2, 0, 1),
+    )
+)
+CANONICAL_MARGIN = wp.constant(1.0e-5)  # as warpgauss.coded.CANONICAL_MARGIN
+TAN_EIGHTH = wp.constant(0.41421356237309503)  # tan(pi / 8)
+
+
 @wp.func
-def project_one(p: vec12, g: QuantGrid) -> vec12:
-    """One primitive's training parameters on the coded format's grids: centres, log-scales and
-    values to multiples of 2^-bits, the weight to a multiple of 2^-w in [2^-w, 1 - 2^-w] (as a
-    logit), the rotation to its smallest-three levels with the implied component strictly the
-    largest (as :func:`warpgauss.coded.quantise` codes it)."""
+def quat_product(a: wp.vec4, b: wp.vec4) -> wp.vec4:
+    """The quaternion product a b, (x, y, z, w) order."""
+    return wp.vec4(
+        a[3] * b[0] + b[3] * a[0] + a[1] * b[2] - a[2] * b[1],
+        a[3] * b[1] + b[3] * a[1] + a[2] * b[0] - a[0] * b[2],
+        a[3] * b[2] + b[3] * a[2] + a[0] * b[1] - a[1] * b[0],
+        a[3] * b[3] - a[0] * b[0] - a[1] * b[1] - a[2] * b[2],
+    )
+
+
+@wp.func
+def nearest_turn(q: wp.vec4) -> int:
+    """The turn k of :data:`OCTAHEDRAL_Q` that brings unit q nearest the identity (largest |w| of
+    q g_k; the first of ties), as :func:`warpgauss.coded.canonical` chooses it."""
+    best = int(0)
+    top = wp.abs(q[3])
+    for k in range(1, 24):
+        wk = wp.abs(q[3] * OCTAHEDRAL_Q[k, 3] - q[0] * OCTAHEDRAL_Q[k, 0] - q[1] * OCTAHEDRAL_Q[k, 1] - q[2] * OCTAHEDRAL_Q[k, 2])
+        if wk > top:
+            top = wk
+            best = k
+    return best
+
+
+@wp.func
+def turned(p: vec12, q: wp.vec4, k: int) -> vec12:
+    """The same Gaussian with its axes turned by g_k: quaternion q g_k (w >= 0), log-scales moved
+    with the axes (q: p's unit quaternion)."""
+    r = quat_product(q, wp.vec4(OCTAHEDRAL_Q[k, 0], OCTAHEDRAL_Q[k, 1], OCTAHEDRAL_Q[k, 2], OCTAHEDRAL_Q[k, 3]))
+    if r[3] < 0.0:
+        r = -r
+    out = p
+    for i in range(3):
+        out[3 + i] = p[3 + OCTAHEDRAL_AXES[k, i]]
+    return with_quaternion(out, wp.quat(r[0], r[1], r[2], r[3]))
+
+
+@wp.func
+def turned_back(t: vec12, k: int, like: wp.vec4) -> vec12:
+    """Undo :func:`turned`: quaternion t's times g_k's conjugate, signed as ``like``, log-scales
+    back on their axes."""
+    qt = wp.vec4(t[6], t[7], t[8], t[9])
+    r = quat_product(qt, wp.vec4(-OCTAHEDRAL_Q[k, 0], -OCTAHEDRAL_Q[k, 1], -OCTAHEDRAL_Q[k, 2], OCTAHEDRAL_Q[k, 3]))
+    if wp.dot(r, like) < 0.0:
+        r = -r
+    out = t
+    for i in range(3):
+        out[3 + OCTAHEDRAL_AXES[k, i]] = t[3 + i]
+    return with_quaternion(out, wp.quat(r[0], r[1], r[2], r[3]))
+
+
+@wp.func
+def project_turned(p: vec12, g: QuantGrid) -> vec12:
+    """A primitive already turned nearest the identity (:func:`turned`) on the coded format's
+    grids: centres, log-scales and values to multiples of 2^-bits, the weight to a multiple of
+    2^-w in [2^-w, 1 - 2^-w] (as a logit), the rotation to its smallest-three levels with the
+    implied component the largest and the rounded rotation still nearest the identity by
+    :data:`CANONICAL_MARGIN` (as :func:`warpgauss.coded.quantise` codes it)."""
     for k in range(3):
         p[k] = on_grid(p[k], g.mu)
         p[3 + k] = on_grid(p[3 + k], g.s)
@@ -239,22 +318,22 @@ def project_one(p: vec12, g: QuantGrid) -> vec12:
         w = 1.0 / (1.0 + wp.exp(-p[11]))
         wq = wp.clamp(wp.round(w * sw), 1.0, sw - 1.0) / sw
         p[11] = wp.log(wq / (1.0 - wq))
-    uq = safe_unit_quat(p[6], p[7], p[8], p[9])
-    q = wp.vec4(uq[0], uq[1], uq[2], uq[3])
+    q = wp.vec4(p[6], p[7], p[8], p[9])
     big = int(0)
     for k in range(1, 4):
         if wp.abs(q[k]) > wp.abs(q[big]):
             big = k
     if q[big] < 0.0:
         q = -q
-    r = 0.7071067811865476  # 1 / sqrt 2
+    r = _R2
     lev = float((1 << g.q) - 2)
     c = wp.vec4(0.0)
     for k in range(4):
         if k != big:
             c[k] = wp.clamp(wp.round((q[k] + r) / (2.0 * r) * lev), 0.0, lev)
     mid = float((1 << g.q) / 2 - 1)
-    for _ in range(64):  # the implied component must stay strictly the largest
+    keep = 1.0 - CANONICAL_MARGIN
+    for _ in range(64):  # the implied component the largest, the rotation nearest the identity
         s2 = float(0.0)
         top = int(-1)
         for k in range(4):
@@ -267,7 +346,13 @@ def project_one(p: vec12, g: QuantGrid) -> vec12:
                     top = k
         largest = wp.sqrt(wp.max(0.0, 1.0 - s2))
         vt = wp.abs(c[top] * (2.0 * r / lev) - r)
-        if vt < largest * (1.0 - 1.0e-6):
+        inside = vt < largest * (1.0 - 1.0e-6)
+        if big == 3:
+            total = float(0.0)
+            for k in range(3):
+                total += wp.abs(c[k] * (2.0 * r / lev) - r)
+            inside = inside and vt <= TAN_EIGHTH * largest * keep and total <= largest * keep
+        if inside:
             break
         if c[top] > mid:
             c[top] = c[top] - 1.0
@@ -284,10 +369,24 @@ def project_one(p: vec12, g: QuantGrid) -> vec12:
 
 
 @wp.func
+def project_one(p: vec12, g: QuantGrid) -> vec12:
+    """One primitive's training parameters as the coded format stores them: turned nearest the
+    identity (:func:`nearest_turn`), then on its grids (:func:`project_turned`)."""
+    uq = safe_unit_quat(p[6], p[7], p[8], p[9])
+    q = wp.vec4(uq[0], uq[1], uq[2], uq[3])
+    return project_turned(turned(p, q, nearest_turn(q)), g)
+
+
+@wp.func
 def evaluated(p: vec12, g: QuantGrid) -> vec12:
-    """The parameters evaluation sees: on the coded grids while quantisation-aware, else p."""
+    """The parameters evaluation sees: while quantisation-aware, the Gaussian the coded format
+    stores, in p's own axes and quaternion sign (so that its gradients step p straight through);
+    else p."""
     if g.on != 0:
-        return project_one(p, g)
+        uq = safe_unit_quat(p[6], p[7], p[8], p[9])
+        q = wp.vec4(uq[0], uq[1], uq[2], uq[3])
+        k = nearest_turn(q)
+        return turned_back(project_turned(turned(p, q, k), g), k, q)
     return p
 
 
