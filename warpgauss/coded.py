@@ -140,6 +140,7 @@ OCTAHEDRAL_Q, OCTAHEDRAL_AXES = _octahedral()
 # (float32) is stored again as the same codes and the refiner's float32 projection agrees
 CANONICAL_MARGIN = 1e-5
 _TAN_EIGHTH = math.sqrt(2.0) - 1.0  # tan(pi / 8): a quarter turn about an axis ties beyond it
+_W_AFTER = np.stack([-OCTAHEDRAL_Q[:, 0], -OCTAHEDRAL_Q[:, 1], -OCTAHEDRAL_Q[:, 2], OCTAHEDRAL_Q[:, 3]])  # q @ this: the w of each q g
 
 
 def _hamilton(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -163,13 +164,21 @@ def canonical(params: np.ndarray) -> np.ndarray:
     log-scales moved with its axes (the first such rotation where several tie)."""
     p = np.array(params, np.float64)
     q = p[:, 6:10]
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 0.0, 1.0]))
-    g = OCTAHEDRAL_Q
-    w_after = q @ np.stack([-g[:, 0], -g[:, 1], -g[:, 2], g[:, 3]])  # the w of q g for each g
-    k = np.argmax(np.abs(w_after), axis=1)
+    norm = np.sqrt(np.einsum("ij,ij->i", q, q))[:, None]
+    if np.all(norm > 0):
+        q = q / norm
+    else:
+        q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 0.0, 1.0]))
+    k = np.zeros(len(q), np.intp)
+    v = np.abs(q[:, 0:3])
+    w = np.abs(q[:, 3])
+    near = (v.max(axis=1, initial=0.0) < _TAN_EIGHTH * w * 0.999) & (v.sum(axis=1) < w * 0.999)  # the identity, by far
+    rest = np.flatnonzero(~near)
+    if len(rest):
+        w_after = q[rest] @ _W_AFTER  # the w of q g for each turn g
+        k[rest] = np.argmax(np.abs(w_after, out=w_after), axis=1)
     turned = k != 0
-    q[turned] = _hamilton(q[turned], g[k[turned]])
+    q[turned] = _hamilton(q[turned], OCTAHEDRAL_Q[k[turned]])
     q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
     p[:, 6:10] = q
     p[:, 3:6] = np.take_along_axis(p[:, 3:6], OCTAHEDRAL_AXES[k], axis=1)
@@ -243,16 +252,17 @@ def quantise(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarr
     # else a decoded model would turn to another of its 24 forms (and drift by a step when saved
     # again): near the edges, move the largest small component one level towards 0 until it is
     mid = lev // 2
+    rows = np.arange(n)  # the rows still to check: only those moved are checked again
     for _ in range(4 * lev):
-        sv = sc * (2 * Q_RANGE / lev) - Q_RANGE
+        sv = sc[rows] * (2 * Q_RANGE / lev) - Q_RANGE
         largest = np.sqrt(np.maximum(0.0, 1.0 - np.sum(sv * sv, axis=1)))
         bad = np.abs(sv).max(axis=1) >= largest * (1.0 - 1e-9)
-        bad |= _outside_canonical(from_smallest_three(qi, sv))
+        bad |= _outside_canonical(from_smallest_three(qi[rows], sv))
         if not bad.any():
             break
-        rows_bad = np.flatnonzero(bad)
-        k = np.argmax(np.abs(sv[rows_bad]), axis=1)
-        sc[rows_bad, k] -= np.sign(sc[rows_bad, k] - mid)
+        rows = rows[bad]
+        k = np.argmax(np.abs(sv[bad]), axis=1)
+        sc[rows, k] -= np.sign(sc[rows, k] - mid)
     codes[:, 7:10] = sc
     codes[:, 10] = grid(p[:, 10], b["a"])
     codes[:, 11] = np.maximum(grid(p[:, 11], b["w"]), 1)
@@ -657,7 +667,7 @@ def fit_at_share(
         their order, for a refit of the pruned model).
     """
     b = check_bits(dict(CODED_BITS if bits is None else bits))
-    p = np.asarray(params, np.float32)
+    p = canonical(params).astype(np.float32)  # once: every coding below then finds the turns at once
     share = PRUNE_SHARE if prune_share is None else float(prune_share)
     keep = np.arange(len(p))
     codings = 0
