@@ -170,29 +170,27 @@ def canonical(params: np.ndarray) -> np.ndarray:
     else:
         q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 0.0, 1.0]))
     k = np.zeros(len(q), np.intp)
-    v = np.abs(q[:, 0:3])
-    w = np.abs(q[:, 3])
-    near = (v.max(axis=1, initial=0.0) < _TAN_EIGHTH * w * 0.999) & (v.sum(axis=1) < w * 0.999)  # the identity, by far
-    rest = np.flatnonzero(~near)
+    rest = np.flatnonzero(_outside_canonical(q, 1e-3))  # the others are nearest the identity by far
     if len(rest):
         w_after = q[rest] @ _W_AFTER  # the w of q g for each turn g
         k[rest] = np.argmax(np.abs(w_after, out=w_after), axis=1)
-    turned = k != 0
-    q[turned] = _hamilton(q[turned], OCTAHEDRAL_Q[k[turned]])
-    q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
+    turned = np.flatnonzero(k)
+    if len(turned):
+        q[turned] = _hamilton(q[turned], OCTAHEDRAL_Q[k[turned]])
+        p[turned, 3:6] = np.take_along_axis(p[turned, 3:6], OCTAHEDRAL_AXES[k[turned]], axis=1)
+    q[q[:, 3] < 0] *= -1.0
     p[:, 6:10] = q
-    p[:, 3:6] = np.take_along_axis(p[:, 3:6], OCTAHEDRAL_AXES[k], axis=1)
     return p
 
 
-def _outside_canonical(q: np.ndarray) -> np.ndarray:
-    """Rows of (n, 4) unit quaternions not nearest the identity among their 24 turns by
-    :data:`CANONICAL_MARGIN` (|x|, |y|, |z| <= tan(pi/8) w and |x| + |y| + |z| <= w, with w the
+def _outside_canonical(q: np.ndarray, margin: float = CANONICAL_MARGIN) -> np.ndarray:
+    """Rows of (n, 4) unit quaternions not nearest the identity among their 24 turns by a relative
+    ``margin`` (|x|, |y|, |z| <= tan(pi/8) w and |x| + |y| + |z| <= w, with w the
     largest: the truncated cube around the identity)."""
-    w = np.abs(q[:, 3])
-    v = np.abs(q[:, 0:3])
-    keep = 1.0 - CANONICAL_MARGIN
-    return (v.max(axis=1) > _TAN_EIGHTH * w * keep) | (v.sum(axis=1) > w * keep)
+    a = np.abs(q)  # column by column: reductions along a row of three are slow in numpy
+    w = a[:, 3] * (1.0 - margin)
+    top = np.maximum(np.maximum(a[:, 0], a[:, 1]), a[:, 2])
+    return (top > _TAN_EIGHTH * w) | (a[:, 0] + a[:, 1] + a[:, 2] > w)
 
 
 def smallest_three(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -255,13 +253,14 @@ def quantise(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarr
     rows = np.arange(n)  # the rows still to check: only those moved are checked again
     for _ in range(4 * lev):
         sv = sc[rows] * (2 * Q_RANGE / lev) - Q_RANGE
-        largest = np.sqrt(np.maximum(0.0, 1.0 - np.sum(sv * sv, axis=1)))
-        bad = np.abs(sv).max(axis=1) >= largest * (1.0 - 1e-9)
+        av = np.abs(sv)
+        largest = np.sqrt(np.maximum(0.0, 1.0 - (av[:, 0] ** 2 + av[:, 1] ** 2 + av[:, 2] ** 2)))
+        bad = np.maximum(np.maximum(av[:, 0], av[:, 1]), av[:, 2]) >= largest * (1.0 - 1e-9)
         bad |= _outside_canonical(from_smallest_three(qi[rows], sv))
         if not bad.any():
             break
         rows = rows[bad]
-        k = np.argmax(np.abs(sv[bad]), axis=1)
+        k = np.argmax(av[bad], axis=1)
         sc[rows, k] -= np.sign(sc[rows, k] - mid)
     codes[:, 7:10] = sc
     codes[:, 10] = grid(p[:, 10], b["a"])
