@@ -89,7 +89,7 @@ def encode(
         typer.Option(
             "--format",
             rich_help_panel="Budget and format",
-            help="File format: coded (default: quantised + Zstandard, about 7.5-8.2 B/Gaussian, --ratio/--bytes budgets never exceeded, 99-100 % used), full (float32, 48 B) or compact (12 B)",
+            help="File format: coded (default: quantised + Zstandard, about 7-14 B/Gaussian, --ratio/--bytes budgets never exceeded, 99-100 % used), full (float32, 48 B) or compact (12 B)",
         ),
     ] = None,
     iterations: Annotated[

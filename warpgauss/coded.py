@@ -62,7 +62,7 @@ _MAX_CODE = 1 << 52  # |code| bound: every code and difference is exact in float
 
 # The least payload a coded primitive may take. Real models take more: 5.7-6.4 bytes a Gaussian at
 # the coarsest depths bits_for_psnr gives (10 dB) and 2.2-3.4 at the least the rate control ever
-# keeps (_MIN_BITS), on the analytic models of the four 48^3 examples at N 2,000-4,000; 7.6-15.2
+# keeps (_MIN_BITS), on the analytic models of the four 48^3 examples at N 2,000-4,000; 6.9-14.0
 # refined (README's table); the same row repeated 20,000 times codes to 0.0015. A file claiming more primitives than its payload could hold at this floor (a small
 # frame of zeros claiming millions) is refused before anything is decompressed or allocated, and
 # no file is written that this check would refuse.

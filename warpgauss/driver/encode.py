@@ -221,7 +221,7 @@ def encode(
             the last 300 iterations.
         compact: Size the budget (and the report) for the compact 12-byte format.
         format: The file format: "coded" (the default: quantised and entropy-coded, about
-            7.5-8.2 B/primitive on real volumes; the returned model is the stored one), "float32"
+            7-14 B/primitive on refined models; the returned model is the stored one), "float32"
             (alias "full", 48 B) or "compact96" (alias "compact", 12 B). Overrides ``compact``.
         example: Built-in example volume name instead of ``source``.
         example_size: Size of the example volume.

@@ -15,10 +15,11 @@ from ..model import Model
 from ..profiling import StageRecorder
 from .options import DEFAULT_RATIO, EncodeOptions, encoding_of
 
-# bytes a Gaussian takes in a coded file of a refined model, as measured (README's table, H100,
-# default settings): 7.6-13.0 on the three head MRIs, 10.6-15.2 on 256^3 example fields (more
-# accurate models code on finer grids); what `warpgauss stats` quotes before anything is encoded
-CODED_BPP_MEASURED = (7.6, 15.2)
+# bytes a Gaussian takes in a coded file of a refined model, as measured (H200, default settings,
+# benchmarks/results/RD.md round 11): 6.9-11.4 on the three head MRIs at CR 10-1000, 8.6-14.0 on
+# the 512^3 example fields at CR 100-1000 (more accurate models code on finer grids); what
+# `warpgauss stats` quotes before anything is encoded
+CODED_BPP_MEASURED = (6.9, 14.0)
 CODED_BPP_SIZING = 12  # bytes per primitive a coded file needs at most in practice (the "no room" check)
 CODED_BPP_FLOOR = 4  # and at least: bounds N before its coded size is measured
 # coded bytes per primitive of a refined model over its analytic allocation's: 1.19 / 1.22 / 1.22 /
