@@ -41,6 +41,7 @@ from collections.abc import Callable
 import numpy as np
 
 from .errors import WarpgaussError
+from .export import quat_to_matrix
 
 # measured on four real volumes (benchmarks/results/rate_distortion/coded_loss_mri_cpu.json): every bit here costs less
 # PSNR than the primitives its bytes would buy (about 0.4 dB a byte at these budgets)
@@ -117,16 +118,7 @@ def _octahedral() -> tuple[np.ndarray, np.ndarray]:
             for sz in (0.5, -0.5):
                 g.append((sx, sy, sz, 0.5))
     q = np.array(g, np.float64)
-    x, y, z, w = q.T
-    rot = np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
-    return q, np.abs(np.rint(rot)).argmax(axis=1).astype(np.intp)
+    return q, np.abs(np.rint(quat_to_matrix(q))).argmax(axis=1).astype(np.intp)
 
 
 # A Gaussian is the same after any of these rotations of its axes (scales moved along): the coded
