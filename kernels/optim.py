@@ -40,6 +40,20 @@ def all_finite(g: vec12) -> bool:
     return True
 
 
+LIST_MARGIN = wp.constant(1.0e-4)  # voxels (and share of the coordinate) kept clear of a listed face
+
+
+@wp.func
+def fits_list(mu: wp.vec3, ext: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> bool:
+    """Whether a primitive's box stays inside the point cells it is listed in (see
+    :mod:`warpgauss.kernels.lists`), with a margin against rounding in the cell lookup."""
+    for k in range(3):
+        m = LIST_MARGIN * (1.0 + wp.abs(mu[k]) + ext[k])
+        if mu[k] - ext[k] < lo[k] + m or mu[k] + ext[k] > hi[k] - m:
+            return False
+    return True
+
+
 @wp.func
 def adam_update(
     p: vec12,
@@ -122,6 +136,10 @@ class SlotBounds:
     lo: wp.array(dtype=wp.vec3)  # [N] lower cell faces (-BIG on the grid's first cell)
     hi: wp.array(dtype=wp.vec3)  # [N] upper cell faces (+BIG on the last)
     cell: wp.array(dtype=float)  # [N] cell edge S of the slot's level
+    # the region of the point cells the slot is listed in (kernels.lists; +-BIG without lists):
+    # the forward pass through the lists stays exact while the box stays inside it
+    box_lo: wp.array(dtype=wp.vec3)  # [N]
+    box_hi: wp.array(dtype=wp.vec3)  # [N]
 
 
 BIG = wp.constant(1.0e30)
@@ -171,6 +189,8 @@ def permute_slots(
     bounds.lo[i] = lo
     bounds.hi[i] = hi
     bounds.cell[i] = size
+    bounds.box_lo[i] = wp.vec3(-BIG, -BIG, -BIG)  # the cell lists, when built, narrow these
+    bounds.box_hi[i] = wp.vec3(BIG, BIG, BIG)
 
 
 @wp.func
@@ -475,7 +495,7 @@ def refine_update(
     pe = evaluated(p, quant)  # straight-through: the step lands on p, evaluation reads pe
     R, inv, e, wt = prepare_one(pe, 1)
     mu = wp.vec3(pe[0], pe[1], pe[2])
-    if not fits_slot(mu, e, bounds.lo[j], bounds.hi[j], bounds.cell[j]):
+    if not (fits_slot(mu, e, bounds.lo[j], bounds.hi[j], bounds.cell[j]) and fits_list(mu, e, bounds.box_lo[j], bounds.box_hi[j])):
         # the next re-bin gives this slot a level whose cells cover the step it wanted
         old = prims.mu[j]  # where evaluation has the primitive now
         need = float(0.0)

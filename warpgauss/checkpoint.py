@@ -22,7 +22,7 @@ from ._fs import atomic_path
 from .errors import WarpgaussError
 
 FORMAT = "warpgauss-checkpoint"
-VERSION = 4  # 2: deferred-step reach; 3: the uniform stratum's support bricks; 4: the error stratum's sums
+VERSION = 5  # 2: deferred-step reach; 3: the uniform stratum's support bricks; 4: the error stratum's sums; 5: cell lists' boxes
 META = "__meta__"
 MAX_META_BYTES = 1 << 24
 ARRAYS = {  # name: (dtype, trailing shape) of every array a checkpoint must hold
@@ -37,6 +37,8 @@ ARRAYS = {  # name: (dtype, trailing shape) of every array a checkpoint must hol
     "cell_end": (np.int32, ()),
     "counts": (np.int32, ()),
     "reach": (np.float32, ()),
+    "list_centre": (np.float32, (3,)),  # the box each slot is listed with in the forward pass's cell lists
+    "list_half": (np.float32, (3,)),
     "support": (np.uint8, ()),  # support bricks of the uniform stratum as last marked (empty when unused)
     "errors_new": (np.int64, ()),  # the error stratum's per-brick sums since the last re-bin (empty when unused)
     "errors": (np.float32, ()),  # and its running sums as of the last re-bin

@@ -37,6 +37,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -369,23 +370,30 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tupl
     return payload, quant, order
 
 
+PARALLEL_MIN_BYTES = 1 << 18  # raw planes from which the Zstandard levels run on threads
+
+
 def _compress_planes(planes: list[bytes], raw: int) -> bytes:
     """One Zstandard frame of ``planes`` (``raw`` bytes in all), a block ended after each plane, at
     each of :data:`ZSTD_LEVELS`; the smallest (the first of equals)."""
     zstd = zstandard_module()
-    best = None
-    for level in ZSTD_LEVELS:
+
+    def frame(level: int) -> bytes:
         co = zstd.ZstdCompressor(level=level, write_checksum=True).compressobj(size=raw)
         out = []
         for plane in planes:
             out.append(co.compress(plane))
             out.append(co.flush(zstd.COMPRESSOBJ_FLUSH_BLOCK))
         out.append(co.flush())
-        frame = b"".join(out)
-        if best is None or len(frame) < len(best):
-            best = frame
-    assert best is not None
-    return best
+        return b"".join(out)
+
+    # the levels on threads of their own (Zstandard releases the GIL): the same frames, in parallel
+    if raw >= PARALLEL_MIN_BYTES and len(ZSTD_LEVELS) > 1:
+        with ThreadPoolExecutor(max_workers=len(ZSTD_LEVELS)) as ex:
+            frames = list(ex.map(frame, ZSTD_LEVELS))
+    else:
+        frames = [frame(level) for level in ZSTD_LEVELS]
+    return min(frames, key=len)  # the first of equals
 
 
 def _offset(name: str, v) -> int:
@@ -598,10 +606,16 @@ def fit_bytes(
     if score is None or prune_share is not None or not drops_bits(first):
         return first[0], first[1], {**first[2], **facts}
     tried = [first]
-    for share in CHOICE_SHARES[1:]:  # the alternatives with a short prune search (a little less full)
-        tried.append(fit_at_share(params, budget, bits, size_of, share, search=CHOICE_SEARCH_CODINGS, worth=worth))
-        if not drops_bits(tried[-1]):
-            break  # pruning alone fitted: a larger share fits the same way
+    # the alternatives with a short prune search (a little less full), each on a thread of its own
+    # (the codings are numpy and Zstandard work, which release the GIL); kept up to the first that
+    # fits by pruning alone, since a larger share fits the same way: what a serial search keeps
+    alternatives = CHOICE_SHARES[1:]
+    with ThreadPoolExecutor(max_workers=len(alternatives)) as ex:
+        futures = [ex.submit(fit_at_share, params, budget, bits, size_of, share, CHOICE_SEARCH_CODINGS, worth) for share in alternatives]
+        for fut in futures:
+            tried.append(fut.result())
+            if not drops_bits(tried[-1]):
+                break
     scores = [float(score(stored, b)) for stored, b, _ in tried]
     best = int(np.argmax(scores))
     codings = sum(t[2]["codings"] for t in tried)

@@ -350,6 +350,8 @@ class EncodeRun(replan.Replan):
                 "error_stratum": refiner.sampler.error_report(),
                 "cuda_graph": refiner.use_graph,
                 "cuda_graph_error": refiner.graph_error,
+                "cuda_graph_captures": refiner.captures,
+                "cell_list_entries": refiner.passes.list_entries if refiner.passes.listed else None,
                 "strata_samples": dict(zip(("high", "mid", "uniform"), refiner.strata)),
                 "uniform_support_share": refiner.support_share(),
                 "loss_history": history,

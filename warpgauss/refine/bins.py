@@ -86,6 +86,9 @@ class Binner:
         )
         for dst, src in ((s.raw, self._raw_b), (s.m1, self._m1_b), (s.m2, self._m2_b), (s.ids, self._ids_b)):
             wp.copy(dst, src)  # copy back, not swap: a captured graph holds these addresses
+        from ..kernels import lists as kl
+
+        wp.launch(kl.gather_reach, dim=n, inputs=[self._perm, s.reach], outputs=[s.reach_listed], device=dev)
         s.reach.zero_()
         self.rebins += 1
         return changed

@@ -1,8 +1,11 @@
 """Stages "forward" and "backward": the pair passes between the iteration's points and the primitives.
 
-Forward: the points, ordered by their cell on the primitives' first level, are evaluated through
-the binned primitives (V~, rho, contributing pairs), and the loss gives per-point gradients.
-Backward: the points are binned on one grid per primitive level; every primitive visits the rows
+Forward: the points are binned on one point grid per primitive level (the backward pass's grids,
+sorted once an iteration for both passes) and each reads, per level, the list of primitives whose
+boxes reach its cell (:mod:`warpgauss.kernels.lists`, built at every re-bin); V~, rho and the
+contributing pairs, then the loss's per-point gradients. Where the lists would pass
+:data:`LIST_MAX_ENTRIES`, and for the split pass, the points visit the 3^3 neighbour bin cells
+of every level instead. Backward: the points are binned on one grid per primitive level; every primitive visits the rows
 of point cells its 5-sigma box reaches, split into chunks of at least :data:`MIN_CHUNK`
 candidates, one thread per chunk, and the chunks' partials are summed per primitive in a fixed
 order. No float atomics: reruns are bit-identical.
@@ -33,6 +36,15 @@ SPLIT_MAX_POINTS = 1 << 15
 # 61.0 (results/bricked/profile_wave_512_split{on,off}_h200.json, one_gpu_512_split*_h200.json)
 SPLIT_DENSE_POINTS = 1 << 16
 SPLIT_DENSE_PRIMITIVES = 50_000
+
+
+# cell lists (kernels/lists.py): a primitive is listed with its box widened by this share and these
+# voxels, so that the steps of the iterations up to the next re-bin rarely leave its listed cells
+# (a step that would is deferred to the re-bin, as one that leaves its bin cell's reach is)
+LIST_PAD_SHARE = 0.25
+LIST_PAD_VOXELS = 1.0
+LIST_MAX_ENTRIES = 1 << 26  # (cell, primitive) entries at most (4 int32 arrays: 1 GiB); beyond, no lists
+LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (fewer re-captures)
 
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
@@ -68,6 +80,18 @@ class PairPasses:
         self.device = state.device
         self.split, self.partners = bool(split), bool(partners)
         self._buf: dict | None = None
+        self.lists = True  # forward through cell lists where they fit (False: the 3^3 bin-cell walk)
+        n = state.n
+        self.list_centre = self._wp.zeros(n, dtype=self._wp.vec3, device=self.device)  # listing boxes (slot order)
+        self.list_half = self._wp.zeros(n, dtype=self._wp.vec3, device=self.device)
+        self._list_counts = self._wp.zeros(n, dtype=int, device=self.device)
+        self._list_cum = self._wp.zeros(n, dtype=int, device=self.device)
+        self._list_keys = None  # [2 capacity] sort keys (point cell), then values (slot): CellLists.prim
+        self._list_values = None
+        self._inputs_ready = False  # list_centre / list_half hold a listing (set by relist or restore)
+        self.listed = False  # the forward pass reads the lists (set when they are indexed)
+        self.list_entries = 0
+        self._sorted: int | None = None  # points sorted on the point grids this iteration (forward -> backward)
 
     @property
     def m(self) -> int:
@@ -90,6 +114,7 @@ class PairPasses:
     def invalidate(self) -> None:
         """Drop the buffers sized by the plan, the point count or the pass kind (re-made on use)."""
         self._buf = None
+        self._sorted = None
 
     def use_partials(self) -> bool:
         return self.split and self.n_points * 27 * len(self.state.binned.sizes) <= PARTIAL_MAX_ENTRIES
@@ -110,6 +135,7 @@ class PairPasses:
             grid.size, grid.dims, grid.offset = plan_arrays(gp, dev)
             grid.start = wp.zeros(gp.total_cells + 1, dtype=int, device=dev)
             cap = chunk_capacity(p2)
+            slots = n + cap  # chunks at most (kernels.backward.pair_chunks)
             b = {
                 "grid_plan": gp,
                 "grid": grid,
@@ -127,12 +153,13 @@ class PairPasses:
                 "chunks": wp.empty(n, dtype=int, device=dev),
                 "chunk_cum": wp.empty(n, dtype=int, device=dev),
                 "chunk_size": wp.zeros(1, dtype=int, device=dev),
-                "owner": wp.empty(n + cap, dtype=int, device=dev),
+                "owner": wp.empty(slots, dtype=int, device=dev),
+                "slots": slots,
                 "parts": (
-                    wp.empty(n + cap, dtype=wp.vec3, device=dev),
-                    wp.empty(n + cap, dtype=wp.vec3, device=dev),
-                    wp.empty(n + cap, dtype=wp.mat33, device=dev),
-                    wp.empty(n + cap, dtype=wp.vec2, device=dev),
+                    wp.empty(slots, dtype=wp.vec3, device=dev),
+                    wp.empty(slots, dtype=wp.vec3, device=dev),
+                    wp.empty(slots, dtype=wp.mat33, device=dev),
+                    wp.empty(slots, dtype=wp.vec2, device=dev),
                 ),
             }
             # CUB keeps one scratch buffer per context and re-allocates it for a larger sort: sort
@@ -141,7 +168,78 @@ class PairPasses:
             scratch = [wp.zeros(2 * big, dtype=int, device=dev) for _ in range(2)]
             wp.utils.radix_sort_pairs(scratch[0], scratch[1], big)
             self._buf = b
+            if self._inputs_ready:
+                self.index_lists()
         return self._buf
+
+    def list_inputs_from_state(self) -> None:
+        """Set every slot's listing box from the primitives as they stand (at a re-bin: the
+        state's ``reach_listed`` holds the reach deferred steps asked for, in the new slot order)."""
+        from ..kernels import lists as kl
+
+        st = self.state
+        self._wp.launch(
+            kl.list_inputs,
+            dim=st.n,
+            inputs=[st.prims, st.reach_listed, LIST_PAD_SHARE, LIST_PAD_VOXELS],
+            outputs=[self.list_centre, self.list_half],
+            device=self.device,
+        )
+        self._inputs_ready = True
+
+    def lists_restored(self) -> None:
+        """The listing boxes were restored (a checkpoint): index them with the next buffers."""
+        self._inputs_ready = True
+        self.invalidate()
+
+    def relist(self) -> bool:
+        """List the primitives anew after a re-bin; returns whether arrays a captured iteration
+        refers to changed (new list arrays, or lists switched on or off)."""
+        self.list_inputs_from_state()
+        if self._buf is None:
+            return True  # indexed when the buffers are made, before any capture
+        return self.index_lists()
+
+    def index_lists(self) -> bool:
+        """Index the listing boxes on the current point grids: counts, a scan, the (cell, slot)
+        entries, a stable sort by cell and the cell start table, and the region each slot must stay
+        in (syncs once, for the entry count). Returns whether arrays a captured iteration refers
+        to changed."""
+        from ..field import cell_starts
+        from ..kernels import lists as kl
+
+        wp, dev, st, b = self._wp, self.device, self.state, self._buf
+        assert b is not None
+        was = (self.listed, self._list_keys)
+        grid = b["grid"]
+        args = [st.slot_cell, st.prims, grid, self.list_centre, self.list_half]
+        n = st.n
+        wp.launch(kl.list_count, dim=n, inputs=args, outputs=[self._list_counts], device=dev)
+        wp.utils.array_scan(self._list_counts, self._list_cum, inclusive=True)
+        total = int(self._list_cum[n - 1 :].numpy()[0]) if n else 0
+        self.list_entries = total
+        if not self.lists or total > LIST_MAX_ENTRIES:
+            wp.launch(kl.unlisted_region, dim=n, inputs=[st.bounds.box_lo, st.bounds.box_hi], device=dev)
+            self.listed = False
+            return was[0] != self.listed
+        if self._list_keys is None or self._list_keys.shape[0] < 2 * max(total, 1):
+            cap = max(1024, int(LIST_HEADROOM * total))
+            self._list_keys = wp.empty(2 * cap, dtype=int, device=dev)
+            self._list_values = wp.empty(2 * cap, dtype=int, device=dev)
+            wp.utils.radix_sort_pairs(self._list_keys, self._list_values, cap)  # CUB's scratch for the largest sort, before any capture
+            b["list_start"] = None
+        if b.get("list_start") is None:
+            b["list_start"] = wp.zeros(b["grid_plan"].total_cells + 1, dtype=int, device=dev)
+        wp.launch(kl.list_fill, dim=n, inputs=[*args, self._list_cum], outputs=[self._list_keys, self._list_values], device=dev)
+        cells = b["grid_plan"].total_cells
+        wp.utils.radix_sort_pairs(self._list_keys, self._list_values, total, 0, max(1, (cells - 1).bit_length()))
+        cell_starts(self._list_keys, total, b["cell_counts"], b["list_start"], dev)
+        wp.launch(kl.list_region, dim=n, inputs=args, outputs=[st.bounds.box_lo, st.bounds.box_hi], device=dev)
+        cl = kl.CellLists()
+        cl.start, cl.prim = b["list_start"], self._list_values
+        b["lists"] = cl
+        self.listed = True
+        return was[0] != self.listed or was[1] is not self._list_keys
 
     def sort_points(self, count: int) -> None:
         """Bin the first ``count`` points on every level's point grid and sort them by cell
@@ -186,16 +284,33 @@ class PairPasses:
         from ..kernels import field as kf
 
         wp, dev, m2, s = self._wp, self.device, self.n_points, self.sampler
-        self.order_points(m2)
         b = self.buffers()
-        order = b["forder"]
         prims = self.state.prims
-        if self.use_partials():
+        if self.listed and not self.use_partials():
+            from ..kernels import lists as kl
+
+            self.sort_points(m2)  # the backward pass reads the same sort
+            self._sorted = m2
+            wp.launch(
+                kl.eval_points_listed,
+                dim=m2,
+                inputs=[s.points, b["order"], prims, b["grid"], b["lists"]],
+                outputs=[self.value, self.density, self.pairs],
+                device=dev,
+            )
+        elif self.use_partials():
+            self.order_points(m2)
+            order = b["forder"]
             wp.launch(kf.eval_points_partial, dim=b["part"].shape, inputs=[s.points, order, prims], outputs=[b["part"]], device=dev)
             wp.launch(kf.finish_partials, dim=m2, inputs=[order, b["part"]], outputs=[self.value, self.density, self.pairs], device=dev)
         else:
+            self.order_points(m2)
             wp.launch(
-                kf.eval_points_ordered, dim=m2, inputs=[s.points, order, prims], outputs=[self.value, self.density, self.pairs], device=dev
+                kf.eval_points_ordered,
+                dim=m2,
+                inputs=[s.points, b["forder"], prims],
+                outputs=[self.value, self.density, self.pairs],
+                device=dev,
             )
         wp.launch(
             kb.point_grads,
@@ -220,7 +335,9 @@ class PairPasses:
         wp, dev, b, st = self._wp, self.device, self.buffers(), self.state
         n = st.n
         count = self.n_points if count is None else int(count)
-        self.sort_points(count)
+        if self._sorted != count:  # the forward pass sorted these points already
+            self.sort_points(count)
+        self._sorted = None
         k = len(st.binned.sizes) * count
         wp.launch(
             kb.gather_point_state,
@@ -245,7 +362,7 @@ class PairPasses:
         wp.launch(kb.chunk_owner, dim=n, inputs=[b["chunks"], b["chunk_cum"]], outputs=[b["owner"]], device=dev)
         wp.launch(
             kb.pair_grad_chunks,
-            dim=n + cap,
+            dim=b["slots"],
             inputs=[
                 b["owner"],
                 b["chunks"],
@@ -286,6 +403,6 @@ class PairPasses:
             "candidates": int(b["work_cum"][n - 1 :].numpy()[0]),
             "chunks": int(b["chunk_cum"][n - 1 :].numpy()[0]),
             "chunk_size": int(b["chunk_size"].numpy()[0]),
-            "chunk_capacity": n + b["capacity"],
+            "chunk_capacity": b["slots"],
             "point_cells": list(b["grid_plan"].sizes[:-1]),
         }

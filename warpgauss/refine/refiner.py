@@ -132,6 +132,7 @@ class Refiner:
         self._split_dense = bool(split_dense)  # False: a refiner stepping beside others (picks_split)
         # partners serve only the smoothness term: with its weight 0 they are not evaluated
         self.passes = PairPasses(self.state, self.sampler, dv.field.shape_xyz, bool(config.split_cells), config.weights.smooth > 0)
+        self.passes.lists = bool(config.cell_lists)
         self.updater = Update(self.state, dv, config, self.quant)
         self.schedule = Schedule(dev, seed)
         self.stops = StopRule(dev)
@@ -147,6 +148,7 @@ class Refiner:
         self.stop_requested = False
         self.interrupted = False
         self.graph_error: str | None = None
+        self.captures = 0  # CUDA graphs captured so far (each re-plan, re-list or setting change re-captures)
         self.budget: dict[str, Any] | None = None
         self.rebin(replan=True)
 
@@ -192,7 +194,7 @@ class Refiner:
     @property
     def forward_pass(self) -> str:
         """The forward pass the iterations run and why (the report's ``refinement.forward_pass``)."""
-        kind = "split" if self.passes.use_partials() else "point-major"
+        kind = "split" if self.passes.use_partials() else ("point-major, cell lists" if self.passes.listed else "point-major")
         if self._split_cuda is None:
             why = f"split_cells={self.cfg.split_cells}"
             if self.split and not self.passes.use_partials():
@@ -257,6 +259,8 @@ class Refiner:
         if self.binner.rebin(replan):
             self.passes.invalidate()  # point grids and chunk buffers follow the plan
             self._graph = None
+        if self.passes.relist():  # new list arrays, or the forward pass changed
+            self._graph = None
         if not self.state.clean:
             self.state.zero_grads()
         self.sampler.mark_support(self.binner.prep[0], self.binner.prep[3])
@@ -309,6 +313,7 @@ class Refiner:
                 with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
                     self._iteration_launches()
                 self._graph = capture.graph
+                self.captures += 1
             except Exception as e:  # noqa: BLE001 - a driver without graph support: plain launches
                 self.use_graph = False
                 self.graph_error = f"{type(e).__name__}: {e}"
@@ -482,6 +487,8 @@ class Refiner:
             "cell_end": p.cell_end.numpy(),
             "counts": s.counts.numpy(),
             "reach": s.reach.numpy(),
+            "list_centre": self.passes.list_centre.numpy(),
+            "list_half": self.passes.list_half.numpy(),
             # the support as marked at the last re-bin, not as the current primitives would mark it
             "support": (smp.support_marks[0].numpy().reshape(-1) != 0).astype(np.uint8) if smp.uniform_support else np.zeros(0, np.uint8),
             **smp.error_arrays(),
@@ -537,8 +544,11 @@ class Refiner:
             (b.cell, "bounds_cell"),
             (s.counts, "counts"),
             (s.reach, "reach"),
+            (self.passes.list_centre, "list_centre"),
+            (self.passes.list_half, "list_half"),
         ):
             dst.assign(arrays[key])
+        self.passes.lists_restored()
         it = int(scalars["iteration"])
         refit = self.cfg.quantise_mode == "refit"
         self.quant.on = int(self.quantising(it) and not refit)

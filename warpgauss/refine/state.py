@@ -55,6 +55,8 @@ class Primitives:
         b.lo = wp.empty(n, dtype=wp.vec3, device=dev)
         b.hi = wp.empty(n, dtype=wp.vec3, device=dev)
         b.cell = wp.empty(n, dtype=float, device=dev)
+        b.box_lo = wp.full(n, wp.vec3(-1.0e30, -1.0e30, -1.0e30), dtype=wp.vec3, device=dev)  # the cell lists narrow these
+        b.box_hi = wp.full(n, wp.vec3(1.0e30, 1.0e30, 1.0e30), dtype=wp.vec3, device=dev)
         self.plan: BinPlan | None = None  # the bin levels, set by the first re-bin
         self.slot_cell = wp.zeros(n, dtype=int, device=dev)  # cell of each slot (pair pass)
         self.d_mu = wp.zeros(n, dtype=wp.vec3, device=dev)
@@ -67,6 +69,7 @@ class Primitives:
         self.reg_loss = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.counts = wp.zeros(2, dtype=int, device=dev)  # (non-finite skips, deferred updates)
         self.reach = wp.zeros(n, dtype=float, device=dev)  # binning radius deferred steps ask for
+        self.reach_listed = wp.zeros(n, dtype=float, device=dev)  # the same, new slot order, for the cell lists
 
     @property
     def binned(self) -> BinPlan:

@@ -1,0 +1,111 @@
+"""Where a default encode's time goes, by stage and by kernel (issue #52).
+
+For each volume and ratio: one default encode timed by the wall clock (after a warm-up encode that
+compiles every module), its report's stages, then the same encode with the refiner's graph off
+under Warp's activity timing (GPU time of every kernel, summed over the encode, grouped by name).
+
+    python benchmarks/speed/profile_encode.py --volumes ../shared/data/mean_reg2mean.nii.gz --ratios 100 --out OUT.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import warpgauss
+from warpgauss._warp import resolve_device, warp
+from warpgauss.bench import result_header
+from warpgauss.optimize import RefineConfig
+from warpgauss.synthetic import generate
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--volumes", default="../shared/data/mean_reg2mean.nii.gz")
+    ap.add_argument("--ratios", default="100")
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--kernels", type=int, default=1, help="1: also the per-kernel encode (graph off)")
+    ap.add_argument("--variants", default="default", help="default, nolists (RefineConfig(cell_lists=False)), comma-separated")
+    ap.add_argument("--top", type=int, default=25)
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    wp = warp()
+    dev = resolve_device(args.device)
+    t0 = time.perf_counter()
+    warpgauss.encode(generate("vortex", 32), ratio=10, device=dev, evaluate=True)
+    res = {
+        **result_header("a default encode by stage and by kernel", __file__, argv, dev),
+        "compile_s": time.perf_counter() - t0,
+        "rows": [],
+    }
+    variants = {"default": RefineConfig(), "nolists": RefineConfig(cell_lists=False)}
+    examples: dict[str, object] = {}
+
+    def source(vol: str):
+        """A path, or NAME@SIZE: a built-in example field (generated once)."""
+        if "@" not in vol:
+            return vol
+        if vol not in examples:
+            name, size = vol.split("@")
+            examples[vol] = generate(name, int(size), seed=0)
+        return examples[vol]
+
+    for vol, ratio, variant in [
+        (v, float(r), x) for v in args.volumes.split(",") for r in args.ratios.split(",") for x in args.variants.split(",")
+    ]:
+        if True:
+            rc = variants[variant]
+            wp.synchronize()
+            t = time.perf_counter()
+            m = warpgauss.encode(source(vol), ratio=ratio, device=dev, refine=rc)
+            wall = time.perf_counter() - t
+            rep = m.report
+            row = {
+                "volume": Path(vol).name,
+                "ratio": ratio,
+                "variant": variant,
+                "wall_s": wall,
+                "total_s": rep.get("total_seconds"),
+                "n": m.n,
+                "psnr_db": rep["evaluation"]["final"]["psnr_db"],
+                "stages": {s["stage"]: round(s["seconds"], 4) for s in rep["stages"]},
+                "refinement": {k: v for k, v in (rep.get("refinement") or {}).items() if isinstance(v, (int, float, str))},
+                "coded_fit": {
+                    k: v
+                    for k, v in (rep.get("coded_fit") or rep.get("budget", {}).get("coded_fit") or {}).items()
+                    if isinstance(v, (int, float, str))
+                },
+            }
+            print(
+                f"{row['volume']} CR {ratio} {variant}: {wall:.2f} s, N {m.n}, {row['psnr_db']:.2f} dB, {row['refinement'].get('forward_pass')}, deferred {row['refinement'].get('deferred_updates')}"
+            )
+            print("  stages", row["stages"])
+            if args.kernels:
+                cfg = dataclasses.replace(rc, graph=False)
+                wp.synchronize()
+                wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_MEMSET)
+                t = time.perf_counter()
+                warpgauss.encode(source(vol), ratio=ratio, device=dev, refine=cfg)
+                row["kernels_wall_s"] = time.perf_counter() - t
+                per = defaultdict(lambda: [0.0, 0])
+                for r in wp.timing_end():
+                    name = r.name.rsplit("_", 1)[0] if r.name.startswith("forward kernel") else r.name
+                    per[name][0] += r.elapsed / 1000.0
+                    per[name][1] += 1
+                top = sorted(per.items(), key=lambda kv: -kv[1][0])
+                row["kernel_s_total"] = sum(v[0] for v in per.values())
+                row["kernel_s"] = {k: [round(v[0], 4), v[1]] for k, v in top}
+                print(f"  kernels total {row['kernel_s_total']:.3f} s of {row['kernels_wall_s']:.2f} s wall")
+                for k, v in top[: args.top]:
+                    print(f"    {v[0]:8.4f} s {v[1]:7d}x  {k}")
+            res["rows"].append(row)
+    Path(args.out).write_text(json.dumps(res, indent=1))
+    return res
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,203 @@
+"""Cell lists: each primitive listed in every point cell its (padded) 5-sigma box reaches (issue #52).
+
+The forward pass of refinement used to visit, for every point, the 3^3 neighbour cells of every
+primitive level (cells at least a radius wide): 27 L cell lookups and some 10-40 candidate
+primitives for each pair that contributes. Here every primitive is listed once per cell of its
+level's point grid (:class:`warpgauss.kernels.backward.PointGrid`, the grid the backward pass
+bins points on) that its box, widened by a margin, reaches. A point then reads one list a level:
+the candidates are the primitives whose boxes reach its cell, the transpose of what the backward
+pass visits (2-4 candidates a pair).
+
+Lists are built at every re-bin (:func:`list_count`, a scan, :func:`list_fill`, a stable sort by
+cell, so a cell lists its primitives in slot order and sums run in a fixed order) and stay exact
+between re-bins because a step that would carry a primitive's box out of its listed cells is
+deferred (:func:`warpgauss.kernels.optim.fits_list`), as steps out of reach of a bin cell are.
+"""
+
+import warp as wp
+
+from .backward import PointGrid, box_rows, slot_level
+from .field import BinnedPrimitives, level_cell, store_sums, truncated_kernel
+
+wp.set_module_options({"enable_backward": False})
+
+BIG = wp.constant(1.0e30)
+
+
+@wp.struct
+class CellLists:
+    """Primitives by point cell: ``prim[start[c]:start[c + 1]]`` are the slots listed in cell c of
+    the point grids (levels' cells numbered as in :class:`PointGrid`), in slot order."""
+
+    start: wp.array(dtype=int)  # [C + 1] first entry of each cell; start[C] = entries
+    prim: wp.array(dtype=int)  # [>= entries] slot of each entry, cell order
+
+
+@wp.kernel
+def list_inputs(
+    prims: BinnedPrimitives,
+    reach: wp.array(dtype=float),  # [N] reach a deferred step asked for (slot order), 0 if none
+    pad_share: float,
+    pad_voxels: float,
+    centre: wp.array(dtype=wp.vec3),  # [N] out: centre of the box each slot is listed with
+    half: wp.array(dtype=wp.vec3),  # [N] out: its half-extents
+):
+    """The box a slot is listed with at a re-bin: its 5-sigma box widened by a share and a margin,
+    or by the reach a deferred step asked for, whichever is larger (one thread per slot)."""
+    j = wp.tid()
+    e = prims.ext[j]
+    r = reach[j]
+    centre[j] = prims.mu[j]
+    half[j] = wp.vec3(
+        wp.max(e[0] * (1.0 + pad_share) + pad_voxels, r),
+        wp.max(e[1] * (1.0 + pad_share) + pad_voxels, r),
+        wp.max(e[2] * (1.0 + pad_share) + pad_voxels, r),
+    )
+
+
+@wp.func
+def listed_cells(
+    j: int,
+    slot_cell: wp.array(dtype=int),
+    prims: BinnedPrimitives,
+    grid: PointGrid,
+    centre: wp.array(dtype=wp.vec3),
+    half: wp.array(dtype=wp.vec3),
+):
+    """(level, first cell, last cell) of slot j's list: the point cells of its level that the union
+    of its listing box and its current 5-sigma box reaches (the union changes nothing between
+    re-bins, where the current box stays inside the listed cells; it keeps the lists exact when
+    the point grids change without a re-bin)."""
+    l = slot_level(slot_cell[j], prims.level_offset)
+    c = centre[j]
+    h = half[j]
+    mu = prims.mu[j]
+    e = prims.ext[j]
+    lo = wp.vec3(wp.min(c[0] - h[0], mu[0] - e[0]), wp.min(c[1] - h[1], mu[1] - e[1]), wp.min(c[2] - h[2], mu[2] - e[2]))
+    hi = wp.vec3(wp.max(c[0] + h[0], mu[0] + e[0]), wp.max(c[1] + h[1], mu[1] + e[1]), wp.max(c[2] + h[2], mu[2] + e[2]))
+    a, b = box_rows(0.5 * (lo + hi), 0.5 * (hi - lo), l, grid)
+    return l, a, b
+
+
+@wp.kernel
+def list_count(
+    slot_cell: wp.array(dtype=int),  # [N] primitive cell of each slot
+    prims: BinnedPrimitives,
+    grid: PointGrid,
+    centre: wp.array(dtype=wp.vec3),  # [N] from list_inputs
+    half: wp.array(dtype=wp.vec3),  # [N]
+    counts: wp.array(dtype=int),  # [N] out: cells each slot is listed in
+):
+    """Count each slot's listed cells (one thread per slot)."""
+    j = wp.tid()
+    l, lo, hi = listed_cells(j, slot_cell, prims, grid, centre, half)
+    counts[j] = (hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1)
+
+
+@wp.kernel
+def list_region(
+    slot_cell: wp.array(dtype=int),  # [N]
+    prims: BinnedPrimitives,
+    grid: PointGrid,
+    centre: wp.array(dtype=wp.vec3),  # [N]
+    half: wp.array(dtype=wp.vec3),  # [N]
+    box_lo: wp.array(dtype=wp.vec3),  # [N] out: lower faces of the listed cells (-BIG at the grid's first)
+    box_hi: wp.array(dtype=wp.vec3),  # [N] out: upper faces (+BIG at the last)
+):
+    """The region each slot's listed cells cover, which its box must not leave before the next
+    re-bin (:func:`warpgauss.kernels.optim.fits_list`; one thread per slot)."""
+    j = wp.tid()
+    l, lo, hi = listed_cells(j, slot_cell, prims, grid, centre, half)
+    size = grid.size[l]
+    dims = grid.dims[l]
+    a = wp.vec3()
+    b = wp.vec3()
+    for k in range(3):
+        a[k] = wp.where(lo[k] == 0, -BIG, float(lo[k]) * size - 0.5)
+        b[k] = wp.where(hi[k] == dims[k] - 1, BIG, float(hi[k] + 1) * size - 0.5)
+    box_lo[j] = a
+    box_hi[j] = b
+
+
+@wp.kernel
+def unlisted_region(box_lo: wp.array(dtype=wp.vec3), box_hi: wp.array(dtype=wp.vec3)):
+    """No lists: every slot may go anywhere its bin cell allows."""
+    j = wp.tid()
+    box_lo[j] = wp.vec3(-BIG, -BIG, -BIG)
+    box_hi[j] = wp.vec3(BIG, BIG, BIG)
+
+
+@wp.kernel
+def list_fill(
+    slot_cell: wp.array(dtype=int),  # [N]
+    prims: BinnedPrimitives,
+    grid: PointGrid,
+    centre: wp.array(dtype=wp.vec3),  # [N]
+    half: wp.array(dtype=wp.vec3),  # [N]
+    counts_cum: wp.array(dtype=int),  # [N] inclusive scan of list_count's counts
+    keys: wp.array(dtype=int),  # [>= 2 entries] out: point cell of each entry (first entries)
+    values: wp.array(dtype=int),  # [>= 2 entries] out: slot of each entry
+):
+    """Write each slot's (cell, slot) entries, slots in order (one thread per slot): a stable
+    sort by cell then lists every cell's primitives in slot order."""
+    j = wp.tid()
+    l, lo, hi = listed_cells(j, slot_cell, prims, grid, centre, half)
+    dims = grid.dims[l]
+    k = counts_cum[j] - (hi[2] - lo[2] + 1) * (hi[1] - lo[1] + 1) * (hi[0] - lo[0] + 1)
+    for z in range(lo[2], hi[2] + 1):
+        for y in range(lo[1], hi[1] + 1):
+            first = grid.offset[l] + (z * dims[1] + y) * dims[0]
+            for x in range(lo[0], hi[0] + 1):
+                keys[k] = first + x
+                values[k] = j
+                k += 1
+
+
+@wp.func
+def point_cell(p: wp.vec3, l: int, grid: PointGrid) -> int:
+    """Id of the level-l point cell holding p (clamped at the grid's faces, as the backward bins it)."""
+    dims = grid.dims[l]
+    c = level_cell(p, grid.size[l], dims)
+    return grid.offset[l] + (c[2] * dims[1] + c[1]) * dims[0] + c[0]
+
+
+@wp.func
+def listed_sums(p: wp.vec3, prims: BinnedPrimitives, grid: PointGrid, lists: CellLists) -> wp.vec3:
+    """(numerator, density, contributing pairs) at p over the primitives listed in its cells."""
+    num = float(0.0)
+    den = float(0.0)
+    pairs = float(0.0)
+    for l in range(grid.size.shape[0]):
+        cid = point_cell(p, l, grid)
+        for e in range(lists.start[cid], lists.start[cid + 1]):
+            j = lists.prim[e]
+            g = truncated_kernel(p, prims.mu[j], prims.rot[j], prims.inv_s2[j], prims.ext[j])
+            if g > 0.0:
+                num += prims.w[j] * prims.a[j] * g
+                den += prims.w[j] * g
+                pairs += 1.0
+    return wp.vec3(num, den, pairs)
+
+
+@wp.kernel
+def eval_points_listed(
+    points: wp.array(dtype=wp.vec3),  # [P] query positions
+    order: wp.array(dtype=int),  # [>= P] point index of each thread, sorted by level-0 point cell
+    prims: BinnedPrimitives,
+    grid: PointGrid,
+    lists: CellLists,
+    value: wp.array(dtype=float),  # [P] out: V~
+    density: wp.array(dtype=float),  # [P] out: rho
+    pairs: wp.array(dtype=int),  # [P] out: contributing pairs
+):
+    """V~ and rho at the points through the cell lists (one thread per point; threads of a warp
+    mostly share a cell, so they read the same list)."""
+    i = order[wp.tid()]
+    store_sums(i, listed_sums(points[i], prims, grid, lists), value, density, pairs)
+
+
+@wp.kernel
+def gather_reach(perm: wp.array(dtype=int), reach: wp.array(dtype=float), out: wp.array(dtype=float)):
+    """out[i] = reach[perm[i]]: a deferred step's reach, old slot order into the new (re-bin)."""
+    i = wp.tid()
+    out[i] = reach[perm[i]]
