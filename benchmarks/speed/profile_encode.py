@@ -29,7 +29,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--ratios", default="100")
     ap.add_argument("--device", default=None)
     ap.add_argument("--kernels", type=int, default=1, help="1: also the per-kernel encode (graph off)")
-    ap.add_argument("--variants", default="default", help="default, nolists (RefineConfig(cell_lists=False)), comma-separated")
+    ap.add_argument(
+        "--variants",
+        default="default",
+        help="default, nolists (RefineConfig(cell_lists=False)), comma-separated",
+    )
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
