@@ -353,3 +353,59 @@ def test_refit_fixes_the_geometry_on_its_grids_and_refits_values(cpu):
     r2 = Refiner(dv, p, cfg, 0, 0.3, 4.0)
     r2.run()
     assert r2.model_params().tobytes() == end.tobytes()
+
+
+class _Serial:
+    """A stand-in for ThreadPoolExecutor that runs every task at once, in order (the serial search)."""
+
+    def __init__(self, max_workers=None):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, fn, *args, **kwargs):
+        from concurrent.futures import Future
+
+        f: Future = Future()
+        f.set_result(fn(*args, **kwargs))
+        return f
+
+    def map(self, fn, items):
+        return [fn(x) for x in items]
+
+
+def test_the_rate_control_on_threads_and_with_kept_columns_fits_as_the_serial_search(monkeypatch):
+    """A fit's codings share their code columns (a subset's codes are the rows of the whole set's)
+    and the export choice's alternatives and the Zstandard levels run on threads: the same codes,
+    the same choice, the same bytes as a serial search that quantises every coding afresh, at a
+    budget that prunes and one that drops bits."""
+    p = realistic_params(np.random.default_rng(11), 4000)
+    fit = coded._FitCodes(coded.canonical(p).astype(np.float32))
+    rows = np.sort(np.random.default_rng(1).choice(len(p), 1500, replace=False))
+    sub = fit.subset(rows)
+    with fit:
+        for bits in (coded.CODED_BITS, {"mu": 2, "log_s": 3, "q": 4, "a": 5, "w": 3}):
+            np.testing.assert_array_equal(coded.quantise(fit.base, bits), _plain(fit.base, bits))
+            np.testing.assert_array_equal(coded.quantise(sub, bits), _plain(sub, bits))
+    full = len(coded.encode_coded(p)[0])
+    score = lambda stored, bits: float(np.abs(stored[:, 10]).sum() % 7.0)  # noqa: E731 - any deterministic rating
+    results = {}
+    for mode in ("threads", "serial"):
+        if mode == "serial":
+            monkeypatch.setattr(coded, "ThreadPoolExecutor", _Serial)
+            monkeypatch.setattr(coded._FitCodes, "codes", lambda self, params, b: None)
+        for budget in (int(0.8 * full), int(0.45 * full)):
+            stored, bits, info = coded.fit_bytes(p, budget, score=score)
+            results[(mode, budget)] = (stored.tobytes(), bits, info["steps"], info["pruned"], info.get("chosen"), info["codings"])
+    for budget in (int(0.8 * full), int(0.45 * full)):
+        assert results[("threads", budget)] == results[("serial", budget)]
+    assert any(r[3] > 0 for r in results.values())  # a budget that prunes
+
+
+def _plain(params, bits):
+    """quantise with no fit active (every column computed afresh)."""
+    return coded.quantise(np.array(params), bits)

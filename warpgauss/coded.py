@@ -35,6 +35,7 @@ decompresses into at most the declared size, and rejects codes outside their ran
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -220,24 +221,19 @@ def _q_levels(b: int) -> int:
     return (1 << b) - 2  # intervals: 2^b - 1 levels, odd, so 0 is a level
 
 
-def quantise(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarray:
-    """(N, 12) integer codes (int64) of ``params`` on the coded grids (columns as :data:`CODED_COLUMNS`)."""
-    b = check_bits(dict(CODED_BITS if bits is None else bits))
-    p = canonical(params)
+def _grid(x: np.ndarray, k: int) -> np.ndarray:
+    c = np.rint(x * float(1 << k))
+    if np.any(np.abs(c) > _MAX_CODE):
+        raise WarpgaussError("a parameter is too large for the coded format (|value| x 2^bits > 2^52); use --format full")
+    return c.astype(np.int64)
+
+
+def _quaternion_codes(p: np.ndarray, qb: int) -> np.ndarray:
+    """(n, 4) codes of canonical parameters' turns: the largest component's index, the other three
+    on a grid of 2^qb - 1 levels."""
     n = p.shape[0]
-    codes = np.empty((n, 12), np.int64)
-
-    def grid(x, k):
-        c = np.rint(x * float(1 << k))
-        if np.any(np.abs(c) > _MAX_CODE):
-            raise WarpgaussError("a parameter is too large for the coded format (|value| x 2^bits > 2^52); use --format full")
-        return c.astype(np.int64)
-
-    codes[:, 0:3] = grid(p[:, 0:3], b["mu"])
-    codes[:, 3:6] = grid(p[:, 3:6], b["log_s"])
     qi, small = smallest_three(p[:, 6:10])
-    lev = _q_levels(b["q"])
-    codes[:, 6] = qi
+    lev = _q_levels(qb)
     sc = np.clip(np.rint((small + Q_RANGE) / (2 * Q_RANGE) * lev), 0, lev).astype(np.int64)
     # the rounded rotation must stay nearest the identity (w the largest component, canonical),
     # else a decoded model would turn to another of its 24 forms (and drift by a step when saved
@@ -255,10 +251,79 @@ def quantise(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarr
         rows = rows[bad]
         k = np.argmax(av[bad], axis=1)
         sc[rows, k] -= np.sign(sc[rows, k] - mid)
-    codes[:, 7:10] = sc
-    codes[:, 10] = grid(p[:, 10], b["a"])
-    codes[:, 11] = np.maximum(grid(p[:, 11], b["w"]), 1)
+    return np.concatenate([qi[:, None].astype(np.int64), sc], axis=1)
+
+
+# each attribute's code columns, from canonical float64 parameters and its bit depth: row by row,
+# so the codes of a subset of rows are those rows of the whole set's codes
+_ATTRIBUTE_CODES = (
+    ("mu", slice(0, 3), lambda p, k: _grid(p[:, 0:3], k)),
+    ("log_s", slice(3, 6), lambda p, k: _grid(p[:, 3:6], k)),
+    ("q", slice(6, 10), _quaternion_codes),
+    ("a", slice(10, 11), lambda p, k: _grid(p[:, 10:11], k)),
+    ("w", slice(11, 12), lambda p, k: np.maximum(_grid(p[:, 11:12], k), 1)),
+)
+
+
+def quantise(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarray:
+    """(N, 12) integer codes (int64) of ``params`` on the coded grids (columns as :data:`CODED_COLUMNS`)."""
+    b = check_bits(dict(CODED_BITS if bits is None else bits))
+    cached = _cached_codes(params, b)
+    if cached is not None:
+        return cached
+    p = canonical(params)
+    codes = np.empty((p.shape[0], 12), np.int64)
+    for name, cols, make in _ATTRIBUTE_CODES:
+        codes[:, cols] = make(p, b[name])
     return codes
+
+
+_FIT = threading.local()  # the fit coding in this thread (:class:`_FitCodes`), if any
+
+
+class _FitCodes:
+    """A fit's code columns by attribute and bit depth, for its parameters and the row subsets it
+    codes (pruned models): its codings differ in a few depths and rows, and each attribute's
+    columns are quantised once per depth instead of at every coding (the same codes: quantisation
+    is row by row). Active in the thread that enters it (the export choice's alternatives code on
+    threads of their own)."""
+
+    def __init__(self, p: np.ndarray):
+        self.base, self.c64 = p, canonical(p)
+        self.columns: dict[tuple[str, int], np.ndarray] = {}
+        self.arrays: dict[int, tuple[np.ndarray, np.ndarray | None]] = {id(p): (p, None)}  # arrays kept alive: ids stay theirs
+
+    def subset(self, rows: np.ndarray) -> np.ndarray:
+        """The base's ``rows`` (a new array whose codes are known)."""
+        q = self.base[rows]
+        self.arrays[id(q)] = (q, rows)
+        return q
+
+    def codes(self, params, b: dict[str, int]) -> np.ndarray | None:
+        entry = self.arrays.get(id(params))
+        if entry is None or entry[0] is not params:
+            return None
+        out = np.empty((self.base.shape[0], 12), np.int64)
+        for name, cols, make in _ATTRIBUTE_CODES:
+            key = (name, b[name])
+            if key not in self.columns:
+                self.columns[key] = make(self.c64, b[name])
+            out[:, cols] = self.columns[key]
+        rows = entry[1]
+        return out if rows is None else out[rows]
+
+    def __enter__(self):
+        self._outer = getattr(_FIT, "codes", None)
+        _FIT.codes = self
+        return self
+
+    def __exit__(self, *exc):
+        _FIT.codes = self._outer
+
+
+def _cached_codes(params, b: dict[str, int]) -> np.ndarray | None:
+    fit = getattr(_FIT, "codes", None)
+    return None if fit is None else fit.codes(params, b)
 
 
 def dequantise(codes: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarray:
@@ -671,8 +736,14 @@ def fit_at_share(
         at the starting depths as ``first_bytes``, and ``kept``: the rows of ``params`` kept, in
         their order, for a refit of the pruned model).
     """
+    with _FitCodes(canonical(params).astype(np.float32)) as fit:  # turned once: every coding finds the turns at once
+        return _fit_at_share(fit, params, budget, bits, size_of, prune_share, search, worth)
+
+
+def _fit_at_share(fit: _FitCodes, params, budget, bits, size_of, prune_share, search, worth) -> tuple[np.ndarray, dict, dict]:
+    """:func:`fit_at_share`'s search, its codings' columns kept in ``fit``."""
     b = check_bits(dict(CODED_BITS if bits is None else bits))
-    p = canonical(params).astype(np.float32)  # once: every coding below then finds the turns at once
+    p = fit.base
     share = PRUNE_SHARE if prune_share is None else float(prune_share)
     keep = np.arange(len(p))
     codings = 0
@@ -705,7 +776,7 @@ def fit_at_share(
         rank = np.argsort(-importance(p), kind="stable")  # most important first
 
         def kept(k: int) -> np.ndarray:
-            return p[np.sort(rank[: len(p) - k])]
+            return fit.subset(np.sort(rank[: len(p) - k]))
 
         lo, lo_size = 0, cur  # lo prunes too few (over budget); hi the fewest found that fit
         hi = hi_size = None
