@@ -474,3 +474,49 @@ def test_view_and_the_page_draw_the_bounded_decode_of_a_model_with_a_residual(bo
     warpgauss.Model(m.params, m.header).save(plain)
     with pytest.raises(WarpgaussError, match="no residual"):
         make_renderer(warpgauss.Model.load(plain), "bounded", "cpu")
+
+
+@pytest.mark.parametrize(
+    "field,value,says",
+    [
+        ("step", 7, "does not hold its bound"),  # an integer step wider than 2 x bound + 1
+        ("step", 4, "does not hold its bound"),  # even: no integer sits at its centre
+        ("bound", 1.0, "does not hold its bound"),  # a tighter bound than the step gives
+        ("bound_rel", 0, "relative bound"),
+        ("dtype", "float32", "integer-lattice residual decodes to its source's integers"),
+        ("source_dtype", "complex64", "source dtype"),
+        ("lattice", "float", "float-lattice residual decodes to floats"),
+    ],
+)
+def test_a_description_that_claims_a_bound_its_fields_do_not_hold_is_refused(bounded, tmp_path, field, value, says):
+    """Every field of the residual's description is checked against the others before a decode
+    (and ``info``) states its bound: a step that would let a voxel stray past the bound, a bound
+    tighter than the step gives, a dtype its lattice cannot decode to."""
+    d, vol, m, _ = bounded
+    out = tmp_path / "crafted.wgs"
+
+    def change(h):
+        h["residual"][field] = value
+
+    _rewrite_header(d / "v.wgs", out, change)
+    for read in (warpgauss.Model.load, warpgauss.Model.load_header):
+        with pytest.raises(WarpgaussError, match=says):
+            read(out)
+    res = CliRunner().invoke(app, ["info", str(out)])
+    assert res.exit_code == 2 and says in res.output and len(res.output.strip().splitlines()) == 1, res.output
+
+
+def test_float_lattice_claims_are_checked_against_step_and_margin():
+    """A float-lattice description holds its bound where step <= 2 (bound - margin): what the
+    encoder writes passes, a step one part in 10^6 wider or a margin past the bound is refused."""
+    from warpgauss.synthetic import generate
+
+    v = generate("vortex", 16, seed=0)
+    zero = np.zeros(v.shape)
+    res, _ = R.code_residual(v, None, zero, np.zeros(v.shape, bool), 1e-2, (0.0, 1.0))
+    info = dict(res.info)
+    assert info["lattice"] == "float" and R.check_info(info, v.size) is None
+    assert "do not hold its bound" in R.check_info({**info, "step": info["step"] * (1 + 1e-6) + 2 * info["margin"]}, v.size)
+    assert "do not hold its bound" in R.check_info({**info, "margin": info["bound"]}, v.size)
+    streams = dict(info["streams"], symbols=3)
+    assert "cannot hold" in R.check_info({**info, "streams": streams, "payload_bytes": sum(streams.values())}, v.size)

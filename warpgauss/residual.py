@@ -73,6 +73,7 @@ def _parts(name: str) -> tuple[bool, str]:
 
 
 STREAMS = ("symbols", "positions", "values", "mask")
+MIN_FRAME_BYTES = 9  # the smallest Zstandard frame (bzip2's is larger): a stream with content is at least this
 _LATTICE_LIMIT = float(1 << 50)  # |V / s| beyond this is stored outright (keeps every int64 sum exact)
 DTYPES = ("int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64", "float32", "float64")
 
@@ -634,6 +635,38 @@ def check_info(info, n_voxels: int) -> str | None:
     mv = info.get("masked_value")
     if mv is not None and not (isinstance(mv, (int, float)) and not isinstance(mv, bool)):
         return f"residual masked value {mv!r} is not a number"
+    return _claims(info)
+
+
+def _claims(info: dict) -> str | None:
+    """What in a residual's description (its simple fields checked) claims more than its other
+    fields hold: the bound it states must follow from its step, margin and lattice as
+    :func:`_quantiser` made them (the finest level's step is the widest), its decoded dtype must be
+    one its lattice gives, its relative bound a positive number, and its streams as long as its
+    counts need (a frame of nothing is 9 bytes and more)."""
+    bound, step, margin = float(info["bound"]), float(info["step"]), float(info["margin"])
+    dtype = np.dtype(info["dtype"])
+    rel = info.get("bound_rel")
+    if isinstance(rel, bool) or not isinstance(rel, (int, float)) or not math.isfinite(rel) or rel <= 0:
+        return f"residual relative bound {rel!r} is not a positive finite number"
+    src = info.get("source_dtype", info["dtype"])
+    if src not in DTYPES:
+        return f"residual source dtype {src!r} is not one of {', '.join(DTYPES)}"
+    if info["lattice"] == "integer":
+        if dtype.kind not in "iu" or src != info["dtype"]:
+            return f"an integer-lattice residual decodes to its source's integers, not {info['dtype']} from {src}"
+        if int(step) % 2 != 1 or (int(step) - 1) // 2 > bound:
+            return f"residual integer step {step:g} does not hold its bound {bound:g} (an odd step of at most 2 x bound + 1)"
+    else:
+        if dtype.kind != "f":
+            return f"a float-lattice residual decodes to floats, not {info['dtype']}"
+        if not margin < bound or step > 2.0 * (bound - margin):
+            return f"residual step {step:g} and margin {margin:g} do not hold its bound {bound:g} (step <= 2 x (bound - margin))"
+    streams = info["streams"]
+    need = {"symbols": True, "positions": info["literals"] > 0, "values": info["literals"] > 0, "mask": info["masked"] > 0}
+    for name, needed in need.items():
+        if needed and streams[name] < MIN_FRAME_BYTES:
+            return f"residual {name} stream of {streams[name]} bytes cannot hold what its counts say"
     return None
 
 
