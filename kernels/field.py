@@ -305,22 +305,26 @@ def neighbour_range(prims: BinnedPrimitives, l: int, c: wp.vec3i, nb: int) -> wp
 
 
 @wp.func
+def add_pair(p: wp.vec3, b: BinnedPrimitives, j: int, s: wp.vec3) -> wp.vec3:
+    """``s`` (numerator, density, contributing pairs) with the pair of point p and sorted slot j
+    added where it contributes: (w a G, w G, 1)."""
+    g = truncated_kernel(p, b.mu[j], b.rot[j], b.inv_s2[j], b.ext[j])
+    if g > 0.0:
+        return wp.vec3(s[0] + b.w[j] * b.a[j] * g, s[1] + b.w[j] * g, s[2] + 1.0)
+    return s
+
+
+@wp.func
 def binned_sums(p: wp.vec3, b: BinnedPrimitives) -> wp.vec3:
     """(numerator, density, contributing pairs) at p over the binned primitives."""
-    num = float(0.0)
-    den = float(0.0)
-    pairs = float(0.0)
+    s = wp.vec3(0.0, 0.0, 0.0)
     for l in range(b.level_size.shape[0]):
         c = level_cell(p, b.level_size[l], b.level_dims[l])
         for nb in range(27):
             r = neighbour_range(b, l, c, nb)
             for j in range(r[0], r[1]):
-                g = truncated_kernel(p, b.mu[j], b.rot[j], b.inv_s2[j], b.ext[j])
-                if g > 0.0:
-                    num += b.w[j] * b.a[j] * g
-                    den += b.w[j] * g
-                    pairs += 1.0
-    return wp.vec3(num, den, pairs)
+                s = add_pair(p, b, j, s)
+    return s
 
 
 @wp.func
@@ -426,16 +430,10 @@ def eval_points_partial(
     p = points[order[k]]
     c = level_cell(p, prims.level_size[l], prims.level_dims[l])
     r = neighbour_range(prims, l, c, t % 27)
-    sn = float(0.0)
-    sd = float(0.0)
-    n = float(0.0)
+    s = wp.vec3(0.0, 0.0, 0.0)
     for j in range(r[0], r[1]):
-        g = truncated_kernel(p, prims.mu[j], prims.rot[j], prims.inv_s2[j], prims.ext[j])
-        if g > 0.0:
-            sn += prims.w[j] * prims.a[j] * g
-            sd += prims.w[j] * g
-            n += 1.0
-    part[k, t] = wp.vec3(sn, sd, n)
+        s = add_pair(p, prims, j, s)
+    part[k, t] = s
 
 
 @wp.kernel

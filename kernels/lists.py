@@ -17,7 +17,7 @@ deferred (:func:`warpgauss.kernels.optim.fits_list`), as steps out of reach of a
 import warp as wp
 
 from .backward import PointGrid, box_rows, slot_level
-from .field import BinnedPrimitives, level_cell, store_sums, truncated_kernel
+from .field import BinnedPrimitives, add_pair, level_cell, store_sums
 
 wp.set_module_options({"enable_backward": False})
 
@@ -164,19 +164,12 @@ def point_cell(p: wp.vec3, l: int, grid: PointGrid) -> int:
 @wp.func
 def listed_sums(p: wp.vec3, prims: BinnedPrimitives, grid: PointGrid, lists: CellLists) -> wp.vec3:
     """(numerator, density, contributing pairs) at p over the primitives listed in its cells."""
-    num = float(0.0)
-    den = float(0.0)
-    pairs = float(0.0)
+    s = wp.vec3(0.0, 0.0, 0.0)
     for l in range(grid.size.shape[0]):
         cid = point_cell(p, l, grid)
         for e in range(lists.start[cid], lists.start[cid + 1]):
-            j = lists.prim[e]
-            g = truncated_kernel(p, prims.mu[j], prims.rot[j], prims.inv_s2[j], prims.ext[j])
-            if g > 0.0:
-                num += prims.w[j] * prims.a[j] * g
-                den += prims.w[j] * g
-                pairs += 1.0
-    return wp.vec3(num, den, pairs)
+            s = add_pair(p, prims, lists.prim[e], s)
+    return s
 
 
 @wp.kernel
