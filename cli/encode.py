@@ -341,6 +341,7 @@ def encode(
     stem = example if example is not None else _stem(input) if input is not None else "volume"
     out = output or Path(f"{stem}.wgs")
     rep_path = report or out.with_name(out.name + ".report.json")
+    check_writable(out, force=force or resume)  # the file the user named first, then its report beside it
     check_writable(rep_path, force=force or resume)
 
     if ladder is not None:

@@ -150,3 +150,17 @@ def test_large_budgets_get_more_samples_by_default_and_presets_keep_theirs(monke
     assert p.report["refinement"]["samples"] == 3072 and p.header["encoding"]["samples"] == 3072
     r = warpgauss.encode(vol, ratio=5, iterations=2, device="cpu", evaluate=False, self_test=False)
     assert r.report["refinement"]["samples"] > 3072 and r.report["budget"]["bytes"] <= vol.nbytes / 5
+
+
+def test_save_replaces_a_file_as_numpy_does_and_refuses_only_when_asked(tmp_path):
+    """Python's Model.save writes where it is told (the bounded guide's snippet after the README's,
+    both saving v.wgs, lost a 142 s encode to a refusal at the end); force=False refuses, naming
+    the Python way to overwrite, and leaves the file as it was."""
+    m = warpgauss.encode(generate("vortex", 16), budget=40, iterations=0, device="cpu", self_test=False)
+    path = tmp_path / "v.wgs"
+    path.write_bytes(b"an earlier file")
+    assert m.save(path) == path.stat().st_size and warpgauss.Model.load(path).n == m.n
+    before = path.read_bytes()
+    with pytest.raises(warpgauss.WarpgaussError, match="force=True from Python"):
+        m.save(path, force=False, encoding="float32")
+    assert path.read_bytes() == before

@@ -152,6 +152,17 @@ def test_existing_output_is_not_overwritten(vortex_raw, tmp_path):
     assert out.read_bytes() == b"precious"
 
 
+def test_a_second_encode_to_the_same_name_names_the_file_the_user_gave(vortex_raw, tmp_path):
+    """Both the model and its report exist (the README's tour run twice): the refusal names the
+    model file the user typed, not the report beside it."""
+    out = tmp_path / "scan.wgs"
+    out.write_bytes(b"earlier model")
+    (tmp_path / "scan.wgs.report.json").write_text("{}")
+    r = cli("encode", vortex_raw, "--budget", "10", "-o", out)
+    assert_refused(r, f"{out} already exists")
+    assert out.read_bytes() == b"earlier model"
+
+
 def test_infeasible_budget_is_refused_before_warp_starts(tmp_path):
     """A 256^3 volume with an impossible budget: refused fast, Warp never imported."""
     v = np.zeros((256, 256, 256), np.uint8)

@@ -22,7 +22,7 @@ def check_writable(path: str | os.PathLike, *, force: bool = False) -> Path:
     """
     p = Path(path)
     if p.exists() and not force:
-        raise WarpgaussError(f"{p} already exists; pass --force to overwrite it or choose another output path")
+        raise WarpgaussError(f"{p} already exists; pass --force (force=True from Python) to overwrite it or choose another output path")
     if p.exists() and p.is_dir():
         raise WarpgaussError(f"{p} is a directory; give a file name for the output")
     parent = p.parent if str(p.parent) else Path(".")

@@ -281,10 +281,11 @@ class Model:
         return m, {**info, "bits": bits}
 
     # -- file I/O --------------------------------------------------------------------------
-    def save(self, path: str | os.PathLike, *, compact: bool = False, encoding: str | None = None, force: bool = False) -> int:
+    def save(self, path: str | os.PathLike, *, compact: bool = False, encoding: str | None = None, force: bool = True) -> int:
         """Write the model atomically (``encoding``: "float32", "compact96" or "coded"; overrides
         ``compact``; neither: the format it was encoded for or read from, else float32); returns
-        the file size in bytes."""
+        the file size in bytes. An existing file is replaced, as numpy and pyvista replace theirs
+        (``force=False`` refuses it instead; the command line refuses unless given ``--force``)."""
         from .wgs import write_wgs
 
         if encoding is None and not compact:
