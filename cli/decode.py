@@ -34,6 +34,7 @@ def decode(
     check_writable(output, force=force)
     m = Model.load(model)
     grid = parse_shape(shape)
+    _check_raw_output(output, m, grid, residual)
     with err_console.status(f"decoding {m.n} Gaussians", spinner="dots"):
         info: dict = {}
         data = m.decode(grid, device=device, normalised=normalised, info=info, residual=residual)
@@ -54,3 +55,18 @@ def decode(
         if m.residual is not None:
             note += "; the Gaussians alone (the residual applies on the encoded grid, in source units)"
     out_console.print(f"wrote {output} ({nx}x{ny}x{nz} {data.dtype}){note}")
+
+
+def _check_raw_output(output: Path, m, grid, residual) -> None:
+    """A .raw holds no shape or dtype: refuse a name without its ``_XxYxZ_DTYPE`` tail before the
+    decode (the readers could not take the file back), naming the one that fits."""
+    from warpgauss.errors import WarpgaussError
+    from warpgauss.readers.common import parse_raw_name
+
+    if output.suffix.lower() not in (".raw", ".bin") or parse_raw_name(output.name) is not None:
+        return
+    x, y, z = (int(v) for v in (grid or m.shape_xyz))
+    exact = grid is None or tuple(int(v) for v in grid) == tuple(m.shape_xyz)
+    dtype = m.residual.info["dtype"] if (m.residual is not None and residual is not False and exact) else "float32"
+    fix = output.with_name(f"{output.stem}_{x}x{y}x{z}_{dtype}{output.suffix}")
+    raise WarpgaussError(f"{output.name} does not say the grid's shape and dtype, which a raw file cannot hold; name it {fix.name}")

@@ -507,3 +507,29 @@ def test_an_error_line_shows_bracketed_text_as_given(tmp_path):
         app, ["encode", "--example", "vortex", "--size", "16", "--budget", "10", "--bricks", "[b]2x2x2", "-o", str(tmp_path / "b.wgs")]
     )
     assert res.exit_code == 2 and "'[b]2x2x2'" in res.output, res.output
+
+
+def test_a_raw_name_must_say_the_shape_and_dtype_it_holds(tmp_path):
+    """A .raw holds no shape: `example --size 48 -o vortex_128x128x128_float32.raw` wrote a 48^3
+    volume the next command could not read; now the name is refused in one line with the name
+    that fits, before anything is written, and a name without the tail is refused the same way."""
+    wrong = tmp_path / "vortex_128x128x128_float32.raw"
+    r = cli("example", "vortex", "--size", "12", "-o", wrong)
+    assert_refused(r, "says 128x128x128 float32 but the volume is 12x12x12 float32; name it vortex_12x12x12_float32.raw")
+    assert not wrong.exists()
+    bare = tmp_path / "out.raw"
+    assert_refused(cli("example", "vortex", "--size", "12", "-o", bare), "name it out_12x12x12_float32.raw")
+    assert not bare.exists()
+    right = tmp_path / "vortex_12x12x12_float32.raw"
+    assert cli("example", "vortex", "--size", "12", "-o", right).exit_code == 0 and right.stat().st_size == 4 * 12**3
+
+
+def test_decode_to_a_raw_name_without_its_shape_is_refused_before_the_decode(vortex_raw, tmp_path):
+    model = tmp_path / "m.wgs"
+    assert cli("encode", vortex_raw, "--budget", "10", "--iterations", "3", "-o", model).exit_code == 0
+    bare = tmp_path / "out.raw"
+    assert_refused(cli("decode", model, "-o", bare, "--shape", "8x9x10"), "name it out_8x9x10_float32.raw")
+    assert not bare.exists()
+    named = tmp_path / "out_8x9x10_float32.raw"
+    assert cli("decode", model, "-o", named, "--shape", "8x9x10").exit_code == 0 and named.stat().st_size == 4 * 8 * 9 * 10
+

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -99,10 +100,33 @@ def write_volume(
         data = data.astype(data.dtype.newbyteorder("="))
     spacing_t = _xyz_tuple(spacing, "spacing")
     origin_t = _xyz_tuple(origin, "origin")
+    if suffix in (".raw", ".bin"):
+        _check_raw_name(p, data)
     check_writable(p, force=force)
     with atomic_path(p) as tmp:
         WRITERS[suffix](tmp, data, spacing_t, origin_t, str(name) or "value")
     return p
+
+
+def _check_raw_name(p: Path, data: np.ndarray) -> None:
+    """A raw file holds no shape or dtype: its name must carry them (``NAME_XxYxZ_DTYPE.raw``), as
+    the readers take them back, and agree with the data (a 48^3 volume under a 128^3 name was
+    written, and the next command failed on its size)."""
+    from .common import parse_raw_name
+
+    nz, ny, nx = data.shape
+    want = f"{nx}x{ny}x{nz}_{data.dtype.name}"
+    stem = p.name[: -len(p.suffix)]
+    base = re.sub(r"_?\d+x\d+x\d+_[A-Za-z0-9]+$", "", stem) or "volume"
+    fix = p.with_name(f"{base}_{want}{p.suffix}")
+    named = parse_raw_name(p.name)
+    if named is None:
+        raise WarpgaussError(f"{p.name} does not say the volume's shape and dtype, which a raw file cannot hold; name it {fix.name}")
+    (x, y, z), dtype = named
+    if (x, y, z) != (nx, ny, nz) or np.dtype(dtype) != data.dtype:
+        raise WarpgaussError(
+            f"{p.name} says {x}x{y}x{z} {np.dtype(dtype).name} but the volume is {nx}x{ny}x{nz} {data.dtype.name}; name it {fix.name}"
+        )
 
 
 def _xyz_tuple(value, what: str) -> tuple[float, float, float]:
