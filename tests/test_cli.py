@@ -532,4 +532,3 @@ def test_decode_to_a_raw_name_without_its_shape_is_refused_before_the_decode(vor
     assert not bare.exists()
     named = tmp_path / "out_8x9x10_float32.raw"
     assert cli("decode", model, "-o", named, "--shape", "8x9x10").exit_code == 0 and named.stat().st_size == 4 * 8 * 9 * 10
-
