@@ -164,3 +164,16 @@ def test_save_replaces_a_file_as_numpy_does_and_refuses_only_when_asked(tmp_path
     with pytest.raises(warpgauss.WarpgaussError, match="force=True from Python"):
         m.save(path, force=False, encoding="float32")
     assert path.read_bytes() == before
+
+
+def test_psnr_of_a_decoded_grid_against_the_volume(tmp_path):
+    """warpgauss.psnr(grid, volume) on two arrays used to raise a bare AttributeError: now the
+    decoded grid scores as the model does on the full grid, and a wrong shape or type is one line."""
+    vol = generate("vortex", 16)
+    m = warpgauss.encode(vol, budget=60, iterations=0, device="cpu", self_test=False)
+    grid = m.decode(device="cpu")
+    assert abs(warpgauss.psnr(grid, vol) - warpgauss.psnr(m, vol, full=True, device="cpu")) < 0.05
+    with pytest.raises(warpgauss.WarpgaussError, match="is not the volume's"):
+        warpgauss.psnr(grid[:-1], vol)
+    with pytest.raises(warpgauss.WarpgaussError, match="psnr takes a Model"):
+        warpgauss.psnr([1, 2], vol)
