@@ -177,3 +177,15 @@ def test_psnr_of_a_decoded_grid_against_the_volume(tmp_path):
         warpgauss.psnr(grid[:-1], vol)
     with pytest.raises(warpgauss.WarpgaussError, match="psnr takes a Model"):
         warpgauss.psnr([1, 2], vol)
+
+
+def test_python_encodes_show_progress_where_asked_and_stay_quiet_in_logs(capsys):
+    """progress=True prints refinement's progress on one line of standard error, ended when the
+    encode ends; the default is quiet where no person watches (pytest's captured stream)."""
+    vol = generate("vortex", 12)
+    warpgauss.encode(vol, budget=30, iterations=60, samples=256, device="cpu", self_test=False, progress=True)
+    err = capsys.readouterr().err
+    assert "warpgauss: refining, iteration 25 of 60" in err and "iteration 60 of 60" in err and err.endswith("\n")
+    assert err.count("\n") == 1  # one line, rewritten in place
+    warpgauss.encode(vol, budget=30, iterations=30, samples=256, device="cpu", self_test=False)
+    assert "refining" not in capsys.readouterr().err

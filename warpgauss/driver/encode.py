@@ -180,6 +180,7 @@ def encode(
     max_error_rel: float | None = None,
     residual_psnr: float | None = None,
     session=None,
+    progress: bool | None = None,
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
 
@@ -264,20 +265,30 @@ def encode(
             largest bound that reaches it (:func:`warpgauss.residual.code_for_psnr`).
         session: The state a :class:`warpgauss.Encoder` keeps between its calls (device buffers
             and this call's deadline); not for direct use.
+        progress: Print refinement's progress on one line of standard error (iteration, the
+            samples' PSNR), as the command line does; None (the default): where a person watches,
+            a terminal or a notebook, not in logs. ``on_progress`` replaces it.
 
     Returns:
         The :class:`Model`, with ``model.report`` holding the run report.
     """
-    return encode_with(
-        source,
-        config_of(locals()),
-        on_stage=on_stage,
-        on_stats=on_stats,
-        on_progress=on_progress,
-        on_bricks=on_bricks,
-        client=client,
-        session=session,
-    )
+    line = None
+    if on_progress is None and (progress if progress is not None else watched()):
+        on_progress = line = ProgressLine()
+    try:
+        return encode_with(
+            source,
+            config_of(locals()),
+            on_stage=on_stage,
+            on_stats=on_stats,
+            on_progress=on_progress,
+            on_bricks=on_bricks,
+            client=client,
+            session=session,
+        )
+    finally:
+        if line is not None:
+            line.close()
 
 
 def encode_with(
@@ -401,3 +412,39 @@ def encode_with(
         Path(checkpoint).unlink()  # the run finished: its model replaces the checkpoint
     finish_report(model, timer)
     return model
+
+
+def watched() -> bool:
+    """Whether a person is likely watching this process: standard error a terminal, or a notebook."""
+    import sys
+
+    try:
+        tty = sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        tty = False
+    return bool(tty or "ipykernel" in sys.modules)
+
+
+class ProgressLine:
+    """Refinement's progress on one line of standard error, rewritten in place (``\\r``) and ended
+    with a newline when the encode ends: what :func:`encode` shows a Python user."""
+
+    def __init__(self, stream=None):
+        import sys
+
+        self.stream = stream if stream is not None else sys.stderr
+        self.open = False  # a line written and not yet ended
+
+    def __call__(self, iteration: int, total: int, losses: dict) -> None:
+        psnr = losses.get("sample_psnr_db")
+        tail = f", samples' PSNR {psnr:.2f} dB" if isinstance(psnr, (int, float)) else ""
+        self.stream.write(f"\rwarpgauss: refining, iteration {iteration:,} of {total:,}{tail}")
+        self.stream.flush()
+        self.open = True
+
+    def close(self) -> None:
+        """End the line (a run that stopped early never reached its last iteration)."""
+        if self.open:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.open = False
