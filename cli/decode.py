@@ -37,7 +37,7 @@ def decode(
     _check_raw_output(output, m, grid, residual)
     with err_console.status(f"decoding {m.n} Gaussians", spinner="dots"):
         info: dict = {}
-        data = m.decode(grid, device=device, normalised=normalised, info=info, residual=residual)
+        data = m.decode(shape_xyz=grid, device=device, normalised=normalised, info=info, residual=residual)
     write_volume(
         output,
         data,

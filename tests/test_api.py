@@ -33,7 +33,7 @@ def test_encode_array_roundtrip_decode_and_psnr(tmp_path, interface32, device):
     mse = np.mean(((dec - vol) / 40.0) ** 2, dtype=np.float64)
     assert warpgauss.psnr(loaded, vol, device=device) == pytest.approx(10 * np.log10(1 / mse), abs=0.01)
     assert rep["psnr_db"] == pytest.approx(10 * np.log10(1 / mse), abs=0.01)
-    half = loaded.decode((16, 16, 16), device=device)
+    half = loaded.decode(shape_xyz=(16, 16, 16), device=device)
     assert half.shape == (16, 16, 16)
 
 
@@ -189,3 +189,22 @@ def test_python_encodes_show_progress_where_asked_and_stay_quiet_in_logs(capsys)
     assert err.count("\n") == 1  # one line, rewritten in place
     warpgauss.encode(vol, budget=30, iterations=30, samples=256, device="cpu", self_test=False)
     assert "refining" not in capsys.readouterr().err
+
+
+def test_decode_takes_the_returned_arrays_shape_and_warns_on_the_old_order():
+    """decode(shape_zyx=g.shape) returns an array of g's shape; shape_xyz is the command line's
+    order; the positional (x, y, z) shape still works this release, with a DeprecationWarning that
+    says what to write; two of them at once are refused."""
+    vol = generate("vortex", (9, 7, 5))  # (x, y, z): the array is (5, 7, 9)
+    m = warpgauss.encode(vol, budget=30, iterations=0, device="cpu", self_test=False)
+    g = np.zeros((4, 6, 8))
+    a = m.decode(shape_zyx=g.shape, device="cpu")
+    assert a.shape == g.shape
+    b = m.decode(shape_xyz=(8, 6, 4), device="cpu")
+    np.testing.assert_array_equal(a, b)
+    with pytest.warns(DeprecationWarning, match=r"write decode\(shape_zyx=\(nz, ny, nx\)\)"):
+        c = m.decode((8, 6, 4), device="cpu")
+    np.testing.assert_array_equal(a, c)
+    with pytest.raises(warpgauss.WarpgaussError, match="give one of shape_zyx"):
+        m.decode(shape_zyx=g.shape, shape_xyz=(8, 6, 4), device="cpu")
+    assert m.decode(device="cpu").shape == vol.shape

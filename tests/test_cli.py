@@ -485,7 +485,17 @@ CLI_ONLY = {
     "warm_iterations",
     "keyframe_drift",
 }  # ladder/series paths, output
-API_ONLY = {"allocation", "evaluate", "on_bricks", "on_progress", "on_stage", "on_stats", "session", "warm_start"}  # Python callers
+API_ONLY = {
+    "allocation",
+    "evaluate",
+    "on_bricks",
+    "on_progress",
+    "on_stage",
+    "on_stats",
+    "progress",
+    "session",
+    "warm_start",
+}  # Python callers
 
 
 def test_every_command_line_option_maps_to_the_api_and_back():

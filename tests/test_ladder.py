@@ -128,6 +128,7 @@ NOT_FOR_LADDERS = {
     "warm_start": "warm starts belong to series",
     "motion": "warm starts belong to series",
     "session": "an Encoder's state",
+    "progress": "a ladder's rungs show their progress through on_progress",
 }
 
 

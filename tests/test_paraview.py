@@ -63,7 +63,7 @@ def test_the_reader_decodes_at_a_resolution_with_the_primitives_and_the_transfer
     assert img.GetDimensions() == (30, 30, 30)
     np.testing.assert_allclose(img.GetSpacing(), m.decoded_spacing((30, 30, 30)))
     np.testing.assert_allclose(img.GetOrigin(), m.decoded_origin((30, 30, 30)))
-    np.testing.assert_array_equal(values, m.decode((30, 30, 30), device="cpu").ravel())  # x fastest, as VTK
+    np.testing.assert_array_equal(values, m.decode(shape_xyz=(30, 30, 30), device="cpu").ravel())  # x fastest, as VTK
     assert pts.GetNumberOfPoints() == pts.GetNumberOfVerts() == m.n == 150
     arrays = primitive_arrays(m)
     np.testing.assert_allclose(points, arrays["points"], rtol=1e-6)
@@ -206,7 +206,7 @@ def test_the_plugin_in_pvpython(model_file, tmp_path):
     assert got["dims"] == [16, 16, 16] and got["representation"].strip("'") == "Volume" and got["rgb_points"] > 0
     assert got["default"].strip("'") == "Volume"  # the reader's hint: a model opens as a volume
     m = warpgauss.Model.load(model_file)
-    np.testing.assert_array_equal(np.load(str(out) + ".npy"), m.decode((16, 16, 16), device="cpu").ravel())
+    np.testing.assert_array_equal(np.load(str(out) + ".npy"), m.decode(shape_xyz=(16, 16, 16), device="cpu").ravel())
     header = read_header(str(model_file))  # the edited colours reached ParaView's colour map (through the CLI path there)
     want, _, _ = transfer_function_points(header, file_transfer_function(str(tf_file), header), own=True)
     np.testing.assert_allclose(got["edited_rgb_points"], want, atol=1e-9)

@@ -253,7 +253,7 @@ def test_encode_with_max_error_writes_one_file_whose_decode_keeps_the_bound(boun
     alone = loaded.decode(device="cpu", residual=False)
     assert alone.dtype == np.float32 and np.abs(alone - vol).max() > 2  # the Gaussians alone do not hold it
     with pytest.raises(WarpgaussError, match="encoded grid"):
-        loaded.decode((9, 9, 9), device="cpu", residual=True)
+        loaded.decode(shape_xyz=(9, 9, 9), device="cpu", residual=True)
     from warpgauss.evaluate import evaluate_against
 
     r = evaluate_against(loaded, d / "vol.npy", device="cpu")

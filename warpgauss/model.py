@@ -161,6 +161,29 @@ def _residual_of(p: Path, header: dict) -> Residual:
     return Residual(info, path=p, offset=p.stat().st_size - int(info["payload_bytes"]))
 
 
+def _decode_shape(shape, shape_zyx, shape_xyz) -> tuple[int, int, int] | None:
+    """The (x, y, z) grid of :meth:`Model.decode` from its three ways of giving one (at most one)."""
+    import warnings
+
+    given = [n for n, v in (("shape", shape), ("shape_zyx", shape_zyx), ("shape_xyz", shape_xyz)) if v is not None]
+    if len(given) > 1:
+        raise WarpgaussError(f"give one of shape_zyx (the array's shape) and shape_xyz, not {' and '.join(given)}")
+    if shape is not None:
+        warnings.warn(
+            "Model.decode(shape) reads (x, y, z) and returns a (z, y, x) array; write decode(shape_zyx=(nz, ny, nx)) "
+            "for the returned array's shape, or decode(shape_xyz=(nx, ny, nz)); the positional shape goes in the next release",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        return shape
+    if shape_zyx is not None:
+        dims = tuple(shape_zyx)
+        if len(dims) != 3:
+            raise WarpgaussError(f"shape_zyx must be three positive integers (nz, ny, nx), got {shape_zyx!r}")
+        return (dims[2], dims[1], dims[0])
+    return shape_xyz
+
+
 def _check_decode_size(shape) -> None:
     """Refuse a decode grid this machine cannot hold (the result, and a float64 copy on the way to
     source units) before anything is allocated for it."""
@@ -338,6 +361,8 @@ class Model:
         self,
         shape: tuple[int, int, int] | None = None,
         *,
+        shape_zyx: tuple[int, int, int] | None = None,
+        shape_xyz: tuple[int, int, int] | None = None,
         device: str | None = None,
         normalised: bool = False,
         progress: Callable[[int, int], None] | None = None,
@@ -347,7 +372,12 @@ class Model:
         """Evaluate the model on a grid spanning the model's extent.
 
         Args:
-            shape: Output grid (x, y, z); None for the encoded grid.
+            shape: Deprecated: the output grid as (x, y, z), which returned a (z, y, x) array;
+                give ``shape_zyx`` (the returned array's shape) or ``shape_xyz`` instead. It
+                works for this release, with a warning.
+            shape_zyx: The returned array's shape (nz, ny, nx), as numpy orders it; None (and no
+                ``shape_xyz``): the encoded grid.
+            shape_xyz: The same grid as (nx, ny, nz), as the command line's ``--shape XxYxZ``.
             device: Warp device (None: CUDA when present, else CPU).
             normalised: Return [0, 1] values instead of the source's units.
             progress: Optional callback(done, total).
@@ -367,6 +397,7 @@ class Model:
         """
         from .analysis import denormalise
 
+        shape = _decode_shape(shape, shape_zyx, shape_xyz)
         _check_decode_size(shape if shape is not None else self.shape_xyz)
         on_grid = shape is None or tuple(int(s) for s in shape) == self.shape_xyz
         if residual and self.residual is None:

@@ -226,7 +226,7 @@ class Viewer:
             else:
                 m = self.models[t]
                 k = min(1.0, 64.0 / max(m.shape_xyz))
-                v = m.decode(tuple(max(1, round(n * k)) for n in m.shape_xyz), device=self.device, normalised=True)
+                v = m.decode(shape_xyz=tuple(max(1, round(n * k)) for n in m.shape_xyz), device=self.device, normalised=True)
             counts, _ = np.histogram(np.clip(v, 0.0, 1.0), bins=bins, range=(0.0, 1.0))
             h = np.log1p(counts.astype(np.float64))
             h = h / h.max() if h.max() > 0 else h

@@ -197,7 +197,7 @@ def _use(m: Model) -> None:
     m.file_size(), m.file_size(compact=True), m.compression_ratio()  # noqa: B018
     m.decoded_spacing(), m.decoded_origin(), m.decoded_spacing((2, 3, 4)), m.decoded_origin((2, 3, 4))  # noqa: B018
     transfer.from_header(m.header)
-    v = m.decode((3, 2, 2), device="cpu")
+    v = m.decode(shape_xyz=(3, 2, 2), device="cpu")
     assert np.isfinite(v).all()
 
 

@@ -364,7 +364,7 @@ def test_thin_tiny_and_non_cubic_volumes(shape_zyx, budget):
     assert_valid_model(m, budget, shape_zyx)
     assert m.report["input"]["shape_xyz"] == list(shape_zyx[::-1])
     # decode at another resolution stays finite and has the requested shape
-    out = m.decode((3, 2, 5), device="cpu")
+    out = m.decode(shape_xyz=(3, 2, 5), device="cpu")
     assert out.shape == (5, 2, 3) and np.isfinite(out).all()
 
 

@@ -241,7 +241,7 @@ FIELDS: dict[str, tuple[str | None, str]] = {
 }
 
 # warpgauss.encode's arguments that are not settings: callbacks, a connection, an Encoder's state
-NOT_SETTINGS = ("source", "on_stage", "on_stats", "on_progress", "on_bricks", "client", "session")
+NOT_SETTINGS = ("source", "on_stage", "on_stats", "on_progress", "on_bricks", "client", "session", "progress")
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -235,7 +235,7 @@ def decode_image(path: str, shape, device: str | None = None, residual: bool = F
     m = warpgauss.Model.load(path)
     shape = tuple(shape)
     name = str(m.header.get("name") or "value")  # as warpgauss decode names it
-    data = m.decode(shape, device=device, residual=residual and m.residual is not None)
+    data = m.decode(shape_xyz=shape, device=device, residual=residual and m.residual is not None)
     img = image_data(data, m.decoded_spacing(shape), m.decoded_origin(shape), name)
     poly = primitives_polydata(m)  # as warpgauss export writes it
     tf = from_header(m.header)
