@@ -79,7 +79,7 @@ def test_cached_equals_the_dense_reference_on_the_decoded_grid(cpu, vortex_model
     c = CachedRenderer(model, device=cpu, cache_res=cache_res)
     shape = cache_grid_shape(model.shape_xyz, cache_res)
     assert c.cache_shape == shape and c.cache_seconds > 0
-    values = model.decode(shape, device=cpu, normalised=True)
+    values = model.decode(shape_xyz=shape, device=cpu, normalised=True)
     ref = VolumeRenderer(values, Scene.from_header(model.header), device=cpu)
     base = RenderSettings(width=40, height=36)
     for tf_name in TFS:

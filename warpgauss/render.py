@@ -188,7 +188,7 @@ class CachedRenderer(Marcher):
     .. note:: trades exactness for speed: the image is the exact march's up to the trilinear
        interpolation of the cached grid (a finer ``cache_res`` is closer and costs memory, and the
        decode time grows with the voxel count); it equals :class:`VolumeRenderer` on
-       ``model.decode(shape, normalised=True)`` bit for bit.
+       ``model.decode(shape_xyz=shape, normalised=True)`` bit for bit.
 
     Args:
         model: A :class:`warpgauss.Model`, or (params, header) of one.
