@@ -116,6 +116,10 @@ class PairPasses:
         self._buf = None
         self._sorted = None
 
+    def points_changed(self) -> None:
+        """New points were drawn: the backward pass sorts them unless a forward pass does first."""
+        self._sorted = None
+
     def use_partials(self) -> bool:
         return self.split and self.n_points * 27 * len(self.state.binned.sizes) <= PARTIAL_MAX_ENTRIES
 
@@ -214,9 +218,11 @@ class PairPasses:
         grid = b["grid"]
         args = [st.slot_cell, st.prims, grid, self.list_centre, self.list_half]
         n = st.n
-        wp.launch(kl.list_count, dim=n, inputs=args, outputs=[self._list_counts], device=dev)
-        wp.utils.array_scan(self._list_counts, self._list_cum, inclusive=True)
-        total = int(self._list_cum[n - 1 :].numpy()[0]) if n else 0
+        total = 0
+        if self.lists:
+            wp.launch(kl.list_count, dim=n, inputs=args, outputs=[self._list_counts], device=dev)
+            wp.utils.array_scan(self._list_counts, self._list_cum, inclusive=True)
+            total = int(self._list_cum[n - 1 :].numpy()[0]) if n else 0
         self.list_entries = total
         if not self.lists or total > LIST_MAX_ENTRIES:
             wp.launch(kl.unlisted_region, dim=n, inputs=[st.bounds.box_lo, st.bounds.box_hi], device=dev)

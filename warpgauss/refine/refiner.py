@@ -270,6 +270,7 @@ class Refiner:
         """Draw this iteration's samples (without advancing)."""
         self.schedule.begin()
         self.sampler.draw(self.schedule.stream)
+        self.passes.points_changed()
 
     def forward(self) -> None:
         """V~ and rho at the points, and the per-point loss gradients."""
@@ -648,6 +649,7 @@ class Refiner:
         for j in range(draws):
             stream.assign(np.array([rng_stream(self.seed, j, salt=END_SALT)], np.int32))
             self.sampler.draw(stream)
+            self.passes.points_changed()
             self.forward()
             drawn.append(self._drawn())
         v, t, om = (np.concatenate(parts) for parts in zip(*drawn))
