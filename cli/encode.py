@@ -659,8 +659,10 @@ def _print_summary(rep: dict, verbose: bool = False) -> None:
     an = rep["evaluation"].get("analytic")
     if an and ev and an is not ev and rep["refinement"].get("iterations"):
         r = rep["refinement"]
+        done = r.get("iterations_done", r["iterations"])
+        its = f"{done} iterations" if done == r["iterations"] else f"{done} of {r['iterations']} iterations"
         out_console.print(
-            f"refinement: {r['iterations']} iterations x {r['samples']} samples in {r['seconds']:.2f} s "
+            f"refinement: {its} x {r['samples']} samples in {r['seconds']:.2f} s "
             f"({r['ms_per_iteration']:.2f} ms/iteration); PSNR {an['psnr_db']:.2f} -> {ev['psnr_db']:.2f} dB"
         )
     if ev:

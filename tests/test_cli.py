@@ -542,3 +542,17 @@ def test_decode_to_a_raw_name_without_its_shape_is_refused_before_the_decode(vor
     assert not bare.exists()
     named = tmp_path / "out_8x9x10_float32.raw"
     assert cli("decode", model, "-o", named, "--shape", "8x9x10").exit_code == 0 and named.stat().st_size == 4 * 8 * 9 * 10
+
+
+def test_a_run_stopped_at_its_target_says_the_iterations_it_ran(vortex_raw, tmp_path):
+    """--target-psnr reached early: the summary says "100 of 300 iterations", as the report's
+    iterations_done, where it said 300 beside a line that skipped 100-300 (issue #57 item 4)."""
+    import json
+
+    out = tmp_path / "t.wgs"
+    r = cli("encode", vortex_raw, "--budget", "40", "--iterations", "300", "--samples", "256", "--target-psnr", "16", "-o", out)
+    assert r.exit_code == 0, r.output
+    rep = json.loads((tmp_path / "t.wgs.report.json").read_text())["refinement"]
+    assert rep["iterations_done"] < rep["iterations"] == 300
+    assert f"refinement: {rep['iterations_done']} of 300 iterations x" in r.stdout
+
