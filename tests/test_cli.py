@@ -555,4 +555,3 @@ def test_a_run_stopped_at_its_target_says_the_iterations_it_ran(vortex_raw, tmp_
     rep = json.loads((tmp_path / "t.wgs.report.json").read_text())["refinement"]
     assert rep["iterations_done"] < rep["iterations"] == 300
     assert f"refinement: {rep['iterations_done']} of 300 iterations x" in r.stdout
-
