@@ -18,10 +18,9 @@ import warp as wp
 
 from .backward import PointGrid, box_rows, slot_level
 from .field import BinnedPrimitives, add_pair, level_cell, store_sums
+from .optim import BIG, cell_faces
 
 wp.set_module_options({"enable_backward": False})
-
-BIG = wp.constant(1.0e30)
 
 
 @wp.struct
@@ -108,13 +107,7 @@ def list_region(
     re-bin (:func:`warpgauss.kernels.optim.fits_list`; one thread per slot)."""
     j = wp.tid()
     l, lo, hi = listed_cells(j, slot_cell, prims, grid, centre, half)
-    size = grid.size[l]
-    dims = grid.dims[l]
-    a = wp.vec3()
-    b = wp.vec3()
-    for k in range(3):
-        a[k] = wp.where(lo[k] == 0, -BIG, float(lo[k]) * size - 0.5)
-        b[k] = wp.where(hi[k] == dims[k] - 1, BIG, float(hi[k] + 1) * size - 0.5)
+    a, b = cell_faces(lo, hi, grid.size[l], grid.dims[l])
     box_lo[j] = a
     box_hi[j] = b
 

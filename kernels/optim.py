@@ -146,6 +146,19 @@ BIG = wp.constant(1.0e30)
 REACH_SLACK = wp.constant(1.1)  # headroom on a deferred step's reach: the next gradient differs a little
 
 
+@wp.func
+def cell_faces(first: wp.vec3i, last: wp.vec3i, size: float, dims: wp.vec3i):
+    """(lower, upper) faces of the cells ``first`` .. ``last`` (per axis) of a grid of ``dims``
+    cells of edge ``size`` starting at -0.5; a face on the grid's boundary is +-BIG, since cell
+    lookups clamp there (edge cells reach to infinity outwards)."""
+    lo = wp.vec3()
+    hi = wp.vec3()
+    for k in range(3):
+        lo[k] = wp.where(first[k] == 0, -BIG, float(first[k]) * size - 0.5)
+        hi[k] = wp.where(last[k] == dims[k] - 1, BIG, float(last[k] + 1) * size - 0.5)
+    return lo, hi
+
+
 @wp.kernel
 def effective_radius(radius: wp.array(dtype=float), reach: wp.array(dtype=float)):
     """Binning radius = max(extent, the reach a deferred step asked for)."""
@@ -181,11 +194,7 @@ def permute_slots(
     size = level_size[lev]
     dims = level_dims[lev]
     c = level_cell(mu[o], size, dims)
-    lo = wp.vec3()
-    hi = wp.vec3()
-    for k in range(3):
-        lo[k] = wp.where(c[k] == 0, -BIG, float(c[k]) * size - 0.5)
-        hi[k] = wp.where(c[k] == dims[k] - 1, BIG, float(c[k] + 1) * size - 0.5)
+    lo, hi = cell_faces(c, c, size, dims)
     bounds.lo[i] = lo
     bounds.hi[i] = hi
     bounds.cell[i] = size

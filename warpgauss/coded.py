@@ -228,11 +228,11 @@ def _grid(x: np.ndarray, k: int) -> np.ndarray:
     return c.astype(np.int64)
 
 
-def _quaternion_codes(p: np.ndarray, qb: int) -> np.ndarray:
-    """(n, 4) codes of canonical parameters' turns: the largest component's index, the other three
-    on a grid of 2^qb - 1 levels."""
-    n = p.shape[0]
-    qi, small = smallest_three(p[:, 6:10])
+def _quaternion_codes(q: np.ndarray, qb: int) -> np.ndarray:
+    """(n, 4) codes of canonical turns (n, 4): the largest component's index, the other three on a
+    grid of 2^qb - 1 levels."""
+    n = q.shape[0]
+    qi, small = smallest_three(q)
     lev = _q_levels(qb)
     sc = np.clip(np.rint((small + Q_RANGE) / (2 * Q_RANGE) * lev), 0, lev).astype(np.int64)
     # the rounded rotation must stay nearest the identity (w the largest component, canonical),
@@ -257,25 +257,34 @@ def _quaternion_codes(p: np.ndarray, qb: int) -> np.ndarray:
 # each attribute's code columns, from canonical float64 parameters and its bit depth: row by row,
 # so the codes of a subset of rows are those rows of the whole set's codes
 _ATTRIBUTE_CODES = (
-    ("mu", slice(0, 3), lambda p, k: _grid(p[:, 0:3], k)),
-    ("log_s", slice(3, 6), lambda p, k: _grid(p[:, 3:6], k)),
+    ("mu", slice(0, 3), _grid),
+    ("log_s", slice(3, 6), _grid),
     ("q", slice(6, 10), _quaternion_codes),
-    ("a", slice(10, 11), lambda p, k: _grid(p[:, 10:11], k)),
-    ("w", slice(11, 12), lambda p, k: np.maximum(_grid(p[:, 11:12], k), 1)),
+    ("a", slice(10, 11), _grid),
+    ("w", slice(11, 12), lambda x, k: np.maximum(_grid(x, k), 1)),
 )
+
+
+def _codes(p: np.ndarray, b: dict[str, int], columns: dict | None = None) -> np.ndarray:
+    """(N, 12) codes of canonical float64 parameters ``p``, each attribute's columns taken from
+    (and kept in) ``columns`` by (attribute, bit depth) where given."""
+    codes = np.empty((p.shape[0], 12), np.int64)
+    for name, cols, make in _ATTRIBUTE_CODES:
+        key = (name, b[name])
+        col = None if columns is None else columns.get(key)
+        if col is None:
+            col = make(p[:, cols], b[name])
+            if columns is not None:
+                columns[key] = col
+        codes[:, cols] = col
+    return codes
 
 
 def quantise(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndarray:
     """(N, 12) integer codes (int64) of ``params`` on the coded grids (columns as :data:`CODED_COLUMNS`)."""
     b = check_bits(dict(CODED_BITS if bits is None else bits))
     cached = _cached_codes(params, b)
-    if cached is not None:
-        return cached
-    p = canonical(params)
-    codes = np.empty((p.shape[0], 12), np.int64)
-    for name, cols, make in _ATTRIBUTE_CODES:
-        codes[:, cols] = make(p, b[name])
-    return codes
+    return cached if cached is not None else _codes(canonical(params), b)
 
 
 _FIT = threading.local()  # the fit coding in this thread (:class:`_FitCodes`), if any
@@ -303,12 +312,7 @@ class _FitCodes:
         entry = self.arrays.get(id(params))
         if entry is None or entry[0] is not params:
             return None
-        out = np.empty((self.base.shape[0], 12), np.int64)
-        for name, cols, make in _ATTRIBUTE_CODES:
-            key = (name, b[name])
-            if key not in self.columns:
-                self.columns[key] = make(self.c64, b[name])
-            out[:, cols] = self.columns[key]
+        out = _codes(self.c64, b, self.columns)
         rows = entry[1]
         return out if rows is None else out[rows]
 
