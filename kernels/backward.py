@@ -13,12 +13,14 @@ Per iteration, with M samples p_s and M partner points p'_s (p_s jittered by abo
 Training parameters per primitive: mu(3), log-sigma(3), unnormalised quaternion(4), a, weight
 logit (w = sigmoid). The point pass (:func:`point_grads`) turns the forward values into dL/dV~
 and dL/drho per point; the pair pass visits exactly the pairs the forward pass visited (same
-bins, same ``truncated_kernel``) and accumulates, per primitive in cell order, dL/dmu,
+bins, same ``conic_g``) and accumulates, per primitive in cell order, dL/dmu,
 dL/dlog-sigma, dL/dR (3x3), dL/da and dL/dw. Training uses the balanced chunk pass
 (:func:`pair_work` counts each primitive's candidate points, the rows of a :class:`PointGrid`
 its 5-sigma box reaches; :func:`pair_chunks` and :func:`chunk_owner` split them into chunks;
-:func:`pair_grad_chunks` sums one chunk per thread; :func:`reduce_chunks` adds a primitive's
-chunks in order: no float atomics, bit-identical reruns); :func:`accumulate_pairs` (one thread
+:func:`pair_grad_chunks` sums one chunk per thread, in the grid's frame (K = sum k d and the
+six entries of D = sum k d d^T, with k = dL/dG G: 11 sums a thread, no rotation a pair);
+:func:`reduce_chunks` adds a primitive's chunks in order and turns K and D into the gradients
+(:func:`frame_grads`): no float atomics, bit-identical reruns); :func:`accumulate_pairs` (one thread
 per point scattering through atomics) is its reference.
 :func:`finish_grads` adds the per-primitive terms and chains R(q/|q|) and the sigmoid into the
 12 raw gradients.
@@ -33,7 +35,7 @@ Derivation of the pair terms (d = p - mu, y = R^T d, m = sum_k y_k^2 / s_k^2, G 
 import warp as wp
 
 from .analysis import trilinear
-from .field import RHO0, BinnedPrimitives, level_cell, neighbour_range, sigmoid, truncated_kernel, vec12
+from .field import RHO0, BinnedPrimitives, conic_g, in_box, level_cell, neighbour_range, sigmoid, vec6, vec12
 
 wp.set_module_options({"enable_backward": False})
 
@@ -118,8 +120,11 @@ def pair_grad(
     """Accumulate one pair's gradient into sorted slot j; returns 1 if the pair contributes."""
     R = prims.rot[j]
     inv = prims.inv_s2[j]
-    g = truncated_kernel(p, prims.mu[j], R, inv, prims.ext[j])
-    if g <= 0.0:
+    d = p - prims.mu[j]
+    if not in_box(d, prims.ext[j]):
+        return 0
+    g = conic_g(d, prims.conic[j])
+    if not (g > 0.0):
         return 0
     if st[0] != 0.0 or st[1] != 0.0:
         t_ky, t_ls, t_rot, t_a, t_w = pair_terms(p, st, g, prims.mu[j], R, inv, prims.a[j], prims.w[j])
@@ -315,6 +320,21 @@ def chunk_owner(
         owner[base + t] = j
 
 
+@wp.func
+def frame_grads(s_kd: wp.vec3, s_dd: vec6, R: wp.mat33, inv: wp.vec3):
+    """(dL/dmu, dL/dlog-sigma, dL/dR) of one primitive from its pairs' sums K = sum k d and
+    D = sum k d d^T (k = dL/dG G; see the module docstring): with y = R^T d,
+    sum k R (y / s^2) = Sigma^-1 K, sum k y_k^2 / s_k^2 = (R^T D R)_kk / s_k^2 and
+    -sum k d (y / s^2)^T = -D R diag(1 / s^2)."""
+    D = wp.mat33(s_dd[0], s_dd[3], s_dd[4], s_dd[3], s_dd[1], s_dd[5], s_dd[4], s_dd[5], s_dd[2])
+    Dr = D @ R
+    L = wp.diag(inv)
+    d_mu = R @ (L @ (wp.transpose(R) @ s_kd))
+    RtDR = wp.transpose(R) @ Dr
+    d_ls = wp.vec3(RtDR[0, 0] * inv[0], RtDR[1, 1] * inv[1], RtDR[2, 2] * inv[2])
+    return d_mu, d_ls, -(Dr @ L)
+
+
 @wp.kernel
 def pair_grad_chunks(
     owner: wp.array(dtype=int),  # [>=T] slot of each chunk
@@ -328,9 +348,8 @@ def pair_grad_chunks(
     order: wp.array(dtype=int),  # [>=K] point index of each sorted entry (for the pair count)
     count_pairs: int,  # 1: add each contributing pair to pairs[point] (tests, self-test)
     pairs: wp.array(dtype=int),  # [P] out (zeroed before when counting)
-    part_ky: wp.array(dtype=wp.vec3),  # [>=T] out: partial sum of k y/s^2 of each chunk
-    part_ls: wp.array(dtype=wp.vec3),  # [>=T] out: dL/dlog-sigma
-    part_rot: wp.array(dtype=wp.mat33),  # [>=T] out: dL/dR
+    part_kd: wp.array(dtype=wp.vec3),  # [>=T] out: partial sum of k d of each chunk
+    part_dd: wp.array(dtype=vec6),  # [>=T] out: partial sum of k d d^T (xx, yy, zz, xy, xz, yz)
     part_aw: wp.array(dtype=wp.vec2),  # [>=T] out: (dL/da, dL/dw)
 ):
     """Partial gradients of one chunk of one primitive's candidate points (one thread per chunk).
@@ -350,15 +369,13 @@ def pair_grad_chunks(
     c = t - (chunk_cum[j] - nc)
     l = slot_level(slot_cell[j], prims.level_offset)
     mu = prims.mu[j]
-    R = prims.rot[j]
-    inv = prims.inv_s2[j]
+    cq = prims.conic[j]
     e = prims.ext[j]
     a = prims.a[j]
     w = prims.w[j]
     lo, hi = box_rows(mu, e, l, grid)
-    s_ky = wp.vec3(0.0, 0.0, 0.0)
-    s_ls = wp.vec3(0.0, 0.0, 0.0)
-    s_rot = wp.mat33(0.0)
+    s_kd = wp.vec3(0.0, 0.0, 0.0)
+    s_dd = vec6(0.0)
     s_a = float(0.0)
     s_w = float(0.0)
     acc = int(0)  # candidates in the rows before this one
@@ -367,23 +384,24 @@ def pair_grad_chunks(
             r = row_range(grid, l, lo, hi, y, z)
             first = ((c - acc) % nc + nc) % nc
             for k in range(r[0] + first, r[1], nc):
-                p = pos[k]
-                g = truncated_kernel(p, mu, R, inv, e)
-                if g > 0.0:
-                    if count_pairs != 0:
-                        wp.atomic_add(pairs, order[k], 1)
-                    st = state[k]
-                    if st[0] != 0.0 or st[1] != 0.0:
-                        t_ky, t_ls, t_rot, t_a, t_w = pair_terms(p, st, g, mu, R, inv, a, w)
-                        s_ky += t_ky
-                        s_ls += t_ls
-                        s_rot += t_rot
-                        s_a += t_a
-                        s_w += t_w
+                d = pos[k] - mu
+                if in_box(d, e):
+                    g = conic_g(d, cq)
+                    if g > 0.0:
+                        if count_pairs != 0:
+                            wp.atomic_add(pairs, order[k], 1)
+                        st = state[k]
+                        if st[0] != 0.0 or st[1] != 0.0:
+                            gl = st[0] * (a - st[3]) / st[2] + st[1]  # dL/dG / w
+                            kk = w * gl * g
+                            kd = kk * d
+                            s_kd += kd
+                            s_dd += vec6(kd[0] * d[0], kd[1] * d[1], kd[2] * d[2], kd[0] * d[1], kd[0] * d[2], kd[1] * d[2])
+                            s_a += st[0] * w * g / st[2]
+                            s_w += g * gl
             acc += r[1] - r[0]
-    part_ky[t] = s_ky
-    part_ls[t] = s_ls
-    part_rot[t] = s_rot
+    part_kd[t] = s_kd
+    part_dd[t] = s_dd
     part_aw[t] = wp.vec2(s_a, s_w)
 
 
@@ -392,9 +410,8 @@ def reduce_chunks(
     chunks: wp.array(dtype=int),  # [N]
     chunk_cum: wp.array(dtype=int),  # [N]
     prims: BinnedPrimitives,
-    part_ky: wp.array(dtype=wp.vec3),  # [>=T] from pair_grad_chunks
-    part_ls: wp.array(dtype=wp.vec3),
-    part_rot: wp.array(dtype=wp.mat33),
+    part_kd: wp.array(dtype=wp.vec3),  # [>=T] from pair_grad_chunks
+    part_dd: wp.array(dtype=vec6),
     part_aw: wp.array(dtype=wp.vec2),
     d_mu: wp.array(dtype=wp.vec3),  # [N] out (cell order, overwritten): dL/dmu
     d_ls: wp.array(dtype=wp.vec3),  # [N] out: dL/dlog-sigma
@@ -407,18 +424,17 @@ def reduce_chunks(
     j = wp.tid()
     nc = chunks[j]
     base = chunk_cum[j] - nc
-    s_ky = wp.vec3(0.0, 0.0, 0.0)
-    s_ls = wp.vec3(0.0, 0.0, 0.0)
-    s_rot = wp.mat33(0.0)
+    s_kd = wp.vec3(0.0, 0.0, 0.0)
+    s_dd = vec6(0.0)
     s_aw = wp.vec2(0.0, 0.0)
     for t in range(base, base + nc):
-        s_ky += part_ky[t]
-        s_ls += part_ls[t]
-        s_rot += part_rot[t]
+        s_kd += part_kd[t]
+        s_dd += part_dd[t]
         s_aw += part_aw[t]
-    d_mu[j] = prims.rot[j] @ s_ky
-    d_ls[j] = s_ls
-    d_rot[j] = s_rot
+    g_mu, g_ls, g_rot = frame_grads(s_kd, s_dd, prims.rot[j], prims.inv_s2[j])
+    d_mu[j] = g_mu
+    d_ls[j] = g_ls
+    d_rot[j] = g_rot
     d_a[j] = s_aw[0]
     d_w[j] = s_aw[1]
 

@@ -18,7 +18,7 @@ a slab whose lists would not fit (:data:`warpgauss.field.MAX_BRICK_LIST`).
 
 import warp as wp
 
-from .field import RHO0, BinnedPrimitives, binned_sums, truncated_kernel
+from .field import RHO0, BinnedPrimitives, binned_sums, conic_g, in_box
 
 wp.set_module_options({"enable_backward": False})
 
@@ -229,13 +229,15 @@ def eval_brick_lists(
     for u in range(ends[b] - counts[b], ends[b]):
         s = items[u]
         mu = prims.mu[s]
-        rot = prims.rot[s]
-        inv_s2 = prims.inv_s2[s]
+        cq = prims.conic[s]
         ext = prims.ext[s]
         w = prims.w[s]
         wa = w * prims.a[s]
         for q in range(4):
-            g = truncated_kernel(wp.vec3(px, py, voxel_coord(k0 + q + z0, scale[2])), mu, rot, inv_s2, ext)
+            d = wp.vec3(px, py, voxel_coord(k0 + q + z0, scale[2])) - mu
+            g = float(0.0)
+            if in_box(d, ext):
+                g = conic_g(d, cq)
             if g > 0.0:
                 num[q] = num[q] + wa * g
                 den[q] = den[q] + w * g

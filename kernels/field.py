@@ -18,6 +18,8 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 vec12 = wp.types.vector(length=12, dtype=wp.float32)
+# Sigma^-1 of one primitive, symmetric: (xx, yy, zz, xy, xz, yz)
+vec6 = wp.types.vector(length=6, dtype=wp.float32)
 
 TRUNC_M2 = wp.constant(25.0)  # squared Mahalanobis distance of the 5-sigma cut
 TRUNC_SIGMA = wp.constant(5.0)
@@ -76,11 +78,42 @@ def mahalanobis(d: wp.vec3, rot: wp.mat33, inv_s2: wp.vec3) -> float:
 
 
 @wp.func
-def truncated_kernel(p: wp.vec3, mu: wp.vec3, rot: wp.mat33, inv_s2: wp.vec3, ext: wp.vec3) -> float:
-    """G(p) with the 5-sigma cut; 0 outside the bounding box or the ellipsoid.
+def conic_of(rot: wp.mat33, inv_s2: wp.vec3) -> vec6:
+    """Sigma^-1 = R diag(1 / s^2) R^T as its six entries (xx, yy, zz, xy, xz, yz)."""
+    A = rot @ wp.diag(inv_s2) @ wp.transpose(rot)
+    return vec6(A[0, 0], A[1, 1], A[2, 2], 0.5 * (A[0, 1] + A[1, 0]), 0.5 * (A[0, 2] + A[2, 0]), 0.5 * (A[1, 2] + A[2, 1]))
 
-    Forward and backward passes both call this, so they agree exactly on which pairs contribute.
-    """
+
+@wp.func
+def conic_m(d: wp.vec3, c: vec6) -> float:
+    """m = d^T Sigma^-1 d from the six entries of Sigma^-1 (:func:`conic_of`)."""
+    return (
+        c[0] * d[0] * d[0] + c[1] * d[1] * d[1] + c[2] * d[2] * d[2] + 2.0 * (c[3] * d[0] * d[1] + c[4] * d[0] * d[2] + c[5] * d[1] * d[2])
+    )
+
+
+@wp.func
+def in_box(d: wp.vec3, ext: wp.vec3) -> bool:
+    """d inside the 5-sigma bounding box (per-axis half-extents ``ext``)."""
+    return wp.abs(d[0]) <= ext[0] and wp.abs(d[1]) <= ext[1] and wp.abs(d[2]) <= ext[2]
+
+
+@wp.func
+def conic_g(d: wp.vec3, c: vec6) -> float:
+    """G = exp(-m / 2) with the 5-sigma cut, for a d already inside the bounding box: what every
+    pair pass of refinement and evaluation computes, so that they agree on every pair."""
+    m = conic_m(d, c)
+    if m >= TRUNC_M2:
+        return 0.0
+    return wp.exp(-0.5 * m)
+
+
+@wp.func
+def truncated_kernel(p: wp.vec3, mu: wp.vec3, rot: wp.mat33, inv_s2: wp.vec3, ext: wp.vec3) -> float:
+    """G(p) with the 5-sigma cut; 0 outside the bounding box or the ellipsoid, in the primitive's
+    frame (decoding and rendering). The pair passes of refinement and evaluation read Sigma^-1
+    instead (:func:`in_box`, :func:`conic_g`: fewer loads and products a pair), all the same way,
+    so they agree exactly on which pairs contribute; the two forms differ by float rounding."""
     d = p - mu
     if wp.abs(d[0]) > ext[0] or wp.abs(d[1]) > ext[1] or wp.abs(d[2]) > ext[2]:
         return 0.0
@@ -123,6 +156,7 @@ def prepare_primitives(
     radius: wp.array(dtype=float),  # [N] out: max(ext), the binning radius
     a: wp.array(dtype=float),  # [N] out: value
     w: wp.array(dtype=float),  # [N] out: weight
+    conic: wp.array(dtype=vec6),  # [N] out: Sigma^-1 (conic_of)
 ):
     """Turn parameters into what evaluation reads (one thread per primitive)."""
     i = wp.tid()
@@ -131,6 +165,7 @@ def prepare_primitives(
     mu[i] = wp.vec3(p[0], p[1], p[2])
     rot[i] = R
     inv_s2[i] = inv
+    conic[i] = conic_of(R, inv)
     ext[i] = e
     radius[i] = wp.max(e[0], wp.max(e[1], e[2]))
     a[i] = wp.clamp(p[10], -VALUE_BOUND, VALUE_BOUND)
@@ -247,12 +282,14 @@ def gather_sorted(
     ext: wp.array(dtype=wp.vec3),
     a: wp.array(dtype=float),
     w: wp.array(dtype=float),
+    conic: wp.array(dtype=vec6),
     mu_s: wp.array(dtype=wp.vec3),  # [N] out, cell order
     rot_s: wp.array(dtype=wp.mat33),
     inv_s2_s: wp.array(dtype=wp.vec3),
     ext_s: wp.array(dtype=wp.vec3),
     a_s: wp.array(dtype=float),
     w_s: wp.array(dtype=float),
+    conic_s: wp.array(dtype=vec6),
 ):
     """Copy prepared primitives into cell order so that a cell's members are contiguous."""
     i = wp.tid()
@@ -263,6 +300,7 @@ def gather_sorted(
     ext_s[i] = ext[j]
     a_s[i] = a[j]
     w_s[i] = w[j]
+    conic_s[i] = conic[j]
 
 
 @wp.struct
@@ -281,6 +319,7 @@ class BinnedPrimitives:
     ext: wp.array(dtype=wp.vec3)  # [N] 5-sigma half-extents
     a: wp.array(dtype=float)  # [N] value
     w: wp.array(dtype=float)  # [N] weight
+    conic: wp.array(dtype=vec6)  # [N] Sigma^-1 (conic_of): what the pair passes evaluate
 
 
 @wp.func
@@ -307,10 +346,15 @@ def neighbour_range(prims: BinnedPrimitives, l: int, c: wp.vec3i, nb: int) -> wp
 @wp.func
 def add_pair(p: wp.vec3, b: BinnedPrimitives, j: int, s: wp.vec3) -> wp.vec3:
     """``s`` (numerator, density, contributing pairs) with the pair of point p and sorted slot j
-    added where it contributes: (w a G, w G, 1)."""
-    g = truncated_kernel(p, b.mu[j], b.rot[j], b.inv_s2[j], b.ext[j])
+    added where it contributes: (w a G, w G, 1). The centre and box are read first, Sigma^-1 and
+    the values only for a point inside the box."""
+    d = p - b.mu[j]
+    if not in_box(d, b.ext[j]):
+        return s
+    g = conic_g(d, b.conic[j])
     if g > 0.0:
-        return wp.vec3(s[0] + b.w[j] * b.a[j] * g, s[1] + b.w[j] * g, s[2] + 1.0)
+        w = b.w[j]
+        return wp.vec3(s[0] + w * b.a[j] * g, s[1] + w * g, s[2] + 1.0)
     return s
 
 
@@ -371,8 +415,7 @@ def eval_grid_binned(
 def eval_points_dense(
     points: wp.array(dtype=wp.vec3),  # [M]
     mu: wp.array(dtype=wp.vec3),  # [N] prepared, any order
-    rot: wp.array(dtype=wp.mat33),
-    inv_s2: wp.array(dtype=wp.vec3),
+    conic: wp.array(dtype=vec6),
     ext: wp.array(dtype=wp.vec3),
     a: wp.array(dtype=float),
     w: wp.array(dtype=float),
@@ -387,7 +430,10 @@ def eval_points_dense(
     den = float(0.0)
     n = int(0)
     for j in range(mu.shape[0]):
-        g = truncated_kernel(p, mu[j], rot[j], inv_s2[j], ext[j])
+        g = float(0.0)
+        d = p - mu[j]
+        if in_box(d, ext[j]):
+            g = conic_g(d, conic[j])
         if g > 0.0:
             num += w[j] * a[j] * g
             den += w[j] * g

@@ -9,7 +9,7 @@ untouched primitive beyond one read, and :class:`SlotBounds` keeps the bins exac
 import warp as wp
 
 from .backward import raw_gradient, touched
-from .field import BinnedPrimitives, bin_level, level_cell, prepare_one, safe_unit_quat, vec12
+from .field import BinnedPrimitives, bin_level, conic_of, level_cell, prepare_one, safe_unit_quat, vec12
 
 wp.set_module_options({"enable_backward": False})
 
@@ -519,6 +519,7 @@ def refine_update(
     prims.mu[j] = mu
     prims.rot[j] = R
     prims.inv_s2[j] = inv
+    prims.conic[j] = conic_of(R, inv)
     prims.ext[j] = e
     prims.a[j] = pe[10]
     prims.w[j] = wt

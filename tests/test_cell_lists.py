@@ -29,7 +29,7 @@ def _dense(r):
 
     wp, p, m2 = warp(), r.prims, r.n_points
     out = [wp.empty(m2, dtype=t, device=r.device) for t in (float, float, int)]
-    wp.launch(kf.eval_points_dense, dim=m2, inputs=[r.points, p.mu, p.rot, p.inv_s2, p.ext, p.a, p.w], outputs=out, device=r.device)
+    wp.launch(kf.eval_points_dense, dim=m2, inputs=[r.points, p.mu, p.conic, p.ext, p.a, p.w], outputs=out, device=r.device)
     return [a.numpy() for a in out]
 
 

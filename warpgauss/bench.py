@@ -278,7 +278,7 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
                 p = r.prims
                 out = [wp.empty(2 * m, dtype=t, device=dev) for t in (float, float, int)]
                 dense = lambda: wp.launch(  # noqa: E731
-                    kf.eval_points_dense, dim=2 * m, inputs=[r.points, p.mu, p.rot, p.inv_s2, p.ext, p.a, p.w], outputs=out, device=dev
+                    kf.eval_points_dense, dim=2 * m, inputs=[r.points, p.mu, p.conic, p.ext, p.a, p.w], outputs=out, device=dev
                 )
                 row["dense_forward_ms"] = timer.ms(dense, max(1, cfg.repeat // 5), warmup=1)
                 row["dense_over_binned"] = row["dense_forward_ms"] / max(row["forward_ms"], 1e-9)

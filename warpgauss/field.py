@@ -189,13 +189,13 @@ def sort_into_cells(prims, prepared, keys, order, device: str) -> None:
 
     Args:
         prims: ``BinnedPrimitives`` with its plan's arrays (:func:`set_plan`).
-        prepared: (mu, rot, inv_s2, ext, radius, a, w) of every primitive, any order.
+        prepared: (mu, rot, inv_s2, ext, radius, a, w, conic) of every primitive, any order.
         keys, order: Scratch of 2 N ints; ``order`` ends as the source index of each sorted slot.
     """
     from .kernels import field as kf
 
     wp = warp()
-    mu, rot, inv_s2, ext, radius, a, w = prepared
+    mu, rot, inv_s2, ext, radius, a, w, conic = prepared
     n = mu.shape[0]
     wp.launch(
         kf.bin_keys,
@@ -211,8 +211,8 @@ def sort_into_cells(prims, prepared, keys, order, device: str) -> None:
     wp.launch(
         kf.gather_sorted,
         dim=n,
-        inputs=[order, mu, rot, inv_s2, ext, a, w],
-        outputs=[prims.mu, prims.rot, prims.inv_s2, prims.ext, prims.a, prims.w],
+        inputs=[order, mu, rot, inv_s2, ext, a, w, conic],
+        outputs=[prims.mu, prims.rot, prims.inv_s2, prims.ext, prims.a, prims.w, prims.conic],
         device=device,
     )
 
@@ -267,6 +267,7 @@ class GaussianField:
         self.radius = wp.empty(n, dtype=float, device=dev)
         self.a = wp.empty(n, dtype=float, device=dev)
         self.w = wp.empty(n, dtype=float, device=dev)
+        self.conic = wp.empty(n, dtype=kf.vec6, device=dev)
         self._keys = wp.empty(2 * n, dtype=int, device=dev)
         self.prims = kf.BinnedPrimitives()
         p = self.prims
@@ -277,6 +278,7 @@ class GaussianField:
         p.ext = wp.empty_like(self.ext)
         p.a = wp.empty_like(self.a)
         p.w = wp.empty_like(self.w)
+        p.conic = wp.empty_like(self.conic)
         self.plan: BinPlan | None = None
         self._active: tuple[Any, float] | None = None  # (brick grid or None: every brick, active share)
         self._decode_bufs: dict = {}  # int scratch of the brick-list decode, kept between slabs
@@ -297,7 +299,7 @@ class GaussianField:
             kf.prepare_primitives,
             dim=n,
             inputs=[self.params, int(self.raw)],
-            outputs=[self.mu, self.rot, self.inv_s2, self.ext, self.radius, self.a, self.w],
+            outputs=[self.mu, self.rot, self.inv_s2, self.ext, self.radius, self.a, self.w, self.conic],
             device=dev,
         )
         prims = self.prims
@@ -306,7 +308,7 @@ class GaussianField:
             if plan != self.plan:
                 self.plan = plan
                 set_plan(prims, plan, dev)
-        prepared = (self.mu, self.rot, self.inv_s2, self.ext, self.radius, self.a, self.w)
+        prepared = (self.mu, self.rot, self.inv_s2, self.ext, self.radius, self.a, self.w, self.conic)
         sort_into_cells(prims, prepared, self._keys, prims.order, dev)
 
     def _eval(self, points: np.ndarray, dense: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -323,7 +325,7 @@ class GaussianField:
             d = wp.empty(b - a, dtype=float, device=dev)
             c = wp.empty(b - a, dtype=int, device=dev)
             if dense:
-                inputs = [p, self.mu, self.rot, self.inv_s2, self.ext, self.a, self.w]
+                inputs = [p, self.mu, self.conic, self.ext, self.a, self.w]
                 wp.launch(kf.eval_points_dense, dim=b - a, inputs=inputs, outputs=[v, d, c], device=dev)
             else:
                 inputs = [p, self.prims]

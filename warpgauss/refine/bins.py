@@ -15,6 +15,8 @@ class Binner:
     """Re-bins a :class:`Primitives` on its device (scratch for the old slot order kept here)."""
 
     def __init__(self, state: Primitives, shape_xyz: tuple[int, int, int], quant):
+        from ..kernels import field as kf
+
         self._wp = wp = warp()
         self.state, self.shape_xyz = state, shape_xyz
         self.quant = quant  # kernels.optim.QuantGrid: on = evaluation reads the parameters on the coded grids
@@ -23,8 +25,9 @@ class Binner:
         self._m1_b = wp.empty_like(s.m1)
         self._m2_b = wp.empty_like(s.m2)
         self._ids_b = wp.empty_like(s.ids)
-        # prepared primitives in the old slot order: (mu, rot, inv_s2, ext, radius, a, w)
-        self.prep = [wp.empty(n, dtype=t, device=dev) for t in (wp.vec3, wp.mat33, wp.vec3, wp.vec3, float, float, float)]
+        # prepared primitives in the old slot order: (mu, rot, inv_s2, ext, radius, a, w, conic)
+        types = (wp.vec3, wp.mat33, wp.vec3, wp.vec3, float, float, float, kf.vec6)
+        self.prep = [wp.empty(n, dtype=t, device=dev) for t in types]
         self._keys = wp.empty(2 * n, dtype=int, device=dev)
         self._perm = wp.empty(2 * n, dtype=int, device=dev)
         self.rebins = 0
@@ -40,7 +43,7 @@ class Binner:
 
     def prepare_into(self, outputs) -> None:
         """Prepare the primitives in the current slot order into ``outputs`` (mu, rot, inv_s2,
-        ext, radius, a, w), from the parameters on the coded grids while straight-through."""
+        ext, radius, a, w, conic), from the parameters on the coded grids while straight-through."""
         from ..kernels import field as kf
         from ..kernels import optim as ko
 

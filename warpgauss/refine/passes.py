@@ -130,6 +130,7 @@ class PairPasses:
         if self._buf is None:
             from ..field import plan_arrays, plan_point_grids
             from ..kernels import backward as kb
+            from ..kernels import field as kf
 
             wp, dev, n, plan = self._wp, self.device, self.state.n, self.state.binned
             levels, p2 = len(plan.sizes), self.n_points
@@ -161,8 +162,7 @@ class PairPasses:
                 "slots": slots,
                 "parts": (
                     wp.empty(slots, dtype=wp.vec3, device=dev),
-                    wp.empty(slots, dtype=wp.vec3, device=dev),
-                    wp.empty(slots, dtype=wp.mat33, device=dev),
+                    wp.empty(slots, dtype=kf.vec6, device=dev),
                     wp.empty(slots, dtype=wp.vec2, device=dev),
                 ),
             }

@@ -556,7 +556,7 @@ class Refiner:
         if refit and self.quantising(it) and it > int(self.cfg.quantise_from * self.cfg.iterations):
             self._freeze_geometry()  # the geometry was fixed before the checkpoint
         radius = self.binner.prep[4]  # scratch: the prepared primitives go straight into slot order
-        self.binner.prepare_into([p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w])
+        self.binner.prepare_into([p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w, p.conic])
         s.zero_grads()
         smp = self.sampler
         if smp.uniform_support:

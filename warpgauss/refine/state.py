@@ -51,6 +51,7 @@ class Primitives:
         p.mu, p.rot, p.inv_s2, p.ext = (wp.empty(n, dtype=t, device=dev) for t in (wp.vec3, wp.mat33, wp.vec3, wp.vec3))
         p.a = wp.empty(n, dtype=float, device=dev)
         p.w = wp.empty(n, dtype=float, device=dev)
+        p.conic = wp.empty(n, dtype=kf.vec6, device=dev)
         b = self.bounds = ko.SlotBounds()  # how far a slot may move before the next re-bin
         b.lo = wp.empty(n, dtype=wp.vec3, device=dev)
         b.hi = wp.empty(n, dtype=wp.vec3, device=dev)
