@@ -34,6 +34,13 @@ def main(argv=None) -> dict:
         default="default",
         help="default, nolists (RefineConfig(cell_lists=False)), comma-separated",
     )
+    ap.add_argument(
+        "--patch",
+        action="append",
+        default=[],
+        help="NAME=module.CONST:value[+module.CONST:value]: a variant NAME (list it in --variants) that runs the "
+        "default encode with module constants set (e.g. rc4=warpgauss.field.ROW_COST:4); restored after it",
+    )
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
@@ -47,6 +54,8 @@ def main(argv=None) -> dict:
         "rows": [],
     }
     variants = {"default": RefineConfig(), "nolists": RefineConfig(cell_lists=False)}
+    patches = _patches(args.patch)
+    variants.update({name: RefineConfig() for name in patches})
     examples: dict[str, object] = {}
 
     def source(vol: str):
@@ -63,6 +72,7 @@ def main(argv=None) -> dict:
     ]:
         if True:
             rc = variants[variant]
+            saved = _apply(patches.get(variant, {}))
             wp.synchronize()
             t = time.perf_counter()
             m = warpgauss.encode(source(vol), ratio=ratio, device=dev, refine=rc)
@@ -72,6 +82,7 @@ def main(argv=None) -> dict:
                 "volume": Path(vol).name,
                 "ratio": ratio,
                 "variant": variant,
+                "patch": {k: v for k, v in patches.get(variant, {}).items()},
                 "wall_s": wall,
                 "total_s": rep.get("total_seconds"),
                 "n": m.n,
@@ -106,9 +117,32 @@ def main(argv=None) -> dict:
                 print(f"  kernels total {row['kernel_s_total']:.3f} s of {row['kernels_wall_s']:.2f} s wall")
                 for k, v in top[: args.top]:
                     print(f"    {v[0]:8.4f} s {v[1]:7d}x  {k}")
+            _apply(saved)
             res["rows"].append(row)
     Path(args.out).write_text(json.dumps(res, indent=1))
     return res
+
+
+def _patches(specs: list[str]) -> dict[str, dict[str, float]]:
+    """--patch NAME=module.CONST:value+...: variant name -> {"module.CONST": value}."""
+    out: dict[str, dict[str, float]] = {}
+    for spec in specs:
+        name, _, rest = spec.partition("=")
+        out[name] = {k: float(v) for k, v in (item.rsplit(":", 1) for item in rest.split("+"))}
+    return out
+
+
+def _apply(values: dict[str, float]) -> dict[str, float]:
+    """Set module constants ("module.CONST" -> value); returns the values they had."""
+    import importlib
+
+    old = {}
+    for key, value in values.items():
+        mod, const = key.rsplit(".", 1)
+        m = importlib.import_module(mod)
+        old[key] = getattr(m, const)
+        setattr(m, const, type(old[key])(value))
+    return old
 
 
 if __name__ == "__main__":
