@@ -128,7 +128,7 @@ def plan_arrays(plan: BinPlan, device: str) -> tuple:
 
 POINT_GRID_DIVS = (1, 2, 4, 8, 16)  # a point grid's cell: the level's cell over one of these
 MAX_POINT_CELLS = 1 << 22  # cells of one level's point grid (16 MiB of int32 starts)
-ROW_COST = 16.0  # cost of visiting one row of point cells, in candidate-point tests (H100: 16 beat 1 and 4 by 3-6 % and 64 by 24 %, benchmarks/results/kernels/row_cost_h100.json)
+ROW_COST = 64.0  # cost of visiting one row of point cells, in candidate-point tests (one H200, the forward pass through cell lists on these grids: 64 with LIST_PAD_SHARE 0.1 took the three MRIs at CR 10 / 100 / 1000 in 44.9 s against 53.1 at 16 and 0.25, every row within -0.13..+0.04 dB, results/speed/profile_knobs2_h200.json; H100 before the lists: 16 beat 1 and 4 by 3-6 % and 64 by 24 %, results/kernels/row_cost_h100.json)
 
 
 def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, ...], occupied_voxels: int) -> BinPlan:

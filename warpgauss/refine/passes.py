@@ -41,7 +41,7 @@ SPLIT_DENSE_PRIMITIVES = 50_000
 # cell lists (kernels/lists.py): a primitive is listed with its box widened by this share and these
 # voxels, so that the steps of the iterations up to the next re-bin rarely leave its listed cells
 # (a step that would is deferred to the re-bin, as one that leaves its bin cell's reach is)
-LIST_PAD_SHARE = 0.25
+LIST_PAD_SHARE = 0.1  # one H200, three MRIs at CR 10 / 100 / 1000: 0.1 took 49.1 s against 53.1 at 0.25 (with ROW_COST 64: 44.9), profile_knobs2_h200.json
 LIST_PAD_VOXELS = 1.0
 LIST_MAX_ENTRIES = 1 << 26  # (cell, primitive) entries at most (4 int32 arrays: 1 GiB); beyond, no lists
 LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (fewer re-captures)
