@@ -104,7 +104,10 @@ def encode(
     ] = None,
     preset: Annotated[
         str | None,
-        typer.Option(rich_help_panel="Refinement", help="paper (1500 x 3072 whatever N), fast (300 x 3072) or quality (1500 x 12288)"),
+        typer.Option(
+            rich_help_panel="Refinement",
+            help="paper (1500 x 3072 whatever N), fast (the default's sampling for 300 iterations) or quality (1500 x 12288)",
+        ),
     ] = None,
     no_self_test: Annotated[
         bool, typer.Option("--no-self-test", rich_help_panel="Refinement", help="Skip the binned-vs-dense self-test")

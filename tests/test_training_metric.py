@@ -138,13 +138,16 @@ def test_the_end_estimate_averages_draws_without_changing_the_model(cpu):
 
 
 def test_presets_keep_the_papers_sampling():
-    """--preset paper and --preset fast train as the paper does: jittered samples, trilinear
-    targets, equal weights; the library default samples voxel centres with importance weights."""
-    for name in ("paper", "fast"):
-        cfg = resolve_refine(None, name, None, None)
-        assert (cfg.jitter, cfg.importance) == (0.5, False)
-        assert {k: getattr(cfg, k) for k in PRESETS[name]} == PRESETS[name]
-    assert (RefineConfig().jitter, RefineConfig().importance) == (0.0, True)
+    """--preset paper trains as the paper does: jittered samples, trilinear targets, equal weights;
+    the library default, and --preset fast (its 300-iteration form), sample voxel centres with
+    importance weights and half the samples where the error is."""
+    cfg = resolve_refine(None, "paper", None, None)
+    assert (cfg.jitter, cfg.importance, cfg.error_share, cfg.auto_samples) == (0.5, False, 0.0, False)
+    assert {k: getattr(cfg, k) for k in PRESETS["paper"]} == PRESETS["paper"]
+    fast, default = resolve_refine(None, "fast", None, None), RefineConfig()
+    assert fast.iterations == 300 and default.iterations == 1500
+    assert fast == dataclasses.replace(default, iterations=300)
+    assert (default.jitter, default.importance) == (0.0, True)
     with pytest.raises(Exception, match="jitter must be in"):
         RefineConfig(jitter=2.0).validate()
 

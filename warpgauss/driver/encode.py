@@ -202,8 +202,9 @@ def encode(
             large budgets, 12,288 at 1.4M; on a GPU at least one per 128 voxels as a power of two
             within 16,384-131,072; see :meth:`RefineConfig.samples_rule`; the report's
             ``refinement.samples_rule`` says what was chosen).
-        preset: "paper" (1,500 x 3,072 whatever N), "fast" (300 x 3,072, the paper's time-budget
-            mode) or "quality" (1,500 x 12,288); explicit ``iterations``/``samples`` override it.
+        preset: "paper" (1,500 x 3,072 whatever N), "fast" (the default's sampling for 300
+            iterations; the paper's time-budget mode is "paper" with ``iterations=300``) or
+            "quality" (1,500 x 12,288); explicit ``iterations``/``samples`` override it.
         refine: Learning rates, loss weights and schedule (:class:`warpgauss.optimize.RefineConfig`).
         self_test: Run the binned-vs-dense self-test before refining.
         time_budget: Seconds refinement may take once its kernels are compiled (set-up, self-test and
