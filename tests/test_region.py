@@ -196,6 +196,9 @@ def test_a_box_on_the_encoded_grid_keeps_the_bound_elsewhere_the_gaussians_alone
             m.decode(shape_xyz=shape, box=b, device="cpu", residual=True)
     info = {}
     assert m.decode(box=box, device="cpu", residual=False, info=info).dtype == np.float32 and info["residual_applied"] is False
+    # to_pyvista says it in its field data
+    assert int(m.to_pyvista(box=box, device="cpu").field_data["residual_applied"][0]) == 1
+    assert int(m.to_pyvista((16, 24, 14), box, device="cpu").field_data["residual_applied"][0]) == 0
 
 
 # -- the command line ---------------------------------------------------------------------------------

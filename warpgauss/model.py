@@ -440,6 +440,44 @@ class Model:
             np.clip(out, min(lo, hi), max(lo, hi), out=out)
         return out
 
+    def to_pyvista(
+        self,
+        shape: tuple[int, int, int] | None = None,
+        box=None,
+        *,
+        device: str | None = None,
+        normalised: bool = False,
+        residual: bool | None = None,
+        name: str | None = None,
+    ):
+        """The decode as a ``pyvista.ImageData``, for a notebook (``model.to_pyvista().plot(volume=True)``)
+        or any VTK pipeline: what ``warpgauss decode -o grid.vti`` writes, without the file.
+
+        Args:
+            shape: Output grid (nx, ny, nz), the order of ``ImageData.dimensions`` (None: the
+                encoded grid, or ``box`` at the encoded resolution).
+            box: A region, ``((x0, x1), (y0, y1), (z0, z1))`` in voxel coordinates of the encoded
+                grid, as :meth:`decode` takes it.
+            device, normalised, residual: As :meth:`decode`.
+            name: The point-data array's name (default: the header's name, else "value").
+
+        Returns:
+            ``pyvista.ImageData`` of dimensions (nx, ny, nz), spacing and origin in the header's
+            physical units (the first voxel's centre; a box's own), the decoded values as its
+            active point scalars (x fastest), and field data ``residual_applied`` (1 where the
+            residual's bound holds for the values, else 0).
+        """
+        from .readers.write import image_data
+
+        info: dict = {}
+        data = self.decode(shape_xyz=shape, box=box, device=device, normalised=normalised, info=info, residual=residual)
+        grid_shape = (data.shape[2], data.shape[1], data.shape[0])
+        label = name or str(self.header.get("name") or "value")
+        img = image_data(data, self.decoded_spacing(grid_shape, box), self.decoded_origin(grid_shape, box), label)
+        img.set_active_scalars(label)
+        img.field_data["residual_applied"] = np.array([int(bool(info.get("residual_applied")))], np.int8)
+        return img
+
     def _decode_bounded(self, device: str | None, info: dict | None) -> np.ndarray:
         from .residual import DECODE_BYTES_PER_VOXEL, apply_residual, check_memory, prediction
 
