@@ -242,3 +242,25 @@ def test_cli_decode_refuses_a_bad_box_in_one_line_before_the_decode(bounded, tmp
     out = tmp_path / "out.npy"
     assert_refused(cli("decode", d / "b.wgs", "-o", out, *args, "--device", "cpu"), says)
     assert not out.exists()
+
+
+def test_the_region_benchmark_runs_on_the_cpu_at_tiny_sizes(tmp_path):
+    """benchmarks/decode/region.py (GPU sizes by default) with tiny CPU flags: a table, a JSON that
+    says where and when it ran, the box at zoom 1 equal to the whole decode's crop."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "decode" / "region.py"
+    spec = importlib.util.spec_from_file_location("_bench_region", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "region.json"
+    res = bench.main(["--size", "24", "--n", "400", "--box", "8", "--zoom", "2", "--repeat", "1", "--device", "cpu", "--out", str(out)])
+    saved = json.loads(out.read_text())
+    for key in ("device_name", "warp_version", "date", "commit", "command"):
+        assert key in saved
+    assert saved["command"].startswith("python benchmarks/decode/region.py --size 24") and saved["crop_equal"] is True
+    whole, box = saved["rows"]
+    assert whole["output_shape"] == [24, 24, 24] and box["output_shape"] == [16, 16, 16] and box["box"] == [[8, 16]] * 3
+    assert saved["ratio_device"] == pytest.approx(box["device_ms"] / whole["device_ms"]) and res["n"] == 400
