@@ -61,10 +61,20 @@ def mark_bricks(
                 active[z, y, x] = wp.uint8(1)
 
 
+@wp.func
+def voxel_coord(i: int, offset: float, scale: float) -> float:
+    """Model-grid coordinate of output voxel i's centre: ((i + offset) + 0.5) scale - 0.5, the
+    formula every grid evaluator uses (offset 0: the whole extent, as
+    :func:`warpgauss.kernels.field.eval_grid_binned`; an integer offset adds exactly, so a region
+    that starts on a voxel of a whole grid samples that grid's very coordinates)."""
+    return (float(i) + offset + 0.5) * scale - 0.5
+
+
 @wp.kernel
 def eval_grid_blocked(
     z0: int,  # first output slice of this slab
     scale: wp.vec3,  # model voxels per output voxel along x, y, z
+    offset: wp.vec3,  # output voxels before voxel 0 (a region's start; 0 for the whole extent)
     prims: BinnedPrimitives,
     active: wp.array3d(dtype=wp.uint8),  # [bz, by, bx] bricks some primitive reaches (see use_active)
     use_active: int,  # 0: evaluate everywhere (a primitive too large to mark bricks)
@@ -90,11 +100,7 @@ def eval_grid_blocked(
     k = (blk / (nbx * nby)) * 8 + ((local >> 4) & 1) + 2 * ((local >> 7) & 3)
     if i >= nx or j >= ny or k >= out.shape[0]:
         return
-    p = wp.vec3(
-        (float(i) + 0.5) * scale[0] - 0.5,
-        (float(j) + 0.5) * scale[1] - 0.5,
-        (float(k + z0) + 0.5) * scale[2] - 0.5,
-    )
+    p = wp.vec3(voxel_coord(i, offset[0], scale[0]), voxel_coord(j, offset[1], scale[1]), voxel_coord(k + z0, offset[2], scale[2]))
     if use_active != 0:
         b = float(BRICK_EDGE)
         bx = wp.clamp(int(wp.floor((p[0] + 0.5) / b)), 0, active.shape[2] - 1)
@@ -113,12 +119,6 @@ def blocked_threads(h: int, ny: int, nx: int) -> int:
 
 
 LIST_THREADS = wp.constant(128)  # threads per brick in eval_brick_lists: 8 x 8 x 2, each 4 voxels along z
-
-
-@wp.func
-def voxel_coord(i: int, scale: float) -> float:
-    """Model-grid coordinate of output voxel i's centre (the formula every grid evaluator uses)."""
-    return (float(i) + 0.5) * scale - 0.5
 
 
 @wp.func
@@ -156,6 +156,7 @@ def brick_of(b: int, bricks: wp.vec3i) -> wp.vec3i:
 def list_bricks(
     z0: int,  # first output slice of this slab
     scale: wp.vec3,  # model voxels per output voxel along x, y, z
+    offset: wp.vec3,  # output voxels before voxel 0 (a region's start; 0 for the whole extent)
     size: wp.vec3i,  # output voxels of the slab (nx, ny, h)
     bricks: wp.vec3i,  # bricks per axis of the slab
     prims: BinnedPrimitives,
@@ -171,11 +172,11 @@ def list_bricks(
     x0 = c[0] * BRICK_EDGE
     y0 = c[1] * BRICK_EDGE
     zb = c[2] * BRICK_EDGE
-    lo = wp.vec3(voxel_coord(x0, scale[0]), voxel_coord(y0, scale[1]), voxel_coord(zb + z0, scale[2]))
+    lo = wp.vec3(voxel_coord(x0, offset[0], scale[0]), voxel_coord(y0, offset[1], scale[1]), voxel_coord(zb + z0, offset[2], scale[2]))
     hi = wp.vec3(
-        voxel_coord(wp.min(x0 + BRICK_EDGE, size[0]) - 1, scale[0]),
-        voxel_coord(wp.min(y0 + BRICK_EDGE, size[1]) - 1, scale[1]),
-        voxel_coord(wp.min(zb + BRICK_EDGE, size[2]) - 1 + z0, scale[2]),
+        voxel_coord(wp.min(x0 + BRICK_EDGE, size[0]) - 1, offset[0], scale[0]),
+        voxel_coord(wp.min(y0 + BRICK_EDGE, size[1]) - 1, offset[1], scale[1]),
+        voxel_coord(wp.min(zb + BRICK_EDGE, size[2]) - 1 + z0, offset[2], scale[2]),
     )
     w = int(0)
     if fill != 0:
@@ -204,6 +205,7 @@ def list_bricks(
 def eval_brick_lists(
     z0: int,  # first output slice of this slab
     scale: wp.vec3,  # model voxels per output voxel along x, y, z
+    offset: wp.vec3,  # output voxels before voxel 0 (a region's start; 0 for the whole extent)
     bricks: wp.vec3i,  # bricks per axis of the slab
     prims: BinnedPrimitives,
     ends: wp.array(dtype=int),  # [B] inclusive prefix sum of counts
@@ -221,8 +223,8 @@ def eval_brick_lists(
     k0 = c[2] * BRICK_EDGE + ((local >> 6) & 1) * 4
     if i >= out.shape[2] or j >= out.shape[1] or k0 >= out.shape[0]:
         return
-    px = voxel_coord(i, scale[0])
-    py = voxel_coord(j, scale[1])
+    px = voxel_coord(i, offset[0], scale[0])
+    py = voxel_coord(j, offset[1], scale[1])
     num = wp.vec4(0.0)
     den = wp.vec4(0.0)
     b = t / LIST_THREADS
@@ -234,7 +236,7 @@ def eval_brick_lists(
         w = prims.w[s]
         wa = w * prims.a[s]
         for q in range(4):
-            d = wp.vec3(px, py, voxel_coord(k0 + q + z0, scale[2])) - mu
+            d = wp.vec3(px, py, voxel_coord(k0 + q + z0, offset[2], scale[2])) - mu
             g = float(0.0)
             if in_box(d, ext):
                 g = conic_g(d, cq)

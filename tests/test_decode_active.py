@@ -95,7 +95,7 @@ def test_brick_lists_hold_exactly_the_primitives_whose_box_meets_the_brick(devic
     counts = wp.zeros(nb, dtype=int, device=device)
     ends = wp.zeros(nb, dtype=int, device=device)
     items = wp.zeros(1, dtype=int, device=device)
-    common = [0, wp.vec3(1.0, 1.0, 1.0), wp.vec3i(nx, ny, nz), bricks, gf.prims]
+    common = [0, wp.vec3(1.0, 1.0, 1.0), wp.vec3(0.0, 0.0, 0.0), wp.vec3i(nx, ny, nz), bricks, gf.prims]
     wp.launch(kd.list_bricks, dim=nb, inputs=[*common, 0, ends, counts, items], device=device)
     c = counts.numpy()
     ends = wp.array(np.cumsum(c).astype(np.int32), dtype=int, device=device)

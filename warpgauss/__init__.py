@@ -8,6 +8,7 @@ from .driver import encode, encode_ladder  # noqa: E402
 from .encoder import Encoder  # noqa: E402
 from .errors import WarpgaussError  # noqa: E402
 from .model import Model  # noqa: E402
+from .render import render_image  # noqa: E402
 from .series import encode_series  # noqa: E402
 
 
@@ -48,4 +49,4 @@ def psnr(model, volume, *, full: bool = False, device: str | None = None, fill_v
     return psnr_from_mse(float(np.mean(err * err)))
 
 
-__all__ = ["Encoder", "Model", "WarpgaussError", "__version__", "encode", "encode_ladder", "encode_series", "psnr"]
+__all__ = ["Encoder", "Model", "WarpgaussError", "__version__", "encode", "encode_ladder", "encode_series", "psnr", "render_image"]

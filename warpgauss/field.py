@@ -345,32 +345,40 @@ class GaussianField:
         """(V~, rho, pairs) by the all-pairs reference; O(N M), for tests and the self-test only."""
         return self._eval(points, dense=True)
 
-    def iter_slabs(self, shape_xyz: tuple[int, int, int] | None = None):
-        """Evaluate V~ at every voxel centre of an output grid spanning the model's extent, by z-slabs.
+    def iter_slabs(self, shape_xyz: tuple[int, int, int] | None = None, *, box=None):
+        """Evaluate V~ at every voxel centre of an output grid spanning the model's extent (or
+        ``box``), by z-slabs.
 
         Output voxel (i, j, k) covers the same extent as the model grid, so its centre sits at
         ((i + 0.5) * scale - 0.5) model voxels with scale = model size / output size per axis.
+        A ``box`` ((x0, x1), (y0, y1), (z0, z1)) of model voxel bounds (checked:
+        :func:`warpgauss.region.check_box`) is sampled the same way over its own extent, starting
+        ``offset = x0 / scale`` output voxels in (:func:`warpgauss.region.sampling`).
 
         Yields:
             (z0, slab): first output slice and a (h, ny, nx) float32 array in normalised units.
         """
+        from .region import sampling
+
         wp, dev = self._wp, self.device
         out_shape = tuple(int(s) for s in (shape_xyz or self.shape_xyz))
         if len(out_shape) != 3 or min(out_shape) < 1:
             raise WarpgaussError(f"decode shape must be three positive sizes (x, y, z), got {shape_xyz}")
         nx, ny, nz = out_shape
-        scale = wp.vec3(*(self.shape_xyz[a] / out_shape[a] for a in range(3)))
+        scale, offset = sampling(box, out_shape, self.shape_xyz)
         slab = max(1, min(nz, DECODE_SLAB_VOXELS // (nx * ny)))
         buf = wp.empty((slab, ny, nx), dtype=float, device=dev)
         for z0 in range(0, nz, slab):
             h = min(slab, nz - z0)
             view = buf if h == slab else wp.empty((h, ny, nx), dtype=float, device=dev)
-            self.decode_slab(view, z0, scale)
+            self.decode_slab(view, z0, wp.vec3(*scale), wp.vec3(*offset))
             yield z0, view.numpy()
 
-    def decode_slab(self, out, z0: int, scale) -> None:
+    def decode_slab(self, out, z0: int, scale, offset=None) -> None:
         """Evaluate one (h, ny, nx) device slab starting at output slice ``z0`` (no host copy),
         clamped to [0, 1] (the source's value range; :attr:`clamped_voxels` counts the voxels moved).
+        ``offset`` (a ``wp.vec3``, None: 0): output voxels before voxel 0 along x, y, z, a
+        region's start (:func:`warpgauss.kernels.decode.voxel_coord`).
 
         Each 8^3 brick lists the primitives whose box meets it, then its voxels stream through
         the list (:mod:`warpgauss.kernels.decode`); one read-back of the list's length per slab.
@@ -380,6 +388,7 @@ class GaussianField:
         from .kernels import decode as kd
 
         wp, dev = self._wp, self.device
+        offset = wp.vec3(0.0, 0.0, 0.0) if offset is None else offset
         h, ny, nx = out.shape
         e = int(kd.BRICK_EDGE)
         bricks = wp.vec3i(-(-nx // e), -(-ny // e), -(-h // e))
@@ -387,14 +396,14 @@ class GaussianField:
         size = wp.vec3i(nx, ny, h)
         counts, ends = self._decode_scratch("counts", nb), self._decode_scratch("ends", nb)
         items = self._decode_scratch("items", 1)
-        common = [z0, scale, size, bricks, self.prims]
+        common = [z0, scale, offset, size, bricks, self.prims]
         wp.launch(kd.list_bricks, dim=nb, inputs=[*common, 0, ends, counts, items], device=dev)
         wp.utils.array_scan(counts[:nb], ends[:nb], inclusive=True)
         total = int(ends[nb - 1 : nb].numpy()[0])
         if total > MAX_BRICK_LIST:
-            self.decode_walk(out, z0, scale)
+            self.decode_walk(out, z0, scale, offset)
         else:
-            self._decode_lists(out, z0, scale, common, ends, counts, nb, bricks, total)
+            self._decode_lists(out, z0, scale, offset, common, ends, counts, nb, bricks, total)
         if self._clamped is None:
             self._clamped = wp.zeros(1, dtype=wp.int64, device=dev)
         wp.launch(kd.clamp_unit, dim=out.shape, inputs=[out], outputs=[self._clamped], device=dev)
@@ -404,7 +413,7 @@ class GaussianField:
         """Decoded voxels clamped into [0, 1] by :meth:`decode_slab` so far (reads back from the device)."""
         return 0 if self._clamped is None else int(self._clamped.numpy()[0])
 
-    def _decode_lists(self, out, z0: int, scale, common, ends, counts, nb: int, bricks, total: int) -> None:
+    def _decode_lists(self, out, z0: int, scale, offset, common, ends, counts, nb: int, bricks, total: int) -> None:
         from .kernels import decode as kd
 
         wp, dev = self._wp, self.device
@@ -413,7 +422,7 @@ class GaussianField:
         wp.launch(
             kd.eval_brick_lists,
             dim=nb * int(kd.LIST_THREADS),
-            inputs=[z0, scale, bricks, self.prims, ends, counts, items],
+            inputs=[z0, scale, offset, bricks, self.prims, ends, counts, items],
             outputs=[out],
             device=dev,
         )
@@ -452,7 +461,7 @@ class GaussianField:
             bricks = wp.vec3i(-(-nx // e), -(-ny // e), -(-h // e))
             nb = int(bricks[0]) * int(bricks[1]) * int(bricks[2])
             counts, ends = self._decode_scratch("counts", nb), self._decode_scratch("ends", nb)
-            common = [z0, scale, wp.vec3i(nx, ny, h), bricks, self.prims]
+            common = [z0, scale, wp.vec3(0.0, 0.0, 0.0), wp.vec3i(nx, ny, h), bricks, self.prims]
             wp.launch(kd.list_bricks, dim=nb, inputs=[*common, 0, ends, counts, self._decode_scratch("items", 1)], device=dev)
             wp.utils.array_scan(counts[:nb], ends[:nb], inclusive=True)
             items = self._decode_scratch("items", max(int(ends[nb - 1 : nb].numpy()[0]), 1))
@@ -479,10 +488,11 @@ class GaussianField:
             bufs[name] = buf
         return buf
 
-    def decode_walk(self, out, z0: int, scale) -> None:
+    def decode_walk(self, out, z0: int, scale, offset=None) -> None:
         """Evaluate a slab by the binned cell walk, skipping bricks no primitive reaches."""
         from .kernels import decode as kd
 
+        offset = self._wp.vec3(0.0, 0.0, 0.0) if offset is None else offset
         active = self.active_bricks()
         use = active is not None
         if not use:
@@ -491,7 +501,7 @@ class GaussianField:
         self._wp.launch(
             kd.eval_grid_blocked,
             dim=kd.blocked_threads(h, ny, nx),
-            inputs=[z0, scale, self.prims, active, int(use)],
+            inputs=[z0, scale, offset, self.prims, active, int(use)],
             outputs=[out],
             device=self.device,
         )
@@ -529,17 +539,22 @@ class GaussianField:
         self,
         shape_xyz: tuple[int, int, int] | None = None,
         *,
+        box=None,
         progress: Callable[[int, int], None] | None = None,
     ) -> np.ndarray:
         """The whole output grid of :meth:`iter_slabs` as one (nz, ny, nx) float32 array (normalised).
 
         Args:
-            shape_xyz: Output grid (x, y, z); None for the model grid itself.
+            shape_xyz: Output grid (x, y, z); None for the model grid itself (a box: required).
+            box: Evaluate only this region ((x0, x1), (y0, y1), (z0, z1)) of model voxel bounds
+                (see :meth:`iter_slabs`); None: the whole extent.
             progress: Called with (slices done, slices total) after each slab.
         """
+        if box is not None and shape_xyz is None:
+            raise WarpgaussError("a box decode needs its output shape (warpgauss.region.box_shape gives the encoded resolution's)")
         nx, ny, nz = tuple(int(s) for s in (shape_xyz or self.shape_xyz))
         result = np.empty((nz, ny, nx), np.float32)
-        for z0, slab in self.iter_slabs(shape_xyz):
+        for z0, slab in self.iter_slabs(shape_xyz, box=box):
             result[z0 : z0 + slab.shape[0]] = slab
             if progress is not None:
                 progress(z0 + slab.shape[0], nz)

@@ -363,31 +363,44 @@ class Model:
         *,
         shape_zyx: tuple[int, int, int] | None = None,
         shape_xyz: tuple[int, int, int] | None = None,
+        box=None,
         device: str | None = None,
         normalised: bool = False,
         progress: Callable[[int, int], None] | None = None,
         info: dict | None = None,
         residual: bool | None = None,
     ) -> np.ndarray:
-        """Evaluate the model on a grid spanning the model's extent.
+        """Evaluate the model on a grid spanning the model's extent, or a box of it.
 
         Args:
             shape: Deprecated: the output grid as (x, y, z), which returned a (z, y, x) array;
                 give ``shape_zyx`` (the returned array's shape) or ``shape_xyz`` instead. It
                 works for this release, with a warning.
             shape_zyx: The returned array's shape (nz, ny, nx), as numpy orders it; None (and no
-                ``shape_xyz``): the encoded grid.
+                ``shape_xyz``): the encoded grid (with ``box``: the box at the encoded resolution).
             shape_xyz: The same grid as (nx, ny, nz), as the command line's ``--shape XxYxZ``.
+            box: Decode only this region, ``((x0, x1), (y0, y1), (z0, z1))`` in voxel
+                coordinates of the encoded grid (not physical units): bounds on voxel faces, so
+                integer bounds hold the voxels ``x0 <= x < x1`` (the slice
+                ``volume[z0:z1, y0:y1, x0:x1]``); fractional bounds are fine with a shape. The
+                shape is then the box's output voxels, sampled as a whole decode samples the
+                whole extent (:mod:`warpgauss.region`): a box on faces of a whole decode's grid
+                returns that decode's crop, bit for bit. It costs its output voxels and the
+                Gaussians that reach them, not the whole extent.
             device: Warp device (None: CUDA when present, else CPU).
             normalised: Return [0, 1] values instead of the source's units.
             progress: Optional callback(done, total).
             info: Optional dict that receives ``bricks_evaluated_share``: the share of 8^3
-                bricks of the model grid some Gaussian reaches (the rest are written 0 unevaluated),
-                ``clamped_voxels``: voxels whose value fell outside the source's range, and
-                ``residual_applied``.
+                bricks of the model grid some Gaussian reaches (the rest are written 0
+                unevaluated; None for a box), ``clamped_voxels``: voxels whose value fell outside
+                the source's range, and ``residual_applied`` (whether the residual's bound holds
+                for the result: False where a residual exists but the grid or box is not on the
+                encoded grid, which the result then says).
             residual: Apply the model's bounded residual (:mod:`warpgauss.residual`): True
-                requires one (and the encoded grid); None (default) applies one where present and
-                ``shape`` is the encoded grid; False: the Gaussians alone.
+                requires one (and the encoded grid: no shape, or a box of whole voxels at the
+                encoded resolution); None (default) applies one where present and possible; False:
+                the Gaussians alone. The residual is coded over the whole grid (its predictors
+                interpolate across it): a bounded box costs the whole bounded decode, then the crop.
 
         Returns:
             (nz, ny, nx) float32 array (float64 where float32 cannot hold the value range, see
@@ -396,24 +409,28 @@ class Model:
             the source's dtype, every valid voxel within the residual's bound of the source.
         """
         from .analysis import denormalise
+        from .region import box_shape, check_box, crop, on_encoded_grid
 
         shape = _decode_shape(shape, shape_zyx, shape_xyz)
+        if box is not None:
+            box = check_box(box, self.shape_xyz)
+            shape = box_shape(box) if shape is None else shape
         _check_decode_size(shape if shape is not None else self.shape_xyz)
-        on_grid = shape is None or tuple(int(s) for s in shape) == self.shape_xyz
+        on_grid = on_encoded_grid(box, shape, self.shape_xyz)
         if residual and self.residual is None:
             raise WarpgaussError("this model has no residual (encode with --max-error for one); decode without --residual")
         if residual and not (on_grid and not normalised):
-            raise WarpgaussError(
-                "a residual applies on the encoded grid in source units; drop --shape (or --normalised), or pass --no-residual"
-            )
+            fix = "give a box of whole voxels without --shape (or --normalised)" if box is not None else "drop --shape (or --normalised)"
+            raise WarpgaussError(f"a residual applies on the encoded grid in source units; {fix}, or pass --no-residual")
         if residual is not False and self.residual is not None and on_grid and not normalised:
-            return self._decode_bounded(device, info)
+            out = self._decode_bounded(device, info)
+            return out if box is None else crop(out, box)
         if info is not None:
             info["residual_applied"] = False
         gf = self.field(device)
-        v = gf.decode(shape, progress=progress)
+        v = gf.decode(shape, box=box, progress=progress)
         if info is not None:
-            info["bricks_evaluated_share"] = gf.active_fraction
+            info["bricks_evaluated_share"] = gf.active_fraction if box is None else None
             info["clamped_voxels"] = gf.clamped_voxels
         if normalised:
             return v
@@ -422,6 +439,44 @@ class Model:
         if np.isfinite(lo) and np.isfinite(hi):  # float rounding of lo + v (hi - lo) stays in the source's range too
             np.clip(out, min(lo, hi), max(lo, hi), out=out)
         return out
+
+    def to_pyvista(
+        self,
+        shape: tuple[int, int, int] | None = None,
+        box=None,
+        *,
+        device: str | None = None,
+        normalised: bool = False,
+        residual: bool | None = None,
+        name: str | None = None,
+    ):
+        """The decode as a ``pyvista.ImageData``, for a notebook (``model.to_pyvista().plot(volume=True)``)
+        or any VTK pipeline: what ``warpgauss decode -o grid.vti`` writes, without the file.
+
+        Args:
+            shape: Output grid (nx, ny, nz), the order of ``ImageData.dimensions`` (None: the
+                encoded grid, or ``box`` at the encoded resolution).
+            box: A region, ``((x0, x1), (y0, y1), (z0, z1))`` in voxel coordinates of the encoded
+                grid, as :meth:`decode` takes it.
+            device, normalised, residual: As :meth:`decode`.
+            name: The point-data array's name (default: the header's name, else "value").
+
+        Returns:
+            ``pyvista.ImageData`` of dimensions (nx, ny, nz), spacing and origin in the header's
+            physical units (the first voxel's centre; a box's own), the decoded values as its
+            active point scalars (x fastest), and field data ``residual_applied`` (1 where the
+            residual's bound holds for the values, else 0).
+        """
+        from .readers.write import image_data
+
+        info: dict = {}
+        data = self.decode(shape_xyz=shape, box=box, device=device, normalised=normalised, info=info, residual=residual)
+        grid_shape = (data.shape[2], data.shape[1], data.shape[0])
+        label = name or str(self.header.get("name") or "value")
+        img = image_data(data, self.decoded_spacing(grid_shape, box), self.decoded_origin(grid_shape, box), label)
+        img.set_active_scalars(label)
+        img.field_data["residual_applied"] = np.array([int(bool(info.get("residual_applied")))], np.int8)
+        return img
 
     def _decode_bounded(self, device: str | None, info: dict | None) -> np.ndarray:
         from .residual import DECODE_BYTES_PER_VOXEL, apply_residual, check_memory, prediction
@@ -434,17 +489,28 @@ class Model:
             info.update(residual_applied=True, max_error=self.residual.info["bound"])
         return out
 
-    def decoded_spacing(self, shape: tuple[int, int, int] | None = None) -> tuple[float, ...]:
-        """Physical voxel spacing of a decode at ``shape`` (same extent as the encoded grid)."""
+    def decoded_spacing(self, shape: tuple[int, int, int] | None = None, box=None) -> tuple[float, ...]:
+        """Physical voxel spacing of a decode at ``shape`` (x, y, z) of the encoded grid's extent,
+        or of ``box`` (see :meth:`decode`; shape None: the box at the encoded resolution)."""
+        if box is not None:
+            return self._box_geometry(shape, box)[0]
         sp = self.header["grid"]["spacing"]
         if shape is None:
             return tuple(float(s) for s in sp)
         return tuple(float(sp[a]) * self.shape_xyz[a] / int(shape[a]) for a in range(3))
 
-    def decoded_origin(self, shape: tuple[int, int, int] | None = None) -> tuple[float, ...]:
-        """Physical position of the first voxel centre of a decode at ``shape``."""
+    def decoded_origin(self, shape: tuple[int, int, int] | None = None, box=None) -> tuple[float, ...]:
+        """Physical position of the first voxel centre of a decode at ``shape`` (of ``box``)."""
+        if box is not None:
+            return self._box_geometry(shape, box)[1]
         sp = self.header["grid"]["spacing"]
         org = self.header["grid"]["origin"]
         if shape is None:
             return tuple(float(o) for o in org)
         return tuple(float(org[a]) + float(sp[a]) * (0.5 * self.shape_xyz[a] / int(shape[a]) - 0.5) for a in range(3))
+
+    def _box_geometry(self, shape, box) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        from .region import box_shape, check_box, spacing_origin
+
+        box = check_box(box, self.shape_xyz)
+        return spacing_origin(self.header, box, box_shape(box) if shape is None else shape)

@@ -308,6 +308,82 @@ def render_model(
     return make_renderer(model, method, device, cache_res=cache_res).render(camera, tf, settings)
 
 
+def render_image(
+    model,
+    camera: Camera | dict | None = None,
+    *,
+    size: int | tuple[int, int] | None = None,
+    method: str = "cached",
+    colormap: str | None = None,
+    opacity=None,
+    tf: TransferFunction | str | os.PathLike | None = None,
+    background: tuple[float, float, float] | None = None,
+    settings: RenderSettings | None = None,
+    residual: bool = False,
+    device: str | None = None,
+    cache_res: int | None = None,
+) -> np.ndarray:
+    """A model rendered as an RGBA array, for a notebook (``plt.imshow(warpgauss.render_image(m))``):
+    the image ``warpgauss render`` writes, with the same defaults, without the file.
+
+    Args:
+        model: A :class:`warpgauss.Model` or the path of a ``.wgs`` file.
+        camera: A :class:`Camera`, or a dict of its fields (``{"azimuth": 30, "zoom": 1.5}``);
+            None: the default orbit view.
+        size: Image size, N or (width, height) in pixels (None: ``settings``', 512x512).
+        method: "cached" (default, as the command line's), "march" or "splat" (module docstring).
+        colormap: Replace the transfer function's colours by a named colormap ("magma", ...).
+        opacity: Replace its opacity curve (``[(value, opacity), ...]`` over normalised values, or
+            a string such as "0:0,0.3:0,1:1", "linear", "flat").
+        tf: A :class:`TransferFunction`, or a transfer-function ``.json`` (ours or a ParaView
+            export); None: the model header's.
+        background: RGB in [0, 1] (None: ``settings``', black).
+        settings: Step, density, lighting and the rest (:class:`RenderSettings`).
+        residual: Ray-march the bounded decode (Gaussians + residual) of a model that has one.
+        device: Warp device.
+        cache_res: "cached" only: voxels along the cache's longest axis (None: the model grid).
+
+    Returns:
+        (height, width, 4) uint8: the colour composited over the background (the PNG's RGB, bit
+        for bit) and alpha = 1 - the ray's transmittance.
+    """
+    from .model import Model
+    from .transfer import resolve_transfer_function
+
+    m = model if isinstance(model, Model) else Model.load(model)
+    if residual and m.residual is None:
+        raise WarpgaussError("this model has no residual (encode with --max-error for one); render without residual=True")
+    if residual and method not in ("cached", "march"):
+        raise WarpgaussError(f"residual=True ray-marches the bounded decode as a grid; drop method={method!r}")
+    if isinstance(camera, dict):
+        try:
+            cam = Camera(**camera)
+        except TypeError:
+            raise WarpgaussError(f"camera takes the fields of warpgauss.render.Camera, got {sorted(camera)}") from None
+    else:
+        cam = camera or Camera()
+    cam.validate()
+    changes: dict = {}
+    if size is not None:
+        wh = (size, size) if isinstance(size, int) else tuple(size)
+        if len(wh) != 2:
+            raise WarpgaussError(f"size must be N or (width, height) in pixels, got {size!r}")
+        changes.update(width=wh[0], height=wh[1])
+    if background is not None:
+        changes["background"] = tuple(float(c) for c in background)
+    st = with_settings(settings, **changes)
+    st.validate()
+    if isinstance(tf, TransferFunction):
+        base = tf if colormap is None else tf.with_colormap(colormap)
+        tf_ = base if opacity is None else base.with_opacity(opacity)
+    else:
+        tf_ = resolve_transfer_function(m.header, path=tf, colormap_name=colormap, opacity=opacity, value_range=m.value_range)
+    if method == "cached" and not residual:
+        check_cache_memory(cache_grid_shape(m.shape_xyz, cache_res), resolve_device(device))
+    renderer = make_renderer(m, "bounded" if residual else method, device, cache_res=cache_res)
+    return renderer.render(resolve_view(cam, renderer.scene, st.width, st.height), tf_, st).rgb8(alpha=True)
+
+
 # ------------------------------------------------------------------------------------------------
 # Image metrics, composition and PNG output
 # ------------------------------------------------------------------------------------------------

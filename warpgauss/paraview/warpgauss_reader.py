@@ -2,7 +2,8 @@
 ``python -c "import warpgauss.paraview as p; print(p.PLUGIN)"`` prints its path).
 
 Opening a ``.wgs`` gives two outputs: the model decoded as image data at a chosen resolution
-(values in the source's units, the header's spacing and origin) and the primitives as a point
+(values in the source's units, the header's spacing and origin; a pipeline's update-extent
+request, a sub-extent of it, is decoded alone as a region, :func:`decode_image`) and the primitives as a point
 cloud (as ``warpgauss export`` writes it: scales, orientation, value and weight per point). The
 header's default transfer function (or the one in ``TransferFunctionFile``, e.g. the colours edited
 in ``warpgauss serve``) travels with the image as field data
@@ -202,9 +203,34 @@ def _use_cli() -> bool:
     return False
 
 
-def decode_image(path: str, shape, device: str | None = None, residual: bool = False):
+def extent_box(header: dict, shape, extent) -> tuple[tuple[float, float], ...] | None:
+    """The box (voxel bounds of the encoded grid, :mod:`warpgauss.region`) that the voxels
+    ``extent`` (VTK's i0, i1, j0, j1, k0, k1, inclusive) of a decode at ``shape`` cover, or None
+    for the whole extent: its decode is that extent of the whole decode, bit for bit."""
+    full = [int(v) for v in header["grid"]["shape_xyz"]]
+    if list(extent) == [0, int(shape[0]) - 1, 0, int(shape[1]) - 1, 0, int(shape[2]) - 1]:
+        return None
+    return tuple((extent[2 * a] * full[a] / int(shape[a]), (extent[2 * a + 1] + 1) * full[a] / int(shape[a])) for a in range(3))
+
+
+def decode_image(path: str, shape, device: str | None = None, residual: bool = False, extent=None):
     """(vtkImageData of the decode at ``shape``, vtkPolyData of the primitives, (K, 4) LUT or None).
-    ``residual``: apply a bounded residual (on the model's own grid; default: the Gaussians alone)."""
+    ``residual``: apply a bounded residual (on the model's own grid; default: the Gaussians alone).
+    ``extent``: only these voxels (VTK's inclusive i0, i1, j0, j1, k0, k1) of the decode, a
+    region decode (``Model.decode(box=...)``, ``warpgauss decode --box``); the image then has that
+    extent and the whole decode's origin, as a pipeline's update-extent request wants it."""
+    header = read_header(path)
+    box = None if extent is None else extent_box(header, shape, extent)
+    part = shape if box is None else tuple(int(extent[2 * a + 1] - extent[2 * a] + 1) for a in range(3))
+    img, poly, lut = _decode_image(path, part, device, residual, box)
+    if box is not None:
+        _, origin = _spacing_origin(header, shape)
+        img.SetOrigin(*origin)
+        img.SetExtent(*extent)
+    return img, poly, lut
+
+
+def _decode_image(path: str, shape, device: str | None, residual: bool, box):
     from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
 
     if _use_cli():
@@ -214,6 +240,8 @@ def decode_image(path: str, shape, device: str | None = None, residual: bool = F
             vti, vtp = os.path.join(d, "decoded.vti"), os.path.join(d, "primitives.vtp")
             dev = ["--device", device] if device else []
             res = ["--residual" if residual else "--no-residual"]
+            if box is not None:
+                res += ["--box", ",".join(f"{lo!r}:{hi!r}" for lo, hi in box)]
             for args in (["decode", path, "-o", vti, "--shape", "x".join(map(str, shape)), *dev, *res], ["export", path, "-o", vtp]):
                 r = subprocess.run([*_cli(), *args], capture_output=True, text=True)
                 if r.returncode != 0:
@@ -235,8 +263,8 @@ def decode_image(path: str, shape, device: str | None = None, residual: bool = F
     m = warpgauss.Model.load(path)
     shape = tuple(shape)
     name = str(m.header.get("name") or "value")  # as warpgauss decode names it
-    data = m.decode(shape_xyz=shape, device=device, residual=residual and m.residual is not None)
-    img = image_data(data, m.decoded_spacing(shape), m.decoded_origin(shape), name)
+    data = m.decode(shape_xyz=shape, box=box, device=device, residual=residual and m.residual is not None)
+    img = image_data(data, m.decoded_spacing(shape, box), m.decoded_origin(shape, box), name)
     poly = primitives_polydata(m)  # as warpgauss export writes it
     tf = from_header(m.header)
     return img, poly, tf.rgba
@@ -310,6 +338,7 @@ class WarpgaussReader(VTKPythonAlgorithmBase):
 
     def RequestInformation(self, request, in_info, out_info):
         from vtkmodules.vtkCommonDataModel import vtkDataObject
+        from vtkmodules.vtkCommonExecutionModel import vtkAlgorithm
         from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
 
         try:
@@ -321,6 +350,7 @@ class WarpgaussReader(VTKPythonAlgorithmBase):
         sp, org = _spacing_origin(header, shape)
         info = out_info.GetInformationObject(0)
         info.Set(sddp.WHOLE_EXTENT(), 0, shape[0] - 1, 0, shape[1] - 1, 0, shape[2] - 1)
+        info.Set(vtkAlgorithm.CAN_PRODUCE_SUB_EXTENT(), 1)  # an update extent is decoded alone (a region decode)
         info.Set(vtkDataObject.SPACING(), *sp)
         info.Set(vtkDataObject.ORIGIN(), *org)
         return 1
@@ -329,11 +359,17 @@ class WarpgaussReader(VTKPythonAlgorithmBase):
         from vtkmodules.util.numpy_support import numpy_to_vtk
         from vtkmodules.vtkCommonCore import vtkStringArray
         from vtkmodules.vtkCommonDataModel import vtkImageData, vtkPolyData
+        from vtkmodules.vtkCommonExecutionModel import vtkStreamingDemandDrivenPipeline as sddp
 
         try:
             header = self._header()
             shape = decode_shape(header, self._resolution)
-            img, poly, lut = decode_image(str(self._filename), shape, self._device or None, self._residual)  # _header() checked it is set
+            port = out_info.GetInformationObject(0)
+            extent = list(port.Get(sddp.UPDATE_EXTENT())) if port.Has(sddp.UPDATE_EXTENT()) else None
+            if extent is not None and not all(0 <= extent[2 * a] <= extent[2 * a + 1] < shape[a] for a in range(3)):
+                extent = None  # empty or outside the whole extent: the whole decode
+            path = str(self._filename)  # _header() checked it is set
+            img, poly, lut = decode_image(path, shape, self._device or None, self._residual, extent)
             own = bool(self._tf_file)
             if own:
                 lut = file_transfer_function(self._tf_file, header)
