@@ -74,18 +74,18 @@ def test_fit_bytes_shrinks_prunes_and_grows():
     least important primitives; one far above adds bits; both land within the budget."""
     from test_wgs import realistic_params
 
-    from warpgauss import coded
+    from warpgauss import coded, ratefit
 
     p = realistic_params(np.random.default_rng(9), 3000)
     full = len(coded.encode_coded(p)[0])
-    small, bits, info = coded.fit_bytes(p, int(full * 0.6))
+    small, bits, info = ratefit.fit_bytes(p, int(full * 0.6))
     assert 0.95 * int(full * 0.6) <= info["bytes"] <= int(full * 0.6) and any(s.endswith("-1") for s in info["steps"])
     assert sum(bits.values()) < sum(coded.CODED_BITS.values()) and len(small) == 3000 - info["pruned"]
-    least = len(coded.encode_coded(p, coded._MIN_BITS)[0])  # below every depth's least: primitives go
-    small, bits, info = coded.fit_bytes(p, int(least * 0.7))
+    least = len(coded.encode_coded(p, ratefit._MIN_BITS)[0])  # below every depth's least: primitives go
+    small, bits, info = ratefit.fit_bytes(p, int(least * 0.7))
     assert 0.95 * int(least * 0.7) <= info["bytes"] <= int(least * 0.7) and info["pruned"] > 0 and len(small) == 3000 - info["pruned"]
     assert info["bytes"] == len(coded.encode_coded(small, bits)[0])  # the sizes that decide are real codings
-    big, bits, info = coded.fit_bytes(p, int(full * 1.3))
+    big, bits, info = ratefit.fit_bytes(p, int(full * 1.3))
     assert info["bytes"] <= int(full * 1.3) and info["pruned"] == 0 and sum(bits.values()) > sum(coded.CODED_BITS.values())
     np.testing.assert_array_equal(big, coded.project_coded(p, bits)[coded.encode_coded(p, bits)[2]])
 
@@ -94,11 +94,11 @@ def test_fit_bytes_shrinks_prunes_and_grows():
 def test_a_model_fitted_with_a_score_keeps_the_best_scoring_fit(cpu, monkeypatch, measure_bits):
     """Model.fit_bytes(score=...) (what the encode passes: the PSNR on sampled voxels): where the
     first fit drops bits, every fit tried is scored on the model it stores and the best is kept;
-    with coded.MEASURE_BIT_WORTH (off by default) each attribute's bit is first scored one more
+    with ratefit.MEASURE_BIT_WORTH (off by default) each attribute's bit is first scored one more
     and one fewer (the bit worth that orders the fit)."""
-    from warpgauss import coded
+    from warpgauss import ratefit
 
-    monkeypatch.setattr(coded, "MEASURE_BIT_WORTH", measure_bits)
+    monkeypatch.setattr(ratefit, "MEASURE_BIT_WORTH", measure_bits)
     from warpgauss.analysis import normalise
     from warpgauss.evaluate import evaluate_field
 

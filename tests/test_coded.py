@@ -9,7 +9,7 @@ import zstandard
 from reference.field_ref import covariances
 from test_wgs import _craft, _valid_header, make_header, realistic_params
 
-from warpgauss import coded
+from warpgauss import coded, ratefit
 from warpgauss.errors import WarpgaussError
 from warpgauss.wgs import header_size, read_wgs, wgs_bytes, write_wgs
 
@@ -299,7 +299,7 @@ def test_coded_encode_returns_the_stored_model(tmp_path, cpu):
     assert bud["format"] == "coded" and bud["bytes"] == (tmp_path / "a.wgs").stat().st_size
     assert bud["bytes"] < bud["compact_bytes"] and bud["bytes_per_primitive"] < 12
     assert read_wgs(tmp_path / "a.wgs")[1]["payload"]["quant"]["bits"] == a.coded_bits
-    assert a.coded_bits == coded.bits_for_psnr(a.report["refinement"]["loss_history"][-1]["sample_psnr_db"])[0]
+    assert a.coded_bits == ratefit.bits_for_psnr(a.report["refinement"]["loss_history"][-1]["sample_psnr_db"])[0]
     assert "lut_rgba8" not in a.header["transfer_function"]  # regenerated from the colormap: bytes saved
     with pytest.raises(WarpgaussError, match="unknown model format"):
         warpgauss.encode(vol, **kw, format="jpeg")
@@ -311,17 +311,17 @@ def test_more_accurate_models_get_finer_grids(tmp_path, cpu):
     import warpgauss
     from warpgauss.synthetic import generate
 
-    assert coded.bits_for_psnr(None) == (coded.CODED_BITS, 0)
-    assert coded.bits_for_psnr(30.0) == (coded.CODED_BITS, 0)
-    bits, extra = coded.bits_for_psnr(52.5)
+    assert ratefit.bits_for_psnr(None) == (coded.CODED_BITS, 0)
+    assert ratefit.bits_for_psnr(30.0) == (coded.CODED_BITS, 0)
+    bits, extra = ratefit.bits_for_psnr(52.5)
     assert extra == 2 and all(bits[k] == coded.CODED_BITS[k] + 2 for k in bits)
-    assert coded.bits_for_psnr(200.0)[1] == 4
+    assert ratefit.bits_for_psnr(200.0)[1] == 4
     vol = generate("vortex", 24, seed=0)
     m = warpgauss.encode(
         vol, budget=300, iterations=60, samples=1024, device=cpu, self_test=False, evaluate=False, output=tmp_path / "v.wgs"
     )
     note = m.report["budget"]["coded_bits_from_accuracy"]
-    assert note["bits"] == coded.bits_for_psnr(note["sample_psnr_db"])[0]
+    assert note["bits"] == ratefit.bits_for_psnr(note["sample_psnr_db"])[0]
     assert read_wgs(tmp_path / "v.wgs")[1]["payload"]["quant"]["bits"] == note["bits"]
 
 
@@ -396,10 +396,11 @@ def test_the_rate_control_on_threads_and_with_kept_columns_fits_as_the_serial_se
     results = {}
     for mode in ("threads", "serial"):
         if mode == "serial":
-            monkeypatch.setattr(coded, "ThreadPoolExecutor", _Serial)
+            monkeypatch.setattr(coded, "ThreadPoolExecutor", _Serial)  # the Zstandard levels
+            monkeypatch.setattr(ratefit, "ThreadPoolExecutor", _Serial)  # the export choice's alternatives
             monkeypatch.setattr(coded._FitCodes, "codes", lambda self, params, b: None)
         for budget in (int(0.8 * full), int(0.45 * full)):
-            stored, bits, info = coded.fit_bytes(p, budget, score=score)
+            stored, bits, info = ratefit.fit_bytes(p, budget, score=score)
             results[(mode, budget)] = (stored.tobytes(), bits, info["steps"], info["pruned"], info.get("chosen"), info["codings"])
     for budget in (int(0.8 * full), int(0.45 * full)):
         assert results[("threads", budget)] == results[("serial", budget)]

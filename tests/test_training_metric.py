@@ -188,20 +188,20 @@ def test_fit_bytes_prunes_within_its_share_and_reports_the_rows_kept():
     rows kept are reported in order; beyond it bits are dropped first."""
     from test_wgs import realistic_params
 
-    from warpgauss import coded
+    from warpgauss import coded, ratefit
 
     p = realistic_params(np.random.default_rng(9), 3000)
     full = len(coded.encode_coded(p)[0])
-    small, bits, info = coded.fit_bytes(p, int(full * 0.8), prune_share=0.5)
+    small, bits, info = ratefit.fit_bytes(p, int(full * 0.8), prune_share=0.5)
     assert info["steps"] == [] and bits == coded.CODED_BITS and info["pruned"] > 0
     kept = info["kept"]
     assert len(kept) == 3000 - info["pruned"] and np.all(np.diff(kept) > 0)
     dropped = np.setdiff1d(np.arange(3000), kept)
-    imp = coded.importance(p)
+    imp = ratefit.importance(p)
     assert imp[dropped].max() <= imp[kept].min()  # the least important went
     # importance is the primitive's share of the blend (weight x sigma volume), not its value
     assert np.allclose(imp, np.abs(p[:, 11]) * np.exp(p[:, 3:6].astype(np.float64).sum(1)), rtol=1e-6)
-    _, bits, info = coded.fit_bytes(p, int(full * 0.8), prune_share=0.03)
+    _, bits, info = ratefit.fit_bytes(p, int(full * 0.8), prune_share=0.03)
     assert any(s.endswith("-1") for s in info["steps"])
 
 
@@ -210,11 +210,11 @@ def test_fit_bytes_with_a_score_keeps_the_fit_that_scores_best():
     the best-scoring one, every candidate within the budget and reported."""
     from test_wgs import realistic_params
 
-    from warpgauss import coded
+    from warpgauss import coded, ratefit
 
     p = realistic_params(np.random.default_rng(9), 3000)
     budget = int(len(coded.encode_coded(p)[0]) * 0.8)
-    plain = coded.fit_bytes(p, budget)
+    plain = ratefit.fit_bytes(p, budget)
     assert any(s.endswith("-1") for s in plain[2]["steps"]) and "choice" not in plain[2]
 
     def rows(stored, bits):  # prefers the fewest pruned: the first fit (bits dropped)
@@ -223,11 +223,11 @@ def test_fit_bytes_with_a_score_keeps_the_fit_that_scores_best():
     def depth(stored, bits):  # prefers the most bits kept: pruning alone
         return float(sum(bits.values()))
 
-    kept_rows = coded.fit_bytes(p, budget, score=rows)
-    kept_bits = coded.fit_bytes(p, budget, score=depth)
+    kept_rows = ratefit.fit_bytes(p, budget, score=rows)
+    kept_bits = ratefit.fit_bytes(p, budget, score=depth)
     for _, _, info in (kept_rows, kept_bits):
         assert info["bytes"] <= budget and len(info["choice"]) >= 2
-        assert [c["prune_share"] for c in info["choice"]] == list(coded.CHOICE_SHARES[: len(info["choice"])])
+        assert [c["prune_share"] for c in info["choice"]] == list(ratefit.CHOICE_SHARES[: len(info["choice"])])
     assert kept_rows[2]["chosen"] == 0 and kept_rows[2]["pruned"] == plain[2]["pruned"]
     np.testing.assert_array_equal(kept_rows[0], plain[0])
     last = kept_bits[2]["choice"][kept_bits[2]["chosen"]]
@@ -237,12 +237,12 @@ def test_fit_bytes_with_a_score_keeps_the_fit_that_scores_best():
     # tried too: a score that counts the rows kept picks that fit, nothing pruned, within the budget
     full = len(coded.encode_coded(p)[0])
     for scale in np.linspace(0.70, 0.97, 28):
-        first = coded.fit_bytes(p, int(full * scale))[2]
+        first = ratefit.fit_bytes(p, int(full * scale))[2]
         if first["pruned"] > 0 and any(s.endswith("-1") for s in first["steps"]):
             break
     else:
         raise AssertionError("no budget where the first fit both drops bits and prunes")
-    _, _, info = coded.fit_bytes(p, int(full * scale), score=rows)
+    _, _, info = ratefit.fit_bytes(p, int(full * scale), score=rows)
     assert info["choice"][1]["prune_share"] == 0.0 and info["chosen"] == 1
     assert info["pruned"] == 0 and info["bytes"] <= int(full * scale)
 
@@ -321,8 +321,8 @@ def test_the_late_re_plan_takes_out_more_where_the_model_will_need_more_bits(tmp
     says what was done, the same seed gives the same file; at 1.0 this small run keeps its
     re-plan's bits and every primitive, and off there is no late look at all."""
     import warpgauss
-    from warpgauss.coded import bits_for_psnr
     from warpgauss.driver import replan
+    from warpgauss.ratefit import bits_for_psnr
     from warpgauss.synthetic import generate
 
     vol = generate("vortex", 24, seed=0)
@@ -351,13 +351,13 @@ def test_the_measured_alternatives_still_run(tmp_path, cpu, monkeypatch):
     by default): pruning up to half the excess with a refit of the rest, and coding at the
     sizing's depths. Each still fits its budget and says what it did."""
     import warpgauss
-    from warpgauss import coded
+    from warpgauss import ratefit
     from warpgauss.driver import replan, sizing
     from warpgauss.synthetic import generate
 
     vol = generate("vortex", 24, seed=0)
     kw = dict(ratio=20, iterations=40, samples=512, device=cpu, self_test=False, seed=1)
-    monkeypatch.setattr(coded, "PRUNE_SHARE", 0.5)
+    monkeypatch.setattr(ratefit, "PRUNE_SHARE", 0.5)
     monkeypatch.setattr(replan, "REFIT_SHARE", 0.5)
     monkeypatch.setattr(replan, "REPLAN_AT", 0.0)  # no re-plan: the export has the excess to prune
     m = warpgauss.encode(vol, **kw, output=tmp_path / "refit.wgs")
@@ -379,16 +379,16 @@ def test_the_measured_alternatives_still_run(tmp_path, cpu, monkeypatch):
 
 
 def test_a_scored_fit_spends_bits_where_they_are_worth_most(monkeypatch):
-    """With coded.MEASURE_BIT_WORTH (off by default: measured, it does not pay) and a score,
+    """With ratefit.MEASURE_BIT_WORTH (off by default: measured, it does not pay) and a score,
     fit_bytes measures each attribute's bit (one more, one fewer, projected and scored) and drops
     the bits that lose least per byte first, adds those that gain most first; a score that sees
     no difference drops the fixed orders' bits (and adds them in ties, the fewest grown first)."""
     from test_wgs import realistic_params
 
-    from warpgauss import coded
+    from warpgauss import coded, ratefit
 
-    assert coded.MEASURE_BIT_WORTH is False
-    monkeypatch.setattr(coded, "MEASURE_BIT_WORTH", True)
+    assert ratefit.MEASURE_BIT_WORTH is False
+    monkeypatch.setattr(ratefit, "MEASURE_BIT_WORTH", True)
 
     p = realistic_params(np.random.default_rng(4), 2000)
     bits = dict(coded.CODED_BITS)
@@ -401,14 +401,14 @@ def test_a_scored_fit_spends_bits_where_they_are_worth_most(monkeypatch):
     def blind(stored, b):
         return 0.0
 
-    roomy = coded.fit_bytes(p, int(full * 1.2), bits, score=mu_matters)
-    assert roomy[2]["steps"][0] == "mu+1" and coded.fit_bytes(p, int(full * 1.2), bits)[2]["steps"][0] == "q+1"
+    roomy = ratefit.fit_bytes(p, int(full * 1.2), bits, score=mu_matters)
+    assert roomy[2]["steps"][0] == "mu+1" and ratefit.fit_bytes(p, int(full * 1.2), bits)[2]["steps"][0] == "q+1"
     worth = roomy[2]["bit_worth"]
     assert max(worth, key=lambda k: worth[k]["gain"]) == "mu" and min(worth, key=lambda k: worth[k]["loss"]) != "mu"
-    tight = coded.fit_bytes(p, int(full * 0.8), bits, score=mu_matters)
+    tight = ratefit.fit_bytes(p, int(full * 0.8), bits, score=mu_matters)
     assert tight[2]["bytes"] <= int(full * 0.8) and "mu-1" not in tight[2]["choice"][0]["steps"]
     for budget in (int(full * 1.2), int(full * 0.8)):
-        fixed, same = coded.fit_at_share(p, budget, bits), coded.fit_bytes(p, budget, bits, score=blind)
+        fixed, same = ratefit.fit_at_share(p, budget, bits), ratefit.fit_bytes(p, budget, bits, score=blind)
         first = same[2]["choice"][0]["steps"] if budget < full else same[2]["steps"]  # tight: the choice's first fit
         drops = [s for s in fixed[2]["steps"] if s.endswith("-1")]
         assert [s for s in first if s.endswith("-1")] == drops and any(s.endswith("-1" if budget < full else "+1") for s in first)

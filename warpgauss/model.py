@@ -287,10 +287,10 @@ class Model:
     def fit_bytes(
         self, total_bytes: int, prune_share: float | None = None, score: Callable[[Model], float] | None = None
     ) -> tuple[Model, dict]:
-        """This model coded to fit ``total_bytes`` (header included): see :func:`warpgauss.coded.fit_bytes`
+        """This model coded to fit ``total_bytes`` (header included): see :func:`warpgauss.ratefit.fit_bytes`
         (``score(model)``: a fitted model's PSNR, where the rate control may choose by it).
         The rows of this model that the result keeps are its ``kept_rows`` (for a refit)."""
-        from .coded import fit_bytes
+        from .ratefit import fit_bytes
         from .wgs import wgs_bytes
 
         def size_of(params, bits) -> int:

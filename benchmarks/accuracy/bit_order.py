@@ -1,11 +1,11 @@
 """Which attribute's bits a byte budget keeps (issue #32): the export fit in the fixed orders
-(``coded.SHRINK_ORDER`` / ``GROW_ORDER``) against the orders measured on the model itself
-(``coded.bit_worth``: each attribute one bit more and one fewer, projected and scored), at the same
+(``ratefit.SHRINK_ORDER`` / ``GROW_ORDER``) against the orders measured on the model itself
+(``ratefit.bit_worth``: each attribute one bit more and one fewer, projected and scored), at the same
 bytes, on one float32 model per volume.
 
 For each volume: ``warpgauss.encode(..., format="full", budget=N, iterations=I)``; then for each
-budget (the model coded at the depths its accuracy asks for, ``coded.bits_for_psnr``, times each
-``--scales``): ``coded.fit_bytes`` without a score (fixed orders, no choice), with the full-grid
+budget (the model coded at the depths its accuracy asks for, ``ratefit.bits_for_psnr``, times each
+``--scales``): ``ratefit.fit_bytes`` without a score (fixed orders, no choice), with the full-grid
 PSNR as its score but the fixed orders (``fixed_scored``: the choice of prune shares alone, as
 before the measured orders) and with it (``measured``: orders and choice), and the full-grid
 PSNR of each fit (decode against the source, over its value range).
@@ -26,7 +26,7 @@ from pathlib import Path
 
 from float_models import add_arguments, float_models  # beside this script
 
-from warpgauss import coded
+from warpgauss import coded, ratefit
 from warpgauss.bench import result_header
 
 
@@ -42,7 +42,7 @@ def main(argv=None) -> dict:
     }
     for label, m, psnr, seconds in float_models(args):
         base = psnr(m.params)
-        bits, _ = coded.bits_for_psnr(base)
+        bits, _ = ratefit.bits_for_psnr(base)
         at = len(coded.encode_coded(m.params, bits)[0])
         row: dict = {"volume": label, "n": m.n, "iterations": args.iterations, "encode_s": seconds, "psnr_db": base}
         row["bits"], row["bytes_at_bits"], row["fits"] = dict(bits), at, []
@@ -50,15 +50,15 @@ def main(argv=None) -> dict:
         for scale in (float(s) for s in args.scales.split(",")):
             budget = int(at * scale)
             t1 = time.perf_counter()
-            fixed, fb, finfo = coded.fit_bytes(m.params, budget, bits)
+            fixed, fb, finfo = ratefit.fit_bytes(m.params, budget, bits)
             t2 = time.perf_counter()
-            coded.MEASURE_BIT_WORTH = True  # the orders measured on the model (off by default)
+            ratefit.MEASURE_BIT_WORTH = True  # the orders measured on the model (off by default)
             try:
-                measured, mb, minfo = coded.fit_bytes(m.params, budget, bits, score=lambda stored, b, psnr=psnr: psnr(stored))
+                measured, mb, minfo = ratefit.fit_bytes(m.params, budget, bits, score=lambda stored, b, psnr=psnr: psnr(stored))
             finally:
-                coded.MEASURE_BIT_WORTH = False
+                ratefit.MEASURE_BIT_WORTH = False
             t3 = time.perf_counter()
-            chosen, cb, cinfo = coded.fit_bytes(
+            chosen, cb, cinfo = ratefit.fit_bytes(
                 m.params, budget, bits, score=lambda stored, b, psnr=psnr: psnr(stored)
             )  # the scored choice alone
             fit = {

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from float_models import add_arguments, float_models  # beside this script
 
-from warpgauss import coded
+from warpgauss import coded, ratefit
 from warpgauss.bench import result_header
 from warpgauss.model import Model
 
@@ -51,7 +51,7 @@ def rankings(m: Model, device: str) -> dict[str, np.ndarray]:
         "loo": w * vol * np.abs(a - value) / rest,
         "loo-hole": w * vol * (np.abs(a - value) + 0.05) / rest,
         "random": np.random.default_rng(0).random(len(p)),
-        "coded.importance": coded.importance(m.params),
+        "ratefit.importance": ratefit.importance(m.params),
     }
 
 
@@ -69,10 +69,10 @@ def main(argv=None) -> dict:
             name: {f"{s:.0%}": psnr(m.params[np.sort(np.argsort(r, kind="stable")[int(s * m.n) :])]) for s in SHARES}
             for name, r in ranks.items()
         }
-        bits, _ = coded.bits_for_psnr(base)
+        bits, _ = ratefit.bits_for_psnr(base)
         at = {"bits": dict(bits), "bytes": len(coded.encode_coded(m.params, bits)[0]), "psnr_db": psnr(coded.as_stored(m.params, bits))}
         drops, b = [], dict(bits)
-        for k in coded.SHRINK_ORDER:  # one bit less on each attribute in turn, as the rate control drops them
+        for k in ratefit.SHRINK_ORDER:  # one bit less on each attribute in turn, as the rate control drops them
             b[k] -= 1
             drops.append(
                 {"dropped": k, "bytes": len(coded.encode_coded(m.params, b)[0]), "psnr_db": psnr(coded.as_stored(m.params, dict(b)))}

@@ -5,7 +5,7 @@ At REPLAN_AT of the iterations (K = T / 4) the re-plan codes the model at the bi
 sample PSNR it expects at the end, ``at + factor x (at - half) x log2(T / K)`` (``half``: the
 sample PSNR at K / 2), and takes primitives out where that would not fit the budget. For each row
 this prints the factor its own end needed, and for each candidate factor the bits it would have
-planned (``coded.bits_for_psnr``) against the bits the end's sample PSNR asks for: a row planned
+planned (``ratefit.bits_for_psnr``) against the bits the end's sample PSNR asks for: a row planned
 below its end (``under``) codes over budget at the end and loses bits there (measured 0.8-1.6 dB
 on the interface at 512^3), a row planned above it (``over``) gives up primitives for a bit it
 did not need. Counting bit depths is not the whole cost: a factor of 2.5 (no row under) lost
@@ -25,8 +25,8 @@ import math
 from pathlib import Path
 
 from warpgauss.bench import result_header
-from warpgauss.coded import bits_for_psnr
 from warpgauss.driver.replan import REPLAN_EXTRAPOLATE, REPLAN_MAX_GAIN_DB, REPLAN_REST_GAIN_DB
+from warpgauss.ratefit import bits_for_psnr
 
 FACTORS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0)
 

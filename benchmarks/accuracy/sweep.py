@@ -55,7 +55,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "rate_distortion"))
 
 import bench_rd  # noqa: E402  (the volumes and the full-grid PSNR every RD figure uses)
 
-from warpgauss import coded  # noqa: E402
+from warpgauss import (
+    coded,  # noqa: E402
+    ratefit,
+)
 from warpgauss.allocate import AllocationConfig  # noqa: E402
 from warpgauss.bench import result_header  # noqa: E402
 from warpgauss.driver import (  # noqa: E402
@@ -107,7 +110,7 @@ CODED_CONSTANTS: dict[str, dict[str, float]] = {
 
 def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
     fields, (prune, refit), *more = VARIANTS[variant]
-    saved = coded.PRUNE_SHARE, replan.REFIT_SHARE, replan.REFINED_BITS, replan.REFIT_LR
+    saved = ratefit.PRUNE_SHARE, replan.REFIT_SHARE, replan.REFINED_BITS, replan.REFIT_LR
     constants = CODED_CONSTANTS.get(variant, {})
     saved_constants = {k: getattr(coded, k) for k in constants}
     for k, v in constants.items():
@@ -117,7 +120,7 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
     for k, v in replan_constants.items():
         setattr(replan, k, v)
     if prune is not None:
-        coded.PRUNE_SHARE = prune
+        ratefit.PRUNE_SHARE = prune
     if refit is not None:
         replan.REFIT_SHARE = refit
     if more:
@@ -130,7 +133,7 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
         model = encode_field(f, opts, device=dev, timer=StageRecorder(), input_info=info, evaluate=False)
         seconds = time.perf_counter() - t0
     finally:
-        coded.PRUNE_SHARE, replan.REFIT_SHARE, replan.REFINED_BITS, replan.REFIT_LR = saved
+        ratefit.PRUNE_SHARE, replan.REFIT_SHARE, replan.REFINED_BITS, replan.REFIT_LR = saved
         for k, v in saved_constants.items():
             setattr(coded, k, v)
         for k, v in saved_replan.items():

@@ -194,7 +194,7 @@ def encode(
             floor((S_src / R - H) / 48) (12 with ``compact``; measured for ``format="coded"``).
         file_bytes: The file size budget in bytes instead (header included). A coded file is
             never larger and uses at least 95 % of it where bit depths allow (see
-            :func:`warpgauss.coded.fit_bytes`; the report's ``budget`` says what was done).
+            :func:`warpgauss.ratefit.fit_bytes`; the report's ``budget`` says what was done).
         seed: Encoding seed; same seed and device give the same model.
         device: Warp device; None picks CUDA when present, else CPU.
         iterations: Refinement iterations (default 1,500, the paper's; 0: analytic model only).

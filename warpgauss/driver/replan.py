@@ -15,13 +15,13 @@ import numpy as np
 from ..model import Model
 from .options import EncodeOptions
 
-# a refined model pruned to fit its byte budget (coded.fit_bytes) may be refined again, the rest
+# a refined model pruned to fit its byte budget (ratefit.fit_bytes) may be refined again, the rest
 # filling what the pruned ones carried: for this share of the iterations (at least
 # REFIT_MIN_ITERATIONS), at REFIT_LR x the learning rate, when more than REFIT_MIN_PRUNED of the
 # primitives went; then fitted once more. Off (0): measured on an H100 (benchmarks/results/accuracy/),
 # a refit from fresh Adam moments moves every parameter by about the learning rate in its first
 # steps and wrecks an accurate model (vortex 256^3 at ratio 300: 68.6 dB coded without, 43.6 with
-# a refit at 0.3x, 47.7 at 0.02x); dropping bits beyond a 3 % excess (coded.PRUNE_SHARE) paid more
+# a refit at 0.3x, 47.7 at 0.02x); dropping bits beyond a 3 % excess (ratefit.PRUNE_SHARE) paid more
 REFIT_SHARE = 0.0
 # a coded byte budget's N is re-planned once the model's accuracy is known: after this share of the
 # iterations the model is coded at the depths its expected final sample PSNR needs (extrapolated
@@ -127,7 +127,7 @@ class Replan:
         again as since the re-plan, would code at more bits than that planned for, the least
         important primitives still in are taken out so that it fits at those depths. The report's
         ``coded_replan.late`` says what it saw and did."""
-        from ..coded import bits_for_psnr
+        from ..ratefit import bits_for_psnr
 
         first = self.replan
         if first is None:  # no re-plan in this session (a resumed run): nothing to extrapolate from
@@ -146,7 +146,8 @@ class Replan:
         """Take the least important of the primitives still in out of ``refiner`` so that the
         model codes within the budget (times :data:`REPLAN_GROWTH`) at the depths of ``expected``
         (fewer bits while more than :data:`REPLAN_MAX_CUT` would go); what was planned and done."""
-        from ..coded import BITS_REFERENCE_DB, DB_PER_BIT, bits_for_psnr, importance
+        from ..coded import BITS_REFERENCE_DB, DB_PER_BIT
+        from ..ratefit import bits_for_psnr, importance
         from ..wgs import payload_size, wgs_bytes
 
         assert self.budget_bytes is not None

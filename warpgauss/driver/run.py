@@ -316,7 +316,7 @@ class EncodeRun(replan.Replan):
             if replan.REFINED_BITS == "sizing" and self.sizing is not None:  # the depths N was sized for
                 refined.coded_bits = dict(self.sizing["bits"])
             elif self.enc == "coded" and history:
-                from ..coded import bits_for_psnr  # finer grids for a more accurate model
+                from ..ratefit import bits_for_psnr  # finer grids for a more accurate model
 
                 refined.coded_bits, extra = bits_for_psnr(history[-1].get("sample_psnr_db"))
                 self.coded_bits_note = {

@@ -26,11 +26,11 @@ CODED_BPP_FLOOR = 4  # and at least: bounds N before its coded size is measured
 # 1.34 on mni_icbm152 / inia19 / mean_reg2mean / nAChR water (benchmarks/results/rate_distortion/coded_loss_mri_cpu.json).
 # N is sized a little below the median, so that a file rather comes out a few per cent over its
 # budget, which pruning the least important primitives trims to within a primitive of it, than
-# under it, which nothing after refinement can fill (coded.fit_bytes)
+# under it, which nothing after refinement can fill (ratefit.fit_bytes)
 CODED_REFINE_GROWTH = 1.15
 # refinement's gain over the analytic model, at least (full-grid PSNR, ratio 100, H100: vortex 512^3
 # +18.9 dB, the three head MRIs +13.7 to +18.3 dB): the pilot sizes N for the bit depths a model
-# that accurate needs (coded.bits_for_psnr), since an accurate model that must drop bits to fit
+# that accurate needs (ratefit.bits_for_psnr), since an accurate model that must drop bits to fit
 # loses more than the primitives cost. Measured on vortex 512^3 at ratio 100: N sized for the
 # default depths (907,190) refined to 70.2 dB in float and 55.9 dB once fitted (mu at 0 bits);
 # the float model at half that N scores 71.2 dB (benchmarks/results/rate_distortion/sizing_vortex512_h100.json)
@@ -96,9 +96,9 @@ def coded_budget(dv, f: Field, opts: EncodeOptions, header: dict, total: int, n_
     """N for a coded file of ``total`` bytes: a pilot allocation's coded size per primitive, times
     the growth refinement brings (:data:`CODED_REFINE_GROWTH`; 1 without refinement), at the bit
     depths the expected accuracy needs (the pilot's PSNR plus :data:`CODED_REFINE_GAIN_DB` when
-    refining, see :func:`warpgauss.coded.bits_for_psnr`)."""
-    from ..coded import bits_for_psnr
+    refining, see :func:`warpgauss.ratefit.bits_for_psnr`)."""
     from ..evaluate import evaluate_field
+    from ..ratefit import bits_for_psnr
     from ..wgs import header_size, payload_size, wgs_bytes
 
     pilot = max(1, min(n_bound, (total - header_size(header, n_bound, encoding="coded")) // 8))
