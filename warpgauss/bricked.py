@@ -330,6 +330,8 @@ def brick_job(task: BrickTask) -> Generator[None, None, dict]:
         params = refiner.model_params()[: task.n]
         done["setup_seconds"], done["refine_seconds"] = t1 - t0, time.perf_counter() - t1
         done.update(iterations=refiner.iteration, stand_ins=k, frozen=frozen, samples=cfg.samples)
+        if refiner.iteration > 0:  # the coded grids follow the accuracy (the driver's coded_bits)
+            done["sample_psnr_db"] = refiner.losses()["sample_psnr_db"]
     out = np.array(params, np.float32, copy=True)
     out[:, :3] += _origin_xyz(task.brick)
     return done | {"params": out, "seconds": time.perf_counter() - t0}

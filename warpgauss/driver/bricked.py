@@ -128,6 +128,9 @@ def encode_bricked(
             )
     merged = Model(params, header)
     merged.coded_bits = None if sizing is None else sizing["bits"]
+    bits_note = _accuracy_bits(results, plan) if enc == "coded" else None
+    if bits_note is not None:  # finer grids for a more accurate model, as the monolithic encode codes
+        merged.coded_bits = bits_note["bits"]
     fit = None
     if enc == "coded" and budget_bytes is not None:
         model, fit = merged.fit_bytes(budget_bytes)
@@ -152,6 +155,7 @@ def encode_bricked(
             "samples": r["samples"],
             "stand_ins": r["stand_ins"],
             "frozen": r["frozen"],
+            "sample_psnr_db": r.get("sample_psnr_db"),
             "at_once": r.get("at_once", 1),
             "worker": r.get("worker"),
             "setup_seconds": r.get("setup_seconds"),
@@ -161,7 +165,7 @@ def encode_bricked(
     ]
     model.report = {
         **run_facts(dev, input_info, f),
-        "budget": budget_facts(model, opts, f, enc, budget_bytes, sizing, fit),
+        "budget": budget_facts(model, opts, f, enc, budget_bytes, sizing, fit, note=bits_note),
         "bricking": {
             "bricks_xyz": list(counts_xyz),
             "halo": halo,
@@ -184,6 +188,28 @@ def encode_bricked(
         "skipped": [],
     }
     return model
+
+
+def _accuracy_bits(results: list[dict], plan) -> dict | None:
+    """The coded grids for the merged model's accuracy (``ratefit.bits_for_psnr``, as the
+    monolithic encode picks them from its training samples): the bricks' last sample MSEs,
+    weighted by their interior voxels. None where no brick refined. Without it a 2x2x2 bricked
+    model of bubbles 48^3 (3,000 Gaussians, 200 iterations, CPU) was coded on the default grids:
+    58.07 dB against 65.95 as float32 and the monolithic encode's 68.21 coded."""
+    from ..ratefit import bits_for_psnr
+
+    mse = weight = 0.0
+    for b, r in zip(plan, results):
+        if r.get("sample_psnr_db") is None:
+            continue
+        voxels = float(np.prod([hi - lo for lo, hi in b.interior]))
+        mse += voxels * 10.0 ** (-float(r["sample_psnr_db"]) / 10.0)
+        weight += voxels
+    if weight == 0.0:
+        return None
+    psnr = float(10.0 * np.log10(weight / max(mse, 1e-20)))
+    bits, extra = bits_for_psnr(psnr)
+    return {"sample_psnr_db": psnr, "bits_added": extra, "bits": bits, "from": "the bricks' samples, by interior voxels"}
 
 
 def _workers(results: list[dict]) -> dict:
