@@ -481,6 +481,7 @@ def test_a_joint_refit_of_the_seams_moves_only_the_primitives_near_the_faces(mon
 
     v = generate("vortex", 20)
     kw = dict(budget=150, bricks="2x1x1", halo=2, **FAST)
+    monkeypatch.setattr(wb, "SEAM_REFIT", 0.0)
     plain = warpgauss.encode(v, **kw)
     assert plain.report["bricking"]["seam_refit"] is None
     monkeypatch.setattr(wb, "SEAM_REFIT", 0.5)
@@ -531,7 +532,11 @@ def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volu
 
     shape, n = (64, 64, 64), 4000
     cpu = wb.choose_schedule("cpu", None, False, shape, n, 100, None)
-    assert not cpu.together and cpu.seam_refit == 0.0 and "CPU" in cpu.why
+    assert not cpu.together and cpu.seam_refit == wb.CPU_WAVES_SEAM_REFIT and "CPU" in cpu.why
+    on_cluster = wb.choose_schedule("cpu", object(), False, shape, n, 100, None)
+    assert not on_cluster.together and on_cluster.seam_refit == wb.CPU_WAVES_SEAM_REFIT  # the same model as here
+    assert wb.choose_schedule("cpu", None, True, shape, n, 100, None).seam_refit == 0.0  # read brick by brick
+    assert wb.choose_schedule("cpu", None, False, shape, n, 0, None).seam_refit == 0.0  # no refinement
     real = ww.warp()
     fake = types.SimpleNamespace(get_device=lambda d: types.SimpleNamespace(is_cuda=True))
     monkeypatch.setattr(ww, "warp", lambda: fake)
@@ -551,7 +556,8 @@ def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volu
         assert wb.choose_schedule("cpu", None, False, shape, n, 100, None) == wb.BrickSchedule(False, 0.5, "set (bricked.NEIGHBOURS_FIRST)")
     assert wb.NEIGHBOURS_FIRST is None and wb.SEAM_REFIT is None  # restored
     m = warpgauss.encode(generate("vortex", 20), budget=150, bricks="2x1x1", halo=2, **FAST)
-    assert m.report["bricking"]["schedule"] == {"waves": "neighbours first", "seam_refit_share": 0.0, "why": cpu.why}
+    assert m.report["bricking"]["schedule"] == {"waves": "neighbours first", "seam_refit_share": wb.CPU_WAVES_SEAM_REFIT, "why": cpu.why}
+    assert m.report["bricking"]["seam_refit"]["iterations"] > 0
 
 
 def test_the_seams_refit_samples_only_cells_a_stepped_primitive_reaches():
