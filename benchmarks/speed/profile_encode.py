@@ -33,7 +33,7 @@ def main(argv=None) -> dict:
         "--variants",
         default="default",
         help="default, nolists (RefineConfig(cell_lists=False)), fast (--preset fast), it300 (the default's "
-        "sampling at 300 iterations), comma-separated",
+        "sampling at 300 iterations), nograph (the refiner's CUDA graph off), comma-separated",
     )
     ap.add_argument(
         "--patch",
@@ -54,7 +54,13 @@ def main(argv=None) -> dict:
         "compile_s": time.perf_counter() - t0,
         "rows": [],
     }
-    variants = {"default": RefineConfig(), "nolists": RefineConfig(cell_lists=False), "fast": None, "it300": RefineConfig(iterations=300)}
+    variants = {
+        "default": RefineConfig(),
+        "nolists": RefineConfig(cell_lists=False),
+        "fast": None,
+        "it300": RefineConfig(iterations=300),
+        "nograph": RefineConfig(graph=False),
+    }
     patches = _patches(args.patch)
     variants.update({name: RefineConfig() for name in patches})
     examples: dict[str, object] = {}
