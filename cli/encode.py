@@ -11,6 +11,7 @@ from .common import (
     PhaseLines,
     config_callback,
     err_console,
+    error_text,
     fail,
     handle_errors,
     human_bytes,
@@ -19,7 +20,9 @@ from .common import (
     parse_int_list,
     parse_shape,
     print_json,
+    psnr_text,
     resolved_config,
+    size_text,
 )
 
 
@@ -647,15 +650,24 @@ def _print_summary(rep: dict, verbose: bool = False) -> None:
     (codes as in the report) and what the run skipped."""
     from rich.table import Table
 
-    b = rep["budget"]
+    b, res = rep["budget"], rep.get("residual")
     ev = rep["evaluation"].get("final")
-    out_console.print(
-        f"[bold]{rep['input']['name']}[/] {'x'.join(map(str, rep['input']['shape_xyz']))} -> "
-        f"{b['n']} Gaussians, {human_bytes(b['bytes'])} ({b['bytes']} B, {b['format']}, {b['bytes_per_primitive']:.2f} B/Gaussian), "
-        f"compression {b['compression_ratio']:.2f}x"
-    )
+    head = f"[bold]{rep['input']['name']}[/] {'x'.join(map(str, rep['input']['shape_xyz']))} -> {b['n']} Gaussians"
+    if res:  # one file, one ratio: the file as written; its parts' sizes on the next line
+        out_console.print(f"{head} and a residual: file {size_text(res['file_bytes'])}, compression {res['compression_ratio']:.2f}x")
+        out_console.print(
+            f"in the file: Gaussians {res['gaussian_bytes']:,} B ({b['format']} at {b['bytes_per_primitive']:.2f} B a Gaussian "
+            f"plus the header), residual {res['residual_bytes']:,} B ({res['predictor']} predictor, {res['literals']} voxels stored exactly)",
+            soft_wrap=True,
+        )
+    else:
+        out_console.print(
+            f"{head}, {b['format']} at {b['bytes_per_primitive']:.2f} B a Gaussian plus the header: file {size_text(b['bytes'])}, "
+            f"compression {b['compression_ratio']:.2f}x"
+        )
     if b.get("coded_choice"):  # how a coded file met its byte budget: primitives against precision
-        out_console.print(f"size: {b['coded_choice']}", soft_wrap=True)
+        label = "the Gaussians' size" if res else "size"
+        out_console.print(f"{label}: {b['coded_choice']}", soft_wrap=True)
     an = rep["evaluation"].get("analytic")
     if an and ev and an is not ev and rep["refinement"].get("iterations"):
         r = rep["refinement"]
@@ -666,17 +678,15 @@ def _print_summary(rep: dict, verbose: bool = False) -> None:
             f"({r['ms_per_iteration']:.2f} ms/iteration); PSNR {an['psnr_db']:.2f} -> {ev['psnr_db']:.2f} dB"
         )
     if ev:
-        occ = ev["psnr_occupied_db"]
-        what = "Gaussians alone: " if rep.get("residual") else ""
+        what = "Gaussians alone: " if res else ""
         out_console.print(
-            f"{what}PSNR {ev['psnr_db']:.2f} dB (occupied {occ:.2f} dB), max abs error {ev['max_abs_error']:.4f}, {ev['mode']}"
+            f"{what}{psnr_text(ev['psnr_db'], ev['psnr_occupied_db'])}, max abs error {error_text(ev['max_abs_error'])}, {ev['mode']}"
         )
-    res = rep.get("residual")
     if res:
         out_console.print(
-            f"with the residual: every voxel within {res['bound']:.6g} (max abs error {res['max_abs_error']:.6g}), PSNR {res['psnr_db']:.2f} dB; "
-            f"file {human_bytes(res['file_bytes'])} = Gaussians {human_bytes(res['gaussian_bytes'])} + residual {human_bytes(res['residual_bytes'])} "
-            f"({res['predictor']} predictor, {res['literals']} voxels stored exactly), compression {res['compression_ratio']:.2f}x",
+            f"with the residual: {psnr_text(res['psnr_db'], res['psnr_occupied_db'])}, "
+            f"max abs error {error_text(res['max_abs_error_normalised'], res['max_abs_error'])}, "
+            f"every voxel within the bound {res['bound']:.6g} source units",
             soft_wrap=True,
         )
     out_console.print(f"time: {rep['total_seconds']:.2f} s on {rep['device_name']}")
