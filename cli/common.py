@@ -165,6 +165,29 @@ def human_bytes(n: float | None) -> str:
     return f"{n:.2f} TiB"
 
 
+def size_text(n: int) -> str:
+    """A file's or a part's size for people, one way everywhere: exact bytes, and the binary unit
+    beside them from 1 KiB (``18,651 B (18.21 KiB)``)."""
+    return f"{n:,} B" if n < 1024 else f"{n:,} B ({human_bytes(n)})"
+
+
+def psnr_text(db: float, occupied: float | None) -> str:
+    """PSNR and occupied-only PSNR for people (``PSNR 48.12 dB, occupied 48.20 dB``); an exact
+    decode (MSE 0) reports the cap, :data:`warpgauss.evaluate.PSNR_CAP_DB`, and says so."""
+    from warpgauss.evaluate import PSNR_CAP_DB
+
+    occ = "n/a" if occupied is None else f"{occupied:.2f} dB"
+    cap = f" ({PSNR_CAP_DB:.0f} dB is the cap: no error)" if db >= PSNR_CAP_DB else ""
+    return f"PSNR {db:.2f} dB, occupied {occ}{cap}"
+
+
+def error_text(normalised: float, source: float | None = None) -> str:
+    """A max abs error with its unit named: a share of the value range (what PSNR is computed on),
+    and where known the same error in source units, so the two cannot be read as two errors."""
+    text = f"{normalised:.4g} of the value range"
+    return text if source is None else f"{source:.6g} source units ({text})"
+
+
 # ---------------------------------------------------------------------------- --config FILE
 
 

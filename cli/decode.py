@@ -1,4 +1,4 @@
-"""`warpgauss decode`: model -> grid file (.vti for ParaView, .npy, .raw, .h5)."""
+"""`warpgauss decode`: model -> grid file (.vti for ParaView, .npy, .raw, .h5, .nii/.nii.gz)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from .common import err_console, handle_errors, out_console, parse_shape
 @handle_errors
 def decode(
     model: Annotated[Path, typer.Argument(help="Model file (.wgs)")],
-    output: Annotated[Path, typer.Option("-o", "--output", help="Grid file: .vti, .npy, .raw or .h5")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Grid file: .vti, .npy, .h5, .nii, .nii.gz or NAME_XxYxZ_DTYPE.raw")],
     shape: Annotated[
         str | None, typer.Option(help="Output grid XxYxZ (default: the encoded grid; with --box, the box at its resolution)")
     ] = None,
@@ -49,7 +49,7 @@ def decode(
         grid = box_shape(region) if grid is None else grid
     m = Model.load(model)
     on_grid = on_encoded_grid(region, grid, m.shape_xyz)
-    _check_raw_output(output, m, grid, residual, on_grid)
+    _check_output(output, m, grid, residual, on_grid)
     with err_console.status(f"decoding {m.n} Gaussians", spinner="dots"):
         info: dict = {}
         data = m.decode(shape_xyz=grid, box=region, device=device, normalised=normalised, info=info, residual=residual)
@@ -75,15 +75,22 @@ def decode(
     out_console.print(f"wrote {output} ({nx}x{ny}x{nz} {data.dtype}){note}")
 
 
-def _check_raw_output(output: Path, m, grid, residual, on_grid: bool) -> None:
-    """A .raw holds no shape or dtype: refuse a name without its ``_XxYxZ_DTYPE`` tail before the
-    decode (the readers could not take the file back), naming the one that fits."""
+def _check_output(output: Path, m, grid, residual, on_grid: bool) -> None:
+    """Refuse, before the decode, what the output cannot hold: a .raw name without its
+    ``_XxYxZ_DTYPE`` tail (the readers could not take the file back; the one that fits is named),
+    a NIfTI-1 file an axis longer than 32,767 voxels."""
     from warpgauss.errors import WarpgaussError
     from warpgauss.readers.common import parse_raw_name
 
+    x, y, z = (int(v) for v in (grid or m.shape_xyz))
+    if output.name.lower().endswith((".nii", ".nii.gz")):
+        from warpgauss.readers.write import nifti_problem
+
+        problem = nifti_problem((x, y, z))
+        if problem is not None:
+            raise WarpgaussError(problem)
     if output.suffix.lower() not in (".raw", ".bin") or parse_raw_name(output.name) is not None:
         return
-    x, y, z = (int(v) for v in (grid or m.shape_xyz))
     dtype = m.residual.info["dtype"] if (m.residual is not None and residual is not False and on_grid) else "float32"
     fix = output.with_name(f"{output.stem}_{x}x{y}x{z}_{dtype}{output.suffix}")
     raise WarpgaussError(f"{output.name} does not say the grid's shape and dtype, which a raw file cannot hold; name it {fix.name}")

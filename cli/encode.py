@@ -11,15 +11,17 @@ from .common import (
     PhaseLines,
     config_callback,
     err_console,
+    error_text,
     fail,
     handle_errors,
     human_bytes,
     json_text,
     out_console,
-    parse_int_list,
     parse_shape,
     print_json,
+    psnr_text,
     resolved_config,
+    size_text,
 )
 
 
@@ -337,7 +339,9 @@ def encode(
     if series:
         if ladder is not None or resume or save_analytic is not None or bricks is not None or bounded:
             fail("a series does not combine with --ladder, --resume, --save-analytic, --bricks, --max-error or --psnr yet")
-        _encode_series(str(input), variables, (workers, scheduler), output, cfg, cold, warm_iterations, keyframe_drift, as_json)
+        from .encode_many import encode_series
+
+        encode_series(str(input), variables, (workers, scheduler), output, cfg, cold, warm_iterations, keyframe_drift, as_json)
         return
     if input is not None and not input.exists():
         fail(f"no such file: {input}")
@@ -359,7 +363,9 @@ def encode(
             fail(
                 "--ladder gives the budgets: it does not combine with --budget, --ratio, --bytes, --time-budget, --resume or --save-analytic"
             )
-        _encode_ladder(ladder, input, out, cfg, as_json)
+        from .encode_many import encode_ladder
+
+        encode_ladder(ladder, input, out, cfg, as_json)
         return
     status = None if as_json else err_console.status("starting", spinner="dots")
     lines = None if status is None else PhaseLines(status)
@@ -433,202 +439,6 @@ def encode(
         raise typer.Exit(130)
 
 
-def _encode_ladder(text, input, out, cfg, as_json) -> None:
-    """``warpgauss encode --ladder N1,N2,...``: one model and report per budget (see warpgauss.encode_ladder)."""
-    import inspect
-
-    import warpgauss
-    from warpgauss._fs import atomic_write_bytes, check_writable
-
-    force = cfg.run.force
-    budgets = parse_int_list(text, "--ladder") or ()
-    pattern = str(out.with_name(f"{out.stem}.n{{n}}{out.suffix or '.wgs'}"))
-    for n in sorted(set(budgets)):
-        check_writable(Path(pattern.format(n=n) + ".report.json"), force=force)
-    status = None if as_json else err_console.status("starting", spinner="dots")
-    if status is not None:
-        status.start()
-    try:
-        takes = inspect.signature(warpgauss.encode_ladder).parameters
-        models = warpgauss.encode_ladder(
-            input,
-            budgets=budgets,
-            output_pattern=pattern,
-            **{k: v for k, v in cfg.to_kwargs().items() if k in takes},  # the command line refused the others already
-            on_stage=None if status is None else lambda name, title: status.update(f"[bold]{name}[/] {title}"),
-        )
-    finally:
-        if status is not None:
-            status.stop()
-    rows = []
-    for m in models:
-        rep = m.run_report
-        rep["report"] = rep["output"] + ".report.json"
-        atomic_write_bytes(rep["report"], json_text(rep).encode())
-        ev = rep["evaluation"]
-        rows.append(
-            {
-                "n": rep["budget"]["n"],
-                "bytes": rep["budget"]["bytes"],
-                "compression_ratio": rep["budget"]["compression_ratio"],
-                "psnr_analytic_db": ev["analytic"]["psnr_db"],
-                "psnr_db": ev["final"]["psnr_db"],
-                "seconds": rep["total_seconds"],
-                "output": rep["output"],
-            }
-        )
-    if as_json:
-        print_json({"ladder": rows})
-        return
-    from rich.table import Table
-
-    t = Table(show_edge=False, header_style="bold")
-    for col in ("N", "bytes", "ratio", "analytic dB", "PSNR dB", "seconds", "model"):
-        t.add_column(col, justify="left" if col == "model" else "right")
-    for r in rows:
-        t.add_row(
-            f"{r['n']:,}",
-            f"{r['bytes']:,}",
-            f"{r['compression_ratio']:.2f}x",
-            f"{r['psnr_analytic_db']:.2f}",
-            f"{r['psnr_db']:.2f}",
-            f"{r['seconds']:.2f}",
-            r["output"],
-        )
-    out_console.print(t)
-
-
-def _encode_series(
-    pattern: str,
-    variables: list[str],
-    cluster: tuple,
-    output,
-    cfg,
-    cold: bool,
-    warm_iterations,
-    keyframe_drift: float | None,
-    as_json: bool,
-) -> None:
-    """``warpgauss encode 'GLOB'`` (or a file with a time axis, or several --variable): one model
-    and report per timestep and variable (see warpgauss.encode_series)."""
-    import warpgauss
-    from warpgauss._fs import atomic_write_bytes
-    from warpgauss.series import KEYFRAME_DRIFT_DB
-
-    read, force = cfg.reading.read, cfg.run.force
-    # what a series sets per timestep (output, warm start) or passes on its own (read, force); the
-    # command line refused the options a series does not take (bricks, bounds, resume, --save-analytic)
-    per_step = (
-        "read",
-        "force",
-        "output",
-        "example",
-        "example_size",
-        "checkpoint",
-        "checkpoint_every",
-        "max_device_memory",
-        "max_host_memory",
-    )
-    kw = {k: v for k, v in cfg.to_kwargs().items() if k not in per_step}
-    out = output or Path("series.wgs")
-    name = str(out / "step.wgs") if out.is_dir() else str(out)  # a folder: step_000.wgs ... inside it
-    if len(variables) > 1 and "{var" not in name:
-        name = str(Path(name).with_name(f"{Path(name).stem}_{{var}}{Path(name).suffix or '.wgs'}"))
-    if "{t" not in name:
-        p = Path(name)
-        name = str(p.with_name(f"{p.stem}_{{t:03d}}{p.suffix or '.wgs'}"))
-    from warpgauss._fs import check_writable
-    from warpgauss.series import series_chains
-
-    total = 0
-    for var, items, _ in series_chains(pattern, variables or None, read):  # the reports too, before any work
-        total += len(items)
-        for t in range(len(items)):
-            check_writable(name.format(t=t, var=var or "") + ".report.json", force=force)
-    status = None if as_json else err_console.status("starting", spinner="dots")
-    if status is not None:
-        status.start()
-    workers, scheduler = cluster
-    client = None
-    if workers is not None or scheduler is not None:
-        from warpgauss.cluster import default_client
-
-        client, where = default_client(workers, scheduler, kw.get("device"))
-        if status is not None:
-            status.console.print(f"series: {where}", highlight=False)
-
-    rows: list[dict] = []
-
-    def step(t: int, steps: int, m) -> None:
-        rep = m.run_report
-        rep["report"] = rep["output"] + ".report.json"
-        atomic_write_bytes(rep["report"], json_text(rep).encode())
-        rows.append(
-            {
-                "variable": rep["series"]["variable"],
-                "step": rep["series"]["step"],
-                "source": rep["series"]["source"],
-                "warm_start": rep["series"]["warm_start"],
-                "keyframe": "keyframe" in rep["series"],
-                "n": m.n,
-                "iterations": rep["refinement"].get("iterations", 0),
-                "psnr_db": rep["psnr_db"],
-                "seconds": rep.get("total_seconds"),
-                "output": rep["output"],
-            }
-        )
-        if status is not None:
-            status.update(f"[bold]series[/] {len(rows)}/{total} timesteps encoded")
-
-    args = dict(
-        variables=variables or None,
-        output_pattern=name,
-        cold=cold,
-        warm_iterations=warm_iterations,
-        keyframe_drift=KEYFRAME_DRIFT_DB if keyframe_drift is None else keyframe_drift,
-        force=force,
-        read=read,
-        **kw,
-    )
-    try:
-        if client is None:  # one model at a time: a long series holds two models, not all
-            for m in warpgauss.series.iter_series(pattern, **args):
-                step(m.run_report["series"]["step"], total, m)
-        else:
-            warpgauss.encode_series(pattern, on_step=step, client=client, **args)
-    finally:
-        if status is not None:
-            status.stop()
-        if client is not None:
-            own = getattr(client, "cluster", None)
-            client.close()
-            if own is not None and scheduler is None:
-                own.close()
-    rows.sort(key=lambda r: (variables.index(r["variable"]) if r["variable"] in variables else 0, r["step"]))
-    if as_json:
-        print_json({"series": rows})
-        return
-    from rich.table import Table
-
-    table = Table(show_edge=False, header_style="bold")
-    for col in ("variable", "t", "start", "N", "iterations", "PSNR dB", "seconds", "model"):
-        table.add_column(col, justify="left" if col in ("model", "variable") else "right")
-    for r in rows:
-        psnr = "-" if r["psnr_db"] is None else f"{r['psnr_db']:.2f}"
-        secs = "-" if r["seconds"] is None else f"{r['seconds']:.1f}"
-        table.add_row(
-            r["variable"] or "-",
-            str(r["step"]),
-            "warm" if r["warm_start"] else ("cold (drift)" if r["keyframe"] else "cold"),
-            f"{r['n']:,}",
-            str(r["iterations"]),
-            psnr,
-            secs,
-            r["output"],
-        )
-    out_console.print(table)
-
-
 def _stem(path: Path) -> str:
     name = path.name
     for suffix in (".gz", ".bz2"):
@@ -650,15 +460,24 @@ def _print_summary(rep: dict, verbose: bool = False) -> None:
     (codes as in the report) and what the run skipped."""
     from rich.table import Table
 
-    b = rep["budget"]
+    b, res = rep["budget"], rep.get("residual")
     ev = rep["evaluation"].get("final")
-    out_console.print(
-        f"[bold]{rep['input']['name']}[/] {'x'.join(map(str, rep['input']['shape_xyz']))} -> "
-        f"{b['n']} Gaussians, {human_bytes(b['bytes'])} ({b['bytes']} B, {b['format']}, {b['bytes_per_primitive']:.2f} B/Gaussian), "
-        f"compression {b['compression_ratio']:.2f}x"
-    )
+    head = f"[bold]{rep['input']['name']}[/] {'x'.join(map(str, rep['input']['shape_xyz']))} -> {b['n']} Gaussians"
+    if res:  # one file, one ratio: the file as written; its parts' sizes on the next line
+        out_console.print(f"{head} and a residual: file {size_text(res['file_bytes'])}, compression {res['compression_ratio']:.2f}x")
+        out_console.print(
+            f"in the file: Gaussians {res['gaussian_bytes']:,} B ({b['format']} at {b['bytes_per_primitive']:.2f} B a Gaussian "
+            f"plus the header), residual {res['residual_bytes']:,} B ({res['predictor']} predictor, {res['literals']} voxels stored exactly)",
+            soft_wrap=True,
+        )
+    else:
+        out_console.print(
+            f"{head}, {b['format']} at {b['bytes_per_primitive']:.2f} B a Gaussian plus the header: file {size_text(b['bytes'])}, "
+            f"compression {b['compression_ratio']:.2f}x"
+        )
     if b.get("coded_choice"):  # how a coded file met its byte budget: primitives against precision
-        out_console.print(f"size: {b['coded_choice']}", soft_wrap=True)
+        label = "the Gaussians' size" if res else "size"
+        out_console.print(f"{label}: {b['coded_choice']}", soft_wrap=True)
     an = rep["evaluation"].get("analytic")
     if an and ev and an is not ev and rep["refinement"].get("iterations"):
         r = rep["refinement"]
@@ -669,17 +488,15 @@ def _print_summary(rep: dict, verbose: bool = False) -> None:
             f"({r['ms_per_iteration']:.2f} ms/iteration); PSNR {an['psnr_db']:.2f} -> {ev['psnr_db']:.2f} dB"
         )
     if ev:
-        occ = ev["psnr_occupied_db"]
-        what = "Gaussians alone: " if rep.get("residual") else ""
+        what = "Gaussians alone: " if res else ""
         out_console.print(
-            f"{what}PSNR {ev['psnr_db']:.2f} dB (occupied {occ:.2f} dB), max abs error {ev['max_abs_error']:.4f}, {ev['mode']}"
+            f"{what}{psnr_text(ev['psnr_db'], ev['psnr_occupied_db'])}, max abs error {error_text(ev['max_abs_error'])}, {ev['mode']}"
         )
-    res = rep.get("residual")
     if res:
         out_console.print(
-            f"with the residual: every voxel within {res['bound']:.6g} (max abs error {res['max_abs_error']:.6g}), PSNR {res['psnr_db']:.2f} dB; "
-            f"file {human_bytes(res['file_bytes'])} = Gaussians {human_bytes(res['gaussian_bytes'])} + residual {human_bytes(res['residual_bytes'])} "
-            f"({res['predictor']} predictor, {res['literals']} voxels stored exactly), compression {res['compression_ratio']:.2f}x",
+            f"with the residual: {psnr_text(res['psnr_db'], res['psnr_occupied_db'])}, "
+            f"max abs error {error_text(res['max_abs_error_normalised'], res['max_abs_error'])}, "
+            f"every voxel within the bound {res['bound']:.6g} source units",
             soft_wrap=True,
         )
     out_console.print(f"time: {rep['total_seconds']:.2f} s on {rep['device_name']}")

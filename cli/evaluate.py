@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from .common import handle_errors, out_console, parse_shape, print_json
+from .common import error_text, handle_errors, out_console, parse_shape, print_json, psnr_text, size_text
 
 
 @handle_errors
@@ -29,7 +29,11 @@ def evaluate(
         typer.Option("--residual/--no-residual", help="Score the decode with the model's bounded residual, where it has one (full grid)"),
     ] = True,
 ) -> None:
-    """PSNR, occupied-only PSNR and max abs error on the normalised field (500,000 sampled voxel centres, or the full grid)."""
+    """PSNR, occupied-only PSNR and max abs error on the normalised field (500,000 sampled voxel centres, or the full grid).
+
+    The max abs error is printed once, in source units and as a share of the value range (the JSON's
+    ``max_abs_error_source`` and ``max_abs_error``); a model with a residual is scored as its encode
+    was, against the source's own values; an exact decode reports PSNR 200 dB, the cap."""
     from warpgauss.evaluate import evaluate_against
     from warpgauss.io import ReadOptions
     from warpgauss.model import Model
@@ -43,12 +47,12 @@ def evaluate(
     if as_json:
         print_json(r)
         return
-    occ = r["psnr_occupied_db"]
-    out_console.print(
-        f"PSNR {r['psnr_db']:.2f} dB, occupied {occ if occ is None else f'{occ:.2f}'} dB, "
-        f"max abs error {r['max_abs_error']:.4g}, N {r['n']}, {r['bytes']} bytes, CR {r['compression_ratio']:.2f}x "
-        f"({r['mode']})"
-    )
+    out_console.print(f"{psnr_text(r['psnr_db'], r['psnr_occupied_db'])}; {r['mode']}")
+    bound = ""
     if "bound" in r:
         ok = "within" if r["max_abs_error_source"] <= r["bound"] else "BEYOND"
-        out_console.print(f"max abs error {r['max_abs_error_source']:.6g} source units, {ok} the bound {r['bound']:.6g}")
+        bound = f", {ok} the bound {r['bound']:.6g} source units"
+    out_console.print(f"max abs error {error_text(r['max_abs_error'], r['max_abs_error_source'])}{bound}")
+    out_console.print(
+        f"{r['n']} Gaussians{' and a residual' if 'bound' in r else ''}: file {size_text(r['bytes'])}, compression {r['compression_ratio']:.2f}x"
+    )

@@ -19,7 +19,7 @@ def example(
         typer.Option(
             "-o",
             "--output",
-            help="Output file (.raw/.npy/.vti/.h5); default NAME_XxYxZ_float32.raw. With --steps: a name holding {t} "
+            help="Output file (.raw/.npy/.vti/.h5/.nii.gz); default NAME_XxYxZ_float32.raw. With --steps: a name holding {t} "
             "(e.g. 'run/rho_{t:03d}_64x64x64_float32.raw') or an existing folder",
         ),
     ] = None,

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from .common import handle_errors, human_bytes, out_console, print_json
+from .common import handle_errors, out_console, print_json, size_text
 
 
 @handle_errors
@@ -56,11 +56,11 @@ def info(
         return
     g, v, src = h["grid"], h["values"], h["source"]
     rows = [
-        ("file", f"{model}: {size} bytes ({human_bytes(size)})"),
+        ("file", f"{model}: {size_text(size)}"),
         ("Gaussians", f"{n}, {payload.get('encoding')} payload, {summary['bytes_per_primitive']:.2f} B a Gaussian"),
         (
             "compression",
-            f"{summary['compression_ratio']:.2f}x against {src['bytes']} source bytes ({src['dtype']}, {src['itemsize']} B a voxel)",
+            f"{summary['compression_ratio']:.2f}x (the file's) against {size_text(int(src['bytes']))} of source ({src['dtype']}, {src['itemsize']} B a voxel)",
         ),
         ("grid", f"{' x '.join(map(str, g['shape_xyz']))} (x, y, z), spacing {_numbers(g['spacing'])}, origin {_numbers(g['origin'])}"),
         ("values", f"{v['min']:g} .. {v['max']:g}"),
@@ -73,8 +73,8 @@ def info(
             2,
             (
                 "bounded residual",
-                f"{res_bytes} bytes ({human_bytes(res_bytes)}) beside {size - res_bytes} of Gaussians: every voxel within "
-                f"{res['bound']:.6g} of the source ({res['bound_rel']:.3g} of its range), {res['predictor']} predictor, "
+                f"{res_bytes:,} B beside the Gaussians' {size - res_bytes:,} B (header included): every voxel within "
+                f"{res['bound']:.6g} source units of the source ({res['bound_rel']:.3g} of its range), {res['predictor']} predictor, "
                 f"{res['literals']} voxels stored exactly",
             ),
         )

@@ -208,3 +208,30 @@ def test_decode_takes_the_returned_arrays_shape_and_warns_on_the_old_order():
     with pytest.raises(warpgauss.WarpgaussError, match="give one of shape_zyx"):
         m.decode(shape_zyx=g.shape, shape_xyz=(8, 6, 4), device="cpu")
     assert m.decode(device="cpu").shape == vol.shape
+
+
+def test_compression_ratio_is_a_property_as_n_is_and_the_old_call_warns(tmp_path):
+    """Model.compression_ratio was a method beside the property Model.n (issue #57 item 7): now a
+    property, the ratio of the file save() writes (as info reports it); the call still answers
+    this release, as it did (full precision by default), with a DeprecationWarning saying what to
+    write."""
+    import json
+    import warnings
+
+    vol = generate("vortex", 16)
+    m = warpgauss.encode(vol, budget=40, iterations=0, device="cpu", self_test=False)
+    assert m.format == "coded"
+    coded = m.save(tmp_path / "c.wgs")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # reading the property warns of nothing
+        ratio = m.compression_ratio
+    assert ratio == vol.nbytes / coded and isinstance(ratio, float) and json.loads(json.dumps({"r": ratio}))["r"] == ratio
+    loaded = warpgauss.Model.load(tmp_path / "c.wgs")
+    assert loaded.compression_ratio == ratio
+    full = warpgauss.Model(m.params, m.header)  # no format: save() writes float32
+    assert full.compression_ratio == vol.nbytes / full.save(tmp_path / "f.wgs") == vol.nbytes / (48 * 40 + 4096)
+    with pytest.warns(DeprecationWarning, match=r"write model\.compression_ratio .* model\.source_bytes / model\.file_size"):
+        old = m.compression_ratio()
+    assert old == vol.nbytes / m.file_size(False) == full.compression_ratio  # what the call gave: full precision
+    with pytest.warns(DeprecationWarning):
+        assert m.compression_ratio(encoding="coded") == ratio and m.compression_ratio(True) == vol.nbytes / m.file_size(True)

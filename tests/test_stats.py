@@ -92,3 +92,47 @@ def test_undefined_s1_s16_is_null_in_stats_and_the_encode_report(tmp_path, cpu):
     assert enc.exit_code == 0, enc.output
     rep = _strict((tmp_path / "m.wgs.report.json").read_text())
     assert rep["structure"]["s1_s16"] is None
+
+
+def test_the_default_ladder_leaves_out_files_larger_than_the_source(cpu):
+    """A 48^3 float32 volume (442,368 bytes) was offered 200,000 Gaussians (issue #57 item 7): the
+    default ladder keeps the budgets whose coded file stays below the source, at the top of the
+    measured range, and names the ones it leaves out."""
+    res = CliRunner().invoke(app, ["stats", "--example", "vortex", "--size", "48", "--device", "cpu", "--json"])
+    assert res.exit_code == 0, res.output
+    got = json.loads(res.stdout)
+    source = 48**3 * 4
+    assert got["source_bytes"] == source
+    kept = [b["n"] for b in got["budgets"]]
+    out = [r["n"] for r in got["left_out"]]
+    assert kept == [2_000, 20_000] and out == [200_000, got["n_max"]] and got["left_out"][-1]["is_n_max"]
+    for b in got["budgets"]:
+        assert b["coded_bytes_estimate"][1] <= source
+    most = CODED_BPP_MEASURED[1]
+    assert all(most * n > source - 4096 for n in out)  # each left out because its file could pass the source
+    # the 20,000 row is kept for its coded file, yet its full-precision file is larger than the source
+    row = got["budgets"][1]
+    assert row["larger_than_source"] == ["full"] and row["bytes"] > source > row["compact_bytes"]
+
+
+def test_budgets_given_are_all_tabulated_in_80_columns_each_ratio_below_1_marked(monkeypatch, cpu):
+    from warpgauss.cli import stats as stats_cli
+
+    monkeypatch.setattr(stats_cli.out_console, "width", 80)
+    args = ["stats", "--example", "vortex", "--size", "48", "--device", "cpu", "--budgets", "100,2000,20000,200000"]
+    got = json.loads(CliRunner().invoke(app, [*args, "--json"]).stdout)
+    assert [b["n"] for b in got["budgets"]] == [100, 2_000, 20_000, 200_000, got["n_max"]] and got["left_out"] == []
+    for b in got["budgets"]:
+        sizes = {"coded": b["coded_bytes_estimate"][1], "compact": b["compact_bytes"], "full": b["bytes"]}
+        assert b["larger_than_source"] == [k for k, v in sizes.items() if v > got["source_bytes"]]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    lines = res.stdout.splitlines()
+    assert all(len(line) <= 80 for line in lines) and "…" not in res.stdout, res.stdout
+    rows = {line.split()[0]: line.split() for line in lines if line.split() and line.split()[0].rstrip("*").replace(",", "").isdigit()}
+    assert list(rows) == ["100", "2,000", "20,000", "200,000", f"{got['n_max']:,}*"], res.stdout  # one line a budget
+    for b, cells in zip(got["budgets"], rows.values()):
+        assert len(cells) == 10  # N, coded range and unit, ratio, compact and unit, ratio, full and unit, ratio
+        marks = [cells[i].endswith("!") for i in (3, 6, 9)]
+        assert marks == [k in b["larger_than_source"] for k in ("coded", "compact", "full")], cells
+    assert "! a file larger than the 432 KiB source" in res.stdout

@@ -205,6 +205,33 @@ def _check_decode_size(shape) -> None:
         )
 
 
+class _Ratio(float):
+    """:attr:`Model.compression_ratio`, a number that a call still answers as the method it was
+    (deprecated: the call goes in the next release)."""
+
+    _model: Model
+
+    def __new__(cls, value: float, model: Model):
+        self = super().__new__(cls, value)
+        self._model = model
+        return self
+
+    def __call__(self, compact: bool = False, *, encoding: str | None = None) -> float:
+        import warnings
+
+        warnings.warn(
+            "Model.compression_ratio is a property now, as Model.n is: write model.compression_ratio for the file save() "
+            "writes, or model.source_bytes / model.file_size(encoding=...) for another format; the call goes in the next release",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        m = self._model
+        return m.source_bytes / m.file_size(compact, encoding=encoding)
+
+    def __reduce__(self):  # a plain number wherever it is copied
+        return (float, (float(self),))
+
+
 class Model:
     """A fixed-budget Gaussian model of a scalar volume.
 
@@ -269,8 +296,14 @@ class Model:
         payload = per * self.n
         return payload + header_size(self.header, self.n, encoding=enc), payload
 
-    def compression_ratio(self, compact: bool = False, *, encoding: str | None = None) -> float:
-        return self.source_bytes / self.file_size(compact, encoding=encoding)
+    @property
+    def compression_ratio(self) -> _Ratio:
+        """Source bytes over the bytes of the file :meth:`save` writes by default (the format the
+        model was encoded for or read from, else float32; a residual counted), the ratio
+        ``warpgauss info`` prints; a coded model is coded to measure it. A property, as :attr:`n`
+        is; the call it was (``compression_ratio(compact, encoding=...)``) still answers this
+        release with a DeprecationWarning: write ``source_bytes / file_size(encoding=...)``."""
+        return _Ratio(self.source_bytes / self.file_size(encoding=self.format or "float32"), self)
 
     def stored(self, encoding: str) -> Model:
         """This model as a file of ``encoding`` would hand it back on reading (for "coded": on the

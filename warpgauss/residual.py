@@ -144,14 +144,14 @@ def code_for_psnr(source, valid, pred, fragile, target_db: float, value_range, f
     lo, hi = value_range
     e0 = Bound(psnr=target_db).absolute(lo, hi)
     res, facts = code_residual(source, valid, pred, fragile, e0, value_range, fill_value=fill_value)
-    best = (res, facts, verify(res, pred, source, valid))
+    best = (res, facts, verify(res, pred, source, valid, value_range))
     low, high = math.log(e0), math.log(e0 * 2.0 * math.sqrt(3.0))
     tried = [e0]
     for _ in range(PSNR_TRIES):
         mid = 0.5 * (low + high)
         e = math.exp(mid)
         res, facts = code_residual(source, valid, pred, fragile, e, value_range, fill_value=fill_value)
-        check = verify(res, pred, source, valid)
+        check = verify(res, pred, source, valid, value_range)
         tried.append(e)
         if check["psnr_db"] >= target_db:
             best, low = (res, facts, check), mid
@@ -717,22 +717,17 @@ def apply_residual(res: Residual, pred: np.ndarray) -> np.ndarray:
     return out.reshape(shape)
 
 
-def verify(res: Residual, pred: np.ndarray, source: np.ndarray, valid: np.ndarray | None) -> dict:
+def verify(res: Residual, pred: np.ndarray, source: np.ndarray, valid: np.ndarray | None, value_range) -> dict:
     """Decode as a reader does and check every valid voxel against the bound (a violation is a bug,
-    raised, never a warning). Returns the measured maximum error and PSNR (range-normalised, as
-    :mod:`warpgauss.evaluate` scores)."""
-    from .evaluate import psnr_from_mse
+    raised, never a warning). Returns the measured maximum error (source units, and as a share of
+    the range) and the PSNRs, by :func:`warpgauss.evaluate.score_decode` as ``warpgauss eval``
+    scores the file."""
+    from .evaluate import score_decode
 
-    out = apply_residual(res, pred)
-    err = out.astype(np.float64) - source.astype(np.float64)
-    if valid is not None:
-        err = err[valid]
-    worst = float(np.abs(err).max()) if err.size else 0.0
-    bound = float(res.info["bound"])
+    s = score_decode(apply_residual(res, pred), source, valid, value_range)
+    worst, bound = s["max_abs_error"], float(res.info["bound"])
     if not worst <= bound:
         raise WarpgaussError(
             f"internal error: the residual decodes {worst:.6g} from the source, beyond its bound {bound:.6g}; please report this"
         )
-    rng = float(res.info["bound"]) / float(res.info["bound_rel"])
-    mse = float(np.mean((err / rng) ** 2)) if err.size else 0.0
-    return {"max_abs_error": worst, "psnr_db": psnr_from_mse(mse)}
+    return {k: s[k] for k in ("max_abs_error", "max_abs_error_normalised", "psnr_db", "psnr_occupied_db")}

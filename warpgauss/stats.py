@@ -46,7 +46,8 @@ def reading(st: dict, n_max: int) -> str:
 def budget_table(f: Field, header: dict, budgets, n_max: int) -> list[dict]:
     """Exact bytes and compression ratios of each feasible budget (and of N_max) in the full and
     compact formats, and the coded format's as a range (its size depends on the refined model:
-    :data:`warpgauss.driver.sizing.CODED_BPP_MEASURED` bytes a Gaussian)."""
+    :data:`warpgauss.driver.sizing.CODED_BPP_MEASURED` bytes a Gaussian). ``larger_than_source``
+    names the formats whose file would be larger than the source (coded: at the range's top)."""
     from .wgs import header_size
 
     rows = []
@@ -59,6 +60,7 @@ def budget_table(f: Field, header: dict, budgets, n_max: int) -> list[dict]:
         full = 48 * n + h_full
         compact = 12 * n + h_compact
         coded = [int(round(b * n)) + header_size(header, n, encoding="coded") for b in CODED_BPP_MEASURED]
+        sizes = {"coded": coded[1], "compact": compact, "full": full}
         rows.append(
             {
                 "n": n,
@@ -69,17 +71,34 @@ def budget_table(f: Field, header: dict, budgets, n_max: int) -> list[dict]:
                 "coded_bytes_estimate": coded,
                 "coded_compression_ratio_estimate": [f.source_bytes / coded[1], f.source_bytes / coded[0]],
                 "is_n_max": n == n_max,
+                "larger_than_source": [k for k, v in sizes.items() if v > f.source_bytes],
             }
         )
     return rows
 
 
-def field_stats(f: Field, device: str | None = None, budgets=DEFAULT_BUDGETS) -> dict:
-    """Statistics of a normalised field (stage P output) with the budget table and the reading."""
+def _ladder(rows: list[dict], given: bool) -> dict:
+    """The table's rows (``budgets``) and the default ones left out for a file larger than the source."""
+    if given:
+        return {"budgets": rows, "left_out": []}
+    keep = [r for r in rows if "coded" not in r["larger_than_source"]]
+    why = "its coded file could be larger than the source"
+    return {"budgets": keep, "left_out": [{"n": r["n"], "is_n_max": r["is_n_max"], "why": why} for r in rows if r not in keep]}
+
+
+def field_stats(f: Field, device: str | None = None, budgets=None) -> dict:
+    """Statistics of a normalised field (stage P output) with the budget table and the reading.
+
+    ``budgets`` None: :data:`DEFAULT_BUDGETS` and N_max, less those whose coded file (the
+    default format) could be larger than the source (``left_out`` lists them: a 48^3 volume was
+    offered 200,000 Gaussians); budgets given are all tabulated, each row naming the formats whose
+    file would be larger than the source (``larger_than_source``)."""
     from ._warp import device_name, resolve_device
     from .analysis import DeviceVolume, structure_stats
     from .driver import EncodeOptions, header_for
 
+    given = budgets is not None
+    budgets = DEFAULT_BUDGETS if budgets is None else budgets
     if not budgets or min(int(b) for b in budgets) < 1:
         raise WarpgaussError("--budgets must be positive integers")
     dev = resolve_device(device)
@@ -105,7 +124,7 @@ def field_stats(f: Field, device: str | None = None, budgets=DEFAULT_BUDGETS) ->
         "sampled": st["sampled"],
         "samples": st["samples"],
         "n_max": n_max,
-        "budgets": budget_table(f, header, budgets, n_max),
+        **_ladder(budget_table(f, header, budgets, n_max), given),
         "reading": reading(st, n_max),
         "device": dev,
         "device_name": device_name(dev),

@@ -82,7 +82,7 @@ def main(argv=None) -> dict:
                     "volume": label,
                     "voxels": int(np.prod(vol.shape)),
                     "ratio_target": ratio,
-                    "ratio": model.compression_ratio(encoding=model.format),
+                    "ratio": float(model.compression_ratio),
                     "bytes": r["budget"]["bytes"],
                     "budget_used": r["budget"]["budget_used"],
                     "coded_fit": r["budget"]["coded_fit"],

@@ -194,7 +194,7 @@ def _use(m: Model) -> None:
     from warpgauss import transfer
 
     m.shape_xyz, m.value_range, m.source_bytes  # noqa: B018
-    m.file_size(), m.file_size(compact=True), m.compression_ratio()  # noqa: B018
+    m.file_size(), m.file_size(compact=True), m.compression_ratio  # noqa: B018
     m.decoded_spacing(), m.decoded_origin(), m.decoded_spacing((2, 3, 4)), m.decoded_origin((2, 3, 4))  # noqa: B018
     transfer.from_header(m.header)
     v = m.decode(shape_xyz=(3, 2, 2), device="cpu")

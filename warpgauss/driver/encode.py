@@ -97,7 +97,7 @@ def attach_residual(model: Model, source, read, example, example_size, bound: Bo
         res, facts, check = code_for_psnr(data, masked, pred, fragile, bound.psnr, (lo, hi), fill_value=fill)
     else:
         res, facts = code_residual(data, masked, pred, fragile, bound.absolute(lo, hi), (lo, hi), fill_value=fill)
-        check = verify(res, pred, data, valid)
+        check = verify(res, pred, data, valid, (lo, hi))
     t2 = time.perf_counter()
     model.residual = res
     gauss = model.file_size(encoding=model.format or "coded") - res.nbytes
