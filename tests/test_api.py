@@ -135,8 +135,10 @@ def test_large_budgets_get_more_samples_by_default_and_presets_keep_theirs(monke
     assert cfg.for_budget(AUTO_BATCH_PRIMITIVES).samples == 3072
     assert cfg.for_budget(AUTO_BATCH_PRIMITIVES + 1).samples == 2 * 3072
     assert cfg.for_budget(10**9).samples == config.AUTO_MAX_BATCHES * 3072
-    for name in PRESETS:  # a named preset is exactly its settings
+    for name in ("paper", "quality"):  # these presets are exactly their settings
         assert resolve_refine(None, name, None, None).for_budget(1_400_000).samples == PRESETS[name]["samples"]
+    # fast is the default's sampling for 300 iterations: raised for large budgets as the default is
+    assert resolve_refine(None, "fast", None, None).for_budget(1_400_000).samples == 4 * 3072
     assert resolve_refine(None, None, None, 5000).for_budget(1_400_000).samples == 5000  # explicit samples stay
     assert resolve_refine(None, None, 0, None).for_budget(1_400_000).samples == 3072  # nothing to refine
 
