@@ -9,30 +9,18 @@ import pytest
 from conftest import random_params
 from PIL import Image as PILImage
 from test_cli import cli
+from test_region import _model as model_in_frame
 
 import warpgauss
 from warpgauss.errors import WarpgaussError
-from warpgauss.model import Model, make_header
+from warpgauss.model import Model
 
 SHAPE = (18, 14, 10)
 
 
 @pytest.fixture(scope="module")
 def model() -> Model:
-    params = random_params(np.random.default_rng(21), 120, SHAPE, log_scale=(0.0, 1.0))
-    header = make_header(
-        shape_xyz=SHAPE,
-        spacing=(0.5, 2.0, 1.25),
-        origin=(-3.0, 1.0, 7.0),
-        vmin=-2.0,
-        vmax=6.0,
-        source_dtype="float32",
-        source_itemsize=4,
-        name="rho",
-        encoding={},
-        seed=0,
-    )
-    return Model(params, header)
+    return model_in_frame(random_params(np.random.default_rng(21), 120, SHAPE, log_scale=(0.0, 1.0)), SHAPE)
 
 
 def test_to_pyvista_holds_the_decode_in_the_headers_frame(model):
