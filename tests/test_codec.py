@@ -154,3 +154,20 @@ def test_a_chunk_too_small_for_the_ratio_is_refused_and_damaged_bytes_too():
     data[-1] ^= 0xFF
     with pytest.raises(WarpgaussError, match="the model bytes: payload checksum mismatch"):
         WarpGauss(**FAST).decode(bytes(data))
+
+
+def test_without_numcodecs_warpgauss_imports_and_the_codec_says_what_to_install():
+    code = (
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] == 'numcodecs': raise ImportError(name)\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "import warpgauss\n"
+        "try:\n"
+        "    import warpgauss.codec\n"
+        "except warpgauss.WarpgaussError as e:\n"
+        "    print(e)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out == "warpgauss.codec needs numcodecs: pip install 'warpgauss[zarr]'\n"
