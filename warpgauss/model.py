@@ -10,6 +10,7 @@ and a default transfer function.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 from collections.abc import Callable
@@ -140,7 +141,7 @@ def _header_problem(h: dict) -> str | None:
     return None
 
 
-def _check_header(p: Path, header: dict) -> None:
+def _check_header(p: Path | str, header: dict) -> None:
     """Refuse a header (of the file ``p``) that lacks what a reader uses or holds it unusable."""
     for key in ("grid", "values", "source"):
         if key not in header:
@@ -150,15 +151,22 @@ def _check_header(p: Path, header: dict) -> None:
         raise WarpgaussError(f"{p}: the header's {problem}; the file is damaged or was not written by warpgauss")
 
 
-def _residual_of(p: Path, header: dict) -> Residual:
-    """The residual of the file ``p`` (its bytes end the file), its description checked."""
+def _residual_of(p: Path | str, header: dict, data: bytes | None = None) -> Residual:
+    """The residual of the file ``p`` (its bytes end the file, or ``data``, the file's bytes in
+    memory: checked against its SHA-256 here), its description checked."""
     from .residual import check_info
 
     info = header["residual"]
     problem = check_info(info, math.prod(header["grid"]["shape_xyz"]))
     if problem is not None:
         raise WarpgaussError(f"{p}: the header's {problem}; the file is damaged or was not written by warpgauss")
-    return Residual(info, path=p, offset=p.stat().st_size - int(info["payload_bytes"]))
+    if data is None:
+        assert isinstance(p, Path)
+        return Residual(info, path=p, offset=p.stat().st_size - int(info["payload_bytes"]))
+    tail = bytes(data[len(data) - int(info["payload_bytes"]) :])
+    if hashlib.sha256(tail).hexdigest() != info["sha256"]:
+        raise WarpgaussError(f"{p}: residual checksum mismatch: the bytes are damaged; restore them or re-encode")
+    return Residual(info, data=tail)
 
 
 def _decode_shape(shape, shape_zyx, shape_xyz) -> tuple[int, int, int] | None:
@@ -366,6 +374,30 @@ class Model:
             m.coded_bits = dict(header["payload"]["quant"]["bits"])  # saved again, it codes to the same bytes
         if "residual" in header:  # its bytes are read (and checked) when a decode applies it
             m.residual = _residual_of(p, header)
+        return m
+
+    def to_bytes(self, *, encoding: str | None = None) -> bytes:
+        """The bytes :meth:`save` writes, in memory (``encoding`` as :meth:`save` takes it)."""
+        from .wgs import wgs_bytes
+
+        enc = encoding or self.format or "float32"
+        return wgs_bytes(self.params, self.header, encoding=enc, bits=self.coded_bits, residual=self.residual)
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> Model:
+        """A model from a whole ``.wgs`` file's bytes (:meth:`to_bytes`), validated as :meth:`load`
+        validates a file, the residual's checksum included."""
+        from .wgs import read_wgs_bytes
+
+        label = "the model bytes"
+        params, header = read_wgs_bytes(data)
+        _check_header(label, header)
+        m = cls(params, header)
+        m.format = header["payload"]["encoding"]
+        if m.format == "coded":
+            m.coded_bits = dict(header["payload"]["quant"]["bits"])
+        if "residual" in header:
+            m.residual = _residual_of(label, header, data)
         return m
 
     @staticmethod

@@ -55,12 +55,13 @@ raises :class:`~warpgauss.errors.WarpgaussError` with a one-line message on any 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import struct
 import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -365,102 +366,114 @@ def _read(path: str | os.PathLike, payload: bool) -> tuple[np.ndarray | None, di
     except OSError as e:
         raise WarpgaussError(f"cannot open model file {p}: {e.strerror}") from None
     with f:
-        size = os.fstat(f.fileno()).st_size
+        return _parse(f, os.fstat(f.fileno()).st_size, str(p), payload)
 
-        def bad(msg: str) -> WarpgaussError:
-            return WarpgaussError(f"{p}: {msg}")
 
-        if size < PREFIX_SIZE:
-            raise bad(f"not a warpgauss model file (only {size} bytes, shorter than the {PREFIX_SIZE}-byte prefix)")
-        magic, version, hlen, crc = PREFIX.unpack(f.read(PREFIX_SIZE))
-        if magic != MAGIC:
-            raise bad("not a warpgauss model file (bad magic); give a .wgs file written by warpgauss")
-        if version not in (FORMAT_VERSION, RESIDUAL_VERSION):
-            raise bad(
-                f"unsupported .wgs format version {version} (this warpgauss reads versions {FORMAT_VERSION} and {RESIDUAL_VERSION}); "
-                "upgrade warpgauss or re-encode the volume"
-            )
-        if hlen > size - PREFIX_SIZE:
-            raise bad(
-                f"declared header length {hlen} exceeds the {size - PREFIX_SIZE} bytes after the prefix; the file is truncated or damaged"
-            )
-        area = f.read(hlen)
-        if len(area) != hlen:
-            raise bad("the file changed while being read; try again")
-        if zlib.crc32(area) != crc:
-            raise bad("header checksum (CRC32) mismatch: the file is damaged; restore it or re-encode")
+def read_wgs_bytes(data: bytes) -> tuple[np.ndarray, dict]:
+    """:func:`read_wgs` of a whole file's bytes held in memory (what :func:`wgs_bytes` returns),
+    validated as a file is; errors name "the model bytes" where a file's name would stand."""
+    params, header = _parse(io.BytesIO(bytes(data)), len(data), "the model bytes", payload=True)
+    assert params is not None
+    return params, header
+
+
+def _parse(f: BinaryIO, size: int, label: str, payload: bool) -> tuple[np.ndarray | None, dict]:
+    """Validate and read the model whose ``size`` bytes ``f`` holds from its start (``label``: its
+    name in errors); ``payload`` False: the header only."""
+
+    def bad(msg: str) -> WarpgaussError:
+        return WarpgaussError(f"{label}: {msg}")
+
+    if size < PREFIX_SIZE:
+        raise bad(f"not a warpgauss model file (only {size} bytes, shorter than the {PREFIX_SIZE}-byte prefix)")
+    magic, version, hlen, crc = PREFIX.unpack(f.read(PREFIX_SIZE))
+    if magic != MAGIC:
+        raise bad("not a warpgauss model file (bad magic); give a .wgs file written by warpgauss")
+    if version not in (FORMAT_VERSION, RESIDUAL_VERSION):
+        raise bad(
+            f"unsupported .wgs format version {version} (this warpgauss reads versions {FORMAT_VERSION} and {RESIDUAL_VERSION}); "
+            "upgrade warpgauss or re-encode the volume"
+        )
+    if hlen > size - PREFIX_SIZE:
+        raise bad(
+            f"declared header length {hlen} exceeds the {size - PREFIX_SIZE} bytes after the prefix; the file is truncated or damaged"
+        )
+    area = f.read(hlen)
+    if len(area) != hlen:
+        raise bad("the file changed while being read; try again")
+    if zlib.crc32(area) != crc:
+        raise bad("header checksum (CRC32) mismatch: the file is damaged; restore it or re-encode")
+    try:
+        header = json.loads(area.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        raise bad("the header is not valid UTF-8 JSON: the file is damaged; restore it or re-encode") from None
+    if not isinstance(header, dict):
+        raise bad("the header is not a JSON object: the file is damaged; restore it or re-encode")
+    for key in ("n", "payload"):
+        if key not in header:
+            raise bad(f"the header lacks the required key '{key}'; the file was not written by warpgauss")
+    n = header["n"]
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise bad(f"the header's primitive count n = {n!r} is not a non-negative integer; the file is damaged")
+    info = header["payload"]
+    if not isinstance(info, dict):
+        raise bad("the header's 'payload' entry is not an object; the file is damaged")
+    for key in ("encoding", "bytes_per_primitive", "layout", "sha256"):
+        if key not in info:
+            raise bad(f"the header's payload description lacks '{key}'; the file was not written by warpgauss")
+    enc = info["encoding"]
+    if not isinstance(enc, str) or enc not in ENCODINGS:
+        raise bad(f"unknown payload encoding {enc!r} (this warpgauss reads {', '.join(ENCODINGS)}); upgrade warpgauss or re-encode")
+    bpp = ENCODINGS[enc]
+    if info["bytes_per_primitive"] != bpp or isinstance(info["bytes_per_primitive"], bool):
+        raise bad(
+            f"payload encoding {enc} has {bpp} bytes per primitive, the header says {info['bytes_per_primitive']!r}; the file is damaged"
+        )
+    if bpp is None:
+        total = info.get("payload_bytes")
+        if isinstance(total, bool) or not isinstance(total, int) or total < 0:
+            raise bad(f"the header's payload_bytes {total!r} is not a non-negative integer; the file is damaged")
+    else:
+        total = n * bpp
+    if info["layout"] != list(PARAM_NAMES):
+        raise bad(f"unsupported parameter layout {info['layout']!r}; expected {list(PARAM_NAMES)}")
+    sha = info["sha256"]
+    if not isinstance(sha, str) or len(sha) != 64:
+        raise bad("the header's payload sha256 is not a 64-digit hex string; the file is damaged")
+    if enc in ("compact96", "coded") and "quant" not in info:
+        what = "ranges" if enc == "compact96" else "description"
+        raise bad(f"the header lacks the {enc} quantisation {what} ('quant'); the file is damaged")
+    extra = 0
+    if ("residual" in header) != (version == RESIDUAL_VERSION):
+        raise bad(f"a version {version} file {'without' if version == RESIDUAL_VERSION else 'with'} a residual; the file is damaged")
+    if "residual" in header:  # checked in full by warpgauss.residual.check_info before it is read
+        claimed = header["residual"].get("payload_bytes") if isinstance(header["residual"], dict) else None
+        if isinstance(claimed, bool) or not isinstance(claimed, int) or claimed < 0:
+            raise bad(f"the header's residual payload_bytes {claimed!r} is not a non-negative integer; the file is damaged")
+        extra = claimed
+    expected = PREFIX_SIZE + hlen + total + extra
+    if size != expected:
+        kind = "truncated" if size < expected else f"{size - expected} trailing bytes"
+        what = f"{n} x {bpp}" if bpp is not None else f"{total}-byte coded"
+        more = f" + {extra}-byte residual" if extra else ""
+        raise bad(
+            f"file size {size} != expected {expected} (prefix {PREFIX_SIZE} + header {hlen} + "
+            f"{what} payload{more}): {kind}; the file is damaged"
+        )
+    if n < 1:
+        raise bad("the model holds no primitives (n = 0); a model needs at least one, re-encode it")
+    if enc == "coded":  # before the payload is read or anything sized by n is allocated
+        from .coded import check_claim
+
         try:
-            header = json.loads(area.decode("utf-8"))
-        except (UnicodeDecodeError, ValueError):
-            raise bad("the header is not valid UTF-8 JSON: the file is damaged; restore it or re-encode") from None
-        if not isinstance(header, dict):
-            raise bad("the header is not a JSON object: the file is damaged; restore it or re-encode")
-        for key in ("n", "payload"):
-            if key not in header:
-                raise bad(f"the header lacks the required key '{key}'; the file was not written by warpgauss")
-        n = header["n"]
-        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-            raise bad(f"the header's primitive count n = {n!r} is not a non-negative integer; the file is damaged")
-        info = header["payload"]
-        if not isinstance(info, dict):
-            raise bad("the header's 'payload' entry is not an object; the file is damaged")
-        for key in ("encoding", "bytes_per_primitive", "layout", "sha256"):
-            if key not in info:
-                raise bad(f"the header's payload description lacks '{key}'; the file was not written by warpgauss")
-        enc = info["encoding"]
-        if not isinstance(enc, str) or enc not in ENCODINGS:
-            raise bad(f"unknown payload encoding {enc!r} (this warpgauss reads {', '.join(ENCODINGS)}); upgrade warpgauss or re-encode")
-        bpp = ENCODINGS[enc]
-        if info["bytes_per_primitive"] != bpp or isinstance(info["bytes_per_primitive"], bool):
-            raise bad(
-                f"payload encoding {enc} has {bpp} bytes per primitive, the header says "
-                f"{info['bytes_per_primitive']!r}; the file is damaged"
-            )
-        if bpp is None:
-            total = info.get("payload_bytes")
-            if isinstance(total, bool) or not isinstance(total, int) or total < 0:
-                raise bad(f"the header's payload_bytes {total!r} is not a non-negative integer; the file is damaged")
-        else:
-            total = n * bpp
-        if info["layout"] != list(PARAM_NAMES):
-            raise bad(f"unsupported parameter layout {info['layout']!r}; expected {list(PARAM_NAMES)}")
-        sha = info["sha256"]
-        if not isinstance(sha, str) or len(sha) != 64:
-            raise bad("the header's payload sha256 is not a 64-digit hex string; the file is damaged")
-        if enc in ("compact96", "coded") and "quant" not in info:
-            what = "ranges" if enc == "compact96" else "description"
-            raise bad(f"the header lacks the {enc} quantisation {what} ('quant'); the file is damaged")
-        extra = 0
-        if ("residual" in header) != (version == RESIDUAL_VERSION):
-            raise bad(f"a version {version} file {'without' if version == RESIDUAL_VERSION else 'with'} a residual; the file is damaged")
-        if "residual" in header:  # checked in full by warpgauss.residual.check_info before it is read
-            claimed = header["residual"].get("payload_bytes") if isinstance(header["residual"], dict) else None
-            if isinstance(claimed, bool) or not isinstance(claimed, int) or claimed < 0:
-                raise bad(f"the header's residual payload_bytes {claimed!r} is not a non-negative integer; the file is damaged")
-            extra = claimed
-        expected = PREFIX_SIZE + hlen + total + extra
-        if size != expected:
-            kind = "truncated" if size < expected else f"{size - expected} trailing bytes"
-            what = f"{n} x {bpp}" if bpp is not None else f"{total}-byte coded"
-            more = f" + {extra}-byte residual" if extra else ""
-            raise bad(
-                f"file size {size} != expected {expected} (prefix {PREFIX_SIZE} + header {hlen} + "
-                f"{what} payload{more}): {kind}; the file is damaged"
-            )
-        if n < 1:
-            raise bad("the model holds no primitives (n = 0); a model needs at least one, re-encode it")
-        if enc == "coded":  # before the payload is read or anything sized by n is allocated
-            from .coded import check_claim
-
-            try:
-                check_claim(total, n)
-            except WarpgaussError as e:
-                raise bad(str(e)) from None
-        if not payload:
-            return None, header
-        data = f.read(total)
-        if len(data) != total:
-            raise bad("the file changed while being read; try again")
+            check_claim(total, n)
+        except WarpgaussError as e:
+            raise bad(str(e)) from None
+    if not payload:
+        return None, header
+    data = f.read(total)
+    if len(data) != total:
+        raise bad("the file changed while being read; try again")
     if hashlib.sha256(data).hexdigest() != sha:
         raise bad("payload checksum mismatch: the file is damaged; restore it or re-encode")
     if enc in ("compact96", "coded"):
