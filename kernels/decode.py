@@ -18,7 +18,7 @@ a slab whose lists would not fit (:data:`warpgauss.field.MAX_BRICK_LIST`).
 
 import warp as wp
 
-from .field import RHO0, BinnedPrimitives, binned_sums, conic_g, in_box
+from .field import RHO0, BinnedPrimitives, binned_sums, conic_kernel
 
 wp.set_module_options({"enable_backward": False})
 
@@ -236,10 +236,7 @@ def eval_brick_lists(
         w = prims.w[s]
         wa = w * prims.a[s]
         for q in range(4):
-            d = wp.vec3(px, py, voxel_coord(k0 + q + z0, offset[2], scale[2])) - mu
-            g = float(0.0)
-            if in_box(d, ext):
-                g = conic_g(d, cq)
+            g = conic_kernel(wp.vec3(px, py, voxel_coord(k0 + q + z0, offset[2], scale[2])) - mu, ext, cq)
             if g > 0.0:
                 num[q] = num[q] + wa * g
                 den[q] = den[q] + w * g

@@ -109,6 +109,16 @@ def conic_g(d: wp.vec3, c: vec6) -> float:
 
 
 @wp.func
+def conic_kernel(d: wp.vec3, ext: wp.vec3, c: vec6) -> float:
+    """G at offset d from the centre: 0 outside the 5-sigma box (:func:`in_box`), else
+    :func:`conic_g` (for a caller that holds Sigma^-1 already; :func:`add_pair` reads it only
+    inside the box)."""
+    if not in_box(d, ext):
+        return 0.0
+    return conic_g(d, c)
+
+
+@wp.func
 def truncated_kernel(p: wp.vec3, mu: wp.vec3, rot: wp.mat33, inv_s2: wp.vec3, ext: wp.vec3) -> float:
     """G(p) with the 5-sigma cut; 0 outside the bounding box or the ellipsoid, in the primitive's
     frame (decoding and rendering). The pair passes of refinement and evaluation read Sigma^-1
@@ -430,10 +440,7 @@ def eval_points_dense(
     den = float(0.0)
     n = int(0)
     for j in range(mu.shape[0]):
-        g = float(0.0)
-        d = p - mu[j]
-        if in_box(d, ext[j]):
-            g = conic_g(d, conic[j])
+        g = conic_kernel(p - mu[j], ext[j], conic[j])
         if g > 0.0:
             num += w[j] * a[j] * g
             den += w[j] * g

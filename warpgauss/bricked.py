@@ -471,6 +471,7 @@ def choose_schedule(device: str, client, lazy: bool, shape_xyz, n: int, iteratio
     cluster) the seams are refit for :data:`CPU_WAVES_SEAM_REFIT` of the iterations."""
     from ._warp import warp
 
+    on_cpu = not warp().get_device(device).is_cuda
     if NEIGHBOURS_FIRST is not None:
         together, why = not NEIGHBOURS_FIRST, "set (bricked.NEIGHBOURS_FIRST)"
     elif iterations <= 0:
@@ -479,7 +480,7 @@ def choose_schedule(device: str, client, lazy: bool, shape_xyz, n: int, iteratio
         together, why = False, "the volume is read brick by brick (the seams' refit needs it whole on one device)"
     elif client is not None:
         together, why = False, "a Dask cluster"
-    elif not warp().get_device(device).is_cuda:
+    elif on_cpu:
         together, why = False, "the CPU steps bricks one at a time"
     else:
         limit = default_device_limit(device) if limit is None else limit
@@ -489,7 +490,7 @@ def choose_schedule(device: str, client, lazy: bool, shape_xyz, n: int, iteratio
         if limit is not None and not together:
             why = f"the seams' refit would need about {need / 2**30:.1f} GiB of the device, {limit / 2**30:.1f} GiB allowed"
     share = TOGETHER_SEAM_REFIT if together else 0.0
-    if SEAM_REFIT is None and not together and iterations > 0 and not lazy and not warp().get_device(device).is_cuda:
+    if SEAM_REFIT is None and not together and iterations > 0 and not lazy and on_cpu:
         # this process holds the whole volume on the CPU: the seams are refit after the waves, on
         # a cluster as here (the same model on any number of workers)
         share, why = CPU_WAVES_SEAM_REFIT, f"{why}; the seams refit after the waves on this process's CPU"

@@ -326,3 +326,10 @@ def bits_for_psnr(psnr_db: float | None) -> tuple[dict[str, int], int]:
         return dict(CODED_BITS), 0
     extra = int(min(4, max(0, round((psnr_db - BITS_REFERENCE_DB) / DB_PER_BIT))))
     return {k: min(v + extra, _MAX_BITS[k]) for k, v in CODED_BITS.items()}, extra
+
+
+def accuracy_bits(psnr_db: float | None) -> dict:
+    """The report's ``coded_bits_from_accuracy``: the depths :func:`bits_for_psnr` gives a model
+    whose training samples score ``psnr_db`` (``bits``) and the bits it added (``bits_added``)."""
+    bits, extra = bits_for_psnr(psnr_db)
+    return {"sample_psnr_db": psnr_db, "bits_added": extra, "bits": bits}

@@ -316,14 +316,10 @@ class EncodeRun(replan.Replan):
             if replan.REFINED_BITS == "sizing" and self.sizing is not None:  # the depths N was sized for
                 refined.coded_bits = dict(self.sizing["bits"])
             elif self.enc == "coded" and history:
-                from ..ratefit import bits_for_psnr  # finer grids for a more accurate model
+                from ..ratefit import accuracy_bits  # finer grids for a more accurate model
 
-                refined.coded_bits, extra = bits_for_psnr(history[-1].get("sample_psnr_db"))
-                self.coded_bits_note = {
-                    "sample_psnr_db": history[-1].get("sample_psnr_db"),
-                    "bits_added": extra,
-                    "bits": refined.coded_bits,
-                }
+                self.coded_bits_note = accuracy_bits(history[-1].get("sample_psnr_db"))
+                refined.coded_bits = self.coded_bits_note["bits"]
             self.model, self.refined_fit = self.stored(refined)
             if self.refined_fit is not None and not refiner.interrupted:
                 self.refit_pruned(refined, cap, deadline)
