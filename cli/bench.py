@@ -30,9 +30,9 @@ def kernels(
 ) -> None:
     """Time binning, sampling, forward, backward, the fused update, a whole iteration (graph and
     plain launches), decode and the dense evaluator; print a table and optionally write JSON."""
-    from warpgauss._fs import atomic_write_bytes, check_writable
-    from warpgauss._warp import resolve_device, warp
-    from warpgauss.bench import CPU_DEFAULTS, GPU_DEFAULTS, KernelBenchConfig, format_table, run_kernel_bench
+    from warpgauss.core.files import atomic_write_bytes, check_writable
+    from warpgauss.core.warp import resolve_device, warp
+    from warpgauss.encoding.bench import CPU_DEFAULTS, GPU_DEFAULTS, KernelBenchConfig, format_table, run_kernel_bench
     from warpgauss.errors import WarpgaussError
 
     if json_out is not None:

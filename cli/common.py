@@ -129,7 +129,7 @@ def print_json(obj) -> None:
 
 class PhaseLines:
     """An encode's progress for people: the spinner says what runs now, and each phase (the run
-    report's stages grouped in plain words, :func:`warpgauss.profiling.phase_of`) leaves one line
+    report's stages grouped in plain words, :func:`warpgauss.core.profiling.phase_of`) leaves one line
     with its seconds on stderr when the next begins or :meth:`close` is called."""
 
     def __init__(self, status) -> None:
@@ -138,7 +138,7 @@ class PhaseLines:
         self.t0 = 0.0
 
     def stage(self, name: str, title: str) -> None:
-        from warpgauss.profiling import phase_of
+        from warpgauss.core.profiling import phase_of
 
         words = phase_of(name)
         if words != self.phase:
@@ -173,8 +173,8 @@ def size_text(n: int) -> str:
 
 def psnr_text(db: float, occupied: float | None) -> str:
     """PSNR and occupied-only PSNR for people (``PSNR 48.12 dB, occupied 48.20 dB``); an exact
-    decode (MSE 0) reports the cap, :data:`warpgauss.evaluate.PSNR_CAP_DB`, and says so."""
-    from warpgauss.evaluate import PSNR_CAP_DB
+    decode (MSE 0) reports the cap, :data:`warpgauss.field.evaluate.PSNR_CAP_DB`, and says so."""
+    from warpgauss.field.evaluate import PSNR_CAP_DB
 
     occ = "n/a" if occupied is None else f"{occupied:.2f} dB"
     cap = f" ({PSNR_CAP_DB:.0f} dB is the cap: no error)" if db >= PSNR_CAP_DB else ""

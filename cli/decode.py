@@ -36,10 +36,10 @@ def decode(
     ] = None,
 ) -> None:
     """Decode a model to a dense grid spanning the encoded extent (or a box of it), at any resolution."""
-    from warpgauss._fs import check_writable
-    from warpgauss.io import write_volume
-    from warpgauss.model import Model
-    from warpgauss.region import box_shape, check_box, format_box, on_encoded_grid, parse_box
+    from warpgauss.core.files import check_writable
+    from warpgauss.field.region import box_shape, check_box, format_box, on_encoded_grid, parse_box
+    from warpgauss.format.model import Model
+    from warpgauss.readers import write_volume
 
     check_writable(output, force=force)
     grid = parse_shape(shape)

@@ -267,16 +267,16 @@ def encode(
 ) -> None:
     """Encode a volume into N anisotropic Gaussians, evaluate it and write the model and a report."""
     import warpgauss
-    from warpgauss._fs import atomic_write_bytes, check_writable
-    from warpgauss.io import ReadOptions
-    from warpgauss.optimize import LossWeights, RefineConfig
+    from warpgauss.core.files import atomic_write_bytes, check_writable
+    from warpgauss.encoding.refine import LossWeights, RefineConfig
+    from warpgauss.readers import ReadOptions
 
     if (input is None) == (example is None):
         fail("give a volume file or --example NAME (one of them)")
-    from warpgauss.driver.sizing import check_budget_options
+    from warpgauss.encoding.driver.sizing import check_budget_options
 
     check_budget_options(budget, ratio, file_bytes)  # what needs no data is checked before any file is looked at
-    from warpgauss.residual import Bound
+    from warpgauss.format.residual import Bound
 
     bounded = Bound(max_error, max_error_rel, psnr).given
     if bounded:
@@ -289,7 +289,7 @@ def encode(
     variables = list(variable or [])
     one_variable = variables[0] if len(variables) == 1 else None
     read = ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value)
-    from warpgauss.driver.config import EncodeConfig
+    from warpgauss.encoding.driver.config import EncodeConfig
 
     cfg = EncodeConfig.from_kwargs(  # every path below takes its settings from here
         budget=budget,
@@ -327,7 +327,7 @@ def encode(
     )
     series = input is not None and not input.exists() and any(c in str(input) for c in "*?[")
     if input is not None and not series and (len(variables) > 1 or input.exists()):
-        from warpgauss.series import time_steps
+        from warpgauss.series.steps import time_steps
 
         series = len(variables) > 1 or time_steps(input, one_variable) is not None
     if not series and (cold or warm_iterations is not None or not motion or keyframe_drift is not None):
@@ -382,13 +382,13 @@ def encode(
     ):
         fail("--halo, --workers and --scheduler apply to a bricked encode: give --bricks XxYxZ (--halo also --max-device-memory)")
     if bricks is not None:
-        from warpgauss.brickplan import parse_bricks
-        from warpgauss.cluster import default_client
+        from warpgauss.encoding.scale.cluster import default_client
+        from warpgauss.encoding.scale.plan import parse_bricks
 
         parse_bricks(bricks)  # refused in one line before a cluster starts
         if halo is not None and halo < 0:
             fail(f"--halo must be >= 0 voxels, got {halo}")
-        from warpgauss.driver.bricked import check_bricking
+        from warpgauss.encoding.scale.driver import check_bricking
 
         check_bricking(input, read, example, size, bricks, halo)
         client, where = default_client(workers, scheduler, device)

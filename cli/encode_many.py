@@ -13,7 +13,7 @@ def encode_ladder(text, input, out, cfg, as_json) -> None:
     import inspect
 
     import warpgauss
-    from warpgauss._fs import atomic_write_bytes, check_writable
+    from warpgauss.core.files import atomic_write_bytes, check_writable
 
     force = cfg.run.force
     budgets = parse_int_list(text, "--ladder") or ()
@@ -87,8 +87,8 @@ def encode_series(
     """``warpgauss encode 'GLOB'`` (or a file with a time axis, or several --variable): one model
     and report per timestep and variable (see warpgauss.encode_series)."""
     import warpgauss
-    from warpgauss._fs import atomic_write_bytes
-    from warpgauss.series import KEYFRAME_DRIFT_DB
+    from warpgauss.core.files import atomic_write_bytes
+    from warpgauss.series.steps import KEYFRAME_DRIFT_DB
 
     read, force = cfg.reading.read, cfg.run.force
     # what a series sets per timestep (output, warm start) or passes on its own (read, force); the
@@ -112,8 +112,8 @@ def encode_series(
     if "{t" not in name:
         p = Path(name)
         name = str(p.with_name(f"{p.stem}_{{t:03d}}{p.suffix or '.wgs'}"))
-    from warpgauss._fs import check_writable
-    from warpgauss.series import series_chains
+    from warpgauss.core.files import check_writable
+    from warpgauss.series.steps import series_chains
 
     total = 0
     for var, items, _ in series_chains(pattern, variables or None, read):  # the reports too, before any work
@@ -126,7 +126,7 @@ def encode_series(
     workers, scheduler = cluster
     client = None
     if workers is not None or scheduler is not None:
-        from warpgauss.cluster import default_client
+        from warpgauss.encoding.scale.cluster import default_client
 
         client, where = default_client(workers, scheduler, kw.get("device"))
         if status is not None:
@@ -167,7 +167,7 @@ def encode_series(
     )
     try:
         if client is None:  # one model at a time: a long series holds two models, not all
-            for m in warpgauss.series.iter_series(pattern, **args):
+            for m in warpgauss.series.steps.iter_series(pattern, **args):
                 step(m.run_report["series"]["step"], total, m)
         else:
             warpgauss.encode_series(pattern, on_step=step, client=client, **args)

@@ -34,9 +34,9 @@ def evaluate(
     The max abs error is printed once, in source units and as a share of the value range (the JSON's
     ``max_abs_error_source`` and ``max_abs_error``); a model with a residual is scored as its encode
     was, against the source's own values; an exact decode reports PSNR 200 dB, the cap."""
-    from warpgauss.evaluate import evaluate_against
-    from warpgauss.io import ReadOptions
-    from warpgauss.model import Model
+    from warpgauss.field.evaluate import evaluate_against
+    from warpgauss.format.model import Model
+    from warpgauss.readers import ReadOptions
 
     m = Model.load(model)
     s = stride if stride is not None else int(m.header.get("encoding", {}).get("stride", 1))

@@ -33,9 +33,9 @@ def example(
 ) -> None:
     """Generate a built-in example volume (deterministic by seed) and write it; with --steps T a
     series of T timesteps that `warpgauss encode 'GLOB'` encodes with warm starts."""
-    from warpgauss._fs import check_writable
-    from warpgauss.io import write_volume
-    from warpgauss.synthetic import generate, raw_name
+    from warpgauss.core.files import check_writable
+    from warpgauss.readers import write_volume
+    from warpgauss.readers.synthetic import generate, raw_name
 
     shape = _parse_size(size)
     if steps is not None:
@@ -49,12 +49,12 @@ def example(
 
 
 def _write_series(name: str, shape: tuple[int, int, int], steps: int, output: Path | None, seed: int, force: bool) -> None:
-    """``steps`` files of :func:`warpgauss.synthetic.generate_series`, every name checked before
+    """``steps`` files of :func:`warpgauss.readers.synthetic.generate_series`, every name checked before
     the first is generated."""
-    from warpgauss._fs import check_writable
+    from warpgauss.core.files import check_writable
     from warpgauss.errors import WarpgaussError
-    from warpgauss.io import write_volume
-    from warpgauss.synthetic import generate_series, raw_name
+    from warpgauss.readers import write_volume
+    from warpgauss.readers.synthetic import generate_series, raw_name
 
     if steps < 1:
         raise WarpgaussError(f"--steps must be a positive number of timesteps, got {steps}")

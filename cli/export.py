@@ -18,10 +18,10 @@ def export(
     force: Annotated[bool, typer.Option("--force", help="Overwrite an existing output file")] = False,
 ) -> None:
     """Write one point per Gaussian (centre) with scale (3), orientation (quaternion x,y,z,w), rotation (3x3), value and weight."""
-    from warpgauss._fs import check_writable
+    from warpgauss.core.files import check_writable
     from warpgauss.errors import WarpgaussError
-    from warpgauss.export import write_vtp
-    from warpgauss.model import Model
+    from warpgauss.format.export import write_vtp
+    from warpgauss.format.model import Model
 
     if output.suffix.lower() != ".vtp":
         raise WarpgaussError(f"{output}: primitives are exported as VTK PolyData; give a .vtp file name")

@@ -21,7 +21,7 @@ def info(
     and the payload is not read (a file of any size answers at once); --verify reads it too."""
     from rich.table import Table
 
-    from warpgauss.model import Model
+    from warpgauss.format.model import Model
 
     if verify:
         m = Model.load(model)

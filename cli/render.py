@@ -72,7 +72,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def is_model_file(path: Path) -> bool:
     """A .wgs file, or any file that starts with the model magic."""
-    from warpgauss.wgs import MAGIC
+    from warpgauss.format.wgs import MAGIC
 
     if path.suffix.lower() == ".wgs":
         return True
@@ -151,9 +151,9 @@ def render(
     force: Annotated[bool, typer.Option("--force", help="Overwrite an existing image")] = False,
 ) -> None:
     """Render a model or a volume with a transfer function, camera and lighting; compare a model with its volume."""
-    from warpgauss._fs import check_writable
-    from warpgauss.io import ReadOptions
-    from warpgauss.render import Camera, RenderSettings
+    from warpgauss.core.files import check_writable
+    from warpgauss.readers import ReadOptions
+    from warpgauss.render.renderers import Camera, RenderSettings
 
     check_png(output)
     check_writable(output, force=force)
@@ -232,13 +232,13 @@ def render(
 
 
 def _transfer(header, colormap, opacity, tf_path, value_range):
-    from warpgauss.transfer import resolve_transfer_function
+    from warpgauss.render.transfer import resolve_transfer_function
 
     return resolve_transfer_function(header, path=tf_path, colormap_name=colormap, opacity=opacity, value_range=value_range)
 
 
 def read_normalised(path: Path, read, value_range=None):
-    from warpgauss.analysis import normalise
+    from warpgauss.field.analysis import normalise
 
     vol = read.read(path)
     fill = read.fill_value if read.fill_value is not None else vol.fill_value
@@ -249,9 +249,9 @@ def read_normalised(path: Path, read, value_range=None):
 def _render_model(
     path, output, method, compare, camera, settings, colormap, opacity, tf_path, read, gain, device, force, cache_res=None, residual=False
 ) -> dict:
-    from warpgauss._warp import resolve_device
-    from warpgauss.model import Model
-    from warpgauss.render import (
+    from warpgauss.core.warp import resolve_device
+    from warpgauss.format.model import Model
+    from warpgauss.render.renderers import (
         Scene,
         VolumeRenderer,
         cache_grid_shape,
@@ -307,7 +307,7 @@ def _render_model(
 
 
 def _render_volume(path, output, camera, settings, colormap, opacity, tf_path, read, device, force) -> dict:
-    from warpgauss.render import Scene, VolumeRenderer, save_png
+    from warpgauss.render.renderers import Scene, VolumeRenderer, save_png
 
     vol, f = read_normalised(path, read)
     tf = _transfer(None, colormap, opacity, tf_path, (f.vmin, f.vmax))

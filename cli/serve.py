@@ -39,10 +39,10 @@ def serve(
     """Serve a page that shows the model: orbit and zoom with the mouse, edit the colour and opacity
     curves, switch colormap, renderer, shading and density, step through a series, compare with the
     source volume."""
-    from warpgauss.io import ReadOptions
-    from warpgauss.serve import require_trame
-    from warpgauss.serve import serve as run
-    from warpgauss.viewer import Viewer, load_models
+    from warpgauss.readers import ReadOptions
+    from warpgauss.render.serve import require_trame
+    from warpgauss.render.serve import serve as run
+    from warpgauss.render.viewer import Viewer, load_models
 
     from .render import read_normalised
 

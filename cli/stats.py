@@ -29,10 +29,10 @@ def stats(
 ) -> None:
     """Occupancy, gradient top-10 %, S(1)/S(16), the seed limit N_max and the bytes and compression
     ratio of a ladder of budgets (full precision and compact), with a one-line reading."""
-    from warpgauss.driver import load_field
+    from warpgauss.encoding.driver import load_field
+    from warpgauss.encoding.stats import field_stats
     from warpgauss.errors import WarpgaussError
-    from warpgauss.io import ReadOptions
-    from warpgauss.stats import field_stats
+    from warpgauss.readers import ReadOptions
 
     if (input is None) == (example is None):
         raise WarpgaussError("give a volume file or --example NAME (one of them)")
@@ -105,7 +105,7 @@ def _print_table(res: dict) -> None:
         )
     if res["budgets"]:
         out_console.print(t)
-    from warpgauss.driver.sizing import CODED_BPP_MEASURED
+    from warpgauss.encoding.driver.sizing import CODED_BPP_MEASURED
 
     note = "coded ~: the default format, at {:g}-{:g} B a Gaussian as measured".format(*CODED_BPP_MEASURED)
     out_console.print(note + ("; * N_max" if any(b["is_n_max"] for b in res["budgets"]) else ""), soft_wrap=False)

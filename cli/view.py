@@ -5,9 +5,9 @@ frame is drawn by one of our renderers from VTK's camera and shown as the window
 image, with the grid's outline drawn by VTK on top for orientation.
 
 Methods: ``cached`` (the default: the model decoded once onto a grid, kept on the device and ray
-marched as a dense volume, :class:`~warpgauss.render.CachedRenderer`), ``splat``
-(:class:`~warpgauss.splat.SplatRenderer`) and ``march``, the exact ray marching of V~
-(:class:`~warpgauss.render.ModelRenderer`): seconds per frame for large models, so while the mouse
+marched as a dense volume, :class:`~warpgauss.render.renderers.CachedRenderer`), ``splat``
+(:class:`~warpgauss.render.splat.SplatRenderer`) and ``march``, the exact ray marching of V~
+(:class:`~warpgauss.render.renderers.ModelRenderer`): seconds per frame for large models, so while the mouse
 drags the camera its frames come from the cached grid and the exact frame is drawn once the
 camera stops. Keys: ``c`` next colormap, ``o`` next opacity curve, ``+``/``-`` density x/÷ 1.5,
 ``m`` next method (cached -> splat -> march), ``l`` shading on/off; a slider sets the density too.
@@ -72,8 +72,8 @@ class Viewer:
         from vtkmodules.vtkCommonDataModel import vtkImageData
         from vtkmodules.vtkRenderingCore import vtkImageActor, vtkRenderer
 
-        from warpgauss.render import Camera, RenderSettings, resolve_view
-        from warpgauss.transfer import from_header
+        from warpgauss.render.renderers import Camera, RenderSettings, resolve_view
+        from warpgauss.render.transfer import from_header
 
         if method not in METHODS:
             raise WarpgaussError(f"--method must be cached, splat, march or bounded, got {method!r}")
@@ -154,7 +154,7 @@ class Viewer:
     # -- state changes (each redraws) --------------------------------------------------------
     def renderer(self, method: str | None = None):
         """The renderer of ``method`` (default: the current one), built on first use."""
-        from warpgauss.render import make_renderer
+        from warpgauss.render.renderers import make_renderer
 
         method = method or self.method
         if method not in self._cache:
@@ -203,8 +203,8 @@ class Viewer:
 
     # -- drawing ------------------------------------------------------------------------------
     def vtk_view(self, width: int, height: int):
-        """Our :class:`~warpgauss.render.View` from VTK's camera."""
-        from warpgauss.render import View
+        """Our :class:`~warpgauss.render.renderers.View` from VTK's camera."""
+        from warpgauss.render.renderers import View
 
         cam = self.plotter.camera
         eye = np.asarray(cam.position, np.float64)
@@ -218,8 +218,8 @@ class Viewer:
         return View(eye, right, up, forward, math.tan(math.radians(cam.view_angle) / 2), float(cam.parallel_scale), ortho, width, height)
 
     def frame(self, width: int, height: int):
-        """Render one frame of the current state at the given size (an :class:`~warpgauss.render.Image`)."""
-        from warpgauss.render import with_settings
+        """Render one frame of the current state at the given size (an :class:`~warpgauss.render.renderers.Image`)."""
+        from warpgauss.render.renderers import with_settings
 
         s = with_settings(self.settings, width=int(width), height=int(height), density=self.density)
         return self.renderer(self.frame_method()).render(self.vtk_view(int(width), int(height)), self.tf, s)
@@ -264,7 +264,7 @@ class Viewer:
 
     def screenshot(self, path) -> None:
         """Render one frame off-screen and write it (PNG, atomic)."""
-        from warpgauss._fs import atomic_path
+        from warpgauss.core.files import atomic_path
 
         self.redraw()
         with atomic_path(path) as tmp:
@@ -301,10 +301,10 @@ def view(
     force: Annotated[bool, typer.Option("--force", help="Overwrite an existing screenshot")] = False,
 ) -> None:
     """Open an interactive window (orbit, zoom, colormap/opacity/density keys) showing our renderer's frames."""
-    from warpgauss._fs import check_writable
-    from warpgauss.model import Model
-    from warpgauss.render import Camera, RenderSettings
-    from warpgauss.transfer import resolve_transfer_function
+    from warpgauss.core.files import check_writable
+    from warpgauss.format.model import Model
+    from warpgauss.render.renderers import Camera, RenderSettings
+    from warpgauss.render.transfer import resolve_transfer_function
 
     if method not in METHODS:
         raise WarpgaussError(f"--method must be cached, splat, march or bounded, got {method!r}")
@@ -322,8 +322,8 @@ def view(
     w, h = parse_size(size)
     m = Model.load(model)
     if method in ("cached", "march"):  # march drags on the cached grid too; refuse what cannot be held first
-        from warpgauss._warp import resolve_device
-        from warpgauss.render import cache_grid_shape, check_cache_memory
+        from warpgauss.core.warp import resolve_device
+        from warpgauss.render.renderers import cache_grid_shape, check_cache_memory
 
         check_cache_memory(cache_grid_shape(m.shape_xyz, cache_res), resolve_device(device))
     tfn = resolve_transfer_function(m.header, path=tf, colormap_name=colormap, opacity=opacity)

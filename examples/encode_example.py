@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss.synthetic import generate
+from warpgauss.readers.synthetic import generate
 
 
 class Example:

@@ -28,7 +28,7 @@ class Example:
         self.iterations = iterations
 
     def step(self, out_dir: Path) -> dict:
-        from warpgauss.io import ReadOptions, write_volume
+        from warpgauss.readers import ReadOptions, write_volume
 
         model = warpgauss.encode(
             self.path,

@@ -186,7 +186,7 @@ def gather_point_state(
 @wp.struct
 class PointGrid:
     """The iteration's points binned on one cell grid per primitive level (see
-    :func:`warpgauss.field.plan_point_grids`), every (level, point) entry sorted by cell.
+    :func:`warpgauss.field.gaussians.plan_point_grids`), every (level, point) entry sorted by cell.
 
     Cells are numbered x fastest within a level and the levels one after the other, so the
     entries of a row of cells (fixed y and z, consecutive x) are one contiguous range of the
@@ -248,7 +248,7 @@ def count_keys(
     """Entries per cell: the last entry of each run of equal keys finds the run's first by a
     binary search and writes the run's length (no atomics: thousands of entries of one cell would
     queue on one address). Their exclusive prefix sum is the cell start table, empty cells holding
-    the next cell's start (:func:`warpgauss.field.cell_starts`)."""
+    the next cell's start (:func:`warpgauss.field.gaussians.cell_starts`)."""
     i = wp.tid()
     key = sorted_keys[i]
     if i + 1 < count:

@@ -13,7 +13,7 @@ order :func:`binned_sums` visits them, so the decoded values are the evaluator's
 V~ is exactly 0 at a point no primitive's truncated support reaches (numerator and density are
 both 0): a brick with an empty list is written 0 without evaluation. :func:`mark_bricks` and
 :func:`eval_grid_blocked` remain for the share of bricks a decode evaluates and as the path for
-a slab whose lists would not fit (:data:`warpgauss.field.MAX_BRICK_LIST`).
+a slab whose lists would not fit (:data:`warpgauss.field.gaussians.MAX_BRICK_LIST`).
 """
 
 import warp as wp

@@ -236,7 +236,7 @@ def radius_class_flags(
     min_cell: float,
     flags: wp.array(dtype=int),  # [RADIUS_CLASSES] out (zeroed before): 1 where a class is occupied
 ):
-    """Flag the power-of-two class of each finite radius as :func:`warpgauss.field.plan_bins`
+    """Flag the power-of-two class of each finite radius as :func:`warpgauss.field.gaussians.plan_bins`
     computes it in float64: base = 2^floor(log2(max(rmin, min_cell))), class =
     ceil(log2(max(r, base) / base) - 1e-9)."""
     r = radius[wp.tid()]

@@ -1,6 +1,6 @@
 """Stage P on the device: a volume that already lives on the GPU (a simulation's array, handed over
 by DLPack or ``__cuda_array_interface__``) is scanned, masked, normalised and counted there, with
-no host copy (SPEC section 2; the host path is :func:`warpgauss.analysis.normalise`).
+no host copy (SPEC section 2; the host path is :func:`warpgauss.field.analysis.normalise`).
 
 Reductions run one thread per (z, y) row: each writes its row's result, and the host sums the rows
 (a few hundred kilobytes at 512^3), so that the result does not depend on the order of atomics.

@@ -242,7 +242,7 @@ def on_grid(x: float, bits: int) -> float:
 
 @wp.struct
 class QuantGrid:
-    """Bit depths of the coded format's grids (:mod:`warpgauss.coded`); on = 0: no projection."""
+    """Bit depths of the coded format's grids (:mod:`warpgauss.format.coded`); on = 0: no projection."""
 
     on: int
     mu: int
@@ -257,7 +257,7 @@ _R2 = 0.7071067811865476  # 1 / sqrt 2
 _mat24x4 = wp.types.matrix(shape=(24, 4), dtype=float)
 _mat24x3i = wp.types.matrix(shape=(24, 3), dtype=int)
 # the 24 turns of a box's axes onto themselves, (x, y, z, w), the identity first, and the old axis
-# each new axis is: as warpgauss.coded.OCTAHEDRAL_Q and OCTAHEDRAL_AXES (a test holds them equal)
+# each new axis is: as warpgauss.format.coded.OCTAHEDRAL_Q and OCTAHEDRAL_AXES (a test holds them equal)
 OCTAHEDRAL_Q = wp.constant(
     _mat24x4(
         *(0.0, 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0),
@@ -275,7 +275,7 @@ OCTAHEDRAL_AXES = wp.constant(
         *(1, 2, 0, 2, 0, 1, 2, 0, 1, 1, 2, 0, 2, 0, 1, 1, 2, 0, 1, 2, 0, 2, 0, 1),
     )
 )
-CANONICAL_MARGIN = wp.constant(1.0e-5)  # as warpgauss.coded.CANONICAL_MARGIN
+CANONICAL_MARGIN = wp.constant(1.0e-5)  # as warpgauss.format.coded.CANONICAL_MARGIN
 TAN_EIGHTH = wp.constant(0.41421356237309503)  # tan(pi / 8)
 
 
@@ -293,7 +293,7 @@ def quat_product(a: wp.vec4, b: wp.vec4) -> wp.vec4:
 @wp.func
 def nearest_turn(q: wp.vec4) -> int:
     """The turn k of :data:`OCTAHEDRAL_Q` that brings unit q nearest the identity (largest |w| of
-    q g_k; the first of ties), as :func:`warpgauss.coded.canonical` chooses it."""
+    q g_k; the first of ties), as :func:`warpgauss.format.coded.canonical` chooses it."""
     best = int(0)
     top = wp.abs(q[3])
     for k in range(1, 24):
@@ -337,7 +337,7 @@ def project_turned(p: vec12, g: QuantGrid) -> vec12:
     grids: centres, log-scales and values to multiples of 2^-bits, the weight to a multiple of
     2^-w in [2^-w, 1 - 2^-w] (as a logit), the rotation to its smallest-three levels with the
     implied component the largest and the rounded rotation still nearest the identity by
-    :data:`CANONICAL_MARGIN` (as :func:`warpgauss.coded.quantise` codes it)."""
+    :data:`CANONICAL_MARGIN` (as :func:`warpgauss.format.coded.quantise` codes it)."""
     for k in range(3):
         p[k] = on_grid(p[k], g.mu)
         p[3 + k] = on_grid(p[3 + k], g.s)
@@ -453,7 +453,7 @@ def refine_update(
 ):
     """Chain rule, sparse Adam, constraints and re-preparation of one slot, fused (one thread per slot).
 
-    A frozen primitive (a finished neighbour brick's, see :mod:`warpgauss.bricked`) takes part in
+    A frozen primitive (a finished neighbour brick's, see :mod:`warpgauss.encoding.scale.bricks`) takes part in
     evaluation and its gradients are cleared, but it never steps.
 
     An untouched slot costs one read of its pair gradients. A step that would carry a primitive

@@ -1,5 +1,5 @@
 """The Gaussian model in float64 at the voxel centres of its grid: the predictor of a bounded
-residual (:mod:`warpgauss.residual`).
+residual (:mod:`warpgauss.format.residual`).
 
 A residual makes every decoded voxel lie within a bound E of the source, so it must be applied to
 the very prediction the encoder coded it against, wherever the file is read. The float32 decode
@@ -7,7 +7,7 @@ the very prediction the encoder coded it against, wherever the file is read. The
 place of float32 (``exp`` and fused multiply-adds differ), and at a pair on the 5-sigma cut by a
 whole term; a bound of 1e-6 of the range could not absorb that. In float64 each term carries a
 relative error of a few 1e-16 on either device, far below the margin the residual keeps
-(:data:`warpgauss.residual.MARGIN_REL`), and a voxel with a pair within ``CUT_REL`` of the cut
+(:data:`warpgauss.format.residual.MARGIN_REL`), and a voxel with a pair within ``CUT_REL`` of the cut
 (where the devices could disagree on whether the term counts) is flagged ``fragile``: the
 residual stores its value outright.
 

@@ -25,7 +25,7 @@ The same marcher serves the model (:class:`warpgauss.kernels.field.BinnedPrimiti
 through :func:`~warpgauss.kernels.field.binned_sums`: the exact ``march``) and a dense grid
 (:class:`DenseVolume`, trilinear), through the overloaded ``march_sample`` / ``sample_gradient``.
 The dense grid is either a reference volume or the model decoded once onto a grid (the ``cached``
-method of :mod:`warpgauss.render`): then a sample reads 1 voxel neighbourhood instead of the
+method of :mod:`warpgauss.render.renderers`): then a sample reads 1 voxel neighbourhood instead of the
 ~1000 candidate primitives of the binned mixture.
 """
 

@@ -7,7 +7,7 @@ import pytest
 
 
 def _devices() -> list[str]:
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
 
     wp = warp()
     names = {str(d) for d in wp.get_devices()}  # a CUDA-only Warp build has no "cpu"

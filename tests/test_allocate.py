@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from warpgauss.allocate import AllocationConfig, allocate, draw_seeds
-from warpgauss.analysis import (
+from warpgauss.core.profiling import StageRecorder
+from warpgauss.encoding.allocate import AllocationConfig, allocate, draw_seeds
+from warpgauss.errors import WarpgaussError
+from warpgauss.field.analysis import (
     DeviceVolume,
     budget_from_ratio,
     check_budget,
@@ -15,8 +17,6 @@ from warpgauss.analysis import (
     split_budget,
     structure_stats,
 )
-from warpgauss.errors import WarpgaussError
-from warpgauss.profiling import StageRecorder
 
 
 def _blobs(n=24, seed=0, plateau=True):
@@ -58,7 +58,7 @@ def test_ratio_gives_spec_budget():
 
 @pytest.mark.parametrize("masked", [False, True])
 def test_numpy_candidate_counts_match_the_kernels(device, masked):
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
     from warpgauss.kernels import analysis as ka
 
     wp = warp()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import warpgauss
-from warpgauss.synthetic import generate
+from warpgauss.readers.synthetic import generate
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +70,7 @@ def test_ratio_and_stride_and_fill_value(tmp_path):
         device=None,
         iterations=60,
         samples=512,
-        read=warpgauss.io.ReadOptions(stride=2, fill_value=-1.0e30),
+        read=warpgauss.readers.ReadOptions(stride=2, fill_value=-1.0e30),
         format="full",
     )
     src = 24**3 * 8  # float64 source at the evaluated (strided) resolution
@@ -84,7 +84,7 @@ def test_ratio_and_stride_and_fill_value(tmp_path):
 def test_iterations_zero_is_the_analytic_model_and_presets_resolve(interface32):
     m = warpgauss.encode(interface32, budget=100, iterations=0, device=None, evaluate=False)
     assert any(s["what"] == "S2 refinement" for s in m.report["skipped"])
-    from warpgauss.driver import resolve_refine
+    from warpgauss.encoding.driver import resolve_refine
 
     assert (resolve_refine(None, "fast", None, None).iterations, resolve_refine(None, "fast", None, None).samples) == (300, 3072)
     assert resolve_refine(None, "quality", 10, None).iterations == 10  # explicit beats the preset
@@ -96,7 +96,7 @@ def test_written_files_get_the_usual_permissions(tmp_path):
     import os
     import stat
 
-    from warpgauss._fs import atomic_write_bytes
+    from warpgauss.core.files import atomic_write_bytes
 
     old = os.umask(0o022)
     try:
@@ -112,8 +112,8 @@ def test_a_refinement_that_loses_to_the_analytic_model_is_discarded():
     import numpy as np
 
     import warpgauss
-    from warpgauss.optimize import RefineConfig
-    from warpgauss.synthetic import generate
+    from warpgauss.encoding.refine import RefineConfig
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("vortex", 24)
     bad = warpgauss.encode(vol, budget=300, refine=RefineConfig(iterations=20, samples=512, lr=1.0), device="cpu", seed=0)
@@ -126,9 +126,8 @@ def test_a_refinement_that_loses_to_the_analytic_model_is_discarded():
 
 
 def test_large_budgets_get_more_samples_by_default_and_presets_keep_theirs(monkeypatch):
-    from warpgauss.driver import resolve_refine
-    from warpgauss.optimize import AUTO_BATCH_PRIMITIVES, PRESETS, RefineConfig
-    from warpgauss.refine import config
+    from warpgauss.encoding.driver import resolve_refine
+    from warpgauss.encoding.refine import AUTO_BATCH_PRIMITIVES, PRESETS, RefineConfig, config
 
     cfg = RefineConfig()
     assert cfg.for_budget(1_400_000).samples == 4 * 3072  # the measured quality setting at 1.4M

@@ -74,7 +74,7 @@ def test_psnr_matches_warpgauss_full_grid_evaluation(run):
     """The benchmark's PSNR equals warpgauss's own full-grid PSNR for the same model."""
     bench, _, _ = run
     import warpgauss
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("vortex", 16, seed=0)
     m = warpgauss.encode(vol, budget=60, iterations=0, device="cpu", evaluate=False)
@@ -181,7 +181,7 @@ def test_codec_workers_and_volume_dir(tmp_path):
     gen = bench.main(common + ["--volume-dir", str(tmp_path / "vol"), "--generate-only", "--out", str(tmp_path / "g.json")])
     npy = tmp_path / "vol" / "vortex_16.npy"
     assert set(gen["generated"]) == {"vortex"} and npy.is_file()
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     np.testing.assert_array_equal(np.load(npy), generate("vortex", 16, seed=0))
     a = bench.main(common + ["--out", str(tmp_path / "a.json")])

@@ -22,7 +22,7 @@ def _load(name: str):
 
 
 def _cpu_or_skip() -> str:
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
 
     if "cpu" not in {str(d) for d in warp().get_devices()}:
         pytest.skip("this Warp build has no CPU device")

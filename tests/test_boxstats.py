@@ -1,4 +1,4 @@
-"""A brick's box on the device (warpgauss.boxstats, the Warp CPU device here): region masks, and
+"""A brick's box on the device (warpgauss.field.boxstats, the Warp CPU device here): region masks, and
 counts and |grad V| sums of a masked box (a strided view of a larger array) against a float64
 numpy reference; the counts exactly, the sum to float32 rounding."""
 
@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from warpgauss._warp import warp
-from warpgauss.analysis import OCCUPIED, count_seed_candidates, normalise
-from warpgauss.boxstats import box_counts, box_view, region_mask
-from warpgauss.synthetic import generate
+from warpgauss.core.warp import warp
+from warpgauss.field.analysis import OCCUPIED, count_seed_candidates, normalise
+from warpgauss.field.boxstats import box_counts, box_view, region_mask
+from warpgauss.readers.synthetic import generate
 
 BOX = ((3, 27), (0, 22), (5, 30))
 INNER = ((2, 15), (4, 19), (0, 20))

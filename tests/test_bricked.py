@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 import warpgauss
-from warpgauss.analysis import normalise, seed_limit
-from warpgauss.bricked import brick_colour, brick_fields, brick_tasks, encode_brick, run_bricks, wave_tasks
-from warpgauss.brickplan import parse_bricks, plan_bricks, split_bricks
+from warpgauss.encoding.scale.bricks import brick_colour, brick_fields, brick_tasks, encode_brick, run_bricks, wave_tasks
+from warpgauss.encoding.scale.plan import parse_bricks, plan_bricks, split_bricks
 from warpgauss.errors import WarpgaussError
-from warpgauss.synthetic import generate
+from warpgauss.field.analysis import normalise, seed_limit
+from warpgauss.readers.synthetic import generate
 
 FAST = dict(iterations=20, samples=256, device="cpu", self_test=False, format="full")
 
@@ -76,8 +76,8 @@ def test_bricked_encode_is_exact_and_repeatable():
 
 def test_bricked_encode_on_a_local_dask_cluster_equals_the_serial_one(monkeypatch):
     distributed = pytest.importorskip("distributed")
-    import warpgauss.lazy
-    from warpgauss.cluster import local_client
+    import warpgauss.readers.lazy
+    from warpgauss.encoding.scale.cluster import local_client
 
     v = generate("interface", 24)
     serial = warpgauss.encode(v, budget=250, bricks="2x1x2", halo=2, **FAST)
@@ -89,7 +89,7 @@ def test_bricked_encode_on_a_local_dask_cluster_equals_the_serial_one(monkeypatc
         def full(arrays):
             raise OSError(28, "No space left on device")
 
-        monkeypatch.setattr(warpgauss.lazy, "shared", full)  # no room for the shared copy: the graph carries the boxes
+        monkeypatch.setattr(warpgauss.readers.lazy, "shared", full)  # no room for the shared copy: the graph carries the boxes
         no_room = warpgauss.encode(v, budget=250, bricks="2x1x2", halo=2, client=client, **FAST)
     finally:
         client.close()
@@ -114,7 +114,7 @@ def test_a_task_carries_no_volume_and_ships_only_its_box():
     that leaves this process takes its box's copy (an in-memory volume) or the file's name."""
     import pickle
 
-    from warpgauss.lazy import shared
+    from warpgauss.readers.lazy import shared
 
     f, plan, tasks = _tasks(size=24, n=120, counts=(2, 2, 1))
     assert all(t.values is None and t.volume is not None and t.volume[0] is f.values for t in tasks)
@@ -164,8 +164,8 @@ def _tasks(name="vortex", size=20, n=200, counts=(2, 2, 1), halo=2):
     f = normalise(generate(name, size))
     bricks = plan_bricks(f.shape_xyz, counts, halo)
     _, stats = split_bricks(f, bricks, n)
-    from warpgauss.allocate import AllocationConfig
-    from warpgauss.refine.config import RefineConfig
+    from warpgauss.encoding.allocate import AllocationConfig
+    from warpgauss.encoding.refine.config import RefineConfig
 
     alloc = AllocationConfig(scale_cap=AllocationConfig().resolved_cap(f.shape_xyz))
     return f, bricks, brick_tasks(f, bricks, stats, 0, alloc, RefineConfig(iterations=15, samples=128), "cpu", n)
@@ -189,11 +189,11 @@ def test_a_wave_sees_its_finished_neighbours_frozen_and_stand_ins_for_the_rest()
 
 
 def test_frozen_primitives_are_evaluated_but_never_moved():
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.analysis import DeviceVolume
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.refine import Refiner
-    from warpgauss.refine.config import RefineConfig
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.encoding.refine import Refiner
+    from warpgauss.encoding.refine.config import RefineConfig
+    from warpgauss.field.analysis import DeviceVolume
 
     f = normalise(generate("bubbles", 16))
     dv = DeviceVolume(f, "cpu")
@@ -210,7 +210,7 @@ def test_frozen_primitives_are_evaluated_but_never_moved():
 
 def test_a_killed_worker_is_survived_and_a_brick_failing_twice_fails_the_run(tmp_path):
     pytest.importorskip("distributed")
-    from warpgauss.cluster import local_client
+    from warpgauss.encoding.scale.cluster import local_client
 
     _, _, tasks = _tasks(n=150)
     serial = run_bricks(tasks)
@@ -219,7 +219,7 @@ def test_a_killed_worker_is_survived_and_a_brick_failing_twice_fails_the_run(tmp
     def dies_once(task):  # a closure: Dask ships it by value
         import os
 
-        from warpgauss.bricked import encode_brick
+        from warpgauss.encoding.scale.bricks import encode_brick
 
         if task.index == 2 and not os.path.exists(marker):
             open(marker, "w").close()
@@ -245,7 +245,7 @@ def test_a_killed_worker_is_survived_and_a_brick_failing_twice_fails_the_run(tmp
 def test_seams_are_within_1_db_of_the_interior():
     """Issue #20's seam criterion on the CPU: PSNR on the voxels within 2 voxels of an inner brick
     face at most 1.5 dB below the rest (vortex: no feature of its own sits on the centre planes)."""
-    from warpgauss.brickplan import face_band
+    from warpgauss.encoding.scale.plan import face_band
 
     v = generate("vortex", 32)
     f = normalise(v)
@@ -270,7 +270,7 @@ def test_a_gpu_cluster_gives_each_worker_its_own_gpu(monkeypatch):
     parent's visible list where set); on this CPU machine the bricks then run on the CPU device,
     and the model equals the serial one (the same paths a GPU cluster takes)."""
     pytest.importorskip("distributed")
-    from warpgauss.cluster import gpu_client, gpu_ids
+    from warpgauss.encoding.scale.cluster import gpu_client, gpu_ids
 
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "5, 7,9")
     assert gpu_ids(2) == ["5", "7"]
@@ -298,7 +298,7 @@ def test_a_gpu_cluster_gives_each_worker_its_own_gpu(monkeypatch):
 def test_the_bricks_of_a_wave_stepping_side_by_side_give_each_brick_its_own_model():
     """Same seed, same device => same model: a wave's bricks interleaved (a CUDA stream each on a
     GPU, turns on the CPU) give what each brick gives alone, bit for bit."""
-    from warpgauss.bricked import encode_brick, encode_bricks
+    from warpgauss.encoding.scale.bricks import encode_brick, encode_bricks
 
     _, _, tasks = _tasks(size=32, n=240, counts=(4, 1, 1))
     assert sorted({brick_colour(t.brick) for t in tasks}) == [0, 1]  # two waves of two bricks
@@ -314,7 +314,7 @@ def test_the_bricks_of_a_wave_stepping_side_by_side_give_each_brick_its_own_mode
 
 
 def test_a_wave_is_split_into_groups_of_equal_work_one_per_worker():
-    from warpgauss.bricked import brick_groups
+    from warpgauss.encoding.scale.bricks import brick_groups
 
     _, _, tasks = _tasks(size=32, n=240, counts=(4, 2, 1))
     groups = brick_groups(tasks, 3)
@@ -329,8 +329,8 @@ def test_a_wave_split_into_groups_over_two_workers_gives_the_model_of_one_proces
     """Same seed => same model: a wave's bricks go out as one group per worker and finish in any
     order; the frozen neighbours are gathered in brick order, so the merged model does not change."""
     pytest.importorskip("distributed")
-    from warpgauss.bricked import encode_brick
-    from warpgauss.cluster import local_client
+    from warpgauss.encoding.scale.bricks import encode_brick
+    from warpgauss.encoding.scale.cluster import local_client
 
     _, _, tasks = _tasks(size=32, n=240, counts=(4, 2, 1))
     alone = run_bricks(tasks, fn=encode_brick)
@@ -382,13 +382,13 @@ def test_a_bricking_the_volume_cannot_take_is_refused_before_a_cluster_starts(tm
     """Too many bricks along an axis were found only after the Dask cluster had started."""
     from typer.testing import CliRunner
 
-    import warpgauss.cluster
+    import warpgauss.encoding.scale.cluster
     from warpgauss.cli.main import app
 
     def no_cluster(*a, **k):
         raise AssertionError("a cluster was started")
 
-    monkeypatch.setattr(warpgauss.cluster, "default_client", no_cluster)
+    monkeypatch.setattr(warpgauss.encoding.scale.cluster, "default_client", no_cluster)
     vol = tmp_path / "v.npy"
     np.save(vol, np.random.default_rng(0).random((8, 8, 8)).astype(np.float32))
     for source in (["--example", "vortex", "--size", "16"], [str(vol)]):
@@ -401,7 +401,7 @@ def test_a_bricking_the_volume_cannot_take_is_refused_before_a_cluster_starts(tm
 def test_the_bricks_statistics_on_a_thread_pool_equal_one_brick_at_a_time():
     """split_bricks takes the bricks' statistics on a pool of threads (each box's slabs on the
     cores left to it): the same numbers, bit for bit, as one brick at a time with its own slabs."""
-    from warpgauss.brickplan import brick_stats
+    from warpgauss.encoding.scale.plan import brick_stats
 
     f = normalise(generate("interface", 40))
     bricks = plan_bricks(f.shape_xyz, (3, 2, 2), 3)
@@ -416,8 +416,8 @@ def test_a_file_read_on_demand_is_counted_box_by_box_on_the_device_as_if_it_were
     """split_bricks(device=...) reads each box of a lazy field (a few ahead on threads), uploads it
     and counts it there: the statistics of the whole volume on that device, bit for bit, with
     boxes read ahead or one at a time; counts equal to the host's, |grad V| sums to float rounding."""
-    from warpgauss import brickplan
-    from warpgauss.analysis import DeviceVolume
+    from warpgauss.encoding.scale import plan as brickplan
+    from warpgauss.field.analysis import DeviceVolume
 
     v = generate("interface", 36).astype(np.float32)
     v[5:7, 10:20, 3] = np.nan  # masked voxels inside some boxes
@@ -442,7 +442,7 @@ def test_a_file_read_on_demand_is_counted_box_by_box_on_the_device_as_if_it_were
 def test_bricks_started_together_run_in_one_wave_beside_stand_ins_for_every_neighbour(monkeypatch):
     """Without NEIGHBOURS_FIRST every brick starts at once: one wave, no frozen rows, every other
     brick pending; the same seed gives the same model, another than the waves'."""
-    import warpgauss.bricked as wb
+    import warpgauss.encoding.scale.bricks as wb
 
     _, _, tasks = _tasks(size=32, n=240, counts=(2, 2, 1))
     waves_default: list[dict] = []
@@ -462,7 +462,7 @@ def test_bricks_started_together_run_in_one_wave_beside_stand_ins_for_every_neig
 
 
 def test_seam_rows_are_the_primitives_reaching_an_inner_face():
-    from warpgauss.bricked import seam_rows
+    from warpgauss.encoding.scale.bricks import seam_rows
 
     bricks = plan_bricks((20, 20, 20), (2, 1, 1), 2)  # one inner face, x = 10
     p = np.zeros((3, 12), np.float32)
@@ -477,7 +477,7 @@ def test_a_joint_refit_of_the_seams_moves_only_the_primitives_near_the_faces(mon
     """bricked.SEAM_REFIT: after the bricks, the primitives near the inner faces are refined
     together over the whole grid; N and the other rows stay, the report says what was done, and
     the same seed gives the same model."""
-    import warpgauss.bricked as wb
+    import warpgauss.encoding.scale.bricks as wb
 
     v = generate("vortex", 20)
     kw = dict(budget=150, bricks="2x1x1", halo=2, **FAST)
@@ -494,9 +494,9 @@ def test_a_joint_refit_of_the_seams_moves_only_the_primitives_near_the_faces(mon
     assert a.n == plain.n
     np.testing.assert_array_equal(a.params[~rows], plain.params[~rows])
     assert not np.array_equal(a.params[rows], plain.params[rows])
-    from warpgauss.allocate import AllocationConfig
-    from warpgauss.analysis import DeviceVolume
-    from warpgauss.refine import RefineConfig
+    from warpgauss.encoding.allocate import AllocationConfig
+    from warpgauss.encoding.refine import RefineConfig
+    from warpgauss.field.analysis import DeviceVolume
 
     monkeypatch.setattr(wb, "SEAM_SAMPLES_BAND", False)  # over the whole grid (the default): the device's copy of the field serves
     f = normalise(v)  # the field the coded path has already put on the device serves the refit as well
@@ -527,8 +527,8 @@ def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volu
     small; NEIGHBOURS_FIRST and SEAM_REFIT, where set, decide."""
     import types
 
-    import warpgauss._warp as ww
-    import warpgauss.bricked as wb
+    import warpgauss.core.warp as ww
+    import warpgauss.encoding.scale.bricks as wb
 
     shape, n = (64, 64, 64), 4000
     cpu = wb.choose_schedule("cpu", None, False, shape, n, 100, None)
@@ -563,7 +563,7 @@ def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volu
 def test_the_seams_refit_samples_only_cells_a_stepped_primitive_reaches():
     """bricked.seam_support: the cells (4^3) that some row's 3-sigma box overlaps, against a
     voxel-by-voxel check of each box."""
-    from warpgauss.bricked import seam_support
+    from warpgauss.encoding.scale.bricks import seam_support
 
     shape = (21, 18, 13)  # x, y, z
     rng = np.random.default_rng(3)
@@ -590,7 +590,7 @@ def test_bricks_started_on_the_device_give_the_host_started_model(monkeypatch, t
     """A brick's masks, counts and sums taken on the device (the default on CUDA: Warp's CPU device
     here), its box cut from the volume put on the device once where the seams are refit, give the
     model of the host's start bit for bit (same seed, same device)."""
-    import warpgauss.bricked as wb
+    import warpgauss.encoding.scale.bricks as wb
 
     v = generate("vortex", 24)
     models = {}
@@ -606,7 +606,7 @@ def test_bricks_started_on_the_device_give_the_host_started_model(monkeypatch, t
 
 
 def _own_peak(q) -> None:  # a spawned child's own peak RSS (a module-level function: spawn pickles it by name)
-    from warpgauss.profiling import peak_rss_bytes
+    from warpgauss.core.profiling import peak_rss_bytes
 
     q.put(peak_rss_bytes())
 
@@ -619,7 +619,7 @@ def test_a_workers_peak_host_memory_is_its_own_not_its_parents():
     import multiprocessing
     import resource
 
-    from warpgauss.profiling import peak_rss_bytes
+    from warpgauss.core.profiling import peak_rss_bytes
 
     big = np.ones(2**26, np.float64)  # 512 MiB touched here, then let go
     del big

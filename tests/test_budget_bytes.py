@@ -10,7 +10,7 @@ import pytest
 
 import warpgauss
 from warpgauss.errors import WarpgaussError
-from warpgauss.synthetic import generate
+from warpgauss.readers.synthetic import generate
 
 FAST = dict(iterations=25, samples=512, self_test=False, evaluate=False)
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"  # the real volumes, where the clone has them
@@ -74,7 +74,7 @@ def test_fit_bytes_shrinks_prunes_and_grows():
     least important primitives; one far above adds bits; both land within the budget."""
     from test_wgs import realistic_params
 
-    from warpgauss import coded, ratefit
+    from warpgauss.format import coded, ratefit
 
     p = realistic_params(np.random.default_rng(9), 3000)
     full = len(coded.encode_coded(p)[0])
@@ -96,11 +96,11 @@ def test_a_model_fitted_with_a_score_keeps_the_best_scoring_fit(cpu, monkeypatch
     first fit drops bits, every fit tried is scored on the model it stores and the best is kept;
     with ratefit.MEASURE_BIT_WORTH (off by default) each attribute's bit is first scored one more
     and one fewer (the bit worth that orders the fit)."""
-    from warpgauss import ratefit
+    from warpgauss.format import ratefit
 
     monkeypatch.setattr(ratefit, "MEASURE_BIT_WORTH", measure_bits)
-    from warpgauss.analysis import normalise
-    from warpgauss.evaluate import evaluate_field
+    from warpgauss.field.analysis import normalise
+    from warpgauss.field.evaluate import evaluate_field
 
     vol = generate("vortex", 24, seed=3)
     m = warpgauss.encode(vol, budget=600, device=cpu, format="full", iterations=40, samples=512, self_test=False)

@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from warpgauss.analysis import DeviceVolume, normalise
-from warpgauss.optimize import RefineConfig, Refiner
+from warpgauss.encoding.refine import RefineConfig, Refiner
+from warpgauss.field.analysis import DeviceVolume, normalise
 
 
 def _refiner(device, n=300, samples=1024, seed=0, field="vortex", size=24, **cfg):
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate(field, size, seed=1))
     dv = DeviceVolume(f, device)
@@ -24,7 +24,7 @@ def _refiner(device, n=300, samples=1024, seed=0, field="vortex", size=24, **cfg
 
 def _dense(r):
     """V~, rho and pair counts of the all-pairs reference at the refiner's current points."""
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
     from warpgauss.kernels import field as kf
 
     wp, p, m2 = warp(), r.prims, r.n_points
@@ -62,7 +62,7 @@ def test_listed_forward_is_the_bin_walk_bit_for_bit_and_the_dense_pairs(device, 
 def test_steps_that_would_leave_the_listed_cells_wait_for_the_rebin(device, monkeypatch):
     """No widening at all: many steps would leave the listed cells; those wait (more deferred
     steps than with the bin cells alone), and the pairs stay exactly the reference's."""
-    from warpgauss.refine import passes
+    from warpgauss.encoding.refine import passes
 
     monkeypatch.setattr(passes, "LIST_PAD_SHARE", 0.0)
     monkeypatch.setattr(passes, "LIST_PAD_VOXELS", 0.0)
@@ -100,7 +100,7 @@ def test_lists_follow_new_point_grids_without_a_rebin(device):
 def test_too_many_entries_fall_back_to_the_bin_walk(device, monkeypatch):
     """Lists that would pass LIST_MAX_ENTRIES are not built: the bin walk, slots free to go where
     their bin cells allow, and the very model of a run without lists (same seed, same device)."""
-    from warpgauss.refine import passes
+    from warpgauss.encoding.refine import passes
 
     monkeypatch.setattr(passes, "LIST_MAX_ENTRIES", 10)
     a = _refiner(device)

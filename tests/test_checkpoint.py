@@ -15,9 +15,9 @@ import pytest
 from typer.testing import CliRunner
 
 import warpgauss
-from warpgauss import checkpoint
 from warpgauss.cli.main import app
 from warpgauss.errors import WarpgaussError
+from warpgauss.format import checkpoint
 
 RUN = {"example": "vortex", "example_size": 24, "budget": 300, "iterations": 120, "samples": 512, "device": "cpu", "seed": 3}
 # the same run on the command line
@@ -167,8 +167,8 @@ def test_resume_refuses_other_options_and_damaged_checkpoints(tmp_path, cpu):
 def test_resume_inside_the_quantisation_aware_phase_gives_the_uninterrupted_coded_model(tmp_path, cpu, mode):
     """format="coded" with quantisation-aware refinement from 80 % (iterations 96-120 here): a
     run stopped at 100 and resumed writes the file an uninterrupted run writes, byte for byte."""
-    from warpgauss.coded import CODED_BITS
-    from warpgauss.refine import RefineConfig
+    from warpgauss.encoding.refine import RefineConfig
+    from warpgauss.format.coded import CODED_BITS
 
     RUN = {**globals()["RUN"], "refine": RefineConfig(quantise=dict(CODED_BITS), quantise_from=0.8, quantise_mode=mode)}
     ref = warpgauss.encode(**RUN, format="coded", output=tmp_path / "ref.wgs")

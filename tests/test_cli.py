@@ -91,7 +91,7 @@ def test_example_encode_info_decode_eval_journey(vortex_raw, tmp_path):
     grid = pv.read(vti)
     assert tuple(grid.dimensions) == (24, 24, 24)
     decoded = np.asarray(grid.point_data[grid.array_names[0]]).reshape((24, 24, 24), order="F").transpose(2, 1, 0)
-    from warpgauss.model import Model
+    from warpgauss.format.model import Model
 
     np.testing.assert_allclose(decoded, Model.load(model).decode(device="cpu"), rtol=1e-6)
 
@@ -210,12 +210,12 @@ def test_encode_builtin_example_writes_model_and_report(tmp_path):
 
 
 def test_unexpected_failure_is_one_line_and_debug_shows_the_traceback(tmp_path, monkeypatch):
-    import warpgauss.model
+    import warpgauss.format.model
 
     def broken(*a, **k):
         raise RuntimeError("boom\nsecond line")
 
-    monkeypatch.setattr(warpgauss.model.Model, "load_header", broken)
+    monkeypatch.setattr(warpgauss.format.model.Model, "load_header", broken)
     path = tmp_path / "m.wgs"
     path.write_bytes(b"x")
     res = CliRunner().invoke(app, ["info", str(path)])
@@ -265,7 +265,7 @@ def test_config_file_sets_options_and_the_report_repeats_the_run(tmp_path):
     assert r.exit_code == 0, r.output
     rep = json.loads((tmp_path / "a.wgs.report.json").read_text())
     assert rep["config"]["iterations"] == 4 and rep["config"]["w-smooth"] == 0.02 and rep["config"]["budget"] == 40
-    from warpgauss.model import Model
+    from warpgauss.format.model import Model
 
     assert rep["refinement"]["iterations"] == 4 and Model.load(out).header["encoding"]["refinement"]["weights"]["smooth"] == 0.02
     assert "force" not in rep["config"]  # a repeat must ask again to overwrite
@@ -369,7 +369,7 @@ def test_every_stage_an_encode_records_has_a_phase_in_words():
     import re
     from pathlib import Path
 
-    from warpgauss.profiling import PHASES, phase_of
+    from warpgauss.core.profiling import PHASES, phase_of
 
     root = Path(__file__).resolve().parents[1] / "warpgauss"
     codes = {m for f in root.rglob("*.py") for m in re.findall(r'stage\(\s*"([A-Za-z0-9-]+)"', f.read_text())}
@@ -399,7 +399,7 @@ def test_a_report_repeats_the_run_from_another_folder(vortex_raw, tmp_path):
     assert r.exit_code == 2 and "exists" in r.output  # the same output, found from b: not overwritten
     r = cli("encode", "--config", report, "-o", "again.wgs", cwd=b)
     assert r.exit_code == 0, r.output
-    from warpgauss.model import Model
+    from warpgauss.format.model import Model
 
     np.testing.assert_array_equal(Model.load(a / "out" / "m.wgs").params, Model.load(b / "again.wgs").params)
 
@@ -414,7 +414,7 @@ def test_example_writes_a_series_that_encode_takes_into_a_folder(tmp_path):
     assert r.exit_code == 0, r.output
     files = sorted(p.name for p in series.iterdir())
     assert files == [f"vortex_{t:03d}_12x12x12_float32.raw" for t in range(3)]
-    from warpgauss.synthetic import generate_series
+    from warpgauss.readers.synthetic import generate_series
 
     want = list(generate_series("vortex", 12, steps=3))
     for t, name in enumerate(files):

@@ -76,7 +76,7 @@ def unexplained(text: str, *sources) -> list[str]:
 
 @pytest.fixture(scope="module")
 def volumes(tmp_path_factory):
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     d = tmp_path_factory.mktemp("numbers")
     run("example", "vortex", "--size", "32", "-o", d / "v_32x32x32_float32.raw")

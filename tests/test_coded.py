@@ -9,9 +9,9 @@ import zstandard
 from reference.field_ref import covariances
 from test_wgs import _craft, _valid_header, make_header, realistic_params
 
-from warpgauss import coded, ratefit
 from warpgauss.errors import WarpgaussError
-from warpgauss.wgs import header_size, read_wgs, wgs_bytes, write_wgs
+from warpgauss.format import coded, ratefit
+from warpgauss.format.wgs import header_size, read_wgs, wgs_bytes, write_wgs
 
 
 def _rot(q: np.ndarray) -> np.ndarray:
@@ -234,7 +234,7 @@ def test_device_projection_lands_on_the_coded_grids(device):
     quantises to: the numpy quantiser then finds them on a level (nothing moves by more than
     float32 rounding), and their codes are the numpy projection's except where a value sat on a
     rounding boundary."""
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
     from warpgauss.kernels import field as kf
     from warpgauss.kernels import optim as ko
 
@@ -270,7 +270,7 @@ def test_device_projection_lands_on_the_coded_grids(device):
 
 
 def test_device_turns_are_the_coders():
-    """The kernels' table of the 24 turns of a box is warpgauss.coded's (quaternions, axes, margin)."""
+    """The kernels' table of the 24 turns of a box is warpgauss.format.coded's (quaternions, axes, margin)."""
     from warpgauss.kernels import optim as ko
 
     np.testing.assert_allclose(np.array(ko.OCTAHEDRAL_Q, np.float64).reshape(24, 4), coded.OCTAHEDRAL_Q, atol=1e-7)
@@ -284,8 +284,8 @@ def test_coded_encode_returns_the_stored_model(tmp_path, cpu):
     the file's (same order, same values), same seed gives the same bytes, and the file is smaller
     than compact96 at the same N."""
     import warpgauss
-    from warpgauss.model import Model
-    from warpgauss.synthetic import generate
+    from warpgauss.format.model import Model
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("bubbles", 24, seed=1)
     kw = dict(budget=400, iterations=30, samples=512, device=cpu, self_test=False)
@@ -309,7 +309,7 @@ def test_more_accurate_models_get_finer_grids(tmp_path, cpu):
     """One bit on every attribute per 6 dB above 40 dB (at most 4): the coded noise stays below a
     model's own error (a 51 dB model lost 2.07 dB at the default depths, 0.14 dB at +2)."""
     import warpgauss
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     assert ratefit.bits_for_psnr(None) == (coded.CODED_BITS, 0)
     assert ratefit.bits_for_psnr(30.0) == (coded.CODED_BITS, 0)
@@ -329,9 +329,9 @@ def test_refit_fixes_the_geometry_on_its_grids_and_refits_values(cpu):
     """quantise_mode="refit": from quantise_from on, centres, scales and rotations sit on the coded
     grids and no longer move, while a and w keep training; the run ends with everything on the
     grids, the same on a rerun."""
-    from warpgauss.analysis import DeviceVolume, normalise
-    from warpgauss.refine import RefineConfig, Refiner
-    from warpgauss.synthetic import generate
+    from warpgauss.encoding.refine import RefineConfig, Refiner
+    from warpgauss.field.analysis import DeviceVolume, normalise
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("vortex", 20, seed=0))
     dv = DeviceVolume(f, cpu)

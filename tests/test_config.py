@@ -1,4 +1,4 @@
-"""One encode configuration (warpgauss.driver.config): every warpgauss.encode argument has one
+"""One encode configuration (warpgauss.encoding.driver.config): every warpgauss.encode argument has one
 place in EncodeConfig and maps back, every path takes its settings from it, and an unknown
 option is refused where it is given, in one line."""
 
@@ -9,11 +9,11 @@ import inspect
 import pytest
 
 import warpgauss
-from warpgauss.allocate import AllocationConfig
-from warpgauss.driver.config import FIELDS, NOT_SETTINGS, EncodeConfig
+from warpgauss.encoding.allocate import AllocationConfig
+from warpgauss.encoding.driver.config import FIELDS, NOT_SETTINGS, EncodeConfig
+from warpgauss.encoding.refine import RefineConfig
 from warpgauss.errors import WarpgaussError
-from warpgauss.io import ReadOptions
-from warpgauss.optimize import RefineConfig
+from warpgauss.readers import ReadOptions
 
 # a value for every setting that differs from its default
 SAMPLE = {
@@ -104,7 +104,7 @@ def test_the_ladder_takes_its_settings_from_the_configuration():
 
 
 def test_a_ladder_keeps_its_stop_rules_and_reading_through_the_configuration():
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     ms = warpgauss.encode_ladder(
         generate("vortex", 24), budgets=[40, 80], iterations=5, samples=128, device="cpu", self_test=False, format="full", target_psnr=90.0
@@ -122,7 +122,7 @@ def test_a_series_keeps_its_stop_rules_from_the_command_line(tmp_path):
     from typer.testing import CliRunner
 
     from warpgauss.cli.main import app
-    from warpgauss.synthetic import generate_series
+    from warpgauss.readers.synthetic import generate_series
 
     for t, v in enumerate(generate_series("vortex", 16, 2)):
         np.save(tmp_path / f"t_{t}.npy", v)

@@ -15,8 +15,8 @@ import pytest
 
 import warpgauss
 from warpgauss.errors import WarpgaussError
-from warpgauss.synthetic import generate
-from warpgauss.wgs import FORMAT_VERSION, MAGIC, PREFIX, PREFIX_SIZE
+from warpgauss.format.wgs import FORMAT_VERSION, MAGIC, PREFIX, PREFIX_SIZE
+from warpgauss.readers.synthetic import generate
 
 BOMB_N = 30_000_000
 

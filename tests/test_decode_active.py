@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from warpgauss.field import GaussianField
+from warpgauss.field.gaussians import GaussianField
 
 
 def _sparse_params(rng, n, shape_xyz):
@@ -51,8 +51,8 @@ def test_decode_equals_the_row_major_kernel_bit_for_bit(device, path, monkeypatc
     walks the cells in 8^3 thread blocks) over slabs whose sides are not multiples of 8; every
     voxel must still be written once, with the row-major kernel's exact value, also on resampled
     grids and with primitives centred outside the grid."""
-    from warpgauss import field as wf
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
+    from warpgauss.field import gaussians as wf
     from warpgauss.kernels import field as kf
 
     wp = warp()
@@ -81,7 +81,7 @@ def test_brick_lists_hold_exactly_the_primitives_whose_box_meets_the_brick(devic
     """The list of a brick is the binned-order subsequence of primitives whose 5-sigma box meets
     the brick's voxel centres (against a float64 numpy check; boxes touching only within the
     rounding margin may be listed too)."""
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
     from warpgauss.kernels import decode as kd
 
     wp = warp()

@@ -9,8 +9,8 @@ from test_render import header
 from typer.testing import CliRunner
 
 from warpgauss.cli.main import app
-from warpgauss.export import matrix_to_quat, primitive_arrays, quat_to_matrix, write_vtp
-from warpgauss.model import Model
+from warpgauss.format.export import matrix_to_quat, primitive_arrays, quat_to_matrix, write_vtp
+from warpgauss.format.model import Model
 
 
 def random_model(n=50, spacing=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0), seed=0) -> Model:

@@ -9,7 +9,7 @@ import pytest
 from conftest import random_params
 from reference.field_ref import field as field_ref
 
-from warpgauss.field import GaussianField, grid_points, plan_bins
+from warpgauss.field.gaussians import GaussianField, grid_points, plan_bins
 
 
 def _points(rng, shape, m):
@@ -112,8 +112,8 @@ def test_device_plan_equals_the_numpy_plan(device):
     """plan_bins_on_device finds the least radius and the occupied classes on the device and must
     give plan_bins' plan: spread radii, exact powers of two, radii below MIN_CELL, non-finite
     radii (ignored), a huge one (coarsened levels), and none finite at all."""
-    from warpgauss._warp import warp
-    from warpgauss.field import plan_bins_on_device
+    from warpgauss.core.warp import warp
+    from warpgauss.field.gaussians import plan_bins_on_device
 
     wp = warp()
     rng = np.random.default_rng(3)

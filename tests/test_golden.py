@@ -27,9 +27,9 @@ FAST = dict(iterations=20, samples=256, device="cpu", self_test=False, seed=3)
 
 def _machine() -> str:
     """The bytes of a bare refinement (no driver code): the fingerprint of this machine's arithmetic."""
-    from warpgauss.analysis import DeviceVolume, normalise
-    from warpgauss.refine import RefineConfig, Refiner
-    from warpgauss.synthetic import generate
+    from warpgauss.encoding.refine import RefineConfig, Refiner
+    from warpgauss.field.analysis import DeviceVolume, normalise
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("vortex", 16))
     rng = np.random.default_rng(0)
@@ -53,8 +53,8 @@ def _keys(d, prefix: str = "", depth: int = 2) -> list[str]:
 def _cases(tmp: Path) -> dict[str, tuple[bytes, dict]]:
     """Every kind of model: (file bytes, report) by case name."""
     import warpgauss
-    from warpgauss.series import encode_series
-    from warpgauss.synthetic import generate, generate_series
+    from warpgauss.readers.synthetic import generate, generate_series
+    from warpgauss.series.steps import encode_series
 
     vol = generate("vortex", 40)
     out: dict[str, tuple[bytes, dict]] = {}

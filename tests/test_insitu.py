@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import warpgauss
-from warpgauss._warp import warp
+from warpgauss.core.warp import warp
 from warpgauss.errors import WarpgaussError
-from warpgauss.io import ReadOptions
-from warpgauss.synthetic import generate, generate_series
+from warpgauss.readers import ReadOptions
+from warpgauss.readers.synthetic import generate, generate_series
 
 FAST = dict(budget=200, iterations=30, samples=256, self_test=False, format="full")
 
@@ -59,8 +59,8 @@ def _fields_equal(a, b):
 
 @pytest.mark.parametrize("dtype", ["float32", "float64", "int16", "uint8"])
 def test_device_normalisation_is_the_host_one(wp, dtype):
-    from warpgauss.analysis import normalise
-    from warpgauss.devicefield import normalise_on_device
+    from warpgauss.field.analysis import normalise
+    from warpgauss.field.device import normalise_on_device
 
     v = generate("bubbles", 18)
     if dtype.startswith(("int", "uint")):

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from warpgauss.errors import WarpgaussError
-from warpgauss.io import Volume, parse_raw_name, read_volume, supported_extensions, write_volume
+from warpgauss.readers import Volume, parse_raw_name, read_volume, supported_extensions, write_volume
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 if not DATA.is_dir():
@@ -518,7 +518,7 @@ def test_volume_properties():
 
 
 def test_import_is_cheap():
-    code = "import sys, warpgauss.io; print(sorted(m for m in ('pyvista', 'h5py', 'scipy.io', 'vtk') if m in sys.modules))"
+    code = "import sys, warpgauss.readers; print(sorted(m for m in ('pyvista', 'h5py', 'scipy.io', 'vtk') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 

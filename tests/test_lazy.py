@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 import warpgauss
-from warpgauss.analysis import normalise
-from warpgauss.brickplan import choose_bricks, smallest_wave
+from warpgauss.core.limits import DEVICE_FIXED_BYTES, brick_device_bytes, parse_memory
+from warpgauss.encoding.scale.plan import choose_bricks, smallest_wave
 from warpgauss.errors import WarpgaussError
-from warpgauss.io import read_volume
-from warpgauss.lazy import LazyValues, is_lazy
-from warpgauss.limits import DEVICE_FIXED_BYTES, brick_device_bytes, parse_memory
-from warpgauss.synthetic import generate
+from warpgauss.field.analysis import normalise
+from warpgauss.readers import read_volume
+from warpgauss.readers.lazy import LazyValues, is_lazy
+from warpgauss.readers.synthetic import generate
 
 FAST = dict(iterations=10, samples=128, device="cpu", self_test=False, format="full", evaluate=True)
 
@@ -66,7 +66,7 @@ def test_lazy_fields_read_the_same_values_as_in_memory(tmp_path):
 def test_a_file_read_brick_by_brick_encodes_as_the_array_in_memory(tmp_path):
     """Bit for bit the model of the array in memory without the seams' refit (which needs the
     whole volume: the array in memory gets it on the CPU, the file read by bricks does not)."""
-    from warpgauss import bricked
+    from warpgauss.encoding.scale import bricks as bricked
 
     v = generate("vortex", 20)
     raw, _, h5 = _files(tmp_path, v)
@@ -75,7 +75,7 @@ def test_a_file_read_brick_by_brick_encodes_as_the_array_in_memory(tmp_path):
     with bricked.schedule(None, 0.0):
         mem = warpgauss.encode(v, budget=160, bricks="2x1x2", halo=2, **FAST)
     for path, kw in ((raw, {}), (h5, {})):
-        read = warpgauss.io.ReadOptions(dataset="t0/rho") if path == h5 else None
+        read = warpgauss.readers.ReadOptions(dataset="t0/rho") if path == h5 else None
         lazy = warpgauss.encode(str(path), budget=160, bricks="2x1x2", halo=2, read=read, **FAST, **kw)
         assert lazy.report["bricking"]["read_lazily"] and lazy.report["bricking"]["chosen"] == "given"
         assert lazy.report["bricking"]["seam_refit"] is None
@@ -140,7 +140,7 @@ def test_cli_max_device_memory(tmp_path):
 
 def test_dask_workers_read_their_own_boxes(tmp_path):
     pytest.importorskip("distributed")
-    from warpgauss.cluster import local_client
+    from warpgauss.encoding.scale.cluster import local_client
 
     v = generate("interface", 20)
     raw, _, _ = _files(tmp_path, v)
@@ -161,7 +161,7 @@ def test_an_array_shared_with_local_workers_is_one_file_read_box_by_box_and_then
     import os
     import pickle
 
-    from warpgauss.lazy import Shared, opened, shared
+    from warpgauss.readers.lazy import Shared, opened, shared
 
     v = generate("vortex", 20)
     mask = v > v.mean()
@@ -183,7 +183,7 @@ def test_a_cluster_is_local_when_every_worker_reads_the_file_this_process_wrote(
     """is_local asks the workers (a host name says too little: on one lent GPU machine the workers
     listened on an address the host name did not resolve to). Workers that run elsewhere do not
     see the probe file; one that cannot answer counts as elsewhere."""
-    from warpgauss.cluster import is_local, reads_token
+    from warpgauss.encoding.scale.cluster import is_local, reads_token
 
     class FakeClient:
         def __init__(self, here: list[bool], fails: bool = False):
@@ -216,7 +216,7 @@ def test_zarr_stores_are_read_whole_or_by_bricks(tmp_path):
     ref = normalise(v)
     lazy = normalise(read_volume(path, lazy=True).data, lazy=True)
     np.testing.assert_array_equal(lazy.values[3:11, 2:5], ref.values[3:11, 2:5])
-    from warpgauss import bricked
+    from warpgauss.encoding.scale import bricks as bricked
 
     with bricked.schedule(None, 0.0):  # the seams' refit needs the volume whole: the store read by bricks has none
         mem = warpgauss.encode(v, budget=150, bricks="1x2x2", halo=2, **FAST)
@@ -232,7 +232,7 @@ def test_brick_statistics_run_within_the_host_limit():
     holds their boxes (at 2048^3 the thread pool once peaked at 61.7 GB under a 16 GiB limit)."""
     import os
 
-    from warpgauss.brickplan import STATS_BYTES_PER_VOXEL, map_bricks, plan_bricks
+    from warpgauss.encoding.scale.plan import STATS_BYTES_PER_VOXEL, map_bricks, plan_bricks
 
     bricks = plan_bricks((32, 32, 32), (2, 2, 1), 2)
     seen: list[dict] = []

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import warpgauss
-from warpgauss._warp import warp
-from warpgauss.synthetic import generate, generate_series
+from warpgauss.core.warp import warp
+from warpgauss.readers.synthetic import generate, generate_series
 
 
 def _sample(f: np.ndarray, p) -> float:
@@ -75,8 +75,8 @@ def test_one_lucas_kanade_step_matches_a_float64_reference():
 
 
 def test_a_known_shift_is_recovered():
-    from warpgauss.analysis import DeviceVolume, normalise
-    from warpgauss.motion import BLOCK, compensate, estimate_motion
+    from warpgauss.encoding.motion import BLOCK, compensate, estimate_motion
+    from warpgauss.field.analysis import DeviceVolume, normalise
 
     wp = warp()
     v = generate("bubbles", 32)
@@ -114,7 +114,7 @@ def test_a_warm_start_follows_the_motion():
 def test_a_primitive_the_motion_carries_out_of_the_grid_stays():
     """shift_centres moves a centre by the displacement at it, unless that leaves the grid: then
     the primitive stays where it was, unturned, and is counted (moved = -1)."""
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
     from warpgauss.kernels import motion as km
 
     wp = warp()

@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from warpgauss.cli.main import app
-from warpgauss.io import ReadOptions, write_volume
+from warpgauss.readers import ReadOptions, write_volume
 
 
 @pytest.mark.parametrize("ext", [".nii", ".nii.gz"])
@@ -48,14 +48,14 @@ def test_vtk_reads_the_origin_from_the_qform_and_sform(tmp_path):
 def test_decode_writes_nifti_that_eval_reads_back(tmp_path, cpu):
     run = CliRunner()
     vol = tmp_path / "u8.npy"
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     v = generate("vortex", 16, seed=0)
     np.save(vol, np.round(255 * (v - v.min()) / (v.max() - v.min())).astype(np.uint8))
     model = tmp_path / "m.wgs"
     args = ["encode", str(vol), "--max-error", "3", "--iterations", "3", "--samples", "256", "--device", "cpu", "-o", str(model)]
     assert run.invoke(app, args).exit_code == 0
-    from warpgauss.model import Model
+    from warpgauss.format.model import Model
 
     m = Model.load(model)
     out = tmp_path / "bounded.nii.gz"
@@ -85,7 +85,7 @@ def test_a_grid_nifti_cannot_hold_is_refused_before_the_decode(tmp_path, monkeyp
     def no_decode(*args, **kwargs):
         raise AssertionError("decoded before the refusal")
 
-    monkeypatch.setattr("warpgauss.model.Model.decode", no_decode)
+    monkeypatch.setattr("warpgauss.format.model.Model.decode", no_decode)
     r = CliRunner().invoke(app, ["decode", str(model), "-o", str(out), "--shape", "40000x2x2"])
     lines = [line for line in r.stderr.splitlines() if line.strip()]
     assert r.exit_code == 2 and len(lines) == 1 and "at most 32,767 voxels an axis" in lines[0] and "Traceback" not in r.output
@@ -96,6 +96,6 @@ def test_example_writes_nifti(tmp_path):
     out = tmp_path / "vortex.nii.gz"
     r = CliRunner().invoke(app, ["example", "vortex", "--size", "10", "-o", str(out)])
     assert r.exit_code == 0, r.output
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     assert np.array_equal(np.asarray(ReadOptions().read(out).data), generate("vortex", 10, seed=0))

@@ -13,7 +13,7 @@ from test_region import _model as model_in_frame
 
 import warpgauss
 from warpgauss.errors import WarpgaussError
-from warpgauss.model import Model
+from warpgauss.format.model import Model
 
 SHAPE = (18, 14, 10)
 
@@ -59,7 +59,7 @@ def test_render_image_is_the_png_warpgauss_render_writes(model, tmp_path):
     np.testing.assert_array_equal(rgba[..., :3], np.asarray(PILImage.open(png).convert("RGB")))
     # alpha is the ray's opacity: some pixels miss the grid (0), some rays cross the field
     assert rgba[..., 3].min() == 0 and rgba[..., 3].max() > 64
-    from warpgauss.render import Camera, render_model
+    from warpgauss.render.renderers import Camera, render_model
 
     exact = render_model(model, Camera(azimuth=30), method="cached", device="cpu", settings=None)
     same = warpgauss.render_image(model, Camera(azimuth=30), device="cpu")

@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 from conftest import assert_matches_atomic_scatter
 
-from warpgauss.analysis import DeviceVolume, normalise
-from warpgauss.field import BinPlan, plan_bins, plan_point_grids
-from warpgauss.optimize import RefineConfig, Refiner
+from warpgauss.encoding.refine import RefineConfig, Refiner
+from warpgauss.field.analysis import DeviceVolume, normalise
+from warpgauss.field.gaussians import BinPlan, plan_bins, plan_point_grids
 
 
 def _refiner(device, n=300, samples=1024, seed=0):
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("vortex", 24, seed=1))
     dv = DeviceVolume(f, device)
@@ -27,8 +27,8 @@ def _refiner(device, n=300, samples=1024, seed=0):
 def test_cell_starts_equal_numpy_searchsorted(device):
     """Every cell, empty ones at either end and between included, gets the first entry at or past
     it, and the table ends with the entry count; only the first ``count`` keys count."""
-    from warpgauss._warp import warp
-    from warpgauss.field import cell_starts
+    from warpgauss.core.warp import warp
+    from warpgauss.field.gaussians import cell_starts
 
     wp = warp()
     rng = np.random.default_rng(5)
@@ -57,7 +57,7 @@ def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkey
     """Chunks of 1 or 5 candidates, as many as a tiny capacity forces, or at most 3 per
     primitive: the same pairs, and the gradients of the point-major atomic scatter (another
     summation order: rounding only)."""
-    from warpgauss.refine import passes
+    from warpgauss.encoding.refine import passes
 
     monkeypatch.setattr(passes, "MIN_CHUNK", min_chunk)
     monkeypatch.setattr(passes, "MAX_CHUNKS", max_chunks)
@@ -79,7 +79,7 @@ def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkey
 
 
 def test_chunked_pass_reruns_bit_identically(device, monkeypatch):
-    from warpgauss.refine import passes
+    from warpgauss.encoding.refine import passes
 
     monkeypatch.setattr(passes, "MIN_CHUNK", 3)
     runs = []

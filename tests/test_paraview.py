@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import warpgauss
-from warpgauss.synthetic import generate
+from warpgauss.readers.synthetic import generate
 
 pytest.importorskip("vtkmodules")
 
@@ -54,9 +54,9 @@ def _read(path, resolution, monkeypatch=None, cli=False, tf_file=None):
 def test_the_reader_decodes_at_a_resolution_with_the_primitives_and_the_transfer_function(model_file, monkeypatch):
     from vtkmodules.util.numpy_support import vtk_to_numpy
 
-    from warpgauss.export import primitive_arrays
+    from warpgauss.format.export import primitive_arrays
     from warpgauss.paraview import transfer_function_points
-    from warpgauss.transfer import from_header
+    from warpgauss.render.transfer import from_header
 
     m = warpgauss.Model.load(model_file)
     img, pts, values, points = _read(model_file, 30, monkeypatch)
@@ -124,8 +124,8 @@ def test_the_colours_edited_in_the_browser_travel_to_paraview(model_file, tmp_pa
     from vtkmodules.util.numpy_support import vtk_to_numpy
 
     from warpgauss.paraview import transfer_function_points
-    from warpgauss.transfer import load_transfer_function
-    from warpgauss.viewer import Viewer
+    from warpgauss.render.transfer import load_transfer_function
+    from warpgauss.render.viewer import Viewer
 
     m = warpgauss.Model.load(model_file)
     v = Viewer([m], [str(model_file)], device="cpu")

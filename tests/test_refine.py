@@ -9,8 +9,8 @@ import pytest
 from conftest import assert_matches_atomic_scatter, random_quaternions
 from reference import loss_ref
 
-from warpgauss.analysis import DeviceVolume, normalise
-from warpgauss.optimize import LossWeights, RefineConfig, Refiner, self_test, stratum_counts
+from warpgauss.encoding.refine import LossWeights, RefineConfig, Refiner, self_test, stratum_counts
+from warpgauss.field.analysis import DeviceVolume, normalise
 
 SHAPE = (10, 10, 10)
 SCALE_MIN, SCALE_CAP = 0.9, 2.0  # tight bounds so that the cap term acts in the test scene
@@ -127,7 +127,7 @@ def test_gradients_match_float64_finite_differences(term, device, split):
 
 
 def test_adam_step_equals_numpy_reference(device):
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
     from warpgauss.kernels import field as kf
     from warpgauss.kernels import optim as ko
 
@@ -192,9 +192,9 @@ def test_strata_shares_and_reassignment():
 
 
 def _toy(device, seed=0, iterations=120, split_cells=None):
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("vortex", 24, seed=1))
     dv = DeviceVolume(f, device)
@@ -205,8 +205,8 @@ def _toy(device, seed=0, iterations=120, split_cells=None):
 
 
 def test_loss_decreases_and_psnr_improves_on_a_toy_problem(device):
-    from warpgauss.evaluate import evaluate_field
-    from warpgauss.field import GaussianField
+    from warpgauss.field.evaluate import evaluate_field
+    from warpgauss.field.gaussians import GaussianField
 
     r, f, params = _toy(device)
     hist = r.run(log_every=10)
@@ -292,7 +292,7 @@ def test_split_and_point_major_paths_agree(cpu):
 
 def _vortex64_gain(iterations: int) -> tuple[float, float]:
     import warpgauss
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     m = warpgauss.encode(generate("vortex", 64), budget=4000, iterations=iterations, device="cpu", seed=0)
     ev = m.report["evaluation"]
@@ -353,9 +353,9 @@ def test_time_budget_stops_early_when_steps_slow_down(cpu):
 
 
 def test_learning_rate_scales_with_contact_density(cpu):
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("vortex", 24, seed=1))
     dv = DeviceVolume(f, cpu)
@@ -374,7 +374,7 @@ def test_learning_rate_scales_with_contact_density(cpu):
 
 def test_bins_stay_exact_between_rebins_and_far_moves_are_deferred(cpu):
     """Slots are re-sorted only every rebin_every iterations; evaluation must stay exact meanwhile."""
-    from warpgauss.field import GaussianField
+    from warpgauss.field.gaussians import GaussianField
 
     r, f, _ = _toy(cpu, iterations=60)
     r.cfg = RefineConfig(iterations=60, samples=1024, lr=0.08, rebin_every=10_000, replan_every=10_000)
@@ -435,7 +435,7 @@ def test_stratum_index_enumerates_each_stratum_exactly_once(device):
 def test_uniform_samples_avoid_empty_space_only_when_it_carries_no_loss(cpu, value_empty):
     """With no value loss on empty samples the uniform stratum is drawn among occupied voxels;
     with one it still covers the whole grid (empty space then has a loss to fit)."""
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("interface", 24, seed=1))
     occupied = f.values > 0.02
@@ -461,10 +461,10 @@ def test_uniform_samples_cover_the_model_support_and_nothing_else(device):
     primitives' 5-sigma boxes (+2 voxels) reach: right after a re-bin every point any primitive
     contributes to is inside, 9 steps later (the last before the next re-bin) all but a sliver,
     and every uniform sample is inside."""
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.field import GaussianField
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.field.gaussians import GaussianField
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("bubbles", 40, seed=3))
     dv = DeviceVolume(f, device)
@@ -502,9 +502,9 @@ def test_without_smoothness_the_partners_are_not_evaluated(device):
     """Partners serve only the smoothness term: with its weight 0 an iteration evaluates the
     samples alone, and the gradient equals evaluating the partners too (to float32 rounding: the
     partners, which carry no gradient, still change how the pair pass splits its chunks)."""
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("vortex", 24, seed=1))
     dv = DeviceVolume(f, device)
@@ -536,9 +536,9 @@ def _toy_params(f, n=20):
 
 def test_time_budget_spends_spare_time_on_samples(cpu):
     """Cost = 1 ms + 10 us per sample: the budget keeps >= 30 iterations and raises the samples."""
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("vortex", 24, seed=1))
     dv = DeviceVolume(f, cpu)
@@ -573,7 +573,7 @@ def test_support_marks_count_the_boxes_reaching_each_brick(device):
     """mark_support's corner counts plus the three prefix sums give every 4^3 brick the number of
     widened 5-sigma boxes reaching it (numpy brute force), for boxes inside, across the edge of,
     outside and far larger than the grid."""
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
     from warpgauss.kernels import sampling as ks
 
     wp = warp()
@@ -610,7 +610,7 @@ def test_support_marks_count_the_boxes_reaching_each_brick(device):
 def test_the_forward_pass_is_chosen_by_the_points_an_iteration(cpu):
     """split_cells None: split on CUDA up to SPLIT_MAX_POINTS points (measured faster there),
     point-major above and on the CPU; True or False is kept whatever the sample count."""
-    from warpgauss.refine.passes import SPLIT_DENSE_POINTS, SPLIT_DENSE_PRIMITIVES, SPLIT_MAX_POINTS, picks_split
+    from warpgauss.encoding.refine.passes import SPLIT_DENSE_POINTS, SPLIT_DENSE_PRIMITIVES, SPLIT_MAX_POINTS, picks_split
 
     assert picks_split(True, SPLIT_MAX_POINTS) and not picks_split(True, SPLIT_MAX_POINTS + 1)
     assert picks_split(True, SPLIT_MAX_POINTS + 1, SPLIT_DENSE_PRIMITIVES)  # a dense model keeps it longer

@@ -12,9 +12,9 @@ from test_cli import assert_refused, cli
 
 import warpgauss
 from warpgauss.errors import WarpgaussError
-from warpgauss.field import GaussianField
-from warpgauss.model import Model, make_header
-from warpgauss.region import box_shape, check_box, parse_box, sampling, spacing_origin
+from warpgauss.field.gaussians import GaussianField
+from warpgauss.field.region import box_shape, check_box, parse_box, sampling, spacing_origin
+from warpgauss.format.model import Model, make_header
 
 SHAPE = (20, 16, 12)  # the model grid (x, y, z)
 
@@ -64,7 +64,7 @@ CASES = [
 def test_a_box_decodes_to_the_crop_of_the_whole_decode_bit_for_bit(device, params, whole_shape, voxels, path, monkeypatch):
     """Both evaluation paths (the brick lists, and the cell walk a slab takes when its lists would
     not fit) give a box exactly the values of the whole decode at the same sampling."""
-    from warpgauss import field as wf
+    from warpgauss.field import gaussians as wf
 
     if path == "cell walk":
         monkeypatch.setattr(wf, "MAX_BRICK_LIST", 0)

@@ -11,8 +11,8 @@ from scipy.special import erf
 from typer.testing import CliRunner
 
 from warpgauss.cli.main import app
-from warpgauss.model import Model, make_header
-from warpgauss.render import (
+from warpgauss.format.model import Model, make_header
+from warpgauss.render.renderers import (
     Camera,
     ModelRenderer,
     RenderSettings,
@@ -23,7 +23,7 @@ from warpgauss.render import (
     resolve_view,
     with_settings,
 )
-from warpgauss.transfer import TransferFunction, make_transfer_function
+from warpgauss.render.transfer import TransferFunction, make_transfer_function
 
 RHO0 = 0.05
 runner = CliRunner()
@@ -256,7 +256,7 @@ def test_marcher_samples_value_and_analytic_gradient(cpu):
 def vortex(tmp_path_factory):
     """vortex 32^3 with 1,000 Gaussians, 100 refinement iterations (~9 s on 2 CPU cores), saved, plus its volume."""
     import warpgauss
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     d = tmp_path_factory.mktemp("render")
     model = warpgauss.encode(example="vortex", example_size=32, budget=1000, iterations=100, device="cpu", full_eval=True)
@@ -271,8 +271,8 @@ def test_model_rendering_matches_the_dense_volume_rendering(cpu, vortex):
 
     Measured (CPU, 96x96, header TF): field 43.2 dB; image 44.2 dB, SSIM 0.990.
     """
-    from warpgauss.analysis import normalise
-    from warpgauss.transfer import from_header
+    from warpgauss.field.analysis import normalise
+    from warpgauss.render.transfer import from_header
 
     model, d = vortex
     field_psnr = model.report["psnr_db"]

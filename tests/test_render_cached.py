@@ -16,8 +16,8 @@ from typer.testing import CliRunner
 
 from warpgauss.cli.main import app
 from warpgauss.errors import WarpgaussError
-from warpgauss.model import Model
-from warpgauss.render import (
+from warpgauss.format.model import Model
+from warpgauss.render.renderers import (
     CachedRenderer,
     Camera,
     ModelRenderer,
@@ -31,7 +31,7 @@ from warpgauss.render import (
     render_model,
     with_settings,
 )
-from warpgauss.transfer import from_header, make_transfer_function
+from warpgauss.render.transfer import from_header, make_transfer_function
 
 runner = CliRunner()
 
@@ -158,7 +158,7 @@ def test_cache_grid_shape_and_refusals(cpu, vortex_model, monkeypatch):
             cache_grid_shape((32, 32, 32), bad)
     with pytest.raises(WarpgaussError, match="voxels, more than"):
         cache_grid_shape((32, 32, 32), 2000)  # 8e9 voxels: beyond int32 indexing
-    import warpgauss.render as wr
+    import warpgauss.render.renderers as wr
 
     monkeypatch.setattr(wr, "device_memory_bytes", lambda device: 2**20)  # a 1 MiB device
     with pytest.raises(WarpgaussError, match="GiB available on cpu"):
@@ -184,7 +184,7 @@ def test_render_model_api_cached(cpu, vortex_model):
 
 @pytest.fixture(scope="module")
 def files(vortex_model, tmp_path_factory):
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     d = tmp_path_factory.mktemp("cached")
     vortex_model.save(d / "v.wgs")
@@ -243,7 +243,7 @@ def test_cli_render_cached(cpu, files, tmp_path):
 )
 def test_cli_render_cached_refusals(cpu, files, tmp_path, monkeypatch, args, message):
     """Bad --cache-res values end in one line and exit 2, before anything is written."""
-    import warpgauss.render as wr
+    import warpgauss.render.renderers as wr
 
     monkeypatch.setattr(wr, "device_memory_bytes", lambda device: 2**30)
     subst = {"MODEL": str(files / "v.wgs"), "VOLUME": str(files / "v.npy")}
@@ -295,8 +295,8 @@ def test_the_gradient_grid_is_the_central_difference_of_the_trilinear_grid(monke
     precision, edge cells included;
     in the half voxel beyond them it is the edge's; without room for the grid (memory share 0)
     the marcher falls back to those central differences, the image all but the same."""
-    import warpgauss.raymarch as rm
-    from warpgauss.raymarch import Camera, RenderSettings
+    import warpgauss.render.raymarch as rm
+    from warpgauss.render.raymarch import Camera, RenderSettings
 
     rng = np.random.default_rng(5)
     vol = np.cumsum(np.cumsum(rng.uniform(0, 1, (9, 11, 13)), 0), 2)

@@ -16,10 +16,10 @@ from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 import warpgauss
-from warpgauss import residual as R
 from warpgauss.cli.main import app
 from warpgauss.errors import WarpgaussError
-from warpgauss.wgs import PREFIX, PREFIX_SIZE, read_wgs
+from warpgauss.format import residual as R
+from warpgauss.format.wgs import PREFIX, PREFIX_SIZE, read_wgs
 
 
 # -- the float64 predictor -------------------------------------------------------------------
@@ -54,7 +54,7 @@ def small_model():
 
 
 def test_the_float64_predictor_matches_a_numpy_float64_reference(small_model):
-    from warpgauss.field import GaussianField
+    from warpgauss.field.gaussians import GaussianField
 
     m = small_model
     values, fragile = GaussianField(m.params, m.shape_xyz, device="cpu").predict(m.params)
@@ -65,7 +65,7 @@ def test_the_float64_predictor_matches_a_numpy_float64_reference(small_model):
 
 
 def test_a_pair_on_the_cut_marks_its_voxel_fragile():
-    from warpgauss.field import GaussianField
+    from warpgauss.field.gaussians import GaussianField
 
     # one axis-aligned primitive of sigma 1 at the origin: voxel (5, 0, 0) lies at m = 25 exactly
     p = np.array([[0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0.5, 1.0]], np.float32)
@@ -206,7 +206,7 @@ def test_the_axis_order_and_layout_are_chosen_stored_and_a_file_without_them_rea
     """The coder picks the interpolation's axis order and level-wise bounds on a central block and
     the q's storage order by size; all go in the header (checked on reading). Files written before
     carry none and decode as z, y, x, flat bounds, in the raster order."""
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     v = generate("interface", 20, seed=1)
     v = np.ascontiguousarray(v[:, :, ::-1].transpose(2, 0, 1))  # anisotropic along another axis
@@ -254,7 +254,7 @@ def test_encode_with_max_error_writes_one_file_whose_decode_keeps_the_bound(boun
     assert alone.dtype == np.float32 and np.abs(alone - vol).max() > 2  # the Gaussians alone do not hold it
     with pytest.raises(WarpgaussError, match="encoded grid"):
         loaded.decode(shape_xyz=(9, 9, 9), device="cpu", residual=True)
-    from warpgauss.evaluate import evaluate_against
+    from warpgauss.field.evaluate import evaluate_against
 
     r = evaluate_against(loaded, d / "vol.npy", device="cpu")
     assert r["max_abs_error_source"] <= 2.0 and r["bound"] == 2.0
@@ -341,7 +341,7 @@ def test_the_claimed_symbols_are_bounded_by_what_zstandard_can_produce():
 
 
 def test_bzip2_codes_the_chosen_symbols_where_smaller_and_a_damaged_frame_is_refused():
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     v = generate("vortex", 48, seed=0)
     zero = np.zeros(v.shape)
@@ -370,7 +370,7 @@ def test_the_paraview_reader_shows_the_gaussians_unless_asked_for_the_residual(b
 
 
 def test_a_residual_this_machine_cannot_hold_is_refused_before_the_encode(monkeypatch, tmp_path):
-    import warpgauss.driver.load as load
+    import warpgauss.encoding.driver.load as load
 
     monkeypatch.setattr(load, "available_memory", lambda: 1 << 20)  # 1 MiB free
     out = tmp_path / "x.wgs"
@@ -420,7 +420,7 @@ def test_render_shows_the_gaussians_or_with_residual_the_bounded_decode(bounded,
 
 
 def test_psnr_asks_for_the_largest_bound_whose_decode_reaches_it():
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     v = generate("interface", 32, seed=0)
     zero = np.zeros(v.shape)
@@ -440,7 +440,7 @@ REAL = next((p for p in (Path(__file__).resolve().parents[2] / "shared" / "data"
 def test_a_real_volume_decodes_within_the_bound_on_the_cpu(tmp_path):
     """A real brain (168x206x128 float32, analytic model only, to stay small): every voxel within
     1e-3 of the range after a CPU decode of the file."""
-    from warpgauss.io import ReadOptions
+    from warpgauss.readers import ReadOptions
 
     assert REAL is not None
     src = REAL / "inia19-t1-brain.nii.gz"
@@ -453,8 +453,8 @@ def test_a_real_volume_decodes_within_the_bound_on_the_cpu(tmp_path):
 
 def test_view_and_the_page_draw_the_bounded_decode_of_a_model_with_a_residual(bounded, tmp_path):
     pytest.importorskip("pyvista")
-    from warpgauss.render import RenderSettings, make_renderer
-    from warpgauss.viewer import Viewer
+    from warpgauss.render.renderers import RenderSettings, make_renderer
+    from warpgauss.render.viewer import Viewer
 
     d, vol, m, _ = bounded
     loaded = warpgauss.Model.load(d / "v.wgs")
@@ -509,7 +509,7 @@ def test_a_description_that_claims_a_bound_its_fields_do_not_hold_is_refused(bou
 def test_float_lattice_claims_are_checked_against_step_and_margin():
     """A float-lattice description holds its bound where step <= 2 (bound - margin): what the
     encoder writes passes, a step one part in 10^6 wider or a margin past the bound is refused."""
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     v = generate("vortex", 16, seed=0)
     zero = np.zeros(v.shape)

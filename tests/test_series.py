@@ -8,7 +8,7 @@ import pytest
 
 import warpgauss
 from warpgauss.errors import WarpgaussError
-from warpgauss.synthetic import generate, generate_series
+from warpgauss.readers.synthetic import generate, generate_series
 
 FAST = dict(budget=200, iterations=40, samples=256, device="cpu", self_test=False, format="full")
 
@@ -47,7 +47,7 @@ def test_a_warm_start_refines_the_previous_model():
 
 
 def test_a_series_is_checked_before_any_work_and_encoded_at_one_n(tmp_path):
-    from warpgauss.series import encode_series
+    from warpgauss.series.steps import encode_series
 
     steps = list(generate_series("interface", 16, 3))
     for t, v in enumerate(steps):
@@ -145,7 +145,7 @@ def _time_axis_files(tmp_path, steps):
 
 
 def test_a_time_axis_in_one_file_is_a_series(tmp_path):
-    from warpgauss.series import encode_series, series_chains, time_steps
+    from warpgauss.series.steps import encode_series, series_chains, time_steps
 
     steps = list(generate_series("bubbles", 16, 3))
     kw = dict(iterations=15, samples=256, device="cpu", self_test=False, format="full", budget=100, warm_iterations=5)
@@ -223,7 +223,7 @@ def test_cli_encodes_a_time_axis_and_several_variables(tmp_path):
 def test_a_series_with_a_byte_budget_takes_timestep_0s_n(cpu):
     """file_bytes= sizes timestep 0's N like ratio= does, and the later timesteps take that N
     (they failed with "give one of --budget, --ratio and --bytes" before)."""
-    from warpgauss.series import encode_series
+    from warpgauss.series.steps import encode_series
 
     steps = list(generate_series("vortex", 16, 3))
     models = encode_series(steps, file_bytes=9000, iterations=5, samples=128, device=cpu, self_test=False)
@@ -234,9 +234,9 @@ def test_a_series_with_a_byte_budget_takes_timestep_0s_n(cpu):
 
 def test_a_series_on_a_local_dask_cluster(tmp_path, monkeypatch):
     pytest.importorskip("distributed")
-    import warpgauss.lazy
-    from warpgauss.cluster import local_client
-    from warpgauss.series import encode_series
+    import warpgauss.readers.lazy
+    from warpgauss.encoding.scale.cluster import local_client
+    from warpgauss.series.steps import encode_series
 
     steps = list(generate_series("vortex", 16, 4))
     kw = dict(budget=90, iterations=12, samples=256, device="cpu", self_test=False, format="full", warm_iterations=6)
@@ -255,7 +255,7 @@ def test_a_series_on_a_local_dask_cluster(tmp_path, monkeypatch):
         def full(arrays):
             raise OSError(28, "No space left on device")
 
-        monkeypatch.setattr(warpgauss.lazy, "shared", full)  # no room for the timesteps' files: they go through the graph
+        monkeypatch.setattr(warpgauss.readers.lazy, "shared", full)  # no room for the timesteps' files: they go through the graph
         no_room = encode_series(steps, client=client, **kw)
     finally:
         client.close()
@@ -286,7 +286,7 @@ def test_a_drifting_warm_chain_is_re_encoded_cold_at_the_step_that_drifts(tmp_pa
     """The key-frame rule: a warm timestep more than keyframe_drift dB below the chain's best warm
     PSNR is encoded again cold (same N) and the better kept: the cold one is the same model as a
     cold encode of that timestep (and its file), and the chain goes on warm from it."""
-    from warpgauss.series import encode_series
+    from warpgauss.series.steps import encode_series
 
     a, b, c = generate_series("bubbles", 16, 3)
     other = np.ascontiguousarray(np.roll(c, 8, axis=2))  # timestep 2 jumps half the grid: warm drifts
@@ -309,7 +309,7 @@ def test_a_drifting_warm_chain_is_re_encoded_cold_at_the_step_that_drifts(tmp_pa
 def test_a_key_frame_that_scores_below_the_warm_timestep_is_dropped():
     """Where the cold re-encode is the worse (here: cold gets 1 iteration, warm 40), the warm
     model stays, the report says so, and it is the chain's new baseline (no retry next step)."""
-    from warpgauss.series import encode_series
+    from warpgauss.series.steps import encode_series
 
     a, b, c = generate_series("bubbles", 16, 3)
     c = np.ascontiguousarray(np.roll(c, 5, axis=2))
@@ -328,7 +328,7 @@ def test_iter_series_yields_what_encode_series_returns_holding_one_model_at_a_ti
     import gc
     import weakref
 
-    from warpgauss.series import encode_series, iter_series
+    from warpgauss.series.steps import encode_series, iter_series
 
     vols = list(generate_series("bubbles", 16, 4))
     kw = dict(budget=100, iterations=10, warm_iterations=4, samples=128, device="cpu", self_test=False, format="full")

@@ -18,7 +18,7 @@ import pytest
 
 import warpgauss
 from warpgauss.errors import WarpgaussError
-from warpgauss.synthetic import generate
+from warpgauss.readers.synthetic import generate
 
 
 @pytest.fixture(scope="module")
@@ -32,8 +32,8 @@ def model_file(tmp_path_factory):
 
 
 def test_the_viewer_orbits_zooms_and_draws_what_render_draws(model_file):
-    from warpgauss.render import Camera, RenderSettings, render_model
-    from warpgauss.viewer import Viewer
+    from warpgauss.render.renderers import Camera, RenderSettings, render_model
+    from warpgauss.render.viewer import Viewer
 
     m = warpgauss.Model.load(model_file)
     v = Viewer([m], [str(model_file)], device="cpu")
@@ -53,7 +53,7 @@ def test_the_viewer_orbits_zooms_and_draws_what_render_draws(model_file):
     ref = render_model(
         m,
         Camera(azimuth=s.azimuth, elevation=s.elevation, zoom=s.zoom),
-        warpgauss.transfer.make_transfer_function("viridis", [(0, 0), (0.4, 0), (1, 1)]),
+        warpgauss.render.transfer.make_transfer_function("viridis", [(0, 0), (0.4, 0), (1, 1)]),
         RenderSettings(width=96, height=80),
         method="cached",
         device="cpu",
@@ -69,7 +69,7 @@ def test_the_render_command_draws_the_same_view(model_file, tmp_path):
     from typer.testing import CliRunner
 
     from warpgauss.cli.main import app
-    from warpgauss.viewer import Viewer
+    from warpgauss.render.viewer import Viewer
 
     v = Viewer([warpgauss.Model.load(model_file)], [str(model_file)], device="cpu")
     v.resize(64, 48)
@@ -85,7 +85,7 @@ def test_the_render_command_draws_the_same_view(model_file, tmp_path):
     from PIL import Image
 
     got = np.asarray(Image.open(out).convert("RGB"))
-    from warpgauss.render import image_psnr
+    from warpgauss.render.renderers import image_psnr
 
     assert got.shape == img.shape and image_psnr(got / 255.0, img / 255.0) > 50.0  # printed to 4-6 digits
     # edited colours travel as a --tf file (what the page offers to download)
@@ -102,7 +102,7 @@ def test_the_render_command_draws_the_same_view(model_file, tmp_path):
 
 
 def test_a_series_steps_in_time_and_compares_with_its_volume(tmp_path):
-    from warpgauss.viewer import Viewer, load_models
+    from warpgauss.render.viewer import Viewer, load_models
 
     vols = [generate("bubbles", 16, seed=s) for s in (1, 2)]
     for t, vol in enumerate(vols):
@@ -308,10 +308,10 @@ def test_the_page_in_a_real_browser(model_file, tmp_path):
 def test_a_frame_converted_to_rgb8_on_the_device_equals_the_host_conversion(model_file):
     """The marcher converts its frame to RGB8 on the device (kernels/render.py to_rgb8); that must
     be Image.rgb8's host conversion bit for bit, edge values included."""
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
     from warpgauss.kernels import render as kr
-    from warpgauss.raymarch import Image
-    from warpgauss.render import render_model
+    from warpgauss.render.raymarch import Image
+    from warpgauss.render.renderers import render_model
 
     wp = warp()
     rgba = np.random.default_rng(0).uniform(-0.2, 1.2, (7, 9, 4)).astype(np.float32)
@@ -321,7 +321,10 @@ def test_a_frame_converted_to_rgb8_on_the_device_equals_the_host_conversion(mode
     np.testing.assert_array_equal(out.numpy(), Image(rgba).rgb8())
     for method in ("cached", "splat"):  # both renderers hand over the device's conversion, read back lazily
         img = render_model(
-            warpgauss.Model.load(model_file), method=method, device="cpu", settings=warpgauss.render.RenderSettings(width=40, height=30)
+            warpgauss.Model.load(model_file),
+            method=method,
+            device="cpu",
+            settings=warpgauss.render.renderers.RenderSettings(width=40, height=30),
         )
         assert img.rgb8_device is not None and not isinstance(img.rgb8_device, np.ndarray)  # not read back yet
         np.testing.assert_array_equal(img.rgb8(), Image(img.rgba).rgb8())
@@ -331,9 +334,9 @@ def test_a_frame_converted_to_rgb8_on_the_device_equals_the_host_conversion(mode
 def test_frame_counts_are_reduced_on_the_device_exactly():
     """A frame's per-pixel counts (evaluations, splats) are reduced on the device, row by row in
     int64 (count_stats), and a primitive count by integer atomics: equal to numpy's figures."""
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
     from warpgauss.kernels import render as kr
-    from warpgauss.raymarch import count_stats
+    from warpgauss.render.raymarch import count_stats
 
     wp = warp()
     rng = np.random.default_rng(3)
@@ -352,8 +355,8 @@ def test_the_page_keeps_showing_the_last_frame_while_a_new_one_renders(model_fil
     update and then serves the new frame (the one Viewer.frame draws for that state)."""
     import asyncio
 
-    from warpgauss.serve import Area
-    from warpgauss.viewer import Viewer
+    from warpgauss.render.serve import Area
+    from warpgauss.render.viewer import Viewer
 
     v = Viewer([warpgauss.Model.load(model_file)], [str(model_file)], device="cpu")
     v.resize(48, 40)
@@ -392,7 +395,7 @@ def test_frames_travel_as_jpeg_while_moving_and_lossless_png_when_still():
     moves), the still quality a PNG that decodes to the frame bit for bit."""
     from PIL import Image
 
-    from warpgauss.serve import FrameEncoder
+    from warpgauss.render.serve import FrameEncoder
 
     img = np.random.default_rng(1).integers(0, 256, (30, 40, 3), dtype=np.uint8)
     enc = FrameEncoder()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import warpgauss
-from warpgauss import refine
+from warpgauss.encoding import refine
 
 KW = {"example": "vortex", "example_size": 24, "budget": 300, "samples": 256, "device": "cpu", "seed": 1}
 
@@ -49,7 +49,7 @@ def test_plateau_stops_when_the_gain_over_the_window_is_small(cpu):
 
 def test_self_test_runs_once_per_process_and_device(cpu, monkeypatch):
     monkeypatch.setattr(refine, "SELF_TESTS", {})
-    import warpgauss.driver  # noqa: F401  (the driver imports the dict at call time)
+    import warpgauss.encoding.driver  # noqa: F401  (the driver imports the dict at call time)
 
     a = warpgauss.encode(**KW, iterations=5)
     b = warpgauss.encode(**KW, iterations=5)
@@ -65,8 +65,8 @@ def test_bad_stop_options_are_refused():
 
 def test_the_uniform_stratum_restriction_is_logged_only_when_it_applies():
     import warpgauss
-    from warpgauss.optimize import LossWeights, RefineConfig
-    from warpgauss.synthetic import generate
+    from warpgauss.encoding.refine import LossWeights, RefineConfig
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("interface", 24)
     for value_empty, logged in ((0.0, True), (1.0, False)):
@@ -81,8 +81,8 @@ def test_the_uniform_stratum_restriction_is_logged_only_when_it_applies():
 def test_the_support_restriction_of_the_uniform_stratum_is_logged_when_it_applies():
     """Default loss (empty samples carry a loss): on a sparse field the uniform stratum skips the
     grid no Gaussian reaches and the report says how much; switched off, nothing is logged."""
-    from warpgauss.optimize import RefineConfig
-    from warpgauss.synthetic import generate
+    from warpgauss.encoding.refine import RefineConfig
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("bubbles", 48, seed=2)
     for on in (True, False):
@@ -101,7 +101,7 @@ def test_the_support_restriction_of_the_uniform_stratum_is_logged_when_it_applie
 def test_empty_bricks_of_the_full_grid_evaluation_are_logged_and_exact(cpu):
     """Bubbles are sparse: the full-grid evaluation skips the bricks no Gaussian reaches, says so,
     and its PSNR equals a plain numpy PSNR of an unskipped decode (the skipped voxels are exact)."""
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("bubbles", 48, seed=2)
     m = warpgauss.encode(vol, budget=150, iterations=3, samples=128, device="cpu", full_eval=True)

@@ -7,10 +7,10 @@ import pytest
 from test_render import analytic_line_integral, header, one_gaussian, pixel_rays
 from typer.testing import CliRunner
 
-from warpgauss.model import Model
-from warpgauss.render import Camera, ModelRenderer, RenderSettings, image_psnr, image_ssim, resolve_view
-from warpgauss.splat import SplatRenderer
-from warpgauss.transfer import TransferFunction, from_header, make_transfer_function
+from warpgauss.format.model import Model
+from warpgauss.render.renderers import Camera, ModelRenderer, RenderSettings, image_psnr, image_ssim, resolve_view
+from warpgauss.render.splat import SplatRenderer
+from warpgauss.render.transfer import TransferFunction, from_header, make_transfer_function
 
 
 @pytest.mark.parametrize("ortho, atol", [(True, 1e-5), (False, 0.03)])

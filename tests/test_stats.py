@@ -11,8 +11,8 @@ from test_allocate import _blobs, _stats_numpy
 from typer.testing import CliRunner
 
 from warpgauss.cli.main import app
-from warpgauss.driver.sizing import CODED_BPP_MEASURED
-from warpgauss.io import write_volume
+from warpgauss.encoding.driver.sizing import CODED_BPP_MEASURED
+from warpgauss.readers import write_volume
 
 
 def test_stats_json_equals_numpy(tmp_path, cpu):
@@ -49,8 +49,8 @@ def test_stats_json_equals_numpy(tmp_path, cpu):
 
 
 def test_stats_readings_tell_the_example_fields_apart(cpu):
-    from warpgauss.driver import load_field
-    from warpgauss.stats import field_stats
+    from warpgauss.encoding.driver import load_field
+    from warpgauss.encoding.stats import field_stats
 
     read = {}
     for name in ("bubbles", "interface", "turbulence"):

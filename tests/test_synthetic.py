@@ -1,7 +1,7 @@
 """Built-in example volumes: contract (shape, dtype, exact [0, 1], determinism, errors) and character.
 
 The character checks recompute the SPEC section 5 statistics with plain numpy, independently of
-``warpgauss.analysis``: occupancy, gradient top-10 % share, S(1)/S(16), and for ``turbulence`` the
+``warpgauss.field.analysis``: occupancy, gradient top-10 % share, S(1)/S(16), and for ``turbulence`` the
 slope of the radially averaged power spectrum.
 """
 
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from warpgauss.errors import WarpgaussError
-from warpgauss.synthetic import EXAMPLES, generate, raw_name
+from warpgauss.readers.synthetic import EXAMPLES, generate, raw_name
 
 NAMES = ["vortex", "bubbles", "turbulence", "interface"]
 OCCUPIED = 0.02
@@ -190,7 +190,7 @@ def test_turbulence_large_scales_agree_across_resolutions():
 def test_the_vortex_slabs_on_several_threads_equal_the_serial_field(monkeypatch):
     """The vortex field's slabs are computed on threads; the field is the one-thread field bit for
     bit (here 4 slabs, small ones, on up to 3 threads)."""
-    import warpgauss.synthetic as sy
+    import warpgauss.readers.synthetic as sy
 
     monkeypatch.setattr(sy, "SLAB_VOXELS", 40 * 40 * 10)
     monkeypatch.setattr(sy, "SLAB_THREADS", 1)

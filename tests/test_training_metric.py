@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from test_refine import _toy_params
 
-from warpgauss.analysis import DeviceVolume, normalise
-from warpgauss.driver import resolve_refine
+from warpgauss.encoding.driver import resolve_refine
+from warpgauss.encoding.refine import PRESETS, RefineConfig, Refiner
 from warpgauss.errors import WarpgaussError
-from warpgauss.optimize import PRESETS, RefineConfig, Refiner
+from warpgauss.field.analysis import DeviceVolume, normalise
 
 
 def _field():
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("interface", 20, seed=1))
     occupied = f.values > 0.02
@@ -70,10 +70,10 @@ def test_the_samples_estimate_the_decoded_models_full_grid_mse(cpu):
     squared errors over the samples times D, plus V^2 over the voxels no sample can reach (where
     the decode writes 0), over the grid, estimate the full-grid MSE of the decoded, clamped model
     (float64 numpy reference from the decode); sample_psnr_db alone is the MSE over the reach."""
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.field import GaussianField
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.field.gaussians import GaussianField
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("bubbles", 40, seed=2).astype(np.float32)
     vol += np.float32(0.01 * (vol.max() - vol.min())) * np.random.default_rng(0).random(
@@ -108,10 +108,10 @@ def test_the_end_estimate_averages_draws_without_changing_the_model(cpu):
     decode), and the parameters, the iteration and the steps after it are what they would have
     been without it (bit for bit); the driver reports it."""
     import warpgauss
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.field import GaussianField
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.field.gaussians import GaussianField
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("bubbles", 32, seed=3).astype(np.float32))
     dv = DeviceVolume(f, cpu)
@@ -157,7 +157,7 @@ def test_decoded_values_stay_within_the_source_range(cpu):
     minimum: the decode, the full-grid evaluation and the sampled one all clamp to [min, max] and
     count the voxels clamped."""
     import warpgauss
-    from warpgauss.evaluate import evaluate_field
+    from warpgauss.field.evaluate import evaluate_field
 
     vol = np.zeros((12, 12, 12), np.float32)
     vol[4:8, 4:8, 4:8] = 250.0
@@ -188,7 +188,7 @@ def test_fit_bytes_prunes_within_its_share_and_reports_the_rows_kept():
     rows kept are reported in order; beyond it bits are dropped first."""
     from test_wgs import realistic_params
 
-    from warpgauss import coded, ratefit
+    from warpgauss.format import coded, ratefit
 
     p = realistic_params(np.random.default_rng(9), 3000)
     full = len(coded.encode_coded(p)[0])
@@ -210,7 +210,7 @@ def test_fit_bytes_with_a_score_keeps_the_fit_that_scores_best():
     the best-scoring one, every candidate within the budget and reported."""
     from test_wgs import realistic_params
 
-    from warpgauss import coded, ratefit
+    from warpgauss.format import coded, ratefit
 
     p = realistic_params(np.random.default_rng(9), 3000)
     budget = int(len(coded.encode_coded(p)[0]) * 0.8)
@@ -251,9 +251,9 @@ def test_silenced_primitives_stay_out_and_come_last(cpu):
     """Refiner.silence: the primitives taken out get weight exactly 0 and are never stepped again
     (their weight stays 0 over later steps and re-bins); the rest keep their parameters and order
     as the first ``n_live`` rows of the model; a checkpoint carries the count."""
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("bubbles", 24, seed=1))
     dv = DeviceVolume(f, cpu)
@@ -295,7 +295,7 @@ def test_a_coded_budget_re_plans_n_for_the_depths_its_accuracy_needs(tmp_path, c
     holds the rest. The file fits its budget, the report says what was done, and the same seed
     gives the same file."""
     import warpgauss
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("vortex", 24, seed=0)
     kw = dict(ratio=20, iterations=120, samples=1024, device=cpu, self_test=False, seed=1)
@@ -321,9 +321,9 @@ def test_the_late_re_plan_takes_out_more_where_the_model_will_need_more_bits(tmp
     says what was done, the same seed gives the same file; at 1.0 this small run keeps its
     re-plan's bits and every primitive, and off there is no late look at all."""
     import warpgauss
-    from warpgauss.driver import replan
-    from warpgauss.ratefit import bits_for_psnr
-    from warpgauss.synthetic import generate
+    from warpgauss.encoding.driver import replan
+    from warpgauss.format.ratefit import bits_for_psnr
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("vortex", 24, seed=0)
     kw = dict(ratio=20, iterations=120, samples=1024, device=cpu, self_test=False, seed=3)
@@ -351,9 +351,9 @@ def test_the_measured_alternatives_still_run(tmp_path, cpu, monkeypatch):
     by default): pruning up to half the excess with a refit of the rest, and coding at the
     sizing's depths. Each still fits its budget and says what it did."""
     import warpgauss
-    from warpgauss import ratefit
-    from warpgauss.driver import replan, sizing
-    from warpgauss.synthetic import generate
+    from warpgauss.encoding.driver import replan, sizing
+    from warpgauss.format import ratefit
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("vortex", 24, seed=0)
     kw = dict(ratio=20, iterations=40, samples=512, device=cpu, self_test=False, seed=1)
@@ -385,7 +385,7 @@ def test_a_scored_fit_spends_bits_where_they_are_worth_most(monkeypatch):
     no difference drops the fixed orders' bits (and adds them in ties, the fewest grown first)."""
     from test_wgs import realistic_params
 
-    from warpgauss import coded, ratefit
+    from warpgauss.format import coded, ratefit
 
     assert ratefit.MEASURE_BIT_WORTH is False
     monkeypatch.setattr(ratefit, "MEASURE_BIT_WORTH", True)
@@ -422,8 +422,8 @@ def test_a_re_plan_holds_bits_back_rather_than_take_out_too_many(tmp_path, cpu, 
     that share of the Gaussians, the re-plan codes one bit fewer on every attribute at a time
     (down to the default depths) instead; the report says so and the file still fits."""
     import warpgauss
-    from warpgauss.driver import replan
-    from warpgauss.synthetic import generate
+    from warpgauss.encoding.driver import replan
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("vortex", 24, seed=0)
     kw = dict(ratio=8, iterations=120, samples=1024, device=cpu, self_test=False, seed=3)
@@ -528,9 +528,9 @@ def test_with_the_error_stratum_the_same_seed_gives_the_same_model(cpu):
     """Same seed, same device => same model with samples following the error (integer sums, an
     order-free max, integer prefix sums): two runs across three re-bins agree bit for bit, and
     the stratum changes the model (it is not a no-op)."""
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("interface", 24, seed=2))
     dv = DeviceVolume(f, cpu)
@@ -550,10 +550,10 @@ def test_the_error_stratum_is_not_drawn_where_its_map_sees_too_few_samples(cpu):
     """Below draw.ERROR_MIN_SAMPLES_A_CELL samples a 4^3 cell over the map's memory (rebin_every x
     samples / (1 - error_decay) / cells) nothing is drawn from the error stratum: the model equals
     error_share 0's bit for bit and the report says so; at the threshold it is drawn."""
-    from warpgauss.allocate import AllocationConfig, allocate
-    from warpgauss.profiling import StageRecorder
-    from warpgauss.refine import draw
-    from warpgauss.synthetic import generate
+    from warpgauss.core.profiling import StageRecorder
+    from warpgauss.encoding.allocate import AllocationConfig, allocate
+    from warpgauss.encoding.refine import draw
+    from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("interface", 64, seed=2))
     cells = 16**3
@@ -579,7 +579,7 @@ def test_pooled_quota_scores_blocks_of_cells(cpu, monkeypatch):
     each cell getting its block's sqrt(sum x voxels) by its share of the block's voxels (numpy
     float64 reference; the blocks at the grid's edge are partial), and the weights still make the
     loss estimate the full-grid mean."""
-    from warpgauss.refine import draw
+    from warpgauss.encoding.refine import draw
 
     monkeypatch.setattr(draw, "ERROR_POOL", True)
     monkeypatch.setattr(draw, "ERROR_POOL_SAMPLES_A_CELL", 1e9)  # the largest blocks
@@ -612,8 +612,8 @@ def test_an_encode_reports_the_error_stratum_and_pools_sparse_cells_on_request(m
     stratum is left out by default, and with draw.ERROR_POOL drawn from blocks of 4^3 cells (edge
     16: 6.25 samples a block)."""
     import warpgauss
-    from warpgauss.refine import draw
-    from warpgauss.synthetic import generate
+    from warpgauss.encoding.refine import draw
+    from warpgauss.readers.synthetic import generate
 
     vol = generate("interface", 64, seed=1)
     kw = dict(budget=200, iterations=10, samples=12, format="full", device="cpu", self_test=False)

@@ -9,8 +9,8 @@ import pytest
 from typer.testing import CliRunner
 
 from warpgauss.errors import WarpgaussError
-from warpgauss.model import default_transfer_function
-from warpgauss.transfer import (
+from warpgauss.format.model import default_transfer_function
+from warpgauss.render.transfer import (
     LUT_SIZE,
     colormap,
     colormap_names,

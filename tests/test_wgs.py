@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from conftest import uniform_params
 
-from warpgauss.compact import COMPACT_BITS, decode_compact, encode_compact
 from warpgauss.errors import WarpgaussError
-from warpgauss.wgs import (
+from warpgauss.format.compact import COMPACT_BITS, decode_compact, encode_compact
+from warpgauss.format.wgs import (
     HEADER_BLOCK,
     MAGIC,
     PARAM_NAMES,
@@ -531,7 +531,7 @@ def test_format_aliases_are_one_table(tmp_path, params, alias, encoding):
     """The names the command line takes ("full", "compact") are the file API's too: one table
     (wgs.FORMAT_ALIASES) serves warpgauss.encode, Model.save and write_wgs; an unknown name is
     refused in one line naming the choices."""
-    from warpgauss.model import Model
+    from warpgauss.format.model import Model
 
     path = tmp_path / "m.wgs"
     write_wgs(path, params, make_header(), encoding=alias)

@@ -4,12 +4,63 @@ The package imports Warp lazily: reading, validating and refusing a request cost
 """
 
 from ._version import __version__
-from .driver import encode, encode_ladder  # noqa: E402
-from .encoder import Encoder  # noqa: E402
-from .errors import WarpgaussError  # noqa: E402
-from .model import Model  # noqa: E402
-from .render import render_image  # noqa: E402
-from .series import encode_series  # noqa: E402
+from .core.moved import install as _install_moved
+from .encoding import encode, encode_ladder
+from .errors import WarpgaussError
+from .format.model import Model
+from .render.renderers import render_image
+from .series import Encoder, encode_series
+
+#: Old import paths (the flat package before 0.2) -> where their names live now. They keep
+#: working until 0.3, with a DeprecationWarning (see :mod:`warpgauss.core.moved`); a key ending
+#: in ``.*`` carries a moved package's submodules.
+MOVED: dict[str, tuple[str, ...]] = {
+    f"{__name__}.{old}": tuple(f"{__name__}.{n}" for n in new)
+    for old, new in {
+        "_fs": ("core.files",),
+        "_warp": ("core.warp",),
+        "allocate": ("encoding.allocate",),
+        "analysis": ("field.analysis",),
+        "bench": ("encoding.bench",),
+        "boxstats": ("field.boxstats",),
+        "bricked": ("encoding.scale.bricks", "encoding.scale.seams"),
+        "brickplan": ("encoding.scale.plan",),
+        "checkpoint": ("format.checkpoint",),
+        "cluster": ("encoding.scale.cluster",),
+        "coded": ("format.coded",),
+        "compact": ("format.compact",),
+        "devicefield": ("field.device",),
+        "driver": ("encoding.driver", "encoding.entry", "encoding.scale.driver"),
+        "driver.*": ("encoding.driver",),
+        "driver.bricked": ("encoding.scale.driver",),
+        "driver.encode": ("encoding.entry",),
+        "encoder": ("series.insitu",),
+        "evaluate": ("field.evaluate",),
+        "export": ("format.export",),
+        "io": ("readers",),
+        "lazy": ("readers.lazy",),
+        "limits": ("core.limits",),
+        "model": ("format.model",),
+        "motion": ("encoding.motion",),
+        "optimize": ("encoding.refine",),
+        "profiling": ("core.profiling",),
+        "ratefit": ("format.ratefit",),
+        "raymarch": ("render.raymarch",),
+        "refine": ("encoding.refine",),
+        "refine.*": ("encoding.refine",),
+        "region": ("field.region",),
+        "residual": ("format.residual",),
+        "serve": ("render.serve",),
+        "splat": ("render.splat",),
+        "stats": ("encoding.stats",),
+        "synthetic": ("readers.synthetic",),
+        "together": ("core.together",),
+        "transfer": ("render.transfer",),
+        "viewer": ("render.viewer",),
+        "wgs": ("format.wgs",),
+    }.items()
+}
+_install_moved(MOVED)
 
 
 def psnr(model, volume, *, full: bool = False, device: str | None = None, fill_value: float | None = None) -> float:
@@ -22,7 +73,7 @@ def psnr(model, volume, *, full: bool = False, device: str | None = None, fill_v
     """
     import numpy as np
 
-    from .evaluate import evaluate_against, psnr_from_mse
+    from .field.evaluate import evaluate_against, psnr_from_mse
 
     if isinstance(model, Model):
         return evaluate_against(model, volume, full=full, device=device, fill_value=fill_value)["psnr_db"]
@@ -32,7 +83,7 @@ def psnr(model, volume, *, full: bool = False, device: str | None = None, fill_v
         )
     truth = volume if isinstance(volume, np.ndarray) else None
     if truth is None:
-        from .io import read_volume
+        from .readers import read_volume
 
         truth = read_volume(volume).data
     if model.shape != truth.shape:

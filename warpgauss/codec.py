@@ -68,7 +68,7 @@ class WarpGauss(Codec):
 
     Args:
         ratio: Compression ratio of each chunk's model (the Gaussians' bytes with ``max_error``);
-            None with no ``budget``: :data:`warpgauss.driver.DEFAULT_RATIO`.
+            None with no ``budget``: :data:`warpgauss.encoding.driver.DEFAULT_RATIO`.
         max_error: A point-wise bound in the chunk's units: a residual makes every finite voxel
             of a decoded chunk lie within it of the source.
         budget: Gaussians per chunk instead of ``ratio``.
@@ -123,7 +123,7 @@ class WarpGauss(Codec):
 
     def encode(self, buf) -> bytes:
         """The ``.wgs`` bytes of the chunk ``buf`` (a 3-D or 2-D numeric array), or its constant record."""
-        from .driver import encode
+        from .encoding.entry import encode
 
         a = _chunk(buf)
         record = _constant_record(a)
@@ -149,7 +149,7 @@ class WarpGauss(Codec):
 
     def decode(self, buf, out=None):
         """The chunk that :meth:`encode` made ``buf`` of, in its dtype (into ``out`` where given)."""
-        from .model import Model
+        from .format.model import Model
 
         data = ensure_bytes(buf)
         if data[: len(CONSTANT_MAGIC)] == CONSTANT_MAGIC:

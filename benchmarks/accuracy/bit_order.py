@@ -26,8 +26,8 @@ from pathlib import Path
 
 from float_models import add_arguments, float_models  # beside this script
 
-from warpgauss import coded, ratefit
-from warpgauss.bench import result_header
+from warpgauss.encoding.bench import result_header
+from warpgauss.format import coded, ratefit
 
 
 def main(argv=None) -> dict:

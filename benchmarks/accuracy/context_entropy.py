@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from warpgauss import coded
-from warpgauss.bench import result_header
-from warpgauss.wgs import read_wgs
+from warpgauss.encoding.bench import result_header
+from warpgauss.format import coded
+from warpgauss.format.wgs import read_wgs
 
 GROUPS = {"mu": [0, 1, 2], "log_s": [3, 4, 5], "q": [6, 7, 8, 9], "a": [10], "w": [11]}
 

@@ -50,9 +50,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     import warpgauss
-    from warpgauss.bench import result_header
-    from warpgauss.refine import RefineConfig, draw
-    from warpgauss.synthetic import generate
+    from warpgauss.encoding.bench import result_header
+    from warpgauss.encoding.refine import RefineConfig, draw
+    from warpgauss.readers.synthetic import generate
 
     saved = draw.ERROR_MIN_SAMPLES_A_CELL, draw.ERROR_POOL, draw.ERROR_POOL_SAMPLES_A_CELL
     if args.pool_target is not None:

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss.model import Model
+from warpgauss.format.model import Model
 from warpgauss.readers import read_volume
-from warpgauss.synthetic import generate
+from warpgauss.readers.synthetic import generate
 
 DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data"
 

@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 from float_models import add_arguments, float_models  # beside this script
 
-from warpgauss import coded, ratefit
-from warpgauss.bench import result_header
-from warpgauss.model import Model
+from warpgauss.encoding.bench import result_header
+from warpgauss.format import coded, ratefit
+from warpgauss.format.model import Model
 
 SHARES = (0.03, 0.10, 0.30)
 

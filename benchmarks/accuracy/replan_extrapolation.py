@@ -24,9 +24,9 @@ import json
 import math
 from pathlib import Path
 
-from warpgauss.bench import result_header
-from warpgauss.driver.replan import REPLAN_EXTRAPOLATE, REPLAN_MAX_GAIN_DB, REPLAN_REST_GAIN_DB
-from warpgauss.ratefit import bits_for_psnr
+from warpgauss.encoding.bench import result_header
+from warpgauss.encoding.driver.replan import REPLAN_EXTRAPOLATE, REPLAN_MAX_GAIN_DB, REPLAN_REST_GAIN_DB
+from warpgauss.format.ratefit import bits_for_psnr
 
 FACTORS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0)
 

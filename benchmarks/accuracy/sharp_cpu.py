@@ -21,11 +21,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "rate_distortion"))
 import bench_rd  # noqa: E402
 
 import warpgauss  # noqa: E402
-from warpgauss.analysis import normalise  # noqa: E402
-from warpgauss.bench import result_header  # noqa: E402
-from warpgauss.io import read_volume  # noqa: E402
-from warpgauss.refine import RefineConfig  # noqa: E402
-from warpgauss.synthetic import generate  # noqa: E402
+from warpgauss.encoding.bench import result_header  # noqa: E402
+from warpgauss.encoding.refine import RefineConfig  # noqa: E402
+from warpgauss.field.analysis import normalise  # noqa: E402
+from warpgauss.readers import read_volume  # noqa: E402
+from warpgauss.readers.synthetic import generate  # noqa: E402
 
 VARIANTS = {
     "paper": {"jitter": 0.5, "importance": False},

@@ -59,16 +59,16 @@ from warpgauss import (
     coded,  # noqa: E402
     ratefit,
 )
-from warpgauss.allocate import AllocationConfig  # noqa: E402
-from warpgauss.bench import result_header  # noqa: E402
-from warpgauss.driver import (  # noqa: E402
+from warpgauss.core.profiling import StageRecorder  # noqa: E402
+from warpgauss.encoding.allocate import AllocationConfig  # noqa: E402
+from warpgauss.encoding.bench import result_header  # noqa: E402
+from warpgauss.encoding.driver import (  # noqa: E402
     EncodeOptions,
     encode_field,
     load_field,
     replan,  # noqa: E402 - the rate-control constants
 )
-from warpgauss.profiling import StageRecorder  # noqa: E402
-from warpgauss.refine import RefineConfig  # noqa: E402
+from warpgauss.encoding.refine import RefineConfig  # noqa: E402
 
 HEAD_MRIS = "mean_reg2mean.nii.gz,mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz,inia19-t1-brain.nii.gz"
 # name: (RefineConfig fields, (prune share, refit share)[, refined bits from, refit learning-rate scale])
@@ -98,9 +98,9 @@ VARIANTS: dict[str, tuple] = {
     "err50-s16k": ({"error_share": 0.5, "samples": 16384, "auto_samples": False}, (None, None)),
     "late": ({}, (None, None)),
 }
-# variants that change a constant of warpgauss.driver.replan for their encodes
+# variants that change a constant of warpgauss.encoding.driver.replan for their encodes
 REPLAN_CONSTANTS: dict[str, dict[str, object]] = {"late": {"REPLAN_LATE": True}}
-# variants that change a constant of warpgauss.coded for their encodes
+# variants that change a constant of warpgauss.format.coded for their encodes
 CODED_CONSTANTS: dict[str, dict[str, float]] = {
     "bits37": {"BITS_REFERENCE_DB": 37.0},
     "bits34": {"BITS_REFERENCE_DB": 34.0},
@@ -155,7 +155,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="benchmarks/results/accuracy_sweep_cpu.json")
     args = ap.parse_args(argv)
-    from warpgauss._warp import warp
+    from warpgauss.core.warp import warp
 
     warp().init()
     result = {**result_header("training and rate-control variants at fixed ratios (issue #32)", __file__, argv, args.device)}

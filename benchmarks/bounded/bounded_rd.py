@@ -30,12 +30,12 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss import residual as R
-from warpgauss._warp import resolve_device
-from warpgauss.bench import result_header
-from warpgauss.evaluate import psnr_from_mse
-from warpgauss.lazy import valid_mask
-from warpgauss.synthetic import generate
+from warpgauss.core.warp import resolve_device
+from warpgauss.encoding.bench import result_header
+from warpgauss.field.evaluate import psnr_from_mse
+from warpgauss.format import residual as R
+from warpgauss.readers.lazy import valid_mask
+from warpgauss.readers.synthetic import generate
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent.parent

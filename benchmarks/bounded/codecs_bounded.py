@@ -24,8 +24,8 @@ sys.path.insert(0, str(HERE))
 from bench_rd import sperr_run, sz3_run, zfp_run  # noqa: E402
 from bounded_rd import MRIS, volumes  # noqa: E402
 
-from warpgauss.bench import result_header  # noqa: E402
-from warpgauss.evaluate import psnr_from_mse  # noqa: E402
+from warpgauss.encoding.bench import result_header  # noqa: E402
+from warpgauss.field.evaluate import psnr_from_mse  # noqa: E402
 
 CODECS = {
     "sz3": lambda d, e: sz3_run(d, e),

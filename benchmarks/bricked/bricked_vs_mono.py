@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss._warp import device_name, resolve_device, warp
-from warpgauss.allocate import AllocationConfig
-from warpgauss.analysis import normalise
-from warpgauss.brickplan import face_band, parse_bricks, plan_bricks
-from warpgauss.synthetic import generate
+from warpgauss.core.warp import device_name, resolve_device, warp
+from warpgauss.encoding.allocate import AllocationConfig
+from warpgauss.encoding.scale.plan import face_band, parse_bricks, plan_bricks
+from warpgauss.field.analysis import normalise
+from warpgauss.readers.synthetic import generate
 
 
 def psnr(sse: float, n: int) -> float:

@@ -18,10 +18,10 @@ import os
 import time
 from pathlib import Path
 
-from warpgauss.analysis import DeviceVolume, normalise
-from warpgauss.bench import result_header, warmed_device
-from warpgauss.brickplan import default_halo, plan_bricks, split_bricks
-from warpgauss.synthetic import generate
+from warpgauss.encoding.bench import result_header, warmed_device
+from warpgauss.encoding.scale.plan import default_halo, plan_bricks, split_bricks
+from warpgauss.field.analysis import DeviceVolume, normalise
+from warpgauss.readers.synthetic import generate
 
 
 def main(argv=None) -> dict:
@@ -45,7 +45,7 @@ def main(argv=None) -> dict:
     print(f"{args.field} {args.size}^3 generated and analysed in {time.perf_counter() - t0:.1f} s")
     dv = None
     if args.device:
-        from warpgauss._warp import warp
+        from warpgauss.core.warp import warp
 
         warmed_device(args.device)
         t = time.perf_counter()

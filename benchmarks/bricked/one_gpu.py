@@ -2,7 +2,7 @@
 the same run (issue #35, part 1: bricked <= 1.5x the monolithic time, PSNR within 0.2 dB).
 
 For each field and size: the monolithic encode, then each bricking with the bricks of a wave
-stepping side by side on the device (the default: ``warpgauss.bricked.bricks_at_once``), and, with
+stepping side by side on the device (the default: ``warpgauss.encoding.scale.bricks.bricks_at_once``), and, with
 ``--serial``, the same bricking with one brick at a time (``MAX_AT_ONCE = 1``): both must give the
 same model bit for bit. Rows: ``size``, ``bricks``, ``at_once``, ``seconds``,
 ``bricked_over_monolithic`` (time ratio, same run), ``psnr_db`` and ``dpsnr_db`` (full grid,
@@ -10,7 +10,7 @@ against the monolithic), the per-brick setup and refinement seconds. ``--profile
 brick's iteration phase by phase (sample, forward, backward, update, re-bin) with the device
 synchronised around each, and a captured iteration, to show where a brick's time goes.
 ``--together 0,0.25,0.5`` adds each bricking with every brick started at once (no waves:
-``warpgauss.bricked.NEIGHBOURS_FIRST`` False), then the seams refit together for that share of the
+``warpgauss.encoding.scale.bricks.NEIGHBOURS_FIRST`` False), then the seams refit together for that share of the
 iterations (``SEAM_REFIT``; 0: none), rows with ``"waves": "together"`` and ``seam_refit``.
 
     python benchmarks/bricked/one_gpu.py --sizes 512 --fields vortex,interface --bricks 2x2x2,4x4x4 --out $OUT/one_gpu_512_h200.json
@@ -26,12 +26,12 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-import warpgauss.bricked as wb
-import warpgauss.brickplan as bp
-from warpgauss._warp import resolve_device, warp
-from warpgauss.analysis import normalise
-from warpgauss.bench import result_header
-from warpgauss.synthetic import generate
+import warpgauss.encoding.scale.bricks as wb
+import warpgauss.encoding.scale.plan as bp
+from warpgauss.core.warp import resolve_device, warp
+from warpgauss.encoding.bench import result_header
+from warpgauss.field.analysis import normalise
+from warpgauss.readers.synthetic import generate
 
 
 def psnr(f, m, dev) -> float:
@@ -46,8 +46,8 @@ def default_budget(size: int) -> int:
 
 def profile_brick(v: np.ndarray, n: int, bricks: str, dev: str, steps: int = 60, split: bool | None = None) -> dict:
     """One brick of the first wave, set up as the bricked encode does, its iteration timed phase by phase."""
-    from warpgauss.allocate import AllocationConfig
-    from warpgauss.refine import RefineConfig, load_kernels
+    from warpgauss.encoding.allocate import AllocationConfig
+    from warpgauss.encoding.refine import RefineConfig, load_kernels
 
     wp = warp()
     f = normalise(v)
@@ -124,7 +124,7 @@ def main(argv=None) -> dict:
             print(f"{name} {size}^3 generated in {time.perf_counter() - t:.1f} s", flush=True)
             kw = dict(budget=n, device=dev, format="full", self_test=False, evaluate=False)
             if split is not None:
-                from warpgauss.refine import RefineConfig
+                from warpgauss.encoding.refine import RefineConfig
 
                 kw["refine"] = RefineConfig(split_cells=split)
             t = time.perf_counter()

@@ -71,15 +71,15 @@ def main(argv=None) -> dict:
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     import warpgauss
-    from warpgauss._warp import resolve_device
-    from warpgauss.bench import result_header
-    from warpgauss.synthetic import generate
+    from warpgauss.core.warp import resolve_device
+    from warpgauss.encoding.bench import result_header
+    from warpgauss.readers.synthetic import generate
 
     dev = resolve_device(args.device)
     if args.error_pool:
         if str(args.gpus) != "1":
             raise SystemExit("--error-pool sets a module constant of this process: use it with --gpus 1")
-        from warpgauss.refine import draw
+        from warpgauss.encoding.refine import draw
 
         draw.ERROR_POOL = True
     path = args.dir / f"ooc_{args.size}x{args.size}x{args.size}_float32.raw"
@@ -96,7 +96,7 @@ def main(argv=None) -> dict:
     for k in counts:
         client = None
         if k > 1 or len(counts) > 1:
-            from warpgauss.cluster import gpu_client
+            from warpgauss.encoding.scale.cluster import gpu_client
 
             client = gpu_client(k)
             client.wait_for_workers(k, timeout=300)
@@ -139,7 +139,7 @@ def write_volume(path: Path, n: int) -> None:
 def encode_once(args, path, dev, client, gpus: int, gen_s: float):
     """One encode of the file (on ``client`` when given): its row and its parameters."""
     import warpgauss
-    from warpgauss.refine import RefineConfig
+    from warpgauss.encoding.refine import RefineConfig
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     t0 = time.perf_counter()

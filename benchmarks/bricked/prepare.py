@@ -1,5 +1,5 @@
 """The host work of a brick's start (its box cut and copied, the interior, halo and training
-masks and their seed-candidate counts: ``warpgauss.bricked.prepare_brick``) for every brick of a
+masks and their seed-candidate counts: ``warpgauss.encoding.scale.bricks.prepare_brick``) for every brick of a
 bricking started together, one brick after another against ``--threads`` threads (whether
 bricks side by side would gain from cutting their boxes on threads ahead of their start). Host work only: it runs the same on any machine,
 with or without a GPU; the JSON names the cores.
@@ -16,13 +16,13 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import warpgauss.bricked as wb
-import warpgauss.brickplan as bp
-from warpgauss.allocate import AllocationConfig
-from warpgauss.analysis import normalise
-from warpgauss.bench import result_header
-from warpgauss.refine import RefineConfig
-from warpgauss.synthetic import generate
+import warpgauss.encoding.scale.bricks as wb
+import warpgauss.encoding.scale.plan as bp
+from warpgauss.encoding.allocate import AllocationConfig
+from warpgauss.encoding.bench import result_header
+from warpgauss.encoding.refine import RefineConfig
+from warpgauss.field.analysis import normalise
+from warpgauss.readers.synthetic import generate
 
 
 def main(argv=None) -> dict:

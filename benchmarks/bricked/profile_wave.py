@@ -23,19 +23,19 @@ from pathlib import Path
 
 import numpy as np
 
-import warpgauss.bricked as wb
-import warpgauss.brickplan as bp
-from warpgauss._warp import warp
-from warpgauss.allocate import AllocationConfig, allocate
-from warpgauss.analysis import DeviceVolume, normalise
-from warpgauss.bench import result_header, warmed_device
-from warpgauss.profiling import StageRecorder
-from warpgauss.refine import RefineConfig, Refiner
-from warpgauss.synthetic import generate
+import warpgauss.encoding.scale.bricks as wb
+import warpgauss.encoding.scale.plan as bp
+from warpgauss.core.profiling import StageRecorder
+from warpgauss.core.warp import warp
+from warpgauss.encoding.allocate import AllocationConfig, allocate
+from warpgauss.encoding.bench import result_header, warmed_device
+from warpgauss.encoding.refine import RefineConfig, Refiner
+from warpgauss.field.analysis import DeviceVolume, normalise
+from warpgauss.readers.synthetic import generate
 
 
 def brick_refiner(task, dev: str) -> Refiner:
-    """The refiner :func:`warpgauss.bricked.brick_job` builds for ``task``."""
+    """The refiner :func:`warpgauss.encoding.scale.bricks.brick_job` builds for ``task``."""
     return wb.brick_refiner(task, dev)[1]
 
 

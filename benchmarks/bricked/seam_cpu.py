@@ -1,7 +1,7 @@
 """Seam quality of the bricked encode (issue #20), CPU: full-grid PSNR on voxels within 2 voxels of
 an inner brick face against the rest, 2x2x2 bricks, the default halo and 8, two example fields at 48^3.
 ``--together``: also every brick started at once, beside stand-ins for all its neighbours
-(``warpgauss.bricked.NEIGHBOURS_FIRST`` False), the rows marked ``"waves": "together"``.
+(``warpgauss.encoding.scale.bricks.NEIGHBOURS_FIRST`` False), the rows marked ``"waves": "together"``.
 
     python benchmarks/bricked/seam_cpu.py --out benchmarks/results/bricked/seam_cpu.json
 """
@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-import warpgauss.bricked as wb
-from warpgauss._warp import warp
-from warpgauss.analysis import normalise
-from warpgauss.brickplan import face_band, plan_bricks
-from warpgauss.synthetic import generate
+import warpgauss.encoding.scale.bricks as wb
+from warpgauss.core.warp import warp
+from warpgauss.encoding.scale.plan import face_band, plan_bricks
+from warpgauss.field.analysis import normalise
+from warpgauss.readers.synthetic import generate
 
 
 def psnr(e: np.ndarray) -> float:

@@ -4,8 +4,8 @@ near the inner faces are refined together afterwards?
 
 For each example field at ``--size`` (2x2x2 bricks, the default halo, format full): the
 monolithic encode, the bricked encode in waves (the default), the bricked encode with every brick
-at once (``warpgauss.bricked.NEIGHBOURS_FIRST`` False), and that model refined again over the
-whole grid for each share of ``--refit`` x the iterations (``warpgauss.bricked.refit_seams``), with
+at once (``warpgauss.encoding.scale.bricks.NEIGHBOURS_FIRST`` False), and that model refined again over the
+whole grid for each share of ``--refit`` x the iterations (``warpgauss.encoding.scale.bricks.refit_seams``), with
 only the primitives whose 3-sigma box reaches within ``--band`` voxels of an inner face stepped (the
 rest frozen). Rows: full-grid
 PSNR, at the seams (within 2 voxels of an inner face) and elsewhere, the primitives refit, and
@@ -24,14 +24,14 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-import warpgauss.bricked as wb
-from warpgauss.allocate import AllocationConfig
-from warpgauss.analysis import normalise
-from warpgauss.bench import result_header
-from warpgauss.brickplan import brick_cap, face_band, plan_bricks
-from warpgauss.field import GaussianField
-from warpgauss.refine import RefineConfig
-from warpgauss.synthetic import generate
+import warpgauss.encoding.scale.bricks as wb
+from warpgauss.encoding.allocate import AllocationConfig
+from warpgauss.encoding.bench import result_header
+from warpgauss.encoding.refine import RefineConfig
+from warpgauss.encoding.scale.plan import brick_cap, face_band, plan_bricks
+from warpgauss.field.analysis import normalise
+from warpgauss.field.gaussians import GaussianField
+from warpgauss.readers.synthetic import generate
 
 
 def psnr(e: np.ndarray) -> float:

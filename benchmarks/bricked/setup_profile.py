@@ -1,5 +1,5 @@
 """Where a brick's start goes: every brick of a bricking started together (the default schedule on
-one GPU), set up one after another as ``warpgauss.bricked.brick_refiner`` sets it up, each phase
+one GPU), set up one after another as ``warpgauss.encoding.scale.bricks.brick_refiner`` sets it up, each phase
 timed with the device synchronised: the box cut, masks and seed-candidate counts on the host (Bh),
 the uploads (Bu), each allocation's stages (S1b-S1e, the brick's own and its stand-ins'), the
 stand-in count on the host (Bs), the refiner's set-up (Br) and its first step (the graph capture).
@@ -18,15 +18,15 @@ import pstats
 import time
 from pathlib import Path
 
-import warpgauss.bricked as wb
-import warpgauss.brickplan as bp
-from warpgauss._warp import warp
-from warpgauss.allocate import AllocationConfig
-from warpgauss.analysis import normalise
-from warpgauss.bench import result_header, warmed_device
-from warpgauss.profiling import StageRecorder
-from warpgauss.refine import RefineConfig
-from warpgauss.synthetic import generate
+import warpgauss.encoding.scale.bricks as wb
+import warpgauss.encoding.scale.plan as bp
+from warpgauss.core.profiling import StageRecorder
+from warpgauss.core.warp import warp
+from warpgauss.encoding.allocate import AllocationConfig
+from warpgauss.encoding.bench import result_header, warmed_device
+from warpgauss.encoding.refine import RefineConfig
+from warpgauss.field.analysis import normalise
+from warpgauss.readers.synthetic import generate
 
 
 def together_tasks(f, bricks: str, n: int, dev: str) -> list:

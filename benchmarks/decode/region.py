@@ -1,7 +1,7 @@
 """Region decode against the whole decode (issue #56 part 1): a BOX^3 box of a SIZE^3 model decoded
 at ZOOM x its resolution ((BOX * ZOOM)^3 output voxels) against the whole SIZE^3 decode.
 
-The model is the kernel benchmarks' uniform one (``warpgauss.bench.bench_primitives``: N
+The model is the kernel benchmarks' uniform one (``warpgauss.encoding.bench.bench_primitives``: N
 Gaussians spread over the grid, sigma 0.7 of their spacing, anisotropic up to 2:1), so every
 brick holds work. Both decodes run once to warm up (kernels compiled and loaded), then are timed
 ``--repeat`` times each, on the device and with the result read back to the host:
@@ -28,11 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
-from warpgauss._fs import atomic_write_bytes
-from warpgauss._warp import resolve_device, warp
-from warpgauss.bench import Timer, bench_primitives, result_header
-from warpgauss.field import DECODE_SLAB_VOXELS, GaussianField
-from warpgauss.region import sampling
+from warpgauss.core.files import atomic_write_bytes
+from warpgauss.core.warp import resolve_device, warp
+from warpgauss.encoding.bench import Timer, bench_primitives, result_header
+from warpgauss.field.gaussians import DECODE_SLAB_VOXELS, GaussianField
+from warpgauss.field.region import sampling
 
 RESULTS = Path(__file__).resolve().parents[1] / "results" / "decode"
 

@@ -9,10 +9,10 @@ import sys
 import time
 from collections import defaultdict
 
-from warpgauss import bench as B
-from warpgauss._warp import warp
-from warpgauss.bench import bench_field, bench_primitives, result_header
-from warpgauss.field import GaussianField
+from warpgauss.core.warp import warp
+from warpgauss.encoding import bench as B
+from warpgauss.encoding.bench import bench_field, bench_primitives, result_header
+from warpgauss.field.gaussians import GaussianField
 
 wp = warp()
 dev = "cuda:0" if wp.get_cuda_device_count() else "cpu"

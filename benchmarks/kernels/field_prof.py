@@ -11,13 +11,13 @@ from collections import defaultdict
 
 import numpy as np
 
-from warpgauss._warp import warp
-from warpgauss.allocate import AllocationConfig, allocate
-from warpgauss.analysis import DeviceVolume, normalise
-from warpgauss.bench import result_header
-from warpgauss.optimize import RefineConfig, Refiner
-from warpgauss.profiling import StageRecorder
-from warpgauss.synthetic import generate
+from warpgauss.core.profiling import StageRecorder
+from warpgauss.core.warp import warp
+from warpgauss.encoding.allocate import AllocationConfig, allocate
+from warpgauss.encoding.bench import result_header
+from warpgauss.encoding.refine import RefineConfig, Refiner
+from warpgauss.field.analysis import DeviceVolume, normalise
+from warpgauss.readers.synthetic import generate
 
 wp = warp()
 dev = "cuda:0" if wp.get_cuda_device_count() else "cpu"

@@ -11,10 +11,10 @@ import time
 
 import numpy as np
 
-from warpgauss._warp import warp
-from warpgauss.analysis import DeviceVolume
-from warpgauss.bench import Timer, bench_field, bench_primitives, result_header
-from warpgauss.optimize import RefineConfig, Refiner
+from warpgauss.core.warp import warp
+from warpgauss.encoding.bench import Timer, bench_field, bench_primitives, result_header
+from warpgauss.encoding.refine import RefineConfig, Refiner
+from warpgauss.field.analysis import DeviceVolume
 
 wp = warp()
 dev = "cuda:0" if wp.get_cuda_device_count() else "cpu"

@@ -9,12 +9,12 @@ bench's field and primitives:
 import os
 import sys
 
-from warpgauss import bench as B
-from warpgauss._warp import warp
-from warpgauss.analysis import DeviceVolume
-from warpgauss.bench import bench_field, bench_primitives
-from warpgauss.field import GaussianField
-from warpgauss.optimize import RefineConfig, Refiner
+from warpgauss.core.warp import warp
+from warpgauss.encoding import bench as B
+from warpgauss.encoding.bench import bench_field, bench_primitives
+from warpgauss.encoding.refine import RefineConfig, Refiner
+from warpgauss.field.analysis import DeviceVolume
+from warpgauss.field.gaussians import GaussianField
 
 wp = warp()
 DEV = os.environ.get("DEV", "cuda:0")

@@ -1,6 +1,6 @@
 """The decode/refinement grid's ROW_COST (cost of visiting one row of point cells, in candidate-point
 tests) swept over 1, 4, 16, 64: forward and backward times of the bench's models at 256^3 (N 2,000)
-and 1024^3 (N 1.4M) on CUDA (what set ``warpgauss.field.ROW_COST`` = 16).
+and 1024^3 (N 1.4M) on CUDA (what set ``warpgauss.field.gaussians.ROW_COST`` = 16).
 
     python3 benchmarks/kernels/row_cost.py $OUT/row_cost_h100.json
 """
@@ -8,8 +8,8 @@ and 1024^3 (N 1.4M) on CUDA (what set ``warpgauss.field.ROW_COST`` = 16).
 import json
 import sys
 
-import warpgauss.field as fld
-from warpgauss.bench import KernelBenchConfig, result_header, run_kernel_bench
+import warpgauss.field.gaussians as fld
+from warpgauss.encoding.bench import KernelBenchConfig, result_header, run_kernel_bench
 
 out: dict = {**result_header("ROW_COST sweep of the kernels", __file__, None, "cuda:0")}
 for rc in (1.0, 4.0, 16.0, 64.0):

@@ -1,5 +1,5 @@
 """Time to generate an example field at the sizes of issue #23 (1024^3, 2048^3), slabs on one
-thread against slabs on threads (warpgauss.synthetic.SLAB_THREADS), in one run; checks the two
+thread against slabs on threads (warpgauss.readers.synthetic.SLAB_THREADS), in one run; checks the two
 fields are the same bit for bit where both are made.
 
     python benchmarks/multi_gpu/generate_time.py --field vortex --sizes 1024,2048 --serial 1024 --out $OUT/generate.json
@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-import warpgauss.synthetic as sy
-from warpgauss.bench import result_header
+import warpgauss.readers.synthetic as sy
+from warpgauss.encoding.bench import result_header
 
 
 def main(argv=None) -> dict:

@@ -3,10 +3,10 @@ one GPU of the same machine in the same run.
 
 For each size: an example field generated here, encoded with the same bricking and seed on a local
 Dask cluster of 1 GPU worker, then of 2 (``--gpus``), each worker a process with its own GPU
-(``warpgauss.cluster.gpu_client``: CUDA_VISIBLE_DEVICES per worker, Dask's own TCP transport).
+(``warpgauss.encoding.scale.cluster.gpu_client``: CUDA_VISIBLE_DEVICES per worker, Dask's own TCP transport).
 Each row: gpus, seconds, speedup against gpus=1, PSNR, and whether the model equals the one-GPU
 model bit for bit (same seed, same bricking: it must). ``--together 0.25`` adds each worker count
-with every brick started at once (``warpgauss.bricked.schedule``: no waves, stand-ins for every
+with every brick started at once (``warpgauss.encoding.scale.bricks.schedule``: no waves, stand-ins for every
 neighbour) and the seams then refit together on this process's GPU for that share of the
 iterations (0: none), rows with ``"schedule": "together"``. Then ``--series`` timesteps of an evolving
 example encoded across the workers: timesteps per second against one GPU.
@@ -32,13 +32,13 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-import warpgauss.bricked as wb
-import warpgauss.cluster
-from warpgauss._warp import resolve_device
-from warpgauss.bench import result_header
-from warpgauss.cluster import gpu_client, local_client
-from warpgauss.series import encode_series
-from warpgauss.synthetic import generate, generate_series
+import warpgauss.encoding.scale.bricks as wb
+import warpgauss.encoding.scale.cluster
+from warpgauss.core.warp import resolve_device
+from warpgauss.encoding.bench import result_header
+from warpgauss.encoding.scale.cluster import gpu_client, local_client
+from warpgauss.readers.synthetic import generate, generate_series
+from warpgauss.series.steps import encode_series
 
 os.environ.setdefault("NCCL_NVLS_ENABLE", "0")  # NVLink multicast stays off (nothing here uses NCCL; kept for any child)
 
@@ -78,7 +78,7 @@ def main(argv=None) -> dict:
     schedules = ([] if args.no_waves else [None]) + [float(x) for x in filter(None, args.together.split(","))]
     counts = [int(g) for g in args.gpus.split(",")]
     assert counts[0] == 1, "the first --gpus entry is the one-GPU baseline (1)"
-    from warpgauss.analysis import MAX_VOXELS
+    from warpgauss.field.analysis import MAX_VOXELS
 
     for size in (int(x) for x in args.sizes.split(",") if x.strip()):
         if size**3 > MAX_VOXELS:  # an in-memory array is refused past int32 voxel indices (the encode says --stride 2)
@@ -132,14 +132,14 @@ def main(argv=None) -> dict:
             for k, through_graph, share in runs:
                 t0 = time.perf_counter()
                 if through_graph:  # as before the volume was shared: every brick's box in the task graph
-                    local = warpgauss.cluster.is_local
-                    warpgauss.cluster.is_local = lambda client: False  # type: ignore[assignment]
+                    local = warpgauss.encoding.scale.cluster.is_local
+                    warpgauss.encoding.scale.cluster.is_local = lambda client: False  # type: ignore[assignment]
                 try:
                     with wb.schedule(share is None, share or 0.0):
                         m = warpgauss.encode(vol, budget=budget, bricks=args.bricks, client=clients[k], **common)
                 finally:
                     if through_graph:
-                        warpgauss.cluster.is_local = local  # type: ignore[assignment]
+                        warpgauss.encoding.scale.cluster.is_local = local  # type: ignore[assignment]
                 sec = time.perf_counter() - t0
                 b = m.report["bricking"]
                 devices = sorted({x["device"] for x in b["bricks"]})

@@ -86,14 +86,14 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss._warp import device_name, resolve_device, warp
-from warpgauss.allocate import AllocationConfig
-from warpgauss.analysis import seed_limit
-from warpgauss.driver import EncodeOptions, ReadOptions, encode_field, encoding_of, load_field, resolve_refine
+from warpgauss.core.profiling import StageRecorder
+from warpgauss.core.warp import device_name, resolve_device, warp
+from warpgauss.encoding.allocate import AllocationConfig
+from warpgauss.encoding.driver import EncodeOptions, ReadOptions, encode_field, encoding_of, load_field, resolve_refine
 from warpgauss.errors import WarpgaussError
-from warpgauss.model import Model
-from warpgauss.profiling import StageRecorder
-from warpgauss.synthetic import EXAMPLES, generate
+from warpgauss.field.analysis import seed_limit
+from warpgauss.format.model import Model
+from warpgauss.readers.synthetic import EXAMPLES, generate
 
 DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data"
 SZ3_BOUNDS = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 1e-4)  # x (max - min)
@@ -404,7 +404,7 @@ def save_real(path: Path, vol) -> None:
 
 
 def load_real(path: Path):
-    from warpgauss.io import Volume
+    from warpgauss.readers import Volume
 
     with np.load(path) as z:
         meta = json.loads(str(z["meta"]))
@@ -420,7 +420,7 @@ def volumes(args):
     else from ``--data-dir`` and then written there (so that a host that cannot read the format
     gets the same values, spacing and name: the same header, the same byte budget).
     """
-    from warpgauss.io import read_volume
+    from warpgauss.readers import read_volume
 
     for name in [x for x in args.fields.split(",") if x]:
         path = example_path(args.volume_dir, name, args.size) if args.volume_dir else None

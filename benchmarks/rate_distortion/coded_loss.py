@@ -11,10 +11,10 @@ import json
 import sys
 
 import warpgauss
-from warpgauss import coded
-from warpgauss.bench import result_header
-from warpgauss.model import Model
-from warpgauss.wgs import wgs_bytes
+from warpgauss.encoding.bench import result_header
+from warpgauss.format import coded
+from warpgauss.format.model import Model
+from warpgauss.format.wgs import wgs_bytes
 
 VARIANTS = {
     "default": dict(coded.CODED_BITS),

@@ -10,8 +10,8 @@ import sys
 import time
 
 import warpgauss
-from warpgauss import coded
-from warpgauss.bench import result_header
+from warpgauss.encoding.bench import result_header
+from warpgauss.format import coded
 
 vol, ratio, out = sys.argv[1], float(sys.argv[2]), sys.argv[3]
 base = dict(coded.CODED_BITS)

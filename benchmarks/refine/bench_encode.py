@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss._warp import device_name, resolve_device, warp
-from warpgauss.synthetic import generate
+from warpgauss.core.warp import device_name, resolve_device, warp
+from warpgauss.readers.synthetic import generate
 
 
 def _ints(text: str) -> list[int]:

@@ -211,9 +211,9 @@ def main(argv=None) -> dict:
     t_start = time.perf_counter()
 
     import warpgauss
-    from warpgauss._warp import device_name, resolve_device, warp
-    from warpgauss.optimize import PRESETS
-    from warpgauss.synthetic import EXAMPLES, generate
+    from warpgauss.core.warp import device_name, resolve_device, warp
+    from warpgauss.encoding.refine import PRESETS
+    from warpgauss.readers.synthetic import EXAMPLES, generate
 
     wp = warp()
     dev = resolve_device(args.device)

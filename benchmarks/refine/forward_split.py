@@ -31,13 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from warpgauss._warp import resolve_device, warp
-from warpgauss.allocate import AllocationConfig, allocate
-from warpgauss.analysis import DeviceVolume, normalise
-from warpgauss.bench import Timer, result_header
-from warpgauss.profiling import StageRecorder
-from warpgauss.refine import RefineConfig, Refiner, load_kernels
-from warpgauss.synthetic import generate
+from warpgauss.core.profiling import StageRecorder
+from warpgauss.core.warp import resolve_device, warp
+from warpgauss.encoding.allocate import AllocationConfig, allocate
+from warpgauss.encoding.bench import Timer, result_header
+from warpgauss.encoding.refine import RefineConfig, Refiner, load_kernels
+from warpgauss.field.analysis import DeviceVolume, normalise
+from warpgauss.readers.synthetic import generate
 
 
 def _volumes(args) -> list[tuple[str, object]]:

@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss._warp import resolve_device
-from warpgauss.bench import result_header
-from warpgauss.synthetic import generate
+from warpgauss.core.warp import resolve_device
+from warpgauss.encoding.bench import result_header
+from warpgauss.readers.synthetic import generate
 
 
 def _write(result: dict, out: Path) -> None:

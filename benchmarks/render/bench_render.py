@@ -31,10 +31,10 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss._fs import atomic_write_bytes
-from warpgauss._warp import device_name, resolve_device, warp
-from warpgauss.render import METHODS, Camera, RenderSettings, make_renderer
-from warpgauss.transfer import make_transfer_function
+from warpgauss.core.files import atomic_write_bytes
+from warpgauss.core.warp import device_name, resolve_device, warp
+from warpgauss.render.renderers import METHODS, Camera, RenderSettings, make_renderer
+from warpgauss.render.transfer import make_transfer_function
 
 
 def _ints(text: str) -> list[int]:
@@ -107,7 +107,7 @@ def main(argv=None) -> dict:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
 
-    from warpgauss.synthetic import generate
+    from warpgauss.readers.synthetic import generate
 
     t = time.perf_counter()
     vol = generate(args.field, args.size, seed=0)

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss._warp import resolve_device, warp
-from warpgauss.bench import result_header
-from warpgauss.synthetic import generate_series
+from warpgauss.core.warp import resolve_device, warp
+from warpgauss.encoding.bench import result_header
+from warpgauss.readers.synthetic import generate_series
 
 
 class CudaArrayOnly:

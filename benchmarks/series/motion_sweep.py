@@ -3,7 +3,7 @@ lost 0.3-0.7 dB a step on the vortex while the static chain gained).
 
 For each field, timestep 0 is encoded cold; then every variant runs its own chain of ``--steps``
 warm timesteps at ``--iterations`` refinement iterations each (the series' warm setting), from
-that same model. A variant sets constants of :mod:`warpgauss.motion` (``static``: no motion;
+that same model. A variant sets constants of :mod:`warpgauss.encoding.motion` (``static``: no motion;
 ``oracle``: the true displacement of the turn instead of the estimate).
 Each row records the start PSNR (the moved model before refinement) and the final PSNR.
 
@@ -18,10 +18,10 @@ import sys
 from pathlib import Path
 
 import warpgauss
-from warpgauss import motion
-from warpgauss._warp import resolve_device, warp
-from warpgauss.bench import result_header
-from warpgauss.synthetic import generate
+from warpgauss.core.warp import resolve_device, warp
+from warpgauss.encoding import motion
+from warpgauss.encoding.bench import result_header
+from warpgauss.readers.synthetic import generate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from warm_vs_cold import steps_of  # noqa: E402
@@ -50,8 +50,8 @@ def oracle(turn_degrees: float):
 
 
 def parse(variant: str, turn: float) -> tuple[bool, dict, object, dict]:
-    """(motion on, warpgauss.motion constants, the estimate function, RefineConfig changes) of a
-    variant: ','-separated tokens static | oracle | default | KEY=VAL (a warpgauss.motion constant,
+    """(motion on, warpgauss.encoding.motion constants, the estimate function, RefineConfig changes) of a
+    variant: ','-separated tokens static | oracle | default | KEY=VAL (a warpgauss.encoding.motion constant,
     ``smooth`` the smoothness weight's start, or a RefineConfig field)."""
     use_motion, sets, estimate, refine = True, {}, ESTIMATE, {}
     for tok in variant.split(","):
@@ -73,7 +73,7 @@ def refine_config(changes: dict):
     """A RefineConfig with ``changes`` (None when there are none: encode's own defaults)."""
     import dataclasses
 
-    from warpgauss.optimize import RefineConfig
+    from warpgauss.encoding.refine import RefineConfig
 
     if not changes:
         return None
@@ -91,7 +91,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--steps", type=int, default=4, help="warm timesteps after the cold one")
     ap.add_argument("--turn", type=float, default=4.0, help="degrees per timestep")
     ap.add_argument("--iterations", type=int, default=375)
-    ap.add_argument("--variants", default=VARIANTS, help="'|'-separated: static, default, or KEY=VAL[,KEY=VAL] of warpgauss.motion")
+    ap.add_argument(
+        "--variants", default=VARIANTS, help="'|'-separated: static, default, or KEY=VAL[,KEY=VAL] of warpgauss.encoding.motion"
+    )
     ap.add_argument("--cold-last", action="store_true", help="also encode the last timestep cold (reference)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)

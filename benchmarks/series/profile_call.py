@@ -17,8 +17,8 @@ import sys
 from pathlib import Path
 
 import warpgauss
-from warpgauss._warp import device_name, resolve_device, warp
-from warpgauss.synthetic import generate_series
+from warpgauss.core.warp import device_name, resolve_device, warp
+from warpgauss.readers.synthetic import generate_series
 
 
 def main(argv=None) -> dict:

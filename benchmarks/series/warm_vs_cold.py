@@ -25,17 +25,17 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import warpgauss
-from warpgauss import motion
-from warpgauss._warp import resolve_device
-from warpgauss.bench import result_header
-from warpgauss.synthetic import generate
+from warpgauss.core.warp import resolve_device
+from warpgauss.encoding import motion
+from warpgauss.encoding.bench import result_header
+from warpgauss.readers.synthetic import generate
 
 
 def steps_of(name: str, size: int, steps: int, turn: float) -> list:
     """The series' volumes, turned in parallel threads (scipy releases the GIL)."""
     from scipy.ndimage import rotate
 
-    from warpgauss.synthetic import unit_range
+    from warpgauss.readers.synthetic import unit_range
 
     base = generate(name, size)
     if steps == 1:

@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss import raymarch
-from warpgauss._warp import resolve_device, warp
-from warpgauss.bench import result_header
-from warpgauss.synthetic import generate
-from warpgauss.viewer import Viewer
+from warpgauss.core.warp import resolve_device, warp
+from warpgauss.encoding.bench import result_header
+from warpgauss.readers.synthetic import generate
+from warpgauss.render import raymarch
+from warpgauss.render.viewer import Viewer
 
 VARIANTS = {  # name: (opacity curve, cache_res or None, image side)
     "default": ([(0.0, 0.0), (1.0, 1.0)], None, 1024),

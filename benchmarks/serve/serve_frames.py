@@ -2,11 +2,11 @@
 1.4M-primitive model at >= 30 frames per second with cached marching; a transfer-function change
 to its new frame <= 100 ms).
 
-What is timed is the page's own path without the browser: warpgauss.viewer.Viewer.frame() (render,
+What is timed is the page's own path without the browser: warpgauss.render.viewer.Viewer.frame() (render,
 RGBA -> RGB8, copy to the host) for an orbit of frames, then the image encodings trame-rca would
-apply: the page's (warpgauss.serve.FrameEncoder: JPEG 90 while the view moves, lossless PNG at
+apply: the page's (warpgauss.render.serve.FrameEncoder: JPEG 90 while the view moves, lossless PNG at
 zlib level 1 once still) and trame-rca's own PNG (PIL's default compression), and set_opacity +
-frame() for transfer-function edits. Then the page's own path (warpgauss.serve.Area, without the
+frame() for transfer-function edits. Then the page's own path (warpgauss.render.serve.Area, without the
 browser and the websocket): on an asyncio loop as trame-rca drives it, each change (a camera step,
 an opacity edit) renders in Area's worker thread, the page is told to fetch it, and it is encoded
 as a moving frame (JPEG) in a thread pool as trame-rca's scheduler does; timed from the change to
@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-from warpgauss._warp import resolve_device
-from warpgauss.bench import result_header
-from warpgauss.synthetic import generate
-from warpgauss.viewer import Viewer
+from warpgauss.core.warp import resolve_device
+from warpgauss.encoding.bench import result_header
+from warpgauss.readers.synthetic import generate
+from warpgauss.render.viewer import Viewer
 
 
 def encode(img: np.ndarray, fmt: str) -> bytes:
@@ -41,7 +41,7 @@ def encode(img: np.ndarray, fmt: str) -> bytes:
     (Image.fromarray(...).save(buf, "png", quality=q): PIL's default compression)."""
     from PIL import Image
 
-    from warpgauss.serve import FrameEncoder
+    from warpgauss.render.serve import FrameEncoder
 
     h, w = img.shape[:2]
     if fmt == "moving":
@@ -66,7 +66,7 @@ async def page_path(viewer: Viewer, changes: list, pool) -> dict:
     the next render (as trame-rca's scheduler pushes frames while the next renders)."""
     import asyncio
 
-    from warpgauss.serve import Area
+    from warpgauss.render.serve import Area
 
     loop = asyncio.get_running_loop()
     fetched = asyncio.Event()

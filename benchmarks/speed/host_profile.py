@@ -17,9 +17,9 @@ import time
 import numpy as np
 
 import warpgauss
-from warpgauss._warp import resolve_device, warp
-from warpgauss.bench import Timer, result_header
-from warpgauss.synthetic import generate
+from warpgauss.core.warp import resolve_device, warp
+from warpgauss.encoding.bench import Timer, result_header
+from warpgauss.readers.synthetic import generate
 
 wp = warp()
 dev = resolve_device(None)

@@ -17,10 +17,10 @@ from collections import defaultdict
 from pathlib import Path
 
 import warpgauss
-from warpgauss._warp import resolve_device, warp
-from warpgauss.bench import result_header
-from warpgauss.optimize import RefineConfig
-from warpgauss.synthetic import generate
+from warpgauss.core.warp import resolve_device, warp
+from warpgauss.encoding.bench import result_header
+from warpgauss.encoding.refine import RefineConfig
+from warpgauss.readers.synthetic import generate
 
 
 def main(argv=None) -> dict:
@@ -40,7 +40,7 @@ def main(argv=None) -> dict:
         action="append",
         default=[],
         help="NAME=module.CONST:value[+module.CONST:value]: a variant NAME (list it in --variants) that runs the "
-        "default encode with module constants set (e.g. rc4=warpgauss.field.ROW_COST:4); restored after it",
+        "default encode with module constants set (e.g. rc4=warpgauss.field.gaussians.ROW_COST:4); restored after it",
     )
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--out", required=True)

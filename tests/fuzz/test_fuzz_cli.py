@@ -142,7 +142,7 @@ def test_encode_options(opts, compact):
 def _model_ok(work: Path) -> None:
     import json
 
-    from warpgauss.model import Model
+    from warpgauss.format.model import Model
 
     m = Model.load(work / "out.wgs")
     assert np.isfinite(m.params).all()

@@ -21,7 +21,7 @@ from hypothesis import example, given
 from hypothesis import strategies as st
 
 from warpgauss.errors import WarpgaussError
-from warpgauss.io import Volume, read_volume
+from warpgauss.readers import Volume, read_volume
 
 _TMP = Path(tempfile.mkdtemp(prefix="reader-fuzz-"))
 DTYPES = ["uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64", "float", "double"]

@@ -23,8 +23,8 @@ from hypothesis import assume, example, given
 from hypothesis import strategies as st
 
 from warpgauss.errors import WarpgaussError
-from warpgauss.model import Model, make_header
-from warpgauss.wgs import HEADER_BLOCK, MAGIC, PREFIX_SIZE, read_wgs, write_wgs
+from warpgauss.format.model import Model, make_header
+from warpgauss.format.wgs import HEADER_BLOCK, MAGIC, PREFIX_SIZE, read_wgs, write_wgs
 
 _TMP = Path(tempfile.mkdtemp(prefix="wgs-fuzz-"))
 
@@ -139,7 +139,7 @@ def test_huge_declared_lengths_are_refused_without_allocating(hlen, n, bpp):
 
 
 def _layout():
-    from warpgauss.wgs import PARAM_NAMES
+    from warpgauss.format.wgs import PARAM_NAMES
 
     return PARAM_NAMES
 
@@ -191,7 +191,7 @@ def _craft(header: dict, payload: bytes, *, fix_sha: bool) -> bytes:
 
 def _use(m: Model) -> None:
     """What info, decode and eval do with a loaded model: none of it may raise anything else."""
-    from warpgauss import transfer
+    from warpgauss.render import transfer
 
     m.shape_xyz, m.value_range, m.source_bytes  # noqa: B018
     m.file_size(), m.file_size(compact=True), m.compression_ratio  # noqa: B018

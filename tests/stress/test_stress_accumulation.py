@@ -24,7 +24,7 @@ import pytest
 from conftest import random_quaternions
 from reference import field_ref, loss_ref
 
-from warpgauss.field import GaussianField
+from warpgauss.field.gaussians import GaussianField
 
 EPS32 = 2.0**-24
 
@@ -116,8 +116,8 @@ def test_binned_and_dense_float32_agree_at_high_overlap(cpu, record_property):
 
 def test_gradient_scatter_at_high_overlap_matches_float64(cpu, record_property):
     """4,096 samples (+ partners) onto 8 large primitives: ~1,000-8,000 float32 terms per gradient entry."""
-    from warpgauss.analysis import DeviceVolume, normalise
-    from warpgauss.optimize import LossWeights, RefineConfig, Refiner
+    from warpgauss.encoding.refine import LossWeights, RefineConfig, Refiner
+    from warpgauss.field.analysis import DeviceVolume, normalise
 
     rng = np.random.default_rng(11)
     z, y, x = np.meshgrid(*(np.arange(12.0),) * 3, indexing="ij")

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 import warpgauss
-from warpgauss.analysis import normalise
 from warpgauss.errors import WarpgaussError
-from warpgauss.io import ReadOptions
+from warpgauss.field.analysis import normalise
+from warpgauss.readers import ReadOptions
 
 ITER, SAMPLES = 20, 128  # a short refinement: every stage runs, CPU time stays small
 

@@ -15,9 +15,9 @@ import pytest
 from reference import field_ref
 
 import warpgauss
-from warpgauss.analysis import DeviceVolume, normalise
-from warpgauss.field import GaussianField
-from warpgauss.optimize import RefineConfig, Refiner
+from warpgauss.encoding.refine import RefineConfig, Refiner
+from warpgauss.field.analysis import DeviceVolume, normalise
+from warpgauss.field.gaussians import GaussianField
 
 SHAPE = (8, 8, 8)
 SCALE_MIN, SCALE_CAP = 0.3, 2.0

@@ -151,7 +151,7 @@ def file_transfer_function(path: str, header: dict) -> np.ndarray:
     vmin, vmax = float(header["values"]["min"]), float(header["values"]["max"])
     if not _use_cli():
         from warpgauss.errors import WarpgaussError
-        from warpgauss.transfer import load_transfer_function
+        from warpgauss.render.transfer import load_transfer_function
 
         try:
             return load_transfer_function(path, (vmin, vmax)).rgba
@@ -204,7 +204,7 @@ def _use_cli() -> bool:
 
 
 def extent_box(header: dict, shape, extent) -> tuple[tuple[float, float], ...] | None:
-    """The box (voxel bounds of the encoded grid, :mod:`warpgauss.region`) that the voxels
+    """The box (voxel bounds of the encoded grid, :mod:`warpgauss.field.region`) that the voxels
     ``extent`` (VTK's i0, i1, j0, j1, k0, k1, inclusive) of a decode at ``shape`` cover, or None
     for the whole extent: its decode is that extent of the whole decode, bit for bit."""
     full = [int(v) for v in header["grid"]["shape_xyz"]]
@@ -256,9 +256,9 @@ def _decode_image(path: str, shape, device: str | None, residual: bool, box):
             pts.DeepCopy(rp.GetOutput())
         return img, pts, None
     import warpgauss
-    from warpgauss.export import primitives_polydata
+    from warpgauss.format.export import primitives_polydata
     from warpgauss.readers.write import image_data
-    from warpgauss.transfer import from_header
+    from warpgauss.render.transfer import from_header
 
     m = warpgauss.Model.load(path)
     shape = tuple(shape)

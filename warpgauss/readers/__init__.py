@@ -17,11 +17,15 @@ Formats read: raw binary named ``NAME_XxYxZ_DTYPE.raw`` (or ``--shape``/``--dtyp
 HDF5, classic netCDF (netCDF-4 goes through the HDF5 reader), VTK ImageData (``.vti``, legacy
 ``.vtk``), NIfTI, MetaImage and NRRD (through pyvista), MRC/CCP4 (plain, ``.gz`` or ``.bz2``) and
 gOpenMol ``.plt``. Formats written: ``.vti``, ``.npy``, ``.raw`` and ``.h5``/``.hdf5``.
+
+Beside the readers: :class:`ReadOptions` (how stage P reads a file), volumes read on demand
+(:mod:`.lazy`, out of core) and the built-in example volumes (:mod:`.synthetic`).
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import WarpgaussError
@@ -96,7 +100,7 @@ def read_volume(
         stride: Keep every ``stride``-th voxel on each axis (``data[::s, ::s, ::s]``); spacing is
             multiplied by it.
         lazy: Leave the voxels in the file where the format allows (raw, ``.npy`` and HDF5 /
-            netCDF-4 datasets, stride 1; see :mod:`warpgauss.lazy`): ``data`` is then memory-mapped
+            netCDF-4 datasets, stride 1; see :mod:`warpgauss.readers.lazy`): ``data`` is then memory-mapped
             or read on demand, in the file's byte order.
 
     Returns:
@@ -124,6 +128,7 @@ __all__ = [
     "MAX_READ_VOXELS",
     "READERS",
     "WRITERS",
+    "ReadOptions",
     "Volume",
     "parse_raw_name",
     "read_volume",
@@ -131,3 +136,29 @@ __all__ = [
     "writable_extensions",
     "write_volume",
 ]
+
+
+@dataclass
+class ReadOptions:
+    """How to read a file source (see :func:`read_volume`)."""
+
+    shape: tuple[int, int, int] | None = None
+    dtype: str | None = None
+    endian: str | None = None
+    dataset: str | None = None
+    variable: str | None = None
+    stride: int = 1
+    fill_value: float | None = None
+
+    def read(self, path, lazy: bool = False):
+        """Read a volume file with these options (:func:`read_volume`)."""
+        return read_volume(
+            path,
+            lazy=lazy,
+            shape=self.shape,
+            dtype=self.dtype,
+            endian=self.endian,
+            dataset=self.dataset,
+            variable=self.variable,
+            stride=self.stride,
+        )

@@ -105,7 +105,7 @@ _RAW_NAME = re.compile(
 
 _RAW_SUFFIXES = (".raw", ".bin")
 
-MAX_READ_VOXELS = 2**31 - 1  # = warpgauss.analysis.MAX_VOXELS: the kernels index voxels with int32
+MAX_READ_VOXELS = 2**31 - 1  # = warpgauss.field.analysis.MAX_VOXELS: the kernels index voxels with int32
 
 
 def parse_raw_name(filename: str | os.PathLike) -> tuple[tuple[int, int, int], np.dtype] | None:

@@ -45,7 +45,7 @@ def read_hdf5(
 
 def _hdf5_array(path: Path, ds, shape: tuple, stride: int, lazy: bool = False) -> tuple[np.ndarray, bool]:
     """Memory-map a contiguous uncompressed dataset; otherwise read only the strided voxels
-    (``lazy``: leave a chunked dataset unread, to be read by bricks; see :mod:`warpgauss.lazy`).
+    (``lazy``: leave a chunked dataset unread, to be read by bricks; see :mod:`warpgauss.readers.lazy`).
 
     ``shape`` is the dataset's 3D shape once leading length-1 axes are dropped.
     """
@@ -53,7 +53,7 @@ def _hdf5_array(path: Path, ds, shape: tuple, stride: int, lazy: bool = False) -
     if offset is not None and ds.size > 0 and not ds.external:
         return np.memmap(path, dtype=ds.dtype, mode="r", offset=offset, shape=shape), False
     if lazy:
-        from ..lazy import ArraySource, Lazy3D
+        from .lazy import ArraySource, Lazy3D
 
         src = ArraySource("hdf5", str(path), tuple(int(v) for v in shape), ds.dtype.str, key=ds.name)  # type: ignore[arg-type]
         return Lazy3D(src), False  # type: ignore[return-value]

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._fs import atomic_path, check_writable
+from ..core.files import atomic_path, check_writable
 from ..errors import WarpgaussError
 from .common import check_dtype, check_shape, match_suffix
 

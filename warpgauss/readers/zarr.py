@@ -46,7 +46,7 @@ def read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False, 
         fill_value=fill_attr(attrs),
     )
     if lazy:
-        from ..lazy import ArraySource, Lazy3D
+        from .lazy import ArraySource, Lazy3D
 
         src = ArraySource("zarr", str(path), shape, np.dtype(arr.dtype).str, key=key)  # type: ignore[arg-type]
         return ReadResult(Lazy3D(src), **meta)  # type: ignore[arg-type]

@@ -1,0 +1,221 @@
+"""Rate control during refinement: the mid-training re-plan of N for a coded byte budget, and the
+(off by default) refit after pruning, as methods of :class:`Replan` that the encode run mixes in.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ...format.model import Model
+from .options import EncodeOptions
+
+# a refined model pruned to fit its byte budget (ratefit.fit_bytes) may be refined again, the rest
+# filling what the pruned ones carried: for this share of the iterations (at least
+# REFIT_MIN_ITERATIONS), at REFIT_LR x the learning rate, when more than REFIT_MIN_PRUNED of the
+# primitives went; then fitted once more. Off (0): measured on an H100 (benchmarks/results/accuracy/),
+# a refit from fresh Adam moments moves every parameter by about the learning rate in its first
+# steps and wrecks an accurate model (vortex 256^3 at ratio 300: 68.6 dB coded without, 43.6 with
+# a refit at 0.3x, 47.7 at 0.02x); dropping bits beyond a 3 % excess (ratefit.PRUNE_SHARE) paid more
+REFIT_SHARE = 0.0
+# a coded byte budget's N is re-planned once the model's accuracy is known: after this share of the
+# iterations the model is coded at the depths its expected final sample PSNR needs (extrapolated
+# from the sample PSNR half-way there and now, at least REPLAN_REST_GAIN_DB more); where that,
+# times REPLAN_GROWTH (how much larger the model codes by the end), exceeds the budget by more
+# than REPLAN_TOLERANCE, the least important primitives are taken out and the rest refine on. The pilot's N (CODED_REFINE_GAIN_DB) under-predicts the depths
+# of a model trained at voxel centres by 1-4 bits: refined models coded 1.2-2.3x their budget and
+# lost 1-13 dB to the bits the rate control then dropped (benchmarks/results/accuracy/rd_*.json)
+REPLAN_AT = 0.25
+REPLAN_REST_GAIN_DB = 2.0
+# the sample PSNR grows faster than linearly in log(iterations) as the learning rate decays: from
+# K = T / 4 to T it gained 0.54-3.19x its gain from K / 2 to K times log2(T / K) (three MRIs at CR
+# 10-1000, vortex and interface at 512^3 CR 100-1000; H200, sweep_*_choice_h200.json), the most
+# where N is large (interface 512^3: 2.1-2.6). At 1.25 three of those 21 rows planned a bit depth
+# short of the end's (benchmarks/accuracy/replan_extrapolation.py); at 2.5 none, but encoded again
+# (sweep_*_replan25_h200.json) the six rows it changed all lost 0.18-0.40 dB (fewer primitives),
+# the interface's too: its coded - float32 gap at the same N (-1.17 / -1.94 dB at CR 100 / 300)
+# comes from the quantisation at the planned depths, not from bits dropped at export
+REPLAN_EXTRAPOLATE = 1.25
+REPLAN_MAX_GAIN_DB = 30.0
+REPLAN_GROWTH = 1.05
+REPLAN_TOLERANCE = 0.01
+REPLAN_MIN_ITERATIONS = 100
+# the re-plan takes out at most this share of the primitives while it can code fewer bits instead
+# (one bit of every attribute at a time, down to the default depths). With samples drawn where the
+# error is (RefineConfig.error_share) the interface field at 512^3, CR 300, was 52.2 dB at a
+# quarter of the run, planned 4 more bits, lost 58 % of its primitives, fell to 35.0 dB and ended
+# at 46.4 (52.6 without the error stratum, a 37 % cut; H200, accuracy/sweep_fields512_err_h200.json);
+# of the 83 other rows of the two sweeps (three MRIs too) none cut more than 38 %: this changes none of them
+REPLAN_MAX_CUT = 0.4
+# a second look half-way from the re-plan to the end (iteration (T + K) / 2), off: the rest of the
+# run is then as long as the span since the re-plan and is expected to gain what that span gained
+# (REPLAN_LATE_EXTRAPOLATE x; nothing where it lost); where the model would code at more bits than
+# the re-plan planned for, the least important of the primitives still in are taken out so that it
+# fits at those depths (at most REPLAN_MAX_CUT of them). On the histories of 86 encodes (three MRIs
+# at CR 10-1000, vortex and interface 512^3 at CR 100-1000, five sample strata; H200,
+# accuracy/sweep_*_err_h200.json, sweep_*_float2_h200.json) it asks for more bits on exactly the 10
+# rows whose export coded over 4 % above budget and dropped bits there, at the end's depths on all
+# 10, and on none of the 76 others. Encoded (accuracy/sweep_*_late_h200.json), what it took out
+# was not filled in by the last 37 % of the run: mni_icbm152 CR 10 45.26 -> 42.47 dB (15 % cut),
+# the interface at 512^3 CR 100 / 300 63.47 -> 51.80 / 59.81 -> 51.65, CR 1000 48.01 -> 49.88;
+# the rows it left alone came out bit for bit the same. Dropping bits at the end costs less
+REPLAN_LATE = False
+REPLAN_LATE_EXTRAPOLATE = 1.0
+# the bit depths a refined model is coded at: "accuracy" (bits_for_psnr of its sample PSNR) or
+# "sizing" (those N was sized for; more only where the budget leaves room)
+REFINED_BITS = "accuracy"
+REFIT_MIN_ITERATIONS = 30
+REFIT_LR = 0.3
+REFIT_MIN_PRUNED = 0.01
+
+
+class Replan:
+    """The re-plan and refit steps of :class:`~warpgauss.encoding.driver.run.EncodeRun` (mixed in: they read
+    and change the run's state)."""
+
+    # the run's state these steps read and change (set by EncodeRun.__init__ and its stages)
+    opts: EncodeOptions
+    enc: str
+    budget_bytes: int | None
+    header: dict
+    dv: Any
+    model: Model | None
+    refined_fit: dict | None
+    replan: dict | None
+    replan_half: float | None
+    skip: Callable[..., None]
+    stored: Callable[[Model], tuple[Model, dict | None]]
+
+    def replan_iteration(self, deadline: float | None) -> int | None:
+        """The iteration after which a coded byte budget's N is re-planned (see :data:`REPLAN_AT`),
+        or None where it is not: no coded byte budget, a warm start, a time budget."""
+        cfg = self.opts.refine
+        if self.enc != "coded" or self.budget_bytes is None or REPLAN_AT <= 0 or self.opts.init is not None:
+            return None
+        if deadline is not None or cfg.iterations < REPLAN_MIN_ITERATIONS:
+            return None
+        return max(1, int(round(REPLAN_AT * cfg.iterations)))
+
+    def replan_n(self, refiner) -> None:
+        """N for the bit depths the model's accuracy needs: at :data:`REPLAN_AT` of the iterations
+        the current model is coded at the depths of its expected final sample PSNR;
+        where that (times :data:`REPLAN_GROWTH`) exceeds the budget, the least important
+        primitives are taken out (:meth:`Refiner.silence`) and the others refine on to fill in."""
+        at = float(refiner.losses()["sample_psnr_db"])
+        # the sample PSNR grows about linearly in log(iterations): what it gained from K/2 to K,
+        # times log2(T / K), is what the rest of the run adds (at least REPLAN_REST_GAIN_DB)
+        half = self.replan_half if self.replan_half is not None and math.isfinite(self.replan_half) else at
+        t_total, k = self.opts.refine.iterations, refiner.iteration
+        rest = max(REPLAN_REST_GAIN_DB, (at - half) * REPLAN_EXTRAPOLATE * math.log2(t_total / k))
+        expected = at + min(rest, REPLAN_MAX_GAIN_DB)
+        self.replan = {"iteration": k, "sample_psnr_db": at, "sample_psnr_db_at_half": half, **self._cut_to(refiner, expected)}
+
+    def replan_late_iteration(self, first: int) -> int | None:
+        """The iteration of the late re-plan (see :data:`REPLAN_LATE`): half-way from the re-plan
+        at ``first`` to the end, or None where it is off."""
+        t_total = self.opts.refine.iterations
+        late = (t_total + first) // 2
+        return late if REPLAN_LATE and first < late < t_total else None
+
+    def replan_late(self, refiner) -> None:
+        """The late re-plan (see :data:`REPLAN_LATE`): where the model, expected to gain as much
+        again as since the re-plan, would code at more bits than that planned for, the least
+        important primitives still in are taken out so that it fits at those depths. The report's
+        ``coded_replan.late`` says what it saw and did."""
+        from ...format.ratefit import bits_for_psnr
+
+        first = self.replan
+        if first is None:  # no re-plan in this session (a resumed run): nothing to extrapolate from
+            return
+        at = float(refiner.losses()["sample_psnr_db"])
+        gain = max(0.0, at - first["sample_psnr_db"]) * REPLAN_LATE_EXTRAPOLATE
+        expected = at + min(gain, REPLAN_MAX_GAIN_DB)
+        late: dict[str, Any] = {"iteration": refiner.iteration, "sample_psnr_db": at, "expected_psnr_db": expected}
+        if bits_for_psnr(expected)[1] > first["bits_added"]:
+            late.update(self._cut_to(refiner, expected))
+        else:
+            late.update(n_before=refiner.n_live, n_after=refiner.n_live, bits_added=first["bits_added"])
+        first["late"] = late
+
+    def _cut_to(self, refiner, expected: float) -> dict[str, Any]:
+        """Take the least important of the primitives still in out of ``refiner`` so that the
+        model codes within the budget (times :data:`REPLAN_GROWTH`) at the depths of ``expected``
+        (fewer bits while more than :data:`REPLAN_MAX_CUT` would go); what was planned and done."""
+        from ...format.coded import BITS_REFERENCE_DB, DB_PER_BIT
+        from ...format.ratefit import bits_for_psnr, importance
+        from ...format.wgs import payload_size, wgs_bytes
+
+        assert self.budget_bytes is not None
+        n = refiner.n_live
+        params = refiner.model_params()[:n]
+        planned = expected
+        while True:  # the depths of the expected accuracy, fewer while they would cut too many
+            bits, extra = bits_for_psnr(planned)
+            data = wgs_bytes(params, self.header, encoding="coded", bits=bits)
+            payload = payload_size(data)
+            head = len(data) - payload
+            predicted = head + payload * REPLAN_GROWTH
+            keep = n
+            if predicted > self.budget_bytes * (1.0 + REPLAN_TOLERANCE):
+                keep = max(1, int(n * (self.budget_bytes - head) / (payload * REPLAN_GROWTH)))
+            if keep >= (1.0 - REPLAN_MAX_CUT) * n or extra == 0:
+                break
+            planned = BITS_REFERENCE_DB + (extra - 1) * DB_PER_BIT  # one bit fewer on every attribute
+        if keep < n:
+            order = np.argsort(importance(params), kind="stable")  # least important first
+            refiner.silence(order[: n - keep])
+        return {
+            "expected_psnr_db": expected,
+            "planned_psnr_db": planned,  # below expected where REPLAN_MAX_CUT held the bits back
+            "bits": bits,
+            "bits_added": extra,
+            "coded_bytes_now": len(data),
+            "predicted_bytes": predicted,
+            "n_before": n,
+            "n_after": keep,
+        }
+
+    def refit_pruned(self, refined: Model, cap: float, deadline: float | None) -> None:
+        """A model pruned to its byte budget, refined again briefly without the pruned primitives
+        (see :data:`REFIT_SHARE`) and fitted once more; the report's ``coded_fit.refit`` says so."""
+        from ..refine import Refiner
+
+        assert self.model is not None and self.refined_fit is not None  # refine() stored the refined model
+        fit, kept = self.refined_fit, self.model.kept_rows
+        cfg = self.opts.refine
+        if kept is None or fit["pruned"] <= REFIT_MIN_PRUNED * refined.n or REFIT_SHARE <= 0:
+            return
+        if deadline is not None and time.perf_counter() >= deadline:
+            self.skip("refit of the pruned model", "the time budget is spent", pruned=fit["pruned"])
+            return
+        iterations = max(REFIT_MIN_ITERATIONS, int(round(REFIT_SHARE * cfg.iterations)))
+        rcfg = dataclasses.replace(
+            cfg, iterations=iterations, lr=cfg.lr * REFIT_LR, target_psnr=None, plateau_db=None, budget_samples=False
+        )
+        t0 = time.perf_counter()
+        refiner = Refiner(self.dv, refined.params[kept], rcfg, self.opts.seed, self.opts.allocation.scale_min, cap)
+        history = refiner.run(log_every=max(iterations, 1), deadline=deadline)
+        again = Model(refiner.model_params(), self.header)
+        again.coded_bits = fit["bits"]
+        self.model, refit = self.stored(again)
+        assert refit is not None
+        first = {k: fit[k] for k in ("steps", "pruned", "bytes", "first_bytes", "bits")}
+        self.refined_fit = {
+            **refit,
+            "pruned": fit["pruned"] + refit["pruned"],
+            "steps": fit["steps"] + refit["steps"],
+            "first_bytes": fit["first_bytes"],
+            "refit": {
+                "iterations": refiner.iteration,
+                "lr_scale": REFIT_LR,
+                "seconds": time.perf_counter() - t0,
+                "first_fit": first,
+                "pruned_after": refit["pruned"],
+                "sample_psnr_db": history[-1].get("sample_psnr_db") if history else None,
+            },
+        }

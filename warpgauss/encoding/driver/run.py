@@ -1,0 +1,492 @@
+"""The staged encoder driver: S1a-S1e, S1x, S2 and EV of one normalised field (:func:`encode_field`),
+each stage a method of :class:`EncodeRun`, timed and memory-profiled.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ...core.profiling import StageRecorder
+from ...errors import WarpgaussError
+from ...field.analysis import Field
+from ...format.model import Model
+from ..allocate import allocate
+from . import replan
+from .checkpoints import Checkpoints, stop_on_sigint
+from .options import EncodeOptions, encoding_of, header_for
+from .report import budget_facts, run_facts
+from .sizing import coded_budget, resolve_budget, target_bytes
+
+
+def encode_field(
+    f: Field,
+    opts: EncodeOptions,
+    *,
+    device: str | None = None,
+    timer: StageRecorder | None = None,
+    input_info: dict | None = None,
+    evaluate: bool = True,
+    full_eval: bool = False,
+    on_stats: Callable[[dict], None] | None = None,
+    on_progress: Callable[[int, int, dict], None] | None = None,
+    log_every: int = 25,
+    analytic_output=None,
+    force: bool = False,
+    cache: dict | None = None,
+) -> Model:
+    """Stages S1a-S1e, S1x, S2 and EV on a normalised field; returns the model with its report.
+
+    The body is the paper's stage table; each stage is a method of :class:`EncodeRun`, which
+    also holds the skip decisions (the report's ``skipped`` list) and assembles the report.
+
+    Args:
+        f: Output of stage P.
+        opts: Encoding options (budget or ratio, seed, allocation knobs).
+        device: Warp device (None: CUDA when present, else CPU).
+        timer: Stage recorder (stage P may already be in it).
+        input_info: Input description for the report.
+        evaluate: Run stage EV.
+        full_eval: Evaluate on the full grid instead of 500,000 sampled voxels.
+        on_stats: Optional callback(stats dict), called as soon as the structure statistics exist.
+        on_progress: Optional callback(iteration, total, losses) during refinement.
+        log_every: Iterations between loss records (and progress calls).
+        analytic_output: If given, also write the analytic (pre-refinement) model there (S1x).
+        force: Overwrite ``analytic_output`` if it exists.
+        cache: A dict shared by encodes of the same field on the same device (a budget ladder):
+            the device volume and structure statistics of the first are reused (S1a skipped).
+    """
+    run = EncodeRun(f, opts, device, timer, evaluate, full_eval, analytic_output)
+    run.analyse(cache, on_stats)  # S1a   occupancy, gradients, structure statistics
+    run.size_coded()  # S1p   coded size pilot (a coded byte budget only)
+    run.allocate()  # S1b-e seeds, shapes, values and weights
+    run.analytic_model(force)  # S1x   the analytic model (and --save-analytic)
+    run.check_target()  # EVa   --target-psnr: is refinement needed at all?
+    run.refine(on_progress, log_every)  # S2    refinement
+    run.evaluate()  # EV    PSNR; keep the better of the two models
+    return run.result(input_info)  # the model, its file size and its report
+
+
+class EncodeRun(replan.Replan):
+    """One encode's state between the stages of :func:`encode_field`, the skip decisions (each
+    recorded in ``skipped`` with why) and the report assembly."""
+
+    def __init__(self, f: Field, opts: EncodeOptions, device, timer, evaluate: bool, full_eval: bool, analytic_output):
+        from ...core.warp import resolve_device, warp
+        from ...format.wgs import header_size
+
+        self.f = f
+        self.enc = encoding_of(opts)
+        self.budget_bytes = target_bytes(f, opts)  # the file size budget, or None for an explicit N
+        self.header = header_for(f, opts)
+        self.n = resolve_budget(f, opts, header_size(self.header, 1 << 40, encoding=self.enc))
+        self.wp = warp()
+        self.dev = resolve_device(device)
+        self.voxels = int(np.prod(f.shape_xyz))
+        self.base_refine = opts.refine
+        scaled = opts.refine.for_budget(self.n, self.voxels, self.dev)
+        if scaled is not opts.refine:  # more samples for a large budget or a GPU: the header says so
+            opts = dataclasses.replace(opts, refine=scaled)
+            self.header = header_for(f, opts)
+            self.n = resolve_budget(f, opts, header_size(self.header, 1 << 40, encoding=self.enc))
+        self.opts = opts
+        self.timer = timer or StageRecorder()
+        self.timer.device = self.dev
+        self.skipped: list[dict] = []
+        self.do_evaluate, self.full_eval = evaluate, full_eval
+        self.sizing: dict | None = None
+        self.analytic_fit: dict | None = None
+        self.refined_fit: dict | None = None
+        self.coded_bits_note: dict | None = None
+        self.refinement: dict = {"iterations": 0}
+        self.replan: dict | None = None  # the re-plan of N during refinement (coded byte budgets)
+        self.replan_half: float | None = None  # the sample PSNR half-way to the re-plan
+        self.early_eval: dict | None = None
+        self.start_eval: dict | None = None  # a warm start scored before refinement (to choose warm or cold)
+        self.start_choice: dict | None = None
+        self.evaluation: dict = {}
+        # a coded byte budget fits the analytic model (several codings) only where it may be the
+        # result: no refinement, an --analytic-output file, or a refined model that scores below it
+        self.fit_later = self.enc == "coded" and self.budget_bytes is not None and opts.refine.iterations > 0 and analytic_output is None
+        self.analytic_output = analytic_output
+
+    def skip(self, what: str, why: str, **facts) -> None:
+        self.skipped.append({"what": what, "why": why, **facts})
+
+    def stored(self, m: Model) -> tuple[Model, dict | None]:
+        """The model as the file will hold it (coded: fitted to the byte budget)."""
+        if self.enc == "coded" and self.budget_bytes is not None:
+            # where bits would be dropped, pruning instead is tried too and the better PSNR kept
+            return m.fit_bytes(self.budget_bytes, score=lambda fitted: float(self._evaluate(fitted, full=False)["psnr_db"]))
+        m = m.stored(self.enc)
+        m.format = self.enc
+        return m, None
+
+    def _evaluate(self, m: Model, full: bool | None = None) -> dict:
+        """Stage EV's figures for ``m`` (``full``: every voxel rather than the sample; default:
+        as the run was asked)."""
+        from ...field.evaluate import evaluate_field
+
+        return evaluate_field(m.field(self.dev), self.f, full=self.full_eval if full is None else full)
+
+    # -- S1a ---------------------------------------------------------------------------------
+    def analyse(self, cache: dict | None, on_stats) -> None:
+        from ...field.analysis import DeviceVolume, structure_stats
+
+        f, dev = self.f, self.dev
+        if cache is not None and cache.get("device") == dev and cache.get("field") is f:
+            self.dv, self.stats = cache["dv"], cache["stats"]
+            self.skip("S1a", "device volume and statistics reused from the previous budget of the ladder", seconds_saved=cache["seconds"])
+        elif self.opts.init is not None or self.opts.deadline is not None:
+            # a warm start allocates nothing, and an Encoder call on a time budget spends nothing on
+            # figures only the report would show: the statistics are skipped
+            with self.timer.stage("S1a", "the field on the device"):
+                self.dv = DeviceVolume(f, dev)
+            self.stats = None
+            why = (
+                "warm start: no allocation needs them"
+                if self.opts.init is not None
+                else "an Encoder call on a time budget: only the report would show them"
+            )
+            self.skip("S1a structure statistics", why)
+            return
+        else:
+            t0 = time.perf_counter()
+            with self.timer.stage("S1a", "occupancy, gradients, structure statistics"):
+                self.dv = DeviceVolume(f, dev)
+                self.stats = structure_stats(self.dv)
+            if cache is not None:
+                cache.update({"device": dev, "field": f, "dv": self.dv, "stats": self.stats, "seconds": time.perf_counter() - t0})
+        if on_stats is not None:
+            on_stats(self.stats)
+
+    # -- S1p ---------------------------------------------------------------------------------
+    def size_coded(self) -> None:
+        if self.enc != "coded" or self.budget_bytes is None:
+            return
+        with self.timer.stage("S1p", "coded size pilot"):
+            self.n, self.sizing = coded_budget(self.dv, self.f, self.opts, self.header, self.budget_bytes, self.n)
+            scaled = self.base_refine.for_budget(self.n, self.voxels, self.dev)
+            if scaled != self.opts.refine:  # the samples follow the measured N, not its bound
+                self.opts = dataclasses.replace(self.opts, refine=scaled)
+                self.header = header_for(self.f, self.opts)
+
+    # -- S1b-S1e -----------------------------------------------------------------------------
+    def allocate(self) -> None:
+        init = self.opts.init
+        if init is None:
+            self.params, self.facts = allocate(self.dv, self.n, self.opts.seed, self.opts.allocation, self.timer)
+            return
+        if init.shape != (self.n, 12):
+            raise WarpgaussError(
+                f"a warm start needs a model of the same budget: the previous model has {init.shape[0]:,} Gaussians, this encode {self.n:,}; "
+                "give --budget N of the previous model (or encode cold)"
+            )
+        self.params = np.array(init, np.float32, copy=True)
+        self.facts = {"warm_start": True, "n": self.n}
+        self.skip("S1b-S1e allocation", "warm start: the previous timestep's model is the starting point")
+        as_given = self.opts
+        if self.opts.motion:
+            from ..motion import WARM_LR_SCALE, compensate
+
+            with self.timer.stage("S1m", "motion compensation of the warm start"):
+                self.params, self.facts["motion"] = compensate(self.params, self.dv)
+            # the rate of the refinement that follows (see WARM_LR_SCALE for what was measured)
+            if WARM_LR_SCALE != 1.0:
+                cfg = self.opts.refine
+                self.opts = dataclasses.replace(self.opts, refine=dataclasses.replace(cfg, lr=cfg.lr * WARM_LR_SCALE))
+                self.header = header_for(self.f, self.opts)  # the file says which rates refined it
+            self.facts["motion"]["lr_scale"] = WARM_LR_SCALE
+        else:
+            self.skip("S1m motion compensation", "motion=False: the previous model starts where it was")
+        ref = self.opts.cold_start_psnr
+        if ref is None:
+            return
+        with self.timer.stage("S1w", "warm or cold: score the warm start"):
+            self.start_eval = self._evaluate(Model(self.params, self.header))
+        start = self.start_eval["psnr_db"]
+        warm = start >= ref
+        self.start_choice = {
+            "warm": warm,
+            "warm_start_psnr_db": start,
+            "last_cold_start_psnr_db": ref,
+            "why": "the warm start scores at least what the last cold start's allocation did"
+            if warm
+            else "the warm start scores below what the last cold start's allocation did: the field changed too much",
+        }
+        if not warm:  # allocate afresh (the warm start's score is not the start model's any more)
+            self.start_eval = None
+            self.skipped = [x for x in self.skipped if x["what"] != "S1b-S1e allocation"]
+            self.opts = dataclasses.replace(as_given, init=None, evaluate_start=True)
+            self.header = header_for(self.f, self.opts)
+            self.params, self.facts = allocate(self.dv, self.n, self.opts.seed, self.opts.allocation, self.timer)
+
+    # -- S1x ---------------------------------------------------------------------------------
+    def analytic_model(self, force: bool) -> None:
+        with self.timer.stage("S1x", "analytic model"):
+            analytic = Model(self.params, self.header)
+            analytic.coded_bits = None if self.sizing is None else self.sizing["bits"]  # the depths N was sized for
+            self.analytic, self.analytic_fit = (analytic, None) if self.fit_later else self.stored(analytic)
+            if self.analytic_output is not None:
+                self.analytic.save(self.analytic_output, encoding=self.enc, force=force)
+        if self.fit_later:
+            self.skip(
+                "S1x rate control of the analytic model",
+                "it is fitted to the byte budget only if the refined model scores below it; until then it is evaluated as allocated",
+            )
+        self.model = self.analytic
+
+    # -- EVa: --target-psnr ------------------------------------------------------------------
+    def check_target(self) -> None:
+        cfg = self.opts.refine
+        if not (cfg.iterations > 0 and cfg.target_psnr is not None and self.do_evaluate):
+            return
+        with self.timer.stage("EVa", "analytic model evaluation (for --target-psnr)"):
+            self.early_eval = self._evaluate(self.analytic)
+        if self.early_eval["psnr_db"] < cfg.target_psnr:
+            return
+        self.skip(
+            "S2 refinement", f"the analytic model already reaches the target ({self.early_eval['psnr_db']:.2f} >= {cfg.target_psnr:g} dB)"
+        )
+        self.refinement = {
+            "iterations": 0,
+            "stop": {"reason": "target PSNR reached by the analytic model", "iterations_skipped": cfg.iterations},
+        }
+        if self.fit_later:  # it is the result: fitted to the budget and scored as stored
+            self.analytic, self.analytic_fit = self.stored(self.analytic)
+            self.model = self.analytic
+            self.early_eval = self._evaluate(self.analytic)
+
+    # -- S2 ----------------------------------------------------------------------------------
+    def refine(self, on_progress, log_every: int) -> None:
+        if self.opts.refine.iterations == 0:
+            self.skip("S2 refinement", "iterations = 0: the analytic model is the result")
+            return
+        if self.refinement.get("stop"):
+            return
+        from ..refine import Refiner, load_kernels
+
+        opts, cfg, dev, refinement = self.opts, self.opts.refine, self.dev, self.refinement
+        cap = opts.allocation.resolved_cap(self.f.shape_xyz)
+        with self.timer.stage("S2", "refinement"):
+            load_kernels(dev)
+            stage_start = time.perf_counter()  # the time budget starts with compiled kernels
+            refiner = Refiner(self.dv, self.params, cfg, opts.seed, opts.allocation.scale_min, cap)
+            self._sampling_skips(refiner)
+            ckpt = Checkpoints(opts, self.params, cfg, dev)
+            if opts.resume:
+                ckpt.resume(refiner)
+            self._self_test(refiner)
+            if cfg.target_psnr is not None or cfg.plateau_db is not None:
+                refiner.set_validation(self.f)
+            t0 = time.perf_counter()
+            deadline = opts.deadline
+            if opts.time_budget is not None and not opts.resume:  # 5 % reserve for the export
+                deadline = stage_start + 0.95 * opts.time_budget
+            ckpt.start(t0)
+            after_step = ckpt.maybe_save
+            replan_at = self.replan_iteration(deadline)
+            if replan_at is not None:
+                late_at = self.replan_late_iteration(replan_at)
+
+                def after_step(r, save=ckpt.maybe_save, at=replan_at, late=late_at):
+                    if r.iteration == at // 2:
+                        self.replan_half = float(r.losses()["sample_psnr_db"])
+                    elif r.iteration == at:
+                        self.replan_n(r)
+                    elif r.iteration == late:
+                        self.replan_late(r)
+                    save(r)
+
+            with stop_on_sigint(refiner):
+                history = refiner.run(progress=on_progress, log_every=log_every, deadline=deadline, after_step=after_step)
+            seconds = time.perf_counter() - t0
+            if refiner.interrupted:
+                ckpt.save(refiner)
+            end = {}
+            if opts.deadline is not None:  # as for the statistics: an in situ call pays for no figure only the report shows
+                self.skip("end-of-training estimate", "an Encoder call on a time budget: only the report would show it")
+            elif not refiner.interrupted:
+                end = refiner.end_estimate()
+            params = refiner.model_params()
+            refined = Model(params[: refiner.n_live], self.header)  # without those the re-plan took out
+            if replan.REFINED_BITS == "sizing" and self.sizing is not None:  # the depths N was sized for
+                refined.coded_bits = dict(self.sizing["bits"])
+            elif self.enc == "coded" and history:
+                from ...format.ratefit import accuracy_bits  # finer grids for a more accurate model
+
+                self.coded_bits_note = accuracy_bits(history[-1].get("sample_psnr_db"))
+                refined.coded_bits = self.coded_bits_note["bits"]
+            self.model, self.refined_fit = self.stored(refined)
+            if self.refined_fit is not None and not refiner.interrupted:
+                self.refit_pruned(refined, cap, deadline)
+        sessions = ckpt.sessions + [{"from_iteration": ckpt.start_iteration, "to_iteration": refiner.iteration, "seconds": seconds}]
+        total = sum(x["seconds"] for x in sessions)
+        refinement.update(
+            {
+                "time_budget": refiner.budget,
+                "iterations": refiner.cfg.iterations,
+                "samples": refiner.m,
+                "samples_rule": self.base_refine.samples_rule(self.n, self.voxels, dev)[1],
+                "seconds": total,
+                "sessions": sessions,
+                "iterations_done": refiner.iteration,
+                "interrupted": refiner.interrupted,
+                "checkpoint": ckpt.report(),
+                "contacts_per_primitive": refiner.contacts,
+                "lr_touch_scale": refiner.touch_scale,
+                "ms_per_iteration": 1000 * total / max(refiner.iteration, 1),
+                "skipped_nonfinite_updates": refiner.skipped_steps(),
+                "deferred_updates": refiner.deferred_steps(),
+                "rebins": refiner.rebins,
+                "forward_pass": refiner.forward_pass,
+                "error_stratum": refiner.sampler.error_report(),
+                "cuda_graph": refiner.use_graph,
+                "cuda_graph_error": refiner.graph_error,
+                "cuda_graph_captures": refiner.captures,
+                "cell_list_entries": refiner.passes.list_entries if refiner.passes.listed else None,
+                "strata_samples": dict(zip(("high", "mid", "uniform"), refiner.strata)),
+                "uniform_support_share": refiner.support_share(),
+                "loss_history": history,
+                "end_estimate": end,
+            }
+        )
+        if refiner.stop_reason is not None:
+            left = refiner.cfg.iterations - refiner.iteration
+            refinement["stop"] = {
+                "reason": refiner.stop_reason,
+                "at_iteration": refiner.iteration,
+                "iterations_skipped": left,
+                "seconds_saved_estimate": left * total / max(refiner.iteration, 1),
+                "checks": refiner.checks,
+            }
+            self.skip(
+                f"S2 iterations {refiner.iteration}-{refiner.cfg.iterations}",
+                refiner.stop_reason,
+                seconds_saved=refinement["stop"]["seconds_saved_estimate"],
+            )
+        elif refiner.checks:
+            refinement["checks"] = refiner.checks
+        if refiner.interrupted:
+            self.do_evaluate = False
+            self.skip("EV evaluation", f"interrupted at iteration {refiner.iteration}")
+
+    def _sampling_skips(self, refiner) -> None:
+        """Where the refiner draws no samples, and why (recorded before it runs)."""
+        if refiner.uniform_occupied:
+            occ = refiner.n_high + refiner.n_mid
+            self.skip(
+                "uniform samples in empty space",
+                f"value_empty = 0: a sample where V <= 0.02 adds no loss; the uniform stratum is drawn among the {occ:,} occupied voxels",
+                uniform_samples_moved_share=1.0 - occ / self.dv.field.values.size,
+            )
+        elif refiner.uniform_support:
+            share = refiner.support_share()
+            if share < 1.0:
+                self.skip(
+                    "uniform samples outside the model's support",
+                    "no Gaussian's 5-sigma box (+2 voxels) reaches there: a sample would score 0 with no gradient; "
+                    "the uniform stratum is drawn over the 4^3 bricks the boxes reach, re-marked at every re-bin",
+                    share_skipped_at_start=1.0 - share,
+                )
+        if not refiner.partners:
+            self.skip(
+                "partner points",
+                "smoothness weight 0: the partners serve only that term, so each iteration evaluates the samples alone (half the points)",
+            )
+
+    def _self_test(self, refiner) -> None:
+        """The binned-vs-dense self-test: once per process and device (the kernels cannot change)."""
+        from ..refine import SELF_TESTS, self_test
+
+        dev = self.dev
+        if self.opts.self_test and dev in SELF_TESTS:
+            self.refinement["self_test"] = {**SELF_TESTS[dev], "reused": True, "seconds": 0.0}
+            self.skip("self-test", "passed earlier in this process on this device", seconds_saved=SELF_TESTS[dev]["seconds"])
+        elif self.opts.self_test:  # the self-test leaves the training state as it was
+            t0 = time.perf_counter()
+            self.refinement["self_test"] = self_test(refiner)
+            self.refinement["self_test"]["seconds"] = time.perf_counter() - t0
+            SELF_TESTS[dev] = dict(self.refinement["self_test"])
+        else:
+            self.skip("self-test", "--no-self-test")
+
+    # -- EV ----------------------------------------------------------------------------------
+    def evaluate(self) -> None:
+        if not self.do_evaluate:
+            if not self.refinement.get("interrupted"):
+                self.skip("EV evaluation", "disabled by the caller")
+            return
+        evaluation = self.evaluation
+        model = self.model
+        assert model is not None  # allocate() or the warm start set it
+        if self.opts.init is not None and not self.opts.evaluate_start and model is not self.analytic:
+            with self.timer.stage("EV", "evaluation"):
+                evaluation["analytic"] = self.start_eval
+                evaluation["final"] = self._evaluate(model)
+            evaluation["gain_db"] = None if self.start_eval is None else evaluation["final"]["psnr_db"] - self.start_eval["psnr_db"]
+            if self.start_eval is None:
+                self.skip("EV of the starting model", "an Encoder call on a time budget scores only the model it returns")
+            return
+        with self.timer.stage("EV", "evaluation"):
+            evaluation["analytic"] = self.early_eval or self.start_eval or self._evaluate(self.analytic)
+            if self.model is self.analytic:
+                evaluation["final"] = evaluation["analytic"]
+            else:
+                t0 = time.perf_counter()
+                evaluation["final"] = self._evaluate(model)
+                share = evaluation["final"].get("bricks_evaluated_share")
+                if share is not None and 0.0 < share < 1.0:
+                    self.skip(
+                        "empty 8^3 bricks in the full-grid evaluation",
+                        "no Gaussian's 5-sigma box reaches them: written 0 without evaluation (exactly the model's value)",
+                        share_skipped=1.0 - share,
+                        seconds_saved_estimate=(time.perf_counter() - t0) * (1.0 - share) / share,
+                    )
+                self._keep_the_better(evaluation)
+        evaluation["gain_db"] = evaluation["final"]["psnr_db"] - evaluation["analytic"]["psnr_db"]
+
+    def _keep_the_better(self, evaluation: dict) -> None:
+        """A refinement that scores below the analytic model (e.g. too few iterations for a large
+        N) is discarded, the analytic model compared as it would be stored."""
+        refined_db, analytic_db = evaluation["final"]["psnr_db"], evaluation["analytic"]["psnr_db"]
+        if refined_db < analytic_db and self.fit_later:
+            self.analytic, self.analytic_fit = self.stored(self.analytic)
+            evaluation["analytic"] = self._evaluate(self.analytic)
+            analytic_db = evaluation["analytic"]["psnr_db"]
+        if refined_db < analytic_db:
+            evaluation["discarded_refined"] = evaluation["final"]
+            evaluation["final"] = evaluation["analytic"]
+            self.model = self.analytic
+            self.skip(
+                "refined model",
+                f"it scored {refined_db:.2f} dB, below the analytic model's {analytic_db:.2f} dB: the analytic model is the result",
+            )
+
+    # -- the report --------------------------------------------------------------------------
+    def result(self, input_info: dict | None) -> Model:
+
+        f, opts, model, dev = self.f, self.opts, self.model, self.dev
+        assert model is not None  # allocate() or the warm start set it
+        is_analytic = model is self.analytic
+        fit = self.analytic_fit if is_analytic else self.refined_fit
+        note = None if is_analytic else self.coded_bits_note
+        replan_facts = None if is_analytic else self.replan
+        model.report = {
+            **run_facts(dev, input_info, f),
+            "budget": budget_facts(model, opts, f, self.enc, self.budget_bytes, self.sizing, fit, replan_facts, note),
+            "seed": opts.seed,
+            "structure": self.stats,
+            "allocation": self.facts,
+            "refinement": self.refinement,
+            "evaluation": self.evaluation,
+            "psnr_db": self.evaluation.get("final", {}).get("psnr_db"),
+            "interrupted": bool(self.refinement.get("interrupted")),
+            "skipped": self.skipped,
+        }
+        if self.start_choice is not None:
+            model.report["start_choice"] = self.start_choice
+        return model

@@ -1,0 +1,739 @@
+"""The refiner: N primitives under refinement, one iteration as a sequence of stage units.
+
+| stage | unit | module |
+|---|---|---|
+| schedule | :class:`.schedule.Schedule` (per-iteration scalars), :class:`.schedule.BudgetPlan`, :class:`.stop.StopRule` | ``schedule.py``, ``stop.py`` |
+| draw | :class:`.draw.Sampler` | ``draw.py`` |
+| forward, backward | :class:`.passes.PairPasses` | ``passes.py`` |
+| update | :class:`.update.Update` | ``update.py`` |
+| re-bin | :class:`.bins.Binner` | ``bins.py`` |
+
+The units share one :class:`.state.Primitives` (the training state in slot order); this module
+only sequences them, captures one iteration as a CUDA graph, and keeps checkpoints and reports.
+``warpgauss bench kernels`` times each stage alone through :meth:`Refiner.sample`,
+:meth:`Refiner.forward`, :meth:`Refiner.backward`, :meth:`Refiner.update` and :meth:`Refiner.rebin`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Generator
+from typing import Any
+
+import numpy as np
+
+from ...core.together import finish
+from ...core.warp import warp
+from ...errors import WarpgaussError
+from ...field.analysis import DeviceVolume
+from .bins import Binner
+from .config import RefineConfig
+from .draw import Sampler
+from .passes import PARTIAL_MAX_ENTRIES, PairPasses, picks_split
+from .schedule import MAX_BUDGET_ITERATIONS, BudgetPlan, Schedule, smooth_weight
+from .state import Primitives
+from .stop import VALIDATION_POINTS, StopRule
+from .update import Update
+
+SELF_TESTS: dict[str, dict] = {}  # device -> passed self-test result: once per process and device
+
+
+def _quant_grid(bits: dict | None):
+    """A :class:`warpgauss.kernels.optim.QuantGrid` of coded bit depths (off; all 0 for None)."""
+    from ...kernels import optim as ko
+
+    g = ko.QuantGrid()
+    b = bits or {}
+    g.on = 0
+    g.geometry_only = 0
+    g.mu, g.s, g.q, g.a, g.w = (int(b.get(k, 0)) for k in ("mu", "log_s", "q", "a", "w"))
+    return g
+
+
+def load_kernels(device: str) -> None:
+    """Compile (or load from the cache) every kernel module refinement uses, so that no time
+    budget pays for it."""
+    from ...kernels import backward as kb
+    from ...kernels import field as kf
+    from ...kernels import optim as ko
+    from ...kernels import sampling as ks
+
+    wp = warp()
+    for module in (kf, ko, kb, ks):
+        wp.load_module(module, device=device)
+
+
+SILENT_LOGIT = 1.0e4  # sigmoid(-1e4) is exactly 0 in float32: a silenced (frozen) primitive's weight
+# draws of samples the end-of-training estimates (Refiner.end_estimate) average over, and the salt
+# of their RNG streams (apart from the training's, SAMPLER_SALT)
+END_DRAWS = 8
+END_SALT = 77_773
+
+
+class Refiner:
+    """N primitives under refinement on one device.
+
+    The training state (raw parameters, Adam moments, prepared primitives) lives in *slot order*,
+    sorted by bin cell. Every ``rebin_every`` iterations it is re-sorted (and every
+    ``replan_every`` the cell levels re-planned); in between, an iteration only touches the
+    primitives its samples reach, updating them in place, and a step that would carry a primitive
+    out of reach of its cell waits for the next re-bin (see
+    :class:`warpgauss.kernels.optim.SlotBounds`), so evaluation stays exact. Per-iteration
+    scalars (learning-rate factor, smoothness weight, bias corrections, RNG stream) are read on
+    the device from a precomputed schedule, so that on CUDA one iteration is captured once as a
+    graph and replayed.
+
+    Args:
+        dv: The normalised field on the device.
+        params: (N, 12) model parameters (weight in slot 11), e.g. the analytic allocation.
+        config: Schedule, learning rates, loss weights.
+        seed: Seed of the sampler; same seed and device give the same result.
+        scale_min, scale_cap: Scale range of the cap term (sigma in voxels).
+        frozen: The last ``frozen`` rows of ``params`` are evaluated with the rest but never stepped
+            (a bricked encode's finished neighbours).
+    """
+
+    def __init__(
+        self,
+        dv: DeviceVolume,
+        params: np.ndarray,
+        config: RefineConfig,
+        seed: int,
+        scale_min: float,
+        scale_cap: float,
+        frozen: int = 0,
+        split_dense: bool = True,
+    ):
+        wp = self._wp = warp()
+        load_kernels(dv.device)
+        self.dv, self.cfg, self.seed = dv, config, seed
+        dev = self.device = dv.device
+        if config.samples < 1 or config.iterations < 0:
+            raise WarpgaussError("--samples must be >= 1 and --iterations >= 0")
+        self.state = Primitives(params, dev, scale_min, scale_cap, frozen)
+        self.n = self.state.n
+        self.quant = _quant_grid(config.quantise)
+        self.binner = Binner(self.state, dv.field.shape_xyz, self.quant)
+        self.sampler = Sampler(
+            dv,
+            config.uniform_support,
+            config.weights.value_empty,
+            config.partner_distance,
+            config.jitter,
+            config.importance,
+            config.error_share,
+            config.error_decay,
+            config.rebin_every,
+        )
+        # split_cells None: the forward pass is re-chosen by the points an iteration in set_samples
+        self._split_cuda = wp.get_device(dev).is_cuda if config.split_cells is None else None
+        self._split_dense = bool(split_dense)  # False: a refiner stepping beside others (picks_split)
+        # partners serve only the smoothness term: with its weight 0 they are not evaluated
+        self.passes = PairPasses(self.state, self.sampler, dv.field.shape_xyz, bool(config.split_cells), config.weights.smooth > 0)
+        self.passes.lists = bool(config.cell_lists)
+        self.updater = Update(self.state, dv, config, self.quant)
+        self.schedule = Schedule(dev, seed)
+        self.stops = StopRule(dev)
+        self._graph = None
+        self._geometry_fixed = False
+        self.use_graph = wp.get_device(dev).is_cuda and config.graph
+        self.set_samples(config.samples)
+        self.write_schedule(max(config.iterations, 1))
+        self.iteration = 0
+        self.touch_scale = 1.0  # learning-rate factor from the contact density (see touch_ref)
+        self.silenced = 0  # primitives silence() took out (frozen, the model's last rows)
+        self.contacts: float | None = None
+        self.stop_requested = False
+        self.interrupted = False
+        self.graph_error: str | None = None
+        self.captures = 0  # CUDA graphs captured so far (each re-plan, re-list or setting change re-captures)
+        self.budget: dict[str, Any] | None = None
+        self.rebin(replan=True)
+
+    # -- views of the units' state (tests, reports, the pipeline) ----------------------------
+
+    prims = property(lambda self: self.state.prims)
+    plan = property(lambda self: self.state.plan)
+    raw = property(lambda self: self.state.raw)
+    pair_grads = property(lambda self: self.state.pair_grads)
+    rebins = property(lambda self: self.binner.rebins)
+    m = property(lambda self: self.sampler.m)
+    strata = property(lambda self: self.sampler.strata)
+    n_high = property(lambda self: self.sampler.n_high)
+    n_mid = property(lambda self: self.sampler.n_mid)
+    high = property(lambda self: self.sampler.high)
+    mid = property(lambda self: self.sampler.mid)
+    uniform_occupied = property(lambda self: self.sampler.uniform_occupied)
+    uniform_support = property(lambda self: self.sampler.uniform_support)
+    points = property(lambda self: self.sampler.points)
+    target = property(lambda self: self.sampler.target)
+    weight = property(lambda self: self.sampler.weight)
+    occupied = property(lambda self: self.sampler.occupied)
+    value = property(lambda self: self.passes.value)
+    density = property(lambda self: self.passes.density)
+    pairs = property(lambda self: self.passes.pairs)
+    back_pairs = property(lambda self: self.passes.back_pairs)
+    point_loss = property(lambda self: self.passes.point_loss)
+    n_points = property(lambda self: self.passes.n_points)
+    checks = property(lambda self: self.stops.checks)
+    stop_reason = property(lambda self: self.stops.reason)
+
+    @property
+    def split(self) -> bool:
+        """Split-cell forward (one thread per point and neighbour cell) rather than point-major."""
+        return self.passes.split
+
+    @split.setter
+    def split(self, value: bool) -> None:
+        self.passes.split = bool(value)
+        self.passes.invalidate()  # the partial-sum buffer exists only for the split pass
+        self._graph = None
+
+    @property
+    def forward_pass(self) -> str:
+        """The forward pass the iterations run and why (the report's ``refinement.forward_pass``)."""
+        kind = "split" if self.passes.use_partials() else ("point-major, cell lists" if self.passes.listed else "point-major")
+        if self._split_cuda is None:
+            why = f"split_cells={self.cfg.split_cells}"
+            if self.split and not self.passes.use_partials():
+                why += f" (its partial sums would pass {PARTIAL_MAX_ENTRIES:,} entries)"
+        elif not self._split_cuda:
+            why = "the CPU"
+        else:
+            why = f"{self.n_points:,} points an iteration, {self.n:,} primitives on CUDA"
+            if not self._split_dense:
+                why += ", beside other refiners (no dense-model rule)"
+        return f"{kind}: {why}"
+
+    @property
+    def partners(self) -> bool:
+        """Whether an iteration evaluates the partner points (the smoothness term needs them)."""
+        return self.passes.partners
+
+    @partners.setter
+    def partners(self, value: bool) -> None:
+        self.passes.partners = bool(value)
+        self.passes.invalidate()
+        self._graph = None
+
+    # -- configuration -----------------------------------------------------------------------
+
+    def set_samples(self, m: int) -> None:
+        """(Re)allocate the per-sample buffers for ``m`` samples per iteration."""
+        if m < 1:
+            raise WarpgaussError("--samples must be >= 1")
+        m = int(m)
+        if self.cfg.samples != m:
+            self.cfg = dataclasses.replace(self.cfg, samples=m)
+        self.sampler.resize(m)
+        if self._split_cuda is not None:
+            self.passes.split = picks_split(self._split_cuda, self.passes.n_points, self.n, self._split_dense)
+        self.passes.resize()
+        self._graph = None
+
+    def smooth_weight(self, it):
+        """Smoothness weight annealed geometrically from strong to weak over the run."""
+        return smooth_weight(self.cfg, it)
+
+    def write_schedule(self, capacity: int | None = None) -> None:
+        """Per-iteration (lr factor, smoothness weight, bc1, bc2) and RNG streams, on the device."""
+        if self.schedule.write(self.cfg, capacity):
+            self._graph = None
+
+    def set_raw(self, raw: np.ndarray) -> None:
+        """Replace the training parameters ((N, 12), primitive order) and reset Adam (tests)."""
+        s = self.state
+        s.raw.assign(np.ascontiguousarray(raw, np.float32))
+        s.ids.assign(np.arange(self.n, dtype=np.int32))
+        s.m1.zero_()
+        s.m2.zero_()
+        self.rebin(replan=True)
+
+    # -- the stages --------------------------------------------------------------------------
+
+    def rebin(self, replan: bool = False) -> None:
+        """Sort the training state into cell order (re-planning the levels with ``replan``), then
+        re-mark the sampler's support."""
+        if self.binner.rebin(replan):
+            self.passes.invalidate()  # point grids and chunk buffers follow the plan
+            self._graph = None
+        if self.passes.relist():  # new list arrays, or the forward pass changed
+            self._graph = None
+        if not self.state.clean:
+            self.state.zero_grads()
+        self.sampler.mark_support(self.binner.prep[0], self.binner.prep[3])
+        self.sampler.refresh_errors()
+
+    def sample(self) -> None:
+        """Draw this iteration's samples (without advancing)."""
+        self.schedule.begin()
+        self.sampler.draw(self.schedule.stream)
+        self.passes.points_changed()
+
+    def forward(self) -> None:
+        """V~ and rho at the points, and the per-point loss gradients."""
+        w = self.cfg.weights
+        self.passes.forward(w.value_empty, w.density, self.schedule.now)
+
+    def backward(self) -> None:
+        """The pair pass: per-primitive gradients from the per-point ones."""
+        self.passes.backward()
+
+    def update(self) -> None:
+        """Chain rule, regularisers and one Adam step."""
+        self.updater.step(self.schedule.now)
+
+    def _iteration_launches(self) -> None:
+        self.sample()
+        self.forward()
+        self.sampler.record_errors(self.passes.point_loss)
+        self.backward()
+        self.update()
+        self.schedule.end()
+
+    def step(self) -> None:
+        """One iteration: (re-bin,) sample, forward, backward, fused chain rule + Adam + re-prepare."""
+        wp, cfg, it = self._wp, self.cfg, self.iteration
+        replan = it % max(cfg.replan_every, 1) == 0
+        if it > 0 and (replan or it % max(cfg.rebin_every, 1) == 0):
+            self.rebin(replan=replan)
+        if self.quantising(it) and not self.quant.on and not self._geometry_fixed:
+            if cfg.quantise_mode == "refit":  # fix the geometry on its grids, refit a and w to it
+                self._fix_geometry()
+            else:  # from here on, evaluate on the coded grids (straight-through)
+                self.quant.on = 1
+                self._graph = None  # the update kernel's arguments changed
+                self.rebin()
+        if not self.state.clean:
+            self.state.zero_grads()
+        if self.use_graph and self._graph is None:
+            self.passes.buffers()  # allocations and sort scratch before the capture
+            try:
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                    self._iteration_launches()
+                self._graph = capture.graph
+                self.captures += 1
+            except Exception as e:  # noqa: BLE001 - a driver without graph support: plain launches
+                self.use_graph = False
+                self.graph_error = f"{type(e).__name__}: {e}"
+        if self.use_graph:
+            wp.capture_launch(self._graph)
+        else:
+            self._iteration_launches()
+        self.state.clean = True  # refine_update zeroed every slot it read
+        if replan and cfg.touch_ref > 0:  # re-estimate the contact density with the bins
+            self.contacts = float(self.pairs.numpy()[: self.m].astype(np.float64).sum()) / self.n
+            self.touch_scale = min(1.0, math.sqrt(self.contacts / cfg.touch_ref))
+            self.schedule.touch.fill_(self.touch_scale)
+        self.iteration += 1
+
+    def quantising(self, it: int | None = None) -> bool:
+        """Whether iteration ``it`` (default: the next) refines on the coded grids."""
+        cfg = self.cfg
+        it = self.iteration if it is None else it
+        return cfg.quantise is not None and it >= int(cfg.quantise_from * cfg.iterations)
+
+    def _fix_geometry(self) -> None:
+        """Move centres, scales and rotations onto the coded grids and stop stepping them."""
+        from ...kernels import optim as ko
+
+        g = _quant_grid(self.cfg.quantise)
+        g.on, g.geometry_only = 1, 1
+        self._wp.launch(ko.project_coded, dim=self.n, inputs=[self.state.raw, g], device=self.device)
+        self._freeze_geometry()
+        self.rebin()
+
+    def _freeze_geometry(self) -> None:
+        """Stop stepping centres, scales and rotations (their rates to 0; a and w keep theirs)."""
+        from ...kernels import field as kf
+
+        lr = self.updater.lr
+        self.updater.lr = kf.vec12(*([0.0] * 10), lr[10], lr[11])
+        self._geometry_fixed = True
+        self._graph = None  # the update kernel's arguments changed
+
+    def project(self) -> None:
+        """Move every primitive onto the coded grids of ``config.quantise`` now (the parameters
+        become what evaluation has read since the quantisation-aware phase began), and re-bin."""
+        from ...kernels import optim as ko
+
+        if self.cfg.quantise is None:
+            raise WarpgaussError("no coded bit depths to project onto (RefineConfig.quantise is None)")
+        g = _quant_grid(self.cfg.quantise)
+        g.on = 1
+        self._wp.launch(ko.project_coded, dim=self.n, inputs=[self.state.raw, g], device=self.device)
+        self.rebin()
+
+    # -- pieces for tests and the self-test -------------------------------------------------
+
+    def forward_backward(self) -> None:
+        """Forward values, per-point gradients and the pair scatter at the current samples."""
+        self.schedule.begin()
+        self.forward()
+        self.accumulate()
+
+    def accumulate(self, kernel=None, count: int | None = None) -> None:
+        """Gradients of the first ``count`` points (all by default), with the pairs counted.
+
+        Args:
+            kernel: A point-major pair kernel (the dense reference in the self-test); None for
+                the refiner's own primitive-major pass.
+            count: Points to gather from, the first ``count`` of the buffers.
+        """
+        self.state.zero_grads()
+        self.back_pairs.zero_()
+        if kernel is None:
+            self.passes.backward(count, count_pairs=True)
+        else:
+            self.passes.atomic_pairs(kernel, self.n_points if count is None else count)
+
+    def pair_pass_stats(self) -> dict:
+        """The last backward pass's load (syncs), see :meth:`.passes.PairPasses.stats`."""
+        return self.passes.stats()
+
+    def gradient(self) -> np.ndarray:
+        """(N, 12) gradient of the loss w.r.t. the raw parameters, primitive order (after
+        :meth:`forward_backward`)."""
+        self.updater.finish_grads()
+        return self.state.to_primitive_order(self.state.grad)
+
+    def raw_params(self) -> np.ndarray:
+        """(N, 12) training parameters in primitive order."""
+        return self.state.to_primitive_order(self.state.raw)
+
+    def model_params(self) -> np.ndarray:
+        """Current primitives as model parameters (unit quaternion, weight in (0, 1)), primitive order."""
+        return self.state.model_params()
+
+    def silence(self, ids: np.ndarray) -> None:
+        """Take primitives (model indices) out of the model for the rest of the run: their weight
+        becomes exactly 0 (a weight logit of -SILENT_LOGIT) and they are frozen (never stepped,
+        so nothing brings them back), adding nothing to any value or density. The count stays N
+        (the binned state is unchanged), but the model order changes: the primitives kept come
+        first, in their order, the silenced ones last, and :attr:`n_live` counts the first, so
+        ``model_params()[:n_live]`` is the model without them. It may be called again: ``ids`` are
+        then indices among the first ``n_live`` (the primitives still in)."""
+        s = self.state
+        ids = np.unique(np.asarray(ids, np.int64))
+        if ids.size == 0:
+            return
+        silenced = s.n - s.n_train  # taken out before: the rows after n_live
+        if silenced != self.silenced:
+            raise WarpgaussError("primitives can only be taken out of a run without frozen primitives")
+        if ids[0] < 0 or ids[-1] >= s.n_train:
+            raise WarpgaussError(f"primitive indices to take out must lie in 0..{s.n_train - 1} (those still in)")
+        gone = np.zeros(s.n, bool)
+        gone[ids] = True
+        gone[s.n_train :] = True
+        kept = s.n - int(gone.sum())
+        label = np.empty(s.n, np.int64)  # old model index -> new: the kept in order, then the silenced
+        label[~gone] = np.arange(kept)
+        label[gone] = np.arange(kept, s.n)
+        slot_ids = s.ids.numpy().astype(np.int64)
+        slots = gone[slot_ids]
+        raw = s.raw.numpy().reshape(s.n, 12)
+        raw[slots, 11] = -SILENT_LOGIT
+        s.raw.assign(raw)
+        for moments in (s.m1, s.m2):
+            arr = moments.numpy().reshape(s.n, 12)
+            arr[slots] = 0.0
+            moments.assign(arr)
+        s.ids.assign(label[slot_ids].astype(np.int32))
+        s.n_train = kept
+        self.silenced = s.n - kept
+        self.rebin(replan=True)
+        self._graph = None
+
+    @property
+    def n_live(self) -> int:
+        """The rows of :meth:`model_params` that are the model: the first ``n_live``; after them come
+        the primitives :meth:`silence` took out, or a bricked run's frozen neighbours."""
+        return self.state.n_train
+
+    # -- validation (target PSNR, plateau) ---------------------------------------------------
+
+    def set_validation(self, f, points: int = VALIDATION_POINTS) -> None:
+        """Fix the voxel centres whose PSNR decides the target and plateau stops (see :class:`.stop.StopRule`)."""
+        self.stops.set_validation(f, points)
+
+    def validation_psnr(self) -> float:
+        """PSNR of the current primitives at the validation voxels (syncs)."""
+        return self.stops.psnr(self.prims)
+
+    def support_share(self) -> float | None:
+        """Share of the grid's voxels the uniform stratum is drawn from now (see :class:`.draw.Sampler`)."""
+        return self.sampler.support_share()
+
+    # -- checkpoints -------------------------------------------------------------------------
+
+    def state_arrays(self) -> tuple[dict, dict]:
+        """Everything the next iterations depend on, between two steps: (arrays, scalars).
+
+        Arrays are in slot order with the bins as they stand (cells, slot bounds), so that
+        :meth:`restore` continues bit-identically on the same device; the prepared primitives
+        are not stored, since they are a function of the raw parameters.
+        """
+        s, b, p, smp = self.state, self.state.bounds, self.state.prims, self.sampler
+        arrays = {
+            "raw": s.raw.numpy(),
+            "m1": s.m1.numpy(),
+            "m2": s.m2.numpy(),
+            "ids": s.ids.numpy(),
+            "bounds_lo": b.lo.numpy(),
+            "bounds_hi": b.hi.numpy(),
+            "bounds_cell": b.cell.numpy(),
+            "cell_start": p.cell_start.numpy(),
+            "cell_end": p.cell_end.numpy(),
+            "counts": s.counts.numpy(),
+            "reach": s.reach.numpy(),
+            "list_centre": self.passes.list_centre.numpy(),
+            "list_half": self.passes.list_half.numpy(),
+            # the support as marked at the last re-bin, not as the current primitives would mark it
+            "support": (smp.support_marks[0].numpy().reshape(-1) != 0).astype(np.uint8) if smp.uniform_support else np.zeros(0, np.uint8),
+            **smp.error_arrays(),
+        }
+        plan = s.binned
+        scalars = {
+            "n": self.n,
+            "iteration": self.iteration,
+            "iterations": self.cfg.iterations,
+            "samples": self.m,
+            "touch_scale": self.touch_scale,
+            "contacts": self.contacts,
+            "rebins": self.rebins,
+            "n_train": self.state.n_train,
+            "silenced": self.silenced,
+            "split": self.split,
+            "support_everything": int(smp.support_marks[1].numpy()[0]) if smp.uniform_support else 0,
+            "plan": {
+                "sizes": list(plan.sizes),
+                "dims": [list(d) for d in plan.dims],
+                "offsets": list(plan.offsets),
+                "total_cells": plan.total_cells,
+            },
+        }
+        return {k: np.ascontiguousarray(v) for k, v in arrays.items()}, scalars
+
+    def restore(self, arrays: dict, scalars: dict) -> None:
+        """Continue from :meth:`state_arrays` (same primitives count; shapes checked by the caller)."""
+        from ...field.gaussians import BinPlan, set_plan
+
+        dev, s = self.device, self.state
+        p, b = s.prims, s.bounds
+        if int(scalars["n"]) != self.n:
+            raise WarpgaussError(f"checkpoint holds {scalars['n']} primitives, this run has {self.n}")
+        pl = scalars["plan"]
+        plan = BinPlan(
+            tuple(float(x) for x in pl["sizes"]),
+            tuple(tuple(int(v) for v in d) for d in pl["dims"]),
+            tuple(int(x) for x in pl["offsets"]),
+            int(pl["total_cells"]),
+        )
+        s.plan = plan
+        set_plan(p, plan, dev, arrays["cell_start"], arrays["cell_end"])
+        self.binner.slot_cells()
+        self.passes.invalidate()
+        for dst, key in (
+            (s.raw, "raw"),
+            (s.m1, "m1"),
+            (s.m2, "m2"),
+            (s.ids, "ids"),
+            (b.lo, "bounds_lo"),
+            (b.hi, "bounds_hi"),
+            (b.cell, "bounds_cell"),
+            (s.counts, "counts"),
+            (s.reach, "reach"),
+            (self.passes.list_centre, "list_centre"),
+            (self.passes.list_half, "list_half"),
+        ):
+            dst.assign(arrays[key])
+        self.passes.lists_restored()
+        it = int(scalars["iteration"])
+        refit = self.cfg.quantise_mode == "refit"
+        self.quant.on = int(self.quantising(it) and not refit)
+        if refit and self.quantising(it) and it > int(self.cfg.quantise_from * self.cfg.iterations):
+            self._freeze_geometry()  # the geometry was fixed before the checkpoint
+        radius = self.binner.prep[4]  # scratch: the prepared primitives go straight into slot order
+        self.binner.prepare_into([p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w, p.conic])
+        s.zero_grads()
+        smp = self.sampler
+        if smp.uniform_support:
+            marks, everything, _ = smp.support_marks
+            if arrays["support"].size != marks.size:
+                raise WarpgaussError(f"checkpoint holds {arrays['support'].size} support bricks, this run has {marks.size}")
+            marks.assign(arrays["support"].reshape(marks.shape).astype(np.int32))
+            everything.fill_(int(scalars.get("support_everything", 0)))
+            smp.index_support()
+        smp.restore_errors(arrays["errors_new"], arrays["errors"])
+        if int(scalars["samples"]) != self.m:
+            self.set_samples(int(scalars["samples"]))
+        if int(scalars["iterations"]) != self.cfg.iterations:
+            self.cfg = dataclasses.replace(self.cfg, iterations=int(scalars["iterations"]))
+            self.write_schedule()
+        self.split = bool(scalars["split"])
+        self.iteration = int(scalars["iteration"])
+        self.schedule.set_iteration(self.iteration)
+        self.touch_scale = float(scalars["touch_scale"])
+        self.schedule.touch.fill_(self.touch_scale)
+        self.contacts = scalars["contacts"]
+        self.binner.rebins = int(scalars["rebins"])
+        self.state.n_train = int(scalars.get("n_train", self.state.n_train))  # after a silence()
+        # a checkpoint holds no bricked run (no frozen neighbours): every frozen row was silenced
+        self.silenced = int(scalars.get("silenced", self.state.n - self.state.n_train))
+        self._graph = None
+
+    # -- reports -----------------------------------------------------------------------------
+
+    def losses(self) -> dict:
+        """Loss terms of the last iteration, a running PSNR estimate over its samples and, with
+        importance weights, their estimate of the decoded model's full-grid PSNR
+        (``grid_psnr_db``, see :meth:`grid_mse_estimate`; syncs)."""
+        if self.state.clean:
+            self.updater.finish_grads()  # per-primitive terms of the current parameters (pair buffers are zero)
+        pl = self.point_loss.numpy().astype(np.float64).sum(0)
+        rl = self.state.reg_loss.numpy().astype(np.float64).sum(0)
+        terms = {"value": pl[0], "density": pl[1], "smooth": pl[2], "anchor": rl[0], "aniso": rl[1], "cap": rl[2]}
+        terms = {k: float(x) for k, x in terms.items()}
+        terms["total"] = float(sum(terms.values()))
+        return terms | self._psnr_terms(*self._drawn())
+
+    def _drawn(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The current samples' model values, targets and weights (float64; syncs)."""
+        v = self.value.numpy()[: self.m].astype(np.float64)
+        return v, self.target.numpy().astype(np.float64), self.weight.numpy().astype(np.float64)
+
+    def _psnr_terms(self, v: np.ndarray, t: np.ndarray, om: np.ndarray) -> dict:
+        """``sample_psnr_db`` (the weighted MSE over the samples) and, where it can be estimated,
+        ``grid_psnr_db`` (:meth:`grid_mse_estimate`) of these model values, targets and weights."""
+        mse = float(np.sum(om * (v - t) ** 2) / max(om.sum(), 1.0))
+        out = {"sample_psnr_db": float(10 * np.log10(1 / max(mse, 1e-20)))}
+        grid = self.grid_mse_estimate(v, t, om)
+        if grid is not None:
+            out["grid_psnr_db"] = float(10 * np.log10(1 / max(grid, 1e-20)))
+        return out
+
+    def grid_mse_estimate(self, v: np.ndarray, t: np.ndarray, om: np.ndarray) -> float | None:
+        """The full-grid MSE of the decoded model (values clamped as the decode clamps them)
+        estimated from this iteration's samples: with importance weights 1 / (D q(v)) the mean of
+        w e^2 times D estimates the squared error summed over the voxels the draw reaches; the
+        voxels it cannot reach decode to 0 and add their V^2 (:meth:`.draw.Sampler.unreached_error`);
+        over the grid's valid voxels. None without importance weights, or where the unreached
+        voxels' model values are not known. ``sample_psnr_db`` is the MSE over the reach alone
+        (the rate control's input, as calibrated)."""
+        if not self.cfg.importance:
+            return None
+        unreached = self.sampler.unreached_error()
+        if unreached is None:
+            return None
+        e = np.clip(v, 0.0, 1.0) - t
+        valid = int(getattr(self.dv.field, "n_valid", 0)) or int(self.dv.values.size)
+        reached = float(np.sum(om * e * e)) * self.sampler.reach() / max(len(v), 1)
+        return (reached + unreached) / valid
+
+    def end_estimate(self, draws: int = END_DRAWS) -> dict:
+        """The current model's ``sample_psnr_db`` and ``grid_psnr_db`` (see :meth:`losses`) over
+        ``draws`` fresh sample draws (RNG streams of their own, :data:`END_SALT`; forward passes
+        only). Fresh, because the model has stepped on the last iterations' samples: scored on
+        those it read 0.1-1.6 dB above the decoded model's grid PSNR (H200, three MRIs and two
+        512^3 fields), where one iteration's draw scored before its step was within 0.7 dB.
+        Parameters and the iteration count are left as they were; empty before the first
+        iteration. Syncs."""
+        if self.iteration == 0 or draws <= 0:
+            return {}
+        from ..allocate import rng_stream
+
+        stream = self._wp.zeros(1, dtype=int, device=self.device)
+        drawn = []
+        for j in range(draws):
+            stream.assign(np.array([rng_stream(self.seed, j, salt=END_SALT)], np.int32))
+            self.sampler.draw(stream)
+            self.passes.points_changed()
+            self.forward()
+            drawn.append(self._drawn())
+        v, t, om = (np.concatenate(parts) for parts in zip(*drawn))
+        return {"draws": draws, "samples": len(v)} | self._psnr_terms(v, t, om)
+
+    def skipped_steps(self) -> int:
+        """Primitive updates skipped because their gradient or result was not finite, so far."""
+        return int(self.state.counts.numpy()[0])
+
+    def deferred_steps(self) -> int:
+        """Primitive updates deferred to the next re-bin (they would have left their cell's reach)."""
+        return int(self.state.counts.numpy()[1])
+
+    # -- the run -----------------------------------------------------------------------------
+
+    def run(
+        self, progress=None, log_every: int = 25, deadline: float | None = None, clock=time.perf_counter, after_step=None
+    ) -> list[dict]:
+        """Run the iterations (every step of :meth:`steps`); the logged loss records."""
+        return finish(self.steps(progress, log_every, deadline, clock, after_step))
+
+    def steps(
+        self, progress=None, log_every: int = 25, deadline: float | None = None, clock=time.perf_counter, after_step=None
+    ) -> Generator[None, None, list[dict]]:
+        """The iterations, one per ``next()``: a caller can interleave several refiners on one
+        device (:func:`warpgauss.core.together.run_together`); ``progress(it, total, losses)`` every
+        ``log_every`` iterations.
+
+        Args:
+            progress: Optional callback.
+            log_every: Iterations between loss records.
+            deadline: A ``clock()`` time by which refinement must have ended (time-budget mode).
+                The first :data:`BUDGET_PROBE` iterations measure the cost of one; with
+                ``budget_samples`` the next :data:`BUDGET_PROBE` run at 4x the samples, which
+                gives the cost as fixed + per-sample parts, and the samples are set to the
+                largest of :data:`BUDGET_SAMPLE_STEPS` x the configured count that still leaves
+                ``budget_min_iterations`` (more samples per iteration gain as much as more
+                iterations past that, and are what a large N needs to touch every primitive).
+                The schedule (learning-rate decay, smoothness anneal) is then resized to the
+                iterations that fit, and no iteration starts that is expected to end past the
+                deadline. The primitives are valid after every step, so stopping anywhere leaves a
+                valid model.
+            clock: Time source (seconds); the device is synchronised before each reading.
+            after_step: Optional callback(refiner) after every step (checkpoints). Setting
+                :attr:`stop_requested` (e.g. from a SIGINT handler) ends the run between two
+                steps, with :attr:`interrupted` set.
+
+        Returns:
+            The logged loss records.
+        """
+        history: list[dict] = []
+        it = 0  # steps taken by this call (a resumed run starts past 0)
+        self.budget = None
+        self.interrupted = False
+        if deadline is not None:
+            self.write_schedule(MAX_BUDGET_ITERATIONS)  # room for any resize, before capture
+            plan = BudgetPlan(self, deadline, clock)
+            self.budget = plan.report
+        while self.iteration < self.cfg.iterations:
+            if self.stop_requested:  # set from a signal handler: stop between two steps
+                self.interrupted = True
+                break
+            if deadline is not None and not plan.before_step(it):
+                break
+            self.step()
+            yield
+            it += 1
+            done = self.iteration
+            if done % log_every == 0 or done == self.cfg.iterations:
+                rec = {"iteration": done, **self.losses()}
+                history.append(rec)
+                if progress is not None:
+                    progress(done, self.cfg.iterations, rec)
+            if after_step is not None:
+                after_step(self)
+            if self.stops.check(self.cfg, self.iteration, self.prims):
+                break
+        if deadline is not None:
+            plan.finish(it)
+        if self.cfg.quantise is not None and not self.interrupted:
+            self.project()  # the model ends on the grids it is stored on (a checkpoint keeps the run's state)
+        return history
+
+    def now(self, clock) -> float:
+        """``clock()`` once the device has finished what was enqueued (a time budget's clock)."""
+        self._wp.synchronize_device(self.device)
+        return clock()
