@@ -370,9 +370,9 @@ def test_the_paraview_reader_shows_the_gaussians_unless_asked_for_the_residual(b
 
 
 def test_a_residual_this_machine_cannot_hold_is_refused_before_the_encode(monkeypatch, tmp_path):
-    import warpgauss.encoding.driver.load as load
+    import warpgauss.core.limits as limits
 
-    monkeypatch.setattr(load, "available_memory", lambda: 1 << 20)  # 1 MiB free
+    monkeypatch.setattr(limits, "available_memory", lambda: 1 << 20)  # 1 MiB free
     out = tmp_path / "x.wgs"
     res = CliRunner().invoke(
         app, ["encode", "--example", "vortex", "--size", "32", "--budget", "50", "--max-error", "0.01", "-o", str(out)]

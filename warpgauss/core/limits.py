@@ -4,6 +4,8 @@ brick's encode needs (linear models measured on an H100), and what a device may 
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from ..errors import WarpgaussError
@@ -58,3 +60,16 @@ def default_device_limit(device: str) -> int | None:
     if not d.is_cuda:
         return None
     return int(DEVICE_MARGIN * d.free_memory)
+
+
+def available_memory() -> int | None:
+    """Bytes of physical memory available now (Linux), or None where that cannot be read."""
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def host_limit(max_host_memory) -> int | None:
+    """``--max-host-memory`` in bytes (None: not given)."""
+    return None if max_host_memory is None else parse_memory(max_host_memory, "--max-host-memory", 2**20)

@@ -11,24 +11,26 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from ..core.limits import host_limit
 from ..core.profiling import StageRecorder
 from ..errors import WarpgaussError
 from ..field.device import device_array, is_device_array
 from ..format.model import Model
-from ..format.residual import Bound
 from ..readers import ReadOptions
 from .allocate import AllocationConfig
+from .driver.bounded import attach_residual, check_bounded_request
 from .driver.config import EncodeConfig, config_of
-from .driver.load import load_field
-from .driver.options import encoding_of
+from .driver.load import header_shape, load_field, read_on_demand
+from .driver.options import EncodeOptions, encoding_of
 from .driver.report import finish_report
 from .driver.run import encode_field
 from .refine import RefineConfig
-from .scale.driver import bricking, encode_bricked, host_limit
 
 
 def _array_device(arr, device: str | None) -> str:
@@ -51,77 +53,6 @@ def _warm_params(warm_start) -> np.ndarray | None:
     if p.ndim != 2 or p.shape[1] != 12 or not np.isfinite(p).all():
         raise WarpgaussError(f"a warm start is a model or finite (N, 12) parameters, got an array of shape {p.shape}")
     return p
-
-
-def check_bounded_request(source, read: ReadOptions | None, bricks, warm_start, session) -> None:
-    """Refuse, before any work, what a bounded residual cannot go with."""
-    if read is not None and read.stride > 1:
-        raise WarpgaussError("--max-error bounds every source voxel; --stride drops voxels, so the two do not combine")
-    if bricks is not None:
-        raise WarpgaussError("--max-error does not combine with --bricks yet; encode the volume whole")
-    if is_device_array(source):
-        raise WarpgaussError("--max-error takes a file or a numpy array, not a device array")
-    if warm_start is not None or session is not None:
-        raise WarpgaussError("--max-error does not combine with a series or an Encoder yet; encode each volume on its own")
-
-
-def attach_residual(model: Model, source, read, example, example_size, bound: Bound, device) -> None:
-    """Stage S4: code the bounded residual of the (stored) model against the source's own values
-    and attach it to the model; the report's ``residual`` says what it holds."""
-    import time
-
-    from ..format.residual import code_for_psnr, code_residual, prediction, verify
-    from ..readers.lazy import valid_mask
-
-    t0 = time.perf_counter()
-    data, fill = raw_source(source, read, example, example_size)
-    if tuple(reversed(data.shape)) != model.shape_xyz:
-        raise WarpgaussError(f"internal: the source's shape {data.shape} is not the model grid {model.shape_xyz}")
-    lo, hi = model.value_range
-    valid = valid_mask(data, fill)
-    masked = None if valid.all() else valid
-    pred, fragile = prediction(model, device)
-    t1 = time.perf_counter()
-    if bound.psnr is not None:
-        res, facts, check = code_for_psnr(data, masked, pred, fragile, bound.psnr, (lo, hi), fill_value=fill)
-    else:
-        res, facts = code_residual(data, masked, pred, fragile, bound.absolute(lo, hi), (lo, hi), fill_value=fill)
-        check = verify(res, pred, data, valid, (lo, hi))
-    t2 = time.perf_counter()
-    model.residual = res
-    gauss = model.file_size(encoding=model.format or "coded") - res.nbytes
-    model.run_report["residual"] = {
-        **facts,
-        "bound": res.info["bound"],
-        "bound_rel": res.info["bound_rel"],
-        "gaussian_bytes": gauss,
-        "residual_bytes": res.nbytes,
-        "file_bytes": gauss + res.nbytes,
-        "compression_ratio": model.source_bytes / (gauss + res.nbytes),
-        **check,
-        "predict_seconds": t1 - t0,
-        "code_seconds": t2 - t1,
-    }
-
-
-def raw_source(source, read: ReadOptions | None, example, example_size) -> tuple[np.ndarray, float | None]:
-    """The source's own values (its dtype, in memory) and fill value, for a bounded residual."""
-    from ..readers.timesteps import TimeStep
-
-    read = read or ReadOptions()
-    fill = read.fill_value
-    if example is not None:
-        from ..readers.synthetic import generate
-
-        return generate(example, example_size, seed=0), fill
-    if isinstance(source, np.ndarray):
-        return source, fill
-    if isinstance(source, TimeStep):
-        return source.read(), fill if fill is not None else source.meta()[2]
-    vol = read.read(source, lazy=False)
-    if fill is None and getattr(vol, "fill_value", None) is not None:
-        fill = vol.fill_value
-    return np.asarray(vol.data), fill
 
 
 def encode(
@@ -292,19 +223,72 @@ def encode_with(
     client=None,
     session=None,
 ) -> Model:
-    """:func:`encode` of ``source`` with the settings of ``cfg`` (see :mod:`.config`), the
-    callbacks, Dask client and Encoder session beside them."""
+    """:func:`encode` of ``source`` with the settings of ``cfg`` (see :mod:`.driver.config`), the
+    callbacks, Dask client and Encoder session beside them: the request checked, the path chosen
+    once (whole or bricked), stage P, the path, then export and the report."""
+    source, device, opts = checked_request(source, cfg, session)
+    run, reading, bricking = cfg.run, cfg.reading, cfg.bricking
+    workers = 1 if client is None else max(1, len(client.scheduler_info().get("workers", {})))
+    path = choose_path(source, cfg, device, workers)
+    timer = StageRecorder(on_stage=on_stage)
+    with timer.stage("P", "load and normalise"):
+        buffers = None if session is None else session.buffers
+        # a file read on demand is counted by the bricks' statistics (stage Sb), not by a pass of its own
+        f, info = load_field(
+            source,
+            reading.read,
+            example=reading.example,
+            example_size=reading.example_size,
+            lazy=path.lazy,
+            buffers=buffers,
+            count=not path.lazy,
+        )
+    warm_start = cfg.start.warm_start
+    if isinstance(warm_start, Model) and tuple(warm_start.shape_xyz) != tuple(f.shape_xyz):
+        raise WarpgaussError(
+            f"the warm-start model is on a {'x'.join(map(str, warm_start.shape_xyz))} grid, this volume {'x'.join(map(str, f.shape_xyz))}; encode cold"
+        )
+    if path.bricks is not None:
+        if run.analytic_output is not None:
+            raise WarpgaussError("--bricks does not write an analytic model (--save-analytic)")
+        from .scale.driver import encode_bricked
+
+        model = encode_bricked(
+            f,
+            opts,
+            path.bricks,
+            halo=bricking.halo,
+            device=device,
+            client=client,
+            timer=timer,
+            input_info=info,
+            evaluate=run.evaluate,
+            full_eval=run.full_eval,
+            on_progress=on_bricks,
+            max_device_memory=path.device_limit,
+            max_host_memory=host_limit(bricking.max_host_memory),
+        )
+        model.run_report["bricking"].update(
+            chosen="by the device and host limits" if path.chosen else "given",
+            max_device_memory=path.device_limit,
+            read_lazily=bool(info.get("read_lazily")),
+        )
+    else:
+        model = encode_whole(f, info, source, cfg, opts, device, timer, on_stats=on_stats, on_progress=on_progress)
+    return finish(model, cfg, opts, timer)
+
+
+def checked_request(source, cfg: EncodeConfig, session) -> tuple[object, str | None, EncodeOptions]:
+    """Everything refused before any work, in the order a user should hear it: the budget, the
+    bound, the outputs, the checkpoint, the warm start, the format. Returns the source (a device
+    array wrapped for Warp), the device and the options the encode runs with."""
     from ..core.files import check_writable
 
     cfg.budget.check()  # before the output check: say what is wrong with the request first
-    run, reading, bricking_ = cfg.run, cfg.reading, cfg.bricking
-    read, bricks, device = reading.read, bricking_.bricks, cfg.device
-    bound = cfg.bound
-    bounded = bound.given
-    if bounded:
-        bound.check()
-        check_bounded_request(source, read, bricks, cfg.start.warm_start, session)
-    default_share = bounded and not cfg.budget.given  # sized once the source's bytes are known
+    run, bricks, device = cfg.run, cfg.bricking.bricks, cfg.device
+    if cfg.bound.given:
+        cfg.bound.check()
+        check_bounded_request(source, cfg.reading.read, bricks, cfg.start.warm_start, session)
     force, resume, output = run.force, run.resume, run.output
     if output is not None:
         check_writable(output, force=force or resume)  # a resume replaces its interrupted model
@@ -330,73 +314,47 @@ def encode_with(
         source = device_array(source, None if device in (None, "", "auto") else device)
         device = _array_device(source, device)
     encoding_of(opts)  # an unknown format is refused before any work
-    timer = StageRecorder(on_stage=on_stage)
-    example, example_size = reading.example, reading.example_size
-    workers = 1 if client is None else max(1, len(client.scheduler_info().get("workers", {})))
-    bricks, lazy, limit, auto = bricking(
-        source, read, example, bricks, bricking_.halo, cfg.budget.n, device, bricking_.max_device_memory, bricking_.max_host_memory, workers
-    )
-    with timer.stage("P", "load and normalise"):
-        buffers = None if session is None else session.buffers
-        # a file read on demand is counted by the bricks' statistics (stage Sb), not by a pass of its own
-        f, info = load_field(source, read, example=example, example_size=example_size, lazy=lazy, buffers=buffers, count=not lazy)
-    if bounded:
-        from ..format.residual import CODE_BYTES_PER_VOXEL, check_memory
+    return source, device, opts
+
+
+def encode_whole(
+    f, info: dict, source, cfg: EncodeConfig, opts: EncodeOptions, device, timer: StageRecorder, *, on_stats, on_progress
+) -> Model:
+    """The whole-volume path: the staged run of :func:`.driver.run.encode_field` (S1-S2, EV) and,
+    with an error bound, the residual (S4)."""
+    run, bound = cfg.run, cfg.bound
+    if bound.given:
+        from ..format.residual import CODE_BYTES_PER_VOXEL, DEFAULT_RATIO, MIN_GAUSSIAN_BYTES, check_memory
 
         check_memory(f.n_voxels, CODE_BYTES_PER_VOXEL, "coding a bounded residual of")
-    if default_share:
-        from ..format.residual import DEFAULT_RATIO as RESIDUAL_RATIO
-        from ..format.residual import MIN_GAUSSIAN_BYTES
-
-        opts.bytes = max(int(f.source_bytes / RESIDUAL_RATIO), MIN_GAUSSIAN_BYTES)
-    warm_start = cfg.start.warm_start
-    if isinstance(warm_start, Model) and tuple(warm_start.shape_xyz) != tuple(f.shape_xyz):
-        raise WarpgaussError(
-            f"the warm-start model is on a {'x'.join(map(str, warm_start.shape_xyz))} grid, this volume {'x'.join(map(str, f.shape_xyz))}; encode cold"
-        )
-    if bricks is not None:
-        if run.analytic_output is not None:
-            raise WarpgaussError("--bricks does not write an analytic model (--save-analytic)")
-        model = encode_bricked(
-            f,
-            opts,
-            bricks,
-            halo=bricking_.halo,
-            device=device,
-            client=client,
-            timer=timer,
-            input_info=info,
-            evaluate=run.evaluate,
-            full_eval=run.full_eval,
-            on_progress=on_bricks,
-            max_device_memory=limit,
-            max_host_memory=host_limit(bricking_.max_host_memory),
-        )
-        model.run_report["bricking"].update(
-            chosen="by the device and host limits" if auto else "given",
-            max_device_memory=limit,
-            read_lazily=bool(info.get("read_lazily")),
-        )
-    else:
-        model = encode_field(
-            f,
-            opts,
-            device=device,
-            timer=timer,
-            input_info=info,
-            evaluate=run.evaluate,
-            full_eval=run.full_eval,
-            on_stats=on_stats,
-            on_progress=on_progress,
-            analytic_output=run.analytic_output,
-            force=force or resume,
-        )
-    if bounded:
+        if not cfg.budget.given:  # the Gaussians' default share, now that the source's bytes are known
+            opts.bytes = max(int(f.source_bytes / DEFAULT_RATIO), MIN_GAUSSIAN_BYTES)
+    model = encode_field(
+        f,
+        opts,
+        device=device,
+        timer=timer,
+        input_info=info,
+        evaluate=run.evaluate,
+        full_eval=run.full_eval,
+        on_stats=on_stats,
+        on_progress=on_progress,
+        analytic_output=run.analytic_output,
+        force=run.force or run.resume,
+    )
+    if bound.given:
         with timer.stage("S4", "bounded residual"):
-            attach_residual(model, source, read, example, example_size, bound, device)
+            reading = cfg.reading
+            attach_residual(model, source, reading.read, reading.example, reading.example_size, bound, device)
+    return model
+
+
+def finish(model: Model, cfg: EncodeConfig, opts: EncodeOptions, timer: StageRecorder) -> Model:
+    """Either path's end: the model written (S3), its checkpoint gone, the report's stage table."""
+    run, output, checkpoint = cfg.run, cfg.run.output, opts.checkpoint
     if output is not None:
         with timer.stage("S3", "export"):
-            model.save(output, encoding=encoding_of(opts), force=True if resume else force)
+            model.save(output, encoding=encoding_of(opts), force=True if run.resume else run.force)
         model.run_report["output"] = str(Path(output))
     if checkpoint is not None and not model.run_report.get("interrupted") and Path(checkpoint).is_file():
         Path(checkpoint).unlink()  # the run finished: its model replaces the checkpoint
@@ -438,3 +396,50 @@ class ProgressLine:
             self.stream.write("\n")
             self.stream.flush()
             self.open = False
+
+
+AUTO_BRICK_FLOOR = 2 * 2**30  # an encode estimated below this is never bricked by the default limit
+
+
+@dataclass(frozen=True)
+class EncodePath:
+    """The path an encode takes: ``bricks`` (None: the whole volume), whether the file is read on
+    demand, the device memory limit in bytes, and whether the bricks were chosen here."""
+
+    bricks: Any
+    lazy: bool
+    device_limit: int | None
+    chosen: bool
+
+
+def choose_path(source, cfg: EncodeConfig, device, workers: int = 1) -> EncodePath:
+    """The one decision between the two paths. Given bricks are kept; otherwise a file whose
+    whole encode would not fit the device or host limit (or the kernels' voxel index) is bricked
+    by :func:`~warpgauss.encoding.scale.plan.choose_bricks` (with a wave for each of a cluster's
+    ``workers``). Only a format that can be read on demand is looked at before it is read."""
+    from ..core.limits import HOST_SHARE, available_memory, brick_device_bytes, default_device_limit, parse_memory
+    from ..core.warp import resolve_device
+
+    b = cfg.bricking
+    bricks, halo, budget = b.bricks, b.halo, cfg.budget.n
+    limit = None if b.max_device_memory is None else parse_memory(b.max_device_memory, "--max-device-memory")
+    host = host_limit(b.max_host_memory)
+    is_file = read_on_demand(source, cfg.reading.example)
+    if bricks is not None or not is_file:
+        return EncodePath(bricks, bricks is not None and is_file, limit, False)
+    shape_xyz = header_shape(source, cfg.reading.read)
+    voxels = int(np.prod(shape_xyz, dtype=np.int64))
+    if host is None:
+        free = available_memory()
+        host = None if free is None else int(HOST_SHARE * free)
+    if limit is None and brick_device_bytes(voxels, int(budget or 0)) > AUTO_BRICK_FLOOR:
+        limit = default_device_limit(resolve_device(device))  # None on the CPU
+    from .scale.plan import brick_cap, choose_bricks, default_halo
+
+    if halo is None:  # as the bricked encode will choose it (without a budget: for 1 Gaussian per 300 voxels)
+        n_guess = int(budget) if budget else max(1, voxels // 300)
+        halo = default_halo(brick_cap(max(2.0, max(shape_xyz) / 16.0), shape_xyz, n_guess))
+    counts = choose_bricks(shape_xyz, int(budget or 0), limit, int(halo), host, workers)
+    if counts == (1, 1, 1):
+        return EncodePath(None, False, limit, False)
+    return EncodePath(counts, True, limit, True)

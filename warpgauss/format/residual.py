@@ -84,7 +84,7 @@ DECODE_BYTES_PER_VOXEL = 48  # and applying it: the prediction, the q's, the dec
 
 def check_memory(n_voxels: int, per_voxel: int, what: str) -> None:
     """Refuse, before the work, a residual this machine's memory cannot code or apply in one piece."""
-    from ..encoding.driver.load import available_memory
+    from ..core.limits import available_memory
 
     need, free = n_voxels * per_voxel, available_memory()
     if free is not None and need > free:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...core.limits import available_memory
 from ...errors import WarpgaussError
 from ...field.analysis import Field, normalise
 from ...field.device import device_array, is_device_array, normalise_on_device
@@ -14,13 +15,28 @@ from ...readers import ReadOptions
 from ...readers.common import usable_spacing
 from ...readers.timesteps import TimeStep
 
+LAZY_SUFFIXES = (
+    ".raw",
+    ".bin",
+    ".npy",
+    ".h5",
+    ".hdf5",
+    ".hdf",
+    ".nc",
+    ".cdf",
+    ".zarr",
+)  # formats read on demand: their header gives the shape
 
-def available_memory() -> int | None:
-    """Bytes of physical memory available now (Linux), or None where that cannot be read."""
-    try:
-        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
-        return None
+
+def read_on_demand(source, example) -> bool:
+    """Whether ``source`` is a file in a format whose header gives its shape before any reading."""
+    return example is None and isinstance(source, (str, os.PathLike)) and str(source).lower().endswith(LAZY_SUFFIXES)
+
+
+def header_shape(source, read) -> tuple[int, ...]:
+    """The (x, y, z) shape of such a file, from its header: nothing is read yet."""
+    vol = (read or ReadOptions()).read(source, lazy=True)
+    return tuple(int(v) for v in vol.data.shape[::-1])
 
 
 def load_field(

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import os
 import time
 from collections.abc import Callable
 
@@ -16,8 +15,7 @@ from ...core.profiling import StageRecorder
 from ...errors import WarpgaussError
 from ...field.analysis import Field
 from ...format.model import Model
-from ...readers import ReadOptions
-from ..driver.load import available_memory
+from ..driver.load import header_shape, read_on_demand
 from ..driver.options import EncodeOptions, encoding_of, header_for
 from ..driver.report import budget_facts, run_facts
 from ..driver.sizing import coded_budget, resolve_budget, sizing_bpp, target_bytes
@@ -226,21 +224,6 @@ def _workers(results: list[dict]) -> dict:
     return out
 
 
-AUTO_BRICK_FLOOR = 2 * 2**30  # an encode estimated below this is never bricked by the default limit
-LAZY_SUFFIXES = (".raw", ".bin", ".npy", ".h5", ".hdf5", ".hdf", ".nc", ".cdf", ".zarr")
-
-
-def _read_on_demand(source, example) -> bool:
-    """Whether ``source`` is a file in a format whose header gives its shape before any reading."""
-    return example is None and isinstance(source, (str, os.PathLike)) and str(source).lower().endswith(LAZY_SUFFIXES)
-
-
-def _header_shape(source, read) -> tuple[int, ...]:
-    """The (x, y, z) shape of such a file, from its header: nothing is read yet."""
-    vol = (read or ReadOptions()).read(source, lazy=True)
-    return tuple(int(v) for v in vol.data.shape[::-1])
-
-
 def check_bricking(source, read, example, example_size, bricks, halo) -> None:
     """Refuse a bricking that cannot split the volume (too many bricks along an axis), where its
     shape is known without reading it: an example, or a file whose header gives it (the formats
@@ -251,46 +234,8 @@ def check_bricking(source, read, example, example_size, bricks, halo) -> None:
     if example is not None:
         size = example_size
         shape_xyz = tuple(int(v) for v in size) if isinstance(size, (tuple, list)) else (int(size),) * 3
-    elif _read_on_demand(source, example):
-        shape_xyz = _header_shape(source, read)
+    elif read_on_demand(source, example):
+        shape_xyz = header_shape(source, read)
     else:
         return
     plan_bricks(shape_xyz, counts, 0 if halo is None else int(halo))
-
-
-def host_limit(max_host_memory) -> int | None:
-    """``--max-host-memory`` in bytes (None: not given)."""
-    from ...core.limits import parse_memory
-
-    return None if max_host_memory is None else parse_memory(max_host_memory, "--max-host-memory", 2**20)
-
-
-def bricking(source, read, example, bricks, halo, budget, device, max_device_memory, max_host_memory=None, workers: int = 1):
-    """(bricks, read lazily, device limit, bricks chosen here) of an encode: given bricks are kept;
-    otherwise a file whose monolithic encode would not fit the device or host limit (or the
-    kernels' voxel index) is bricked by :func:`~warpgauss.encoding.scale.plan.choose_bricks` (with a wave
-    for each of a cluster's ``workers``). Only a format that can be read on demand is looked at
-    before it is read."""
-    from ...core.limits import HOST_SHARE, brick_device_bytes, default_device_limit, parse_memory
-    from ...core.warp import resolve_device
-    from .plan import brick_cap, choose_bricks, default_halo
-
-    limit = None if max_device_memory is None else parse_memory(max_device_memory, "--max-device-memory")
-    host = host_limit(max_host_memory)
-    is_file = _read_on_demand(source, example)
-    if bricks is not None or not is_file:
-        return bricks, bricks is not None and is_file, limit, False
-    shape_xyz = _header_shape(source, read)
-    voxels = int(np.prod(shape_xyz, dtype=np.int64))
-    if host is None:
-        free = available_memory()
-        host = None if free is None else int(HOST_SHARE * free)
-    if limit is None and brick_device_bytes(voxels, int(budget or 0)) > AUTO_BRICK_FLOOR:
-        limit = default_device_limit(resolve_device(device))  # None on the CPU
-    if halo is None:  # as the bricked encode will choose it (without a budget: for 1 Gaussian per 300 voxels)
-        n_guess = int(budget) if budget else max(1, voxels // 300)
-        halo = default_halo(brick_cap(max(2.0, max(shape_xyz) / 16.0), shape_xyz, n_guess))
-    counts = choose_bricks(shape_xyz, int(budget or 0), limit, int(halo), host, workers)
-    if counts == (1, 1, 1):
-        return None, False, limit, False
-    return counts, True, limit, True

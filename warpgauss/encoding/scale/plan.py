@@ -300,7 +300,7 @@ STATS_BYTES_PER_VOXEL = 24  # a box's copy and its slabs' temporaries, per box v
 def boxes_in_room(bricks: list[Brick], bytes_per_voxel: int, host_limit: int | None = None) -> int | None:
     """How many of the largest of ``bricks``' boxes, at ``bytes_per_voxel``, half the available
     host memory and ``host_limit`` bytes hold (None where neither is known)."""
-    from ..driver.load import available_memory
+    from ...core.limits import available_memory
 
     free = available_memory()
     room = [x for x in (None if free is None else free // 2, host_limit) if x is not None]
