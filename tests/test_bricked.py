@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 import warpgauss
-from warpgauss.encoding.scale.bricks import brick_colour, brick_fields, brick_tasks, encode_brick, run_bricks, wave_tasks
+from warpgauss.encoding.scale.bricks import brick_fields, brick_tasks, encode_brick
 from warpgauss.encoding.scale.plan import parse_bricks, plan_bricks, split_bricks
+from warpgauss.encoding.scale.schedule import brick_colour, run_bricks, wave_tasks
 from warpgauss.errors import WarpgaussError
 from warpgauss.field.analysis import normalise, seed_limit
 from warpgauss.readers.synthetic import generate
@@ -314,7 +315,7 @@ def test_the_bricks_of_a_wave_stepping_side_by_side_give_each_brick_its_own_mode
 
 
 def test_a_wave_is_split_into_groups_of_equal_work_one_per_worker():
-    from warpgauss.encoding.scale.bricks import brick_groups
+    from warpgauss.encoding.scale.schedule import brick_groups
 
     _, _, tasks = _tasks(size=32, n=240, counts=(4, 2, 1))
     groups = brick_groups(tasks, 3)
@@ -442,19 +443,19 @@ def test_a_file_read_on_demand_is_counted_box_by_box_on_the_device_as_if_it_were
 def test_bricks_started_together_run_in_one_wave_beside_stand_ins_for_every_neighbour(monkeypatch):
     """Without NEIGHBOURS_FIRST every brick starts at once: one wave, no frozen rows, every other
     brick pending; the same seed gives the same model, another than the waves'."""
-    import warpgauss.encoding.scale.bricks as wb
+    from warpgauss.encoding.scale import schedule as wsched
 
     _, _, tasks = _tasks(size=32, n=240, counts=(2, 2, 1))
     waves_default: list[dict] = []
     default = run_bricks(tasks, waves_out=waves_default)
-    monkeypatch.setattr(wb, "NEIGHBOURS_FIRST", False)
-    assert {wb.brick_wave(t.brick) for t in tasks} == {0}
+    monkeypatch.setattr(wsched, "NEIGHBOURS_FIRST", False)
+    assert {wsched.brick_wave(t.brick) for t in tasks} == {0}
     waves: list[dict] = []
     a = run_bricks(tasks, waves_out=waves)
     b = run_bricks(tasks, at_once=1)
     assert len(waves_default) == 4 and len(waves) == 1 and waves[0]["bricks"] == 4
     assert all(r["frozen"] == 0 and r["stand_ins"] > 0 for r in a)
-    assert [len(t.pending) for t in wb.wave_tasks(tasks, {}, [0, 1, 2, 3])] == [3, 3, 3, 3]
+    assert [len(t.pending) for t in wsched.wave_tasks(tasks, {}, [0, 1, 2, 3])] == [3, 3, 3, 3]
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x["params"], y["params"])
     assert any(not np.array_equal(x["params"], d["params"]) for x, d in zip(a, default))
@@ -462,7 +463,7 @@ def test_bricks_started_together_run_in_one_wave_beside_stand_ins_for_every_neig
 
 
 def test_seam_rows_are_the_primitives_reaching_an_inner_face():
-    from warpgauss.encoding.scale.bricks import seam_rows
+    from warpgauss.encoding.scale.seams import seam_rows
 
     bricks = plan_bricks((20, 20, 20), (2, 1, 1), 2)  # one inner face, x = 10
     p = np.zeros((3, 12), np.float32)
@@ -477,19 +478,20 @@ def test_a_joint_refit_of_the_seams_moves_only_the_primitives_near_the_faces(mon
     """bricked.SEAM_REFIT: after the bricks, the primitives near the inner faces are refined
     together over the whole grid; N and the other rows stay, the report says what was done, and
     the same seed gives the same model."""
-    import warpgauss.encoding.scale.bricks as wb
+    from warpgauss.encoding.scale import schedule as wsched
+    from warpgauss.encoding.scale import seams as wseams
 
     v = generate("vortex", 20)
     kw = dict(budget=150, bricks="2x1x1", halo=2, **FAST)
-    monkeypatch.setattr(wb, "SEAM_REFIT", 0.0)
+    monkeypatch.setattr(wsched, "SEAM_REFIT", 0.0)
     plain = warpgauss.encode(v, **kw)
     assert plain.report["bricking"]["seam_refit"] is None
-    monkeypatch.setattr(wb, "SEAM_REFIT", 0.5)
+    monkeypatch.setattr(wsched, "SEAM_REFIT", 0.5)
     a = warpgauss.encode(v, **kw)
     b = warpgauss.encode(v, **kw)
     np.testing.assert_array_equal(a.params, b.params)
     facts = a.report["bricking"]["seam_refit"]
-    rows = wb.seam_rows(plain.params, plan_bricks(normalise(v).shape_xyz, (2, 1, 1), 2), normalise(v).shape_xyz)
+    rows = wseams.seam_rows(plain.params, plan_bricks(normalise(v).shape_xyz, (2, 1, 1), 2), normalise(v).shape_xyz)
     assert facts["primitives"] == int(rows.sum()) > 0 and facts["iterations"] > 0
     assert a.n == plain.n
     np.testing.assert_array_equal(a.params[~rows], plain.params[~rows])
@@ -498,7 +500,7 @@ def test_a_joint_refit_of_the_seams_moves_only_the_primitives_near_the_faces(mon
     from warpgauss.encoding.refine import RefineConfig
     from warpgauss.field.analysis import DeviceVolume
 
-    monkeypatch.setattr(wb, "SEAM_SAMPLES_BAND", False)  # over the whole grid (the default): the device's copy of the field serves
+    monkeypatch.setattr(wseams, "SEAM_SAMPLES_BAND", False)  # over the whole grid (the default): the device's copy of the field serves
     f = normalise(v)  # the field the coded path has already put on the device serves the refit as well
     args = (
         f,
@@ -510,14 +512,14 @@ def test_a_joint_refit_of_the_seams_moves_only_the_primitives_near_the_faces(mon
         "cpu",
         0.5,
     )
-    fresh, grid = wb.refit_seams(*args)
-    given, _ = wb.refit_seams(*args, dv=DeviceVolume(f, "cpu"))
+    fresh, grid = wseams.refit_seams(*args)
+    given, _ = wseams.refit_seams(*args, dv=DeviceVolume(f, "cpu"))
     np.testing.assert_array_equal(fresh, given)
-    monkeypatch.setattr(wb, "SEAM_SAMPLES_BAND", True)  # samples only where a stepped primitive reaches
-    band, facts = wb.refit_seams(*args)
+    monkeypatch.setattr(wseams, "SEAM_SAMPLES_BAND", True)  # samples only where a stepped primitive reaches
+    band, facts = wseams.refit_seams(*args)
     assert 0 < facts["sampled_share"] <= 1 and facts["samples"] <= grid["samples"]
     np.testing.assert_array_equal(band[~rows], plain.params[~rows])
-    np.testing.assert_array_equal(band, wb.refit_seams(*args)[0])
+    np.testing.assert_array_equal(band, wseams.refit_seams(*args)[0])
 
 
 def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volume(monkeypatch):
@@ -529,41 +531,48 @@ def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volu
 
     import warpgauss.core.warp as ww
     import warpgauss.encoding.scale.bricks as wb
+    from warpgauss.encoding.scale import schedule as wsched
 
     shape, n = (64, 64, 64), 4000
-    cpu = wb.choose_schedule("cpu", None, False, shape, n, 100, None)
-    assert not cpu.together and cpu.seam_refit == wb.CPU_WAVES_SEAM_REFIT and "CPU" in cpu.why
-    on_cluster = wb.choose_schedule("cpu", object(), False, shape, n, 100, None)
-    assert not on_cluster.together and on_cluster.seam_refit == wb.CPU_WAVES_SEAM_REFIT  # the same model as here
-    assert wb.choose_schedule("cpu", None, True, shape, n, 100, None).seam_refit == 0.0  # read brick by brick
-    assert wb.choose_schedule("cpu", None, False, shape, n, 0, None).seam_refit == 0.0  # no refinement
+    cpu = wsched.choose_schedule("cpu", None, False, shape, n, 100, None)
+    assert not cpu.together and cpu.seam_refit == wsched.CPU_WAVES_SEAM_REFIT and "CPU" in cpu.why
+    on_cluster = wsched.choose_schedule("cpu", object(), False, shape, n, 100, None)
+    assert not on_cluster.together and on_cluster.seam_refit == wsched.CPU_WAVES_SEAM_REFIT  # the same model as here
+    assert wsched.choose_schedule("cpu", None, True, shape, n, 100, None).seam_refit == 0.0  # read brick by brick
+    assert wsched.choose_schedule("cpu", None, False, shape, n, 0, None).seam_refit == 0.0  # no refinement
     real = ww.warp()
     fake = types.SimpleNamespace(get_device=lambda d: types.SimpleNamespace(is_cuda=True))
     monkeypatch.setattr(ww, "warp", lambda: fake)
     need = wb.brick_device_bytes(64**3, 1.5 * n)
-    gpu = wb.choose_schedule("cuda:0", None, False, shape, n, 100, need)
-    assert gpu.together and gpu.seam_refit == wb.TOGETHER_SEAM_REFIT and gpu.report()["waves"] == "together"
-    small = wb.choose_schedule("cuda:0", None, False, shape, n, 100, need - 1)
+    gpu = wsched.choose_schedule("cuda:0", None, False, shape, n, 100, need)
+    assert gpu.together and gpu.seam_refit == wsched.TOGETHER_SEAM_REFIT and gpu.report()["waves"] == "together"
+    small = wsched.choose_schedule("cuda:0", None, False, shape, n, 100, need - 1)
     assert not small.together and small.seam_refit == 0.0 and "GiB" in small.why
-    assert not wb.choose_schedule("cuda:0", object(), False, shape, n, 100, need).together  # a cluster
-    assert not wb.choose_schedule("cuda:0", None, True, shape, n, 100, need).together  # read brick by brick
-    assert not wb.choose_schedule("cuda:0", None, False, shape, n, 0, need).together  # no refinement
+    assert not wsched.choose_schedule("cuda:0", object(), False, shape, n, 100, need).together  # a cluster
+    assert not wsched.choose_schedule("cuda:0", None, True, shape, n, 100, need).together  # read brick by brick
+    assert not wsched.choose_schedule("cuda:0", None, False, shape, n, 0, need).together  # no refinement
     monkeypatch.setattr(ww, "warp", lambda: real)
-    with wb.schedule(False, None):
-        set_ = wb.choose_schedule("cpu", None, False, shape, n, 100, None)
-        assert set_.together and set_.seam_refit == wb.TOGETHER_SEAM_REFIT and "set" in set_.why
-    with wb.schedule(True, 0.5):
-        assert wb.choose_schedule("cpu", None, False, shape, n, 100, None) == wb.BrickSchedule(False, 0.5, "set (bricked.NEIGHBOURS_FIRST)")
-    assert wb.NEIGHBOURS_FIRST is None and wb.SEAM_REFIT is None  # restored
+    with wsched.schedule(False, None):
+        set_ = wsched.choose_schedule("cpu", None, False, shape, n, 100, None)
+        assert set_.together and set_.seam_refit == wsched.TOGETHER_SEAM_REFIT and "set" in set_.why
+    with wsched.schedule(True, 0.5):
+        assert wsched.choose_schedule("cpu", None, False, shape, n, 100, None) == wsched.BrickSchedule(
+            False, 0.5, "set (bricked.NEIGHBOURS_FIRST)"
+        )
+    assert wsched.NEIGHBOURS_FIRST is None and wsched.SEAM_REFIT is None  # restored
     m = warpgauss.encode(generate("vortex", 20), budget=150, bricks="2x1x1", halo=2, **FAST)
-    assert m.report["bricking"]["schedule"] == {"waves": "neighbours first", "seam_refit_share": wb.CPU_WAVES_SEAM_REFIT, "why": cpu.why}
+    assert m.report["bricking"]["schedule"] == {
+        "waves": "neighbours first",
+        "seam_refit_share": wsched.CPU_WAVES_SEAM_REFIT,
+        "why": cpu.why,
+    }
     assert m.report["bricking"]["seam_refit"]["iterations"] > 0
 
 
 def test_the_seams_refit_samples_only_cells_a_stepped_primitive_reaches():
     """bricked.seam_support: the cells (4^3) that some row's 3-sigma box overlaps, against a
     voxel-by-voxel check of each box."""
-    from warpgauss.encoding.scale.bricks import seam_support
+    from warpgauss.encoding.scale.seams import seam_support
 
     shape = (21, 18, 13)  # x, y, z
     rng = np.random.default_rng(3)
@@ -591,12 +600,13 @@ def test_bricks_started_on_the_device_give_the_host_started_model(monkeypatch, t
     here), its box cut from the volume put on the device once where the seams are refit, give the
     model of the host's start bit for bit (same seed, same device)."""
     import warpgauss.encoding.scale.bricks as wb
+    from warpgauss.encoding.scale import schedule as wsched
 
     v = generate("vortex", 24)
     models = {}
     for on_device in (False, True):
         monkeypatch.setattr(wb, "DEVICE_SETUP", on_device)
-        with wb.schedule(not together, 0.25 if together else 0.0):
+        with wsched.schedule(not together, 0.25 if together else 0.0):
             m = warpgauss.encode(v, budget=300, bricks="2x2x1", **FAST)
         models[on_device] = m.params
         stages = [s["stage"] for s in m.report["stages"]]

@@ -66,13 +66,13 @@ def test_lazy_fields_read_the_same_values_as_in_memory(tmp_path):
 def test_a_file_read_brick_by_brick_encodes_as_the_array_in_memory(tmp_path):
     """Bit for bit the model of the array in memory without the seams' refit (which needs the
     whole volume: the array in memory gets it on the CPU, the file read by bricks does not)."""
-    from warpgauss.encoding.scale import bricks as bricked
+    from warpgauss.encoding.scale import schedule as wsched
 
     v = generate("vortex", 20)
     raw, _, h5 = _files(tmp_path, v)
     refit = warpgauss.encode(v, budget=160, bricks="2x1x2", halo=2, **FAST)
     assert refit.report["bricking"]["seam_refit"] is not None
-    with bricked.schedule(None, 0.0):
+    with wsched.schedule(None, 0.0):
         mem = warpgauss.encode(v, budget=160, bricks="2x1x2", halo=2, **FAST)
     for path, kw in ((raw, {}), (h5, {})):
         read = warpgauss.readers.ReadOptions(dataset="t0/rho") if path == h5 else None
@@ -216,9 +216,9 @@ def test_zarr_stores_are_read_whole_or_by_bricks(tmp_path):
     ref = normalise(v)
     lazy = normalise(read_volume(path, lazy=True).data, lazy=True)
     np.testing.assert_array_equal(lazy.values[3:11, 2:5], ref.values[3:11, 2:5])
-    from warpgauss.encoding.scale import bricks as bricked
+    from warpgauss.encoding.scale import schedule as wsched
 
-    with bricked.schedule(None, 0.0):  # the seams' refit needs the volume whole: the store read by bricks has none
+    with wsched.schedule(None, 0.0):  # the seams' refit needs the volume whole: the store read by bricks has none
         mem = warpgauss.encode(v, budget=150, bricks="1x2x2", halo=2, **FAST)
     from_store = warpgauss.encode(str(path), budget=150, bricks="1x2x2", halo=2, **FAST)
     assert from_store.report["bricking"]["read_lazily"]

@@ -23,7 +23,7 @@ MOVED: dict[str, tuple[str, ...]] = {
         "analysis": ("field.analysis",),
         "bench": ("encoding.bench",),
         "boxstats": ("field.boxstats",),
-        "bricked": ("encoding.scale.bricks", "encoding.scale.seams"),
+        "bricked": ("encoding.scale.bricks", "encoding.scale.schedule", "encoding.scale.seams"),
         "brickplan": ("encoding.scale.plan",),
         "checkpoint": ("format.checkpoint",),
         "cluster": ("encoding.scale.cluster",),

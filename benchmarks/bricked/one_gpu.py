@@ -30,6 +30,7 @@ import warpgauss.encoding.scale.bricks as wb
 import warpgauss.encoding.scale.plan as bp
 from warpgauss.core.warp import resolve_device, warp
 from warpgauss.encoding.bench import result_header
+from warpgauss.encoding.scale import schedule as wsched
 from warpgauss.field.analysis import normalise
 from warpgauss.readers.synthetic import generate
 
@@ -56,7 +57,7 @@ def profile_brick(v: np.ndarray, n: int, bricks: str, dev: str, steps: int = 60,
     plan = bp.plan_bricks(f.shape_xyz, bp.parse_bricks(bricks), bp.default_halo(alloc.scale_cap))
     _, stats = bp.split_bricks(f, plan, n)
     tasks = wb.brick_tasks(f, plan, stats, 0, alloc, RefineConfig(split_cells=split), dev, n)
-    task = wb.wave_tasks(tasks, {}, [0])[0]
+    task = wsched.wave_tasks(tasks, {}, [0])[0]
     t0 = time.perf_counter()
     load_kernels(dev)
     _, r, k = wb.brick_refiner(task, dev)  # as the bricked encode starts a brick
@@ -146,7 +147,7 @@ def main(argv=None) -> dict:
                     wb.MAX_AT_ONCE = 1 if mode == "serial" else most
                     together = mode.startswith("together")
                     t = time.perf_counter()
-                    with wb.schedule(not together, float(mode.split()[1]) if together else 0.0):
+                    with wsched.schedule(not together, float(mode.split()[1]) if together else 0.0):
                         m = warpgauss.encode(v, bricks=bricks, **kw)
                     secs = time.perf_counter() - t
                     p = psnr(f, m, dev)

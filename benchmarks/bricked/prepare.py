@@ -21,6 +21,7 @@ import warpgauss.encoding.scale.plan as bp
 from warpgauss.encoding.allocate import AllocationConfig
 from warpgauss.encoding.bench import result_header
 from warpgauss.encoding.refine import RefineConfig
+from warpgauss.encoding.scale import schedule as wsched
 from warpgauss.field.analysis import normalise
 from warpgauss.readers.synthetic import generate
 
@@ -43,8 +44,8 @@ def main(argv=None) -> dict:
     plan = bp.plan_bricks(f.shape_xyz, bp.parse_bricks(args.bricks), bp.default_halo(alloc.scale_cap))
     _, stats = bp.split_bricks(f, plan, args.budget)
     tasks = wb.brick_tasks(f, plan, stats, 0, alloc, RefineConfig(), "cpu", args.budget)
-    with wb.schedule(False):
-        tasks = wb.wave_tasks(tasks, {}, [t.index for t in tasks])
+    with wsched.schedule(False):
+        tasks = wsched.wave_tasks(tasks, {}, [t.index for t in tasks])
 
     def serial() -> None:
         for t in tasks:

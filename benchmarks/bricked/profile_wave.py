@@ -30,6 +30,7 @@ from warpgauss.core.warp import warp
 from warpgauss.encoding.allocate import AllocationConfig, allocate
 from warpgauss.encoding.bench import result_header, warmed_device
 from warpgauss.encoding.refine import RefineConfig, Refiner
+from warpgauss.encoding.scale import schedule as wsched
 from warpgauss.field.analysis import DeviceVolume, normalise
 from warpgauss.readers.synthetic import generate
 
@@ -112,9 +113,9 @@ def main(argv=None) -> dict:
         plan = bp.plan_bricks(f.shape_xyz, bp.parse_bricks(bricks), bp.default_halo(alloc.scale_cap))
         _, stats = bp.split_bricks(f, plan, n)
         tasks = wb.brick_tasks(f, plan, stats, 0, alloc, base, dev, n)
-        with wb.schedule(not args.together):
-            wave = [t.index for t in tasks if wb.brick_wave(t.brick) == 0]
-            batch = wb.wave_tasks(tasks, {}, wave)
+        with wsched.schedule(not args.together):
+            wave = [t.index for t in tasks if wsched.brick_wave(t.brick) == 0]
+            batch = wsched.wave_tasks(tasks, {}, wave)
         if not args.waves_only:
             first = brick_refiner(batch[0], dev)
             samples_rows(f"brick of {bricks}", first, [hi - lo for lo, hi in batch[0].brick.box])

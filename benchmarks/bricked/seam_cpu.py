@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-import warpgauss.encoding.scale.bricks as wb
 from warpgauss.core.warp import warp
+from warpgauss.encoding.scale import schedule as wsched
 from warpgauss.encoding.scale.plan import face_band, plan_bricks
 from warpgauss.field.analysis import normalise
 from warpgauss.readers.synthetic import generate
@@ -45,7 +45,7 @@ def main(argv=None) -> dict:
         e0 = (mm.decode(device="cpu", normalised=True) - f.values) ** 2
         mono = {"monolithic_psnr_db": psnr(e0), "monolithic_seam_psnr_db": psnr(e0[near]), "monolithic_interior_psnr_db": psnr(e0[~near])}
         for halo, first in [(h, True) for h in (None, 8)] + ([(h, False) for h in (None, 8)] if args.together else []):
-            with wb.schedule(neighbours_first=first):
+            with wsched.schedule(neighbours_first=first):
                 m = warpgauss.encode(v, bricks="2x2x2", halo=halo, **kw)
             err = (m.decode(device="cpu", normalised=True) - f.values) ** 2
             row = {

@@ -24,10 +24,11 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-import warpgauss.encoding.scale.bricks as wb
 from warpgauss.encoding.allocate import AllocationConfig
 from warpgauss.encoding.bench import result_header
 from warpgauss.encoding.refine import RefineConfig
+from warpgauss.encoding.scale import schedule as wsched
+from warpgauss.encoding.scale import seams as wseams
 from warpgauss.encoding.scale.plan import brick_cap, face_band, plan_bricks
 from warpgauss.field.analysis import normalise
 from warpgauss.field.gaussians import GaussianField
@@ -81,20 +82,20 @@ def main(argv=None) -> dict:
             if first is None:
                 m = warpgauss.encode(v, **kw)
             else:
-                with wb.schedule(neighbours_first=first):
+                with wsched.schedule(neighbours_first=first):
                     m = warpgauss.encode(v, bricks="2x2x2", **kw)
             row(label, np.asarray(m.params, np.float32), time.perf_counter() - t)
         together = np.asarray(m.params, np.float32)
         alloc = AllocationConfig(scale_cap=brick_cap(AllocationConfig().resolved_cap(f.shape_xyz), f.shape_xyz, args.budget))
-        saved = wb.SEAM_BAND, wb.SEAM_LR, wb.SEAM_SAMPLES_BAND
-        wb.SEAM_BAND = args.band
+        saved = wseams.SEAM_BAND, wseams.SEAM_LR, wseams.SEAM_SAMPLES_BAND
+        wseams.SEAM_BAND = args.band
         for band in (bool(int(x)) for x in args.samples_band.split(",")):
-            wb.SEAM_SAMPLES_BAND = band
+            wseams.SEAM_SAMPLES_BAND = band
             for lr in (float(x) for x in args.lr.split(",")):
-                wb.SEAM_LR = lr
+                wseams.SEAM_LR = lr
                 for share in (float(x) for x in args.refit.split(",")):
                     t = time.perf_counter()
-                    refit, facts = wb.refit_seams(f, bricks, together, RefineConfig(iterations=args.iterations), alloc, 0, "cpu", share)
+                    refit, facts = wseams.refit_seams(f, bricks, together, RefineConfig(iterations=args.iterations), alloc, 0, "cpu", share)
                     row(
                         f"together + refit {share:g}"
                         + (f" at {lr:g}x the rate" if lr != 1 else "")
@@ -107,7 +108,7 @@ def main(argv=None) -> dict:
                         sampled_share=facts.get("sampled_share", 1.0),
                         lr_scale=lr,
                     )
-        wb.SEAM_BAND, wb.SEAM_LR, wb.SEAM_SAMPLES_BAND = saved
+        wseams.SEAM_BAND, wseams.SEAM_LR, wseams.SEAM_SAMPLES_BAND = saved
     args.out.write_text(json.dumps(out, indent=1))
     return out
 

@@ -25,6 +25,7 @@ from warpgauss.core.warp import warp
 from warpgauss.encoding.allocate import AllocationConfig
 from warpgauss.encoding.bench import result_header, warmed_device
 from warpgauss.encoding.refine import RefineConfig
+from warpgauss.encoding.scale import schedule as wsched
 from warpgauss.field.analysis import normalise
 from warpgauss.readers.synthetic import generate
 
@@ -36,8 +37,8 @@ def together_tasks(f, bricks: str, n: int, dev: str) -> list:
     plan = bp.plan_bricks(f.shape_xyz, bp.parse_bricks(bricks), bp.default_halo(alloc.scale_cap))
     _, stats = bp.split_bricks(f, plan, n)
     tasks = wb.brick_tasks(f, plan, stats, 0, alloc, RefineConfig(), dev, n)
-    with wb.schedule(False):
-        return wb.wave_tasks(tasks, {}, [t.index for t in tasks])
+    with wsched.schedule(False):
+        return wsched.wave_tasks(tasks, {}, [t.index for t in tasks])
 
 
 def main(argv=None) -> dict:

@@ -32,10 +32,10 @@ from pathlib import Path
 import numpy as np
 
 import warpgauss
-import warpgauss.encoding.scale.bricks as wb
 import warpgauss.encoding.scale.cluster
 from warpgauss.core.warp import resolve_device
 from warpgauss.encoding.bench import result_header
+from warpgauss.encoding.scale import schedule as wsched
 from warpgauss.encoding.scale.cluster import gpu_client, local_client
 from warpgauss.readers.synthetic import generate, generate_series
 from warpgauss.series.steps import encode_series
@@ -135,7 +135,7 @@ def main(argv=None) -> dict:
                     local = warpgauss.encoding.scale.cluster.is_local
                     warpgauss.encoding.scale.cluster.is_local = lambda client: False  # type: ignore[assignment]
                 try:
-                    with wb.schedule(share is None, share or 0.0):
+                    with wsched.schedule(share is None, share or 0.0):
                         m = warpgauss.encode(vol, budget=budget, bricks=args.bricks, client=clients[k], **common)
                 finally:
                     if through_graph:

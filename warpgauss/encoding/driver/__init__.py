@@ -4,7 +4,7 @@ the paper's stage table (:mod:`.run`, rate control in :mod:`.replan`, checkpoint
 :mod:`.checkpoints`), the run report (:mod:`.report`) and budget ladders (:mod:`.ladder`).
 
 A new stage is a function (or a module of its own under :mod:`warpgauss.encoding`) called from
-:func:`.run.encode_field` inside ``timer.stage("CODE", "what it does")``, with a row in the
+:func:`.run.encode_field` inside ``timer.stage(code, title)``, with a row in the
 report's stage table."""
 
 from ...readers import ReadOptions

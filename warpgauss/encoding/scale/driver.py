@@ -46,10 +46,10 @@ def encode_bricked(
     from ...field.analysis import DeviceVolume
     from ...format.wgs import header_size
     from ...readers.lazy import is_lazy
-    from . import bricks as wb
-    from .bricks import brick_seed, brick_tasks, refit_seams, resident_bytes, resident_volume, run_bricks
-    from .cluster import share_arrays
+    from .bricks import brick_seed, device_setup
     from .plan import brick_cap, default_halo, parse_bricks, plan_bricks, split_bricks
+    from .schedule import choose_schedule
+    from .seams import refit_seams
 
     counts_xyz = parse_bricks(bricks)
     if opts.resume or opts.time_budget is not None or opts.refine.target_psnr is not None or opts.refine.plateau_db is not None:
@@ -76,18 +76,18 @@ def encode_bricked(
     allocation = dataclasses.replace(opts.allocation, scale_cap=cap)
     halo = default_halo(cap) if halo is None else int(halo)
     plan = plan_bricks(f.shape_xyz, counts_xyz, halo)
-    order = wb.choose_schedule(dev, client, is_lazy(f.values), f.shape_xyz, n, opts.refine.iterations, max_device_memory)
+    order = choose_schedule(dev, client, is_lazy(f.values), f.shape_xyz, n, opts.refine.iterations, max_device_memory)
     # the whole volume on this process's device (the coded pilot's, or for the seams' refit): the
     # bricks' statistics are taken there, and the bricks of this process cut their boxes from it
     resident = None
-    if not is_lazy(f.values) and wb.device_setup(dev) and (dv is not None or order.seam_refit > 0):
+    if not is_lazy(f.values) and device_setup(dev) and (dv is not None or order.seam_refit > 0):
         if dv is None:
             with timer.stage("Su", "the volume to the device"):
                 dv = DeviceVolume(f, dev)
         resident = dv
     with timer.stage("Sb", "budget split over the bricks"):
         # a file read on demand: each box counted on this process's GPU where it has one
-        upload = dev if resident is None and is_lazy(f.values) and wb.device_setup(dev) else None
+        upload = dev if resident is None and is_lazy(f.values) and device_setup(dev) else None
         counts, stats = split_bricks(f, plan, n, dv=resident, host_limit=max_host_memory, device=upload)
     if not f.counted:  # the bricks' interiors partition the grid: their counts are the volume's
         from ...field.analysis import check_budget
@@ -96,27 +96,9 @@ def encode_bricked(
         f.counted = True
         check_budget(f, n, header_size(header, 1 << 40, encoding=enc), sizing_bpp(enc))
     waves: list[dict] = []
-    with contextlib.ExitStack() as stack:
-        volume, sharing = None, "this process" if client is None else "the boxes in the task graph"
-        if client is not None and is_lazy(f.values):
-            sharing = "the workers read the file"
-        elif client is not None:  # one file the workers read, where they can, not the volume through the graph
-            with timer.stage("Sh", "the volume shared with the workers on this machine"):
-                files, why = share_arrays(client, [f.values, f.mask], stack)
-            if files is not None:
-                volume, sharing = tuple(files), "a temporary file the workers read"
-            elif why is not None:
-                sharing = f"the boxes in the task graph ({why})"
-        if resident is not None and client is None:
-            volume, sharing = resident_volume(resident), "this process, the volume on its device"
-        tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n, volume=volume)
-        limit = max_device_memory
-        if limit is not None and resident is not None and client is None:  # the volume held there counts against the bricks
-            limit = max(1, limit - resident_bytes(resident))
-        t0 = time.perf_counter()
-        with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
-            results = run_bricks(tasks, client, on_progress, limit=limit, waves_out=waves, together=order.together)
-        wall = time.perf_counter() - t0
+    results, sharing, wall = _run_bricks(
+        f, plan, stats, opts, allocation, n, dev, client, resident, max_device_memory, timer, on_progress, waves, order
+    )
     params = np.concatenate([r["params"] for r in results]) if results else np.zeros((0, 12), np.float32)
     seams = None  # a joint refit of the seams (the schedule's share; the whole volume on one device)
     if order.seam_refit > 0 and opts.refine.iterations > 0 and len(params) and not is_lazy(f.values):
@@ -141,26 +123,7 @@ def encode_bricked(
 
         with timer.stage("EV", "evaluation"):
             evaluation["final"] = evaluate_field(model.field(dev), f, full=full_eval)
-    bricks_report = [
-        {
-            "index": list(b.index),
-            "interior_zyx": [list(x) for x in b.interior],
-            "box_zyx": [list(x) for x in b.box],
-            **st,
-            "seconds": r["seconds"],
-            "device": r["device"],
-            "iterations": r["iterations"],
-            "samples": r["samples"],
-            "stand_ins": r["stand_ins"],
-            "frozen": r["frozen"],
-            "sample_psnr_db": r.get("sample_psnr_db"),
-            "at_once": r.get("at_once", 1),
-            "worker": r.get("worker"),
-            "setup_seconds": r.get("setup_seconds"),
-            "refine_seconds": r.get("refine_seconds"),
-        }
-        for b, st, r in zip(plan, stats, results)
-    ]
+    bricks_report = _brick_rows(plan, stats, results)
     model.report = {
         **run_facts(dev, input_info, f),
         "budget": budget_facts(model, opts, f, enc, budget_bytes, sizing, fit, note=bits_note),
@@ -186,6 +149,63 @@ def encode_bricked(
         "skipped": [],
     }
     return model
+
+
+def _run_bricks(f, plan, stats, opts, allocation, n, dev, client, resident, max_device_memory, timer, on_progress, waves, order):
+    """Stage S1-S2b: every brick's allocation and refinement, in this process or on the cluster,
+    the volume handed to them the cheapest way there is. Returns (results, how the volume
+    reached the bricks, wall seconds); ``waves`` gets the schedule's waves."""
+    from ...readers.lazy import is_lazy
+    from .bricks import brick_tasks, resident_bytes, resident_volume
+    from .cluster import share_arrays
+    from .schedule import run_bricks
+
+    with contextlib.ExitStack() as stack:
+        volume, sharing = None, "this process" if client is None else "the boxes in the task graph"
+        if client is not None and is_lazy(f.values):
+            sharing = "the workers read the file"
+        elif client is not None:  # one file the workers read, where they can, not the volume through the graph
+            with timer.stage("Sh", "the volume shared with the workers on this machine"):
+                files, why = share_arrays(client, [f.values, f.mask], stack)
+            if files is not None:
+                volume, sharing = tuple(files), "a temporary file the workers read"
+            elif why is not None:
+                sharing = f"the boxes in the task graph ({why})"
+        if resident is not None and client is None:
+            volume, sharing = resident_volume(resident), "this process, the volume on its device"
+        tasks = brick_tasks(f, plan, stats, opts.seed, allocation, opts.refine, None if client is not None else dev, n, volume=volume)
+        limit = max_device_memory
+        if limit is not None and resident is not None and client is None:  # the volume held there counts against the bricks
+            limit = max(1, limit - resident_bytes(resident))
+        t0 = time.perf_counter()
+        with timer.stage("S1-S2b", f"{len(plan)} bricks: allocation and refinement"):
+            results = run_bricks(tasks, client, on_progress, limit=limit, waves_out=waves, together=order.together)
+        wall = time.perf_counter() - t0
+    return results, sharing, wall
+
+
+def _brick_rows(plan, stats, results) -> list[dict]:
+    """The report's row of each brick: where it is, its statistics and how its encode went."""
+    return [
+        {
+            "index": list(b.index),
+            "interior_zyx": [list(x) for x in b.interior],
+            "box_zyx": [list(x) for x in b.box],
+            **st,
+            "seconds": r["seconds"],
+            "device": r["device"],
+            "iterations": r["iterations"],
+            "samples": r["samples"],
+            "stand_ins": r["stand_ins"],
+            "frozen": r["frozen"],
+            "sample_psnr_db": r.get("sample_psnr_db"),
+            "at_once": r.get("at_once", 1),
+            "worker": r.get("worker"),
+            "setup_seconds": r.get("setup_seconds"),
+            "refine_seconds": r.get("refine_seconds"),
+        }
+        for b, st, r in zip(plan, stats, results)
+    ]
 
 
 def _accuracy_bits(results: list[dict], plan) -> dict | None:

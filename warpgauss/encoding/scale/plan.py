@@ -385,3 +385,10 @@ def _fitting_bricks(shape_xyz, n: int, limit: int | None, halo: int, host_limit:
                 f"{need / 2**30:.1f} and {host / 2**30:.1f} GiB each); raise --max-device-memory / --max-host-memory or lower the budget"
             )
         counts[axis] += 1
+
+
+def sigma_reach(params: np.ndarray, k: float) -> np.ndarray:
+    """``k`` times each row's largest sigma, in voxels (float64): the half-width of the isotropic
+    box :func:`seam_rows`, :func:`seam_support` and the frozen neighbours' selection use. Columns
+    3:6 hold log-sigmas, clamped as the field kernels clamp them."""
+    return k * np.exp(np.clip(params[:, 3:6].max(axis=1).astype(np.float64), -9.0, 12.0))
