@@ -15,6 +15,7 @@ import typer.core
 from rich.console import Console
 
 from warpgauss.errors import WarpgaussError
+from warpgauss.readers.common import parse_shape  # noqa: F401 - the commands' --shape
 
 err_console = Console(stderr=True, highlight=False)
 out_console = Console(highlight=False, soft_wrap=True)  # whole lines in a file or a pipe; tables still fit the width
@@ -78,20 +79,6 @@ def handle_errors(fn):
             fail(f"internal error: {type(e).__name__}: {_first_line(e)} (rerun with --debug for the traceback, and please report it)")
 
     return wrapper
-
-
-def parse_shape(text: str | None, what: str = "--shape") -> tuple[int, int, int] | None:
-    """'128x128x64' or '128,128,64' -> (128, 128, 64) as (x, y, z)."""
-    if text is None:
-        return None
-    parts = text.replace(",", "x").replace("X", "x").split("x")
-    try:
-        shape = tuple(int(p) for p in parts)
-    except ValueError:
-        shape = ()
-    if len(shape) != 3 or min(shape) < 1:
-        raise WarpgaussError(f"{what} must be three positive integers XxYxZ (e.g. 128x128x64), got {text!r}")
-    return shape
 
 
 def parse_int_list(text: str | None, what: str) -> tuple[int, ...] | None:
@@ -370,3 +357,38 @@ class PanelCommand(typer.core.TyperCommand):
         for title, rows in sorted(groups.items(), key=lambda kv: order.get(kv[0], len(PANELS) + (kv[0] == "Other options"))):
             with formatter.section(title):
                 formatter.write_dl(rows)
+
+
+def with_settings(options: dict, default_of):
+    """A command whose options include one per row of ``options`` (a table of
+    :class:`warpgauss.encoding.driver.config.Option`): the command is written with a keyword-only
+    ``settings`` parameter, and receives there every such option's value by the row's key
+    (``default_of(key)`` is the option's default). The table, not the command, spells each
+    option's flags, type, panel and help."""
+    import inspect
+    import typing
+    from typing import Annotated
+
+    def wrap(fn):
+        sig = inspect.signature(fn)
+        hints = typing.get_type_hints(fn, include_extras=True)
+        params = [p.replace(annotation=hints.get(p.name, p.annotation)) for p in sig.parameters.values() if p.name != "settings"]
+        names: dict[str, str] = {}
+        for key, opt in options.items():
+            name = opt.param or key.rpartition(".")[2]
+            names[name] = key
+            info = typer.Option(*opt.flags, rich_help_panel=opt.panel, help=opt.help)
+            params.append(
+                inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default_of(key), annotation=Annotated[opt.type, info])
+            )
+
+        @functools.wraps(fn)
+        def command(*args, **kwargs):
+            settings = {names[k]: kwargs.pop(k) for k in list(kwargs) if k in names}
+            return fn(*args, settings=settings, **kwargs)
+
+        command.__signature__ = sig.replace(parameters=params)  # type: ignore[attr-defined]
+        command.__annotations__ = {p.name: p.annotation for p in params}
+        return command
+
+    return wrap

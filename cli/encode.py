@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from warpgauss.encoding.driver.config import OPTIONS, config_from_options, option_default
+
 from .common import (
     PhaseLines,
     config_callback,
@@ -17,128 +19,23 @@ from .common import (
     human_bytes,
     json_text,
     out_console,
-    parse_shape,
     print_json,
     psnr_text,
     resolved_config,
     size_text,
+    with_settings,
 )
+
+SERIES_ONLY = "--cold, --warm-iterations, --keyframe-drift and --no-motion apply to a series: a glob such as 'run/t_*.raw', a file with a time axis, or several --variable"
 
 
 @handle_errors
+@with_settings(OPTIONS, option_default)
 def encode(
     ctx: typer.Context,
     input: Annotated[
         Path | None, typer.Argument(rich_help_panel="Input", help="Volume file (.raw .npy .h5 .vti .nii.gz .nrrd .mha .nc .mrc ...)")
     ] = None,
-    output: Annotated[Path | None, typer.Option("-o", "--output", rich_help_panel="Output", help="Model file; default NAME.wgs")] = None,
-    example: Annotated[str | None, typer.Option(rich_help_panel="Input", help="Encode a built-in example volume instead of a file")] = None,
-    size: Annotated[int, typer.Option(rich_help_panel="Input", help="Edge length of the --example volume")] = 64,
-    budget: Annotated[
-        int | None, typer.Option("--budget", "-n", rich_help_panel="Budget and format", help="Number of Gaussians N (exact)")
-    ] = None,
-    ladder: Annotated[
-        str | None,
-        typer.Option(
-            rich_help_panel="Budget and format",
-            help="Several budgets, e.g. 2000,20000,200000: one read and analysis, one model each (OUTPUT with .nN before the suffix)",
-        ),
-    ] = None,
-    ratio: Annotated[
-        float | None,
-        typer.Option(
-            rich_help_panel="Budget and format", help="Target compression ratio: a file of at most source bytes / RATIO; default 20"
-        ),
-    ] = None,
-    file_bytes: Annotated[
-        int | None,
-        typer.Option(
-            "--bytes",
-            rich_help_panel="Budget and format",
-            help="File size budget in bytes (header included), instead of --budget or --ratio",
-        ),
-    ] = None,
-    max_error: Annotated[
-        float | None,
-        typer.Option(
-            rich_help_panel="Error bound",
-            help="Every decoded voxel within this of the source (source units): a residual stored after the Gaussians; without a budget the Gaussians get 1/1000 of the source's bytes (8 KiB at least)",
-        ),
-    ] = None,
-    max_error_rel: Annotated[
-        float | None,
-        typer.Option(
-            rich_help_panel="Error bound",
-            help="The bound as a share of the source's value range (e.g. 1e-3), instead of --max-error",
-        ),
-    ] = None,
-    psnr: Annotated[
-        float | None,
-        typer.Option(
-            rich_help_panel="Error bound",
-            help="Instead of a bound: the full-grid PSNR (dB) the decode must reach, with the largest point-wise bound that reaches it",
-        ),
-    ] = None,
-    seed: Annotated[int, typer.Option(rich_help_panel="Refinement", help="Seed: same seed and device give the same model")] = 0,
-    device: Annotated[
-        str | None, typer.Option(rich_help_panel="Refinement", help="Warp device: cpu, cuda, cuda:N (default: CUDA if present)")
-    ] = None,
-    compact: Annotated[
-        bool, typer.Option("--compact", rich_help_panel="Budget and format", help="Write the compact 12-byte/primitive format")
-    ] = False,
-    fmt: Annotated[
-        str | None,
-        typer.Option(
-            "--format",
-            rich_help_panel="Budget and format",
-            help="File format: coded (default: quantised + Zstandard, about 7-14 B/Gaussian, --ratio/--bytes budgets never exceeded, 99-100 % used), full (float32, 48 B) or compact (12 B)",
-        ),
-    ] = None,
-    iterations: Annotated[
-        int | None, typer.Option(rich_help_panel="Refinement", help="Refinement iterations (default 1500; 0: analytic model only)")
-    ] = None,
-    samples: Annotated[
-        int | None,
-        typer.Option(
-            rich_help_panel="Refinement",
-            help="Samples per iteration (default 3072, x ceil(N / 350000) for large budgets; on a GPU at least voxels / 128 as a power of two in 16384-131072; the report says what it chose)",
-        ),
-    ] = None,
-    preset: Annotated[
-        str | None,
-        typer.Option(
-            rich_help_panel="Refinement",
-            help="paper (1500 x 3072 whatever N), fast (the default's sampling for 300 iterations) or quality (1500 x 12288)",
-        ),
-    ] = None,
-    no_self_test: Annotated[
-        bool, typer.Option("--no-self-test", rich_help_panel="Refinement", help="Skip the binned-vs-dense self-test")
-    ] = False,
-    time_budget: Annotated[
-        float | None,
-        typer.Option(
-            rich_help_panel="Refinement",
-            help="Seconds refinement may take: it keeps >= 1,500 iterations, spends spare time on more samples (unless --samples is given), ends in time",
-        ),
-    ] = None,
-    lr: Annotated[float, typer.Option(rich_help_panel="Refinement", help="Adam base learning rate (per-group multipliers apply)")] = 8e-3,
-    w_value_empty: Annotated[
-        float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: value term at empty samples (paper: 0)")
-    ] = 1.0,
-    w_density: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: density towards 1 where occupied")] = 0.001,
-    w_smooth: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: smoothness at the start (anneals)")] = 0.01,
-    w_smooth_final: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: smoothness at the end")] = 0.0001,
-    w_anchor: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: anchor of a to V(mu)")] = 0.001,
-    w_aniso: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: anisotropy bound 3:1")] = 1.0,
-    w_cap: Annotated[float, typer.Option(rich_help_panel="Loss weights", help="Loss weight: scale range")] = 1.0,
-    save_analytic: Annotated[
-        Path | None, typer.Option(rich_help_panel="Output", help="Also write the analytic (pre-refinement) model")
-    ] = None,
-    stride: Annotated[int, typer.Option(rich_help_panel="Input", help="Take every K-th voxel on each axis")] = 1,
-    shape: Annotated[str | None, typer.Option(rich_help_panel="Input", help="Raw files: XxYxZ when the name does not say")] = None,
-    dtype: Annotated[str | None, typer.Option(rich_help_panel="Input", help="Raw files: uint8, int16, float32, ...")] = None,
-    endian: Annotated[str | None, typer.Option(rich_help_panel="Input", help="Raw files: little (default) or big")] = None,
-    dataset: Annotated[str | None, typer.Option(rich_help_panel="Input", help="HDF5: dataset path (default: first 3D dataset)")] = None,
     variable: Annotated[
         list[str] | None,
         typer.Option(
@@ -146,58 +43,11 @@ def encode(
             help="netCDF/HDF5/Zarr variable (default: the first 3D one); a (t, z, y, x) variable is a series; several --variable: a series each",
         ),
     ] = None,
-    fill_value: Annotated[
-        float | None, typer.Option(rich_help_panel="Input", help="Source value marking missing data (masked out)")
-    ] = None,
-    report: Annotated[Path | None, typer.Option(rich_help_panel="Output", help="Run report JSON; default OUTPUT.report.json")] = None,
-    full_eval: Annotated[
-        bool, typer.Option("--full-eval", rich_help_panel="Output", help="PSNR on the full grid, not 500,000 samples")
-    ] = False,
-    as_json: Annotated[bool, typer.Option("--json", rich_help_panel="Output", help="Print the run report as JSON on stdout")] = False,
-    verbose: Annotated[
-        bool,
-        typer.Option(
-            "--verbose", "-v", rich_help_panel="Output", help="Also print each stage's seconds and memory and what the run skipped"
-        ),
-    ] = False,
-    checkpoint: Annotated[
-        Path | None,
-        typer.Option(rich_help_panel="Run control", help="Refinement checkpoint file; default OUTPUT.ckpt (deleted when the run ends)"),
-    ] = None,
-    checkpoint_every: Annotated[
-        float, typer.Option(rich_help_panel="Run control", help="Seconds between checkpoints (Ctrl-C also writes one)")
-    ] = 60.0,
-    resume: Annotated[
-        bool,
-        typer.Option(
-            "--resume", rich_help_panel="Run control", help="Continue an interrupted run from its checkpoint (same input and options)"
-        ),
-    ] = False,
-    target_psnr: Annotated[
-        float | None,
-        typer.Option(
-            rich_help_panel="Refinement", help="dB: skip refinement if the analytic model reaches it, else stop once a validation PSNR does"
-        ),
-    ] = None,
-    plateau: Annotated[
-        float | None,
-        typer.Option(
-            rich_help_panel="Refinement", help="dB: stop refinement once the validation PSNR gains less than this over 300 iterations"
-        ),
-    ] = None,
-    force: Annotated[bool, typer.Option("--force", rich_help_panel="Output", help="Overwrite existing output files")] = False,
-    bricks: Annotated[
+    ladder: Annotated[
         str | None,
         typer.Option(
-            rich_help_panel="Bricks and cluster",
-            help="Split the grid into bricks, e.g. 2x2x2 (x, y, z), the budget over them up front, each encoded on a Dask worker and merged into one model",
-        ),
-    ] = None,
-    halo: Annotated[
-        int | None,
-        typer.Option(
-            rich_help_panel="Bricks and cluster",
-            help="Voxels of halo around each brick (default: the longest side / 32, at least 4); a brick caps sigma at halo / 2",
+            rich_help_panel="Budget and format",
+            help="Several budgets, e.g. 2000,20000,200000: one read and analysis, one model each (OUTPUT with .nN before the suffix)",
         ),
     ] = None,
     workers: Annotated[
@@ -213,6 +63,24 @@ def encode(
             rich_help_panel="Bricks and cluster", help="Address of a running Dask scheduler (e.g. tcp://host:8786) for --bricks or a series"
         ),
     ] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option(
+            "--config",
+            is_eager=True,
+            callback=config_callback,
+            rich_help_panel="Run control",
+            help="TOML file of options (names as here, e.g. ratio = 100, w-smooth = 0.01), or a run report to repeat; the command line wins",
+        ),
+    ] = None,
+    report: Annotated[Path | None, typer.Option(rich_help_panel="Output", help="Run report JSON; default OUTPUT.report.json")] = None,
+    as_json: Annotated[bool, typer.Option("--json", rich_help_panel="Output", help="Print the run report as JSON on stdout")] = False,
+    verbose: Annotated[
+        bool,
+        typer.Option(
+            "--verbose", "-v", rich_help_panel="Output", help="Also print each stage's seconds and memory and what the run skipped"
+        ),
+    ] = False,
     cold: Annotated[
         bool,
         typer.Option(
@@ -232,143 +100,86 @@ def encode(
             help="Key frames: a warm timestep whose PSNR falls more than this many dB below the best warm PSNR since the chain's last cold timestep is encoded again cold and the better of the two kept; the chain goes on from it (default 1.0; 0: never)",
         ),
     ] = None,
-    motion: Annotated[
-        bool,
-        typer.Option(
-            "--motion/--no-motion",
-            rich_help_panel="Time series",
-            help="Move a warm start's Gaussians with the field's motion (block Lucas-Kanade) before refining",
-        ),
-    ] = True,
-    max_device_memory: Annotated[
-        str | None,
-        typer.Option(
-            rich_help_panel="Bricks and cluster",
-            help="Device memory an encode may use, e.g. 24GiB (default: 90 % of a GPU's free memory); a volume whose encode would not fit is split into bricks and read brick by brick",
-        ),
-    ] = None,
-    max_host_memory: Annotated[
-        str | None,
-        typer.Option(
-            rich_help_panel="Bricks and cluster",
-            help="Host memory a brick may use, e.g. 16GiB (default: half of what is available); a volume that would not fit is split into bricks and read brick by brick",
-        ),
-    ] = None,
-    config: Annotated[
-        Path | None,
-        typer.Option(
-            "--config",
-            is_eager=True,
-            callback=config_callback,
-            rich_help_panel="Run control",
-            help="TOML file of options (names as here, e.g. ratio = 100, w-smooth = 0.01), or a run report to repeat; the command line wins",
-        ),
-    ] = None,
+    *,
+    settings: dict,
 ) -> None:
     """Encode a volume into N anisotropic Gaussians, evaluate it and write the model and a report."""
-    import warpgauss
-    from warpgauss.core.files import atomic_write_bytes, check_writable
-    from warpgauss.encoding.refine import LossWeights, RefineConfig
-    from warpgauss.readers import ReadOptions
-
-    if (input is None) == (example is None):
-        fail("give a volume file or --example NAME (one of them)")
     from warpgauss.encoding.driver.sizing import check_budget_options
 
-    check_budget_options(budget, ratio, file_bytes)  # what needs no data is checked before any file is looked at
-    from warpgauss.format.residual import Bound
-
-    bounded = Bound(max_error, max_error_rel, psnr).given
-    if bounded:
-        Bound(max_error, max_error_rel, psnr).check()
-        if ladder is not None or bricks is not None or stride > 1:
-            fail(
-                "--max-error (or --psnr) bounds every source voxel of one whole encode: it does not combine with --ladder, --bricks or --stride"
-            )
-    weights = LossWeights(w_value_empty, w_density, w_smooth, w_smooth_final, w_anchor, w_aniso, w_cap)
+    if (input is None) == (settings["example"] is None):
+        fail("give a volume file or --example NAME (one of them)")
+    check_budget_options(settings["budget"], settings["ratio"], settings["file_bytes"])  # what needs no data, before any file is looked at
     variables = list(variable or [])
-    one_variable = variables[0] if len(variables) == 1 else None
-    read = ReadOptions(parse_shape(shape), dtype, endian, dataset, one_variable, stride, fill_value)
-    from warpgauss.encoding.driver.config import EncodeConfig
-
-    cfg = EncodeConfig.from_kwargs(  # every path below takes its settings from here
-        budget=budget,
-        ratio=ratio,
-        file_bytes=file_bytes,
-        seed=seed,
-        device=device,
-        iterations=iterations,
-        samples=samples,
-        preset=preset,
-        refine=RefineConfig(lr=lr, weights=weights),
-        self_test=not no_self_test,
-        time_budget=time_budget,
-        checkpoint=checkpoint,
-        checkpoint_every=checkpoint_every,
-        resume=resume,
-        target_psnr=target_psnr,
-        plateau_db=plateau,
-        compact=compact,
-        format=fmt,
-        example=example,
-        example_size=size,
-        read=read,
-        full_eval=full_eval,
-        force=force,
-        analytic_output=save_analytic,
-        bricks=bricks,
-        halo=halo,
-        max_device_memory=max_device_memory,
-        max_host_memory=max_host_memory,
-        motion=motion,
-        max_error=max_error,
-        max_error_rel=max_error_rel,
-        residual_psnr=psnr,
-    )
+    cfg = config_from_options(settings, read={"variable": variables[0] if len(variables) == 1 else None})
+    _refuse_combinations(cfg, ladder)
     series = input is not None and not input.exists() and any(c in str(input) for c in "*?[")
     if input is not None and not series and (len(variables) > 1 or input.exists()):
-        from warpgauss.series.steps import time_steps
+        from warpgauss.series import time_steps
 
-        series = len(variables) > 1 or time_steps(input, one_variable) is not None
-    if not series and (cold or warm_iterations is not None or not motion or keyframe_drift is not None):
-        fail(
-            "--cold, --warm-iterations, --keyframe-drift and --no-motion apply to a series: a glob such as 'run/t_*.raw', a file with a time axis, or several --variable"
-        )
+        series = len(variables) > 1 or time_steps(input, cfg.reading.read.variable) is not None
+    if not series and (cold or warm_iterations is not None or not cfg.start.motion or keyframe_drift is not None):
+        fail(SERIES_ONLY)
     if keyframe_drift is not None and keyframe_drift < 0:
         fail(f"--keyframe-drift must be >= 0 dB (0: never re-encode cold), got {keyframe_drift:g}")
     if series:
-        if ladder is not None or resume or save_analytic is not None or bricks is not None or bounded:
+        run = cfg.run
+        if ladder is not None or run.resume or run.analytic_output is not None or cfg.bricking.bricks is not None or cfg.bound.given:
             fail("a series does not combine with --ladder, --resume, --save-analytic, --bricks, --max-error or --psnr yet")
         from .encode_many import encode_series
 
-        encode_series(str(input), variables, (workers, scheduler), output, cfg, cold, warm_iterations, keyframe_drift, as_json)
+        encode_series(str(input), variables, (workers, scheduler), run.output, cfg, cold, warm_iterations, keyframe_drift, as_json)
         return
     if input is not None and not input.exists():
         fail(f"no such file: {input}")
+    example = cfg.reading.example
     stem = example if example is not None else _stem(input) if input is not None else "volume"
-    out = output or Path(f"{stem}.wgs")
+    out = cfg.run.output or Path(f"{stem}.wgs")
     rep_path = report or out.with_name(out.name + ".report.json")
-    check_writable(out, force=force or resume)  # the file the user named first, then its report beside it
-    check_writable(rep_path, force=force or resume)
-
+    _check_writable(out, rep_path, cfg)  # the file the user named first, then its report beside it
     if ladder is not None:
-        if (
-            budget is not None
-            or ratio is not None
-            or file_bytes is not None
-            or resume
-            or time_budget is not None
-            or save_analytic is not None
-        ):
-            fail(
-                "--ladder gives the budgets: it does not combine with --budget, --ratio, --bytes, --time-budget, --resume or --save-analytic"
-            )
         from .encode_many import encode_ladder
 
         encode_ladder(ladder, input, out, cfg, as_json)
         return
+    model = _encode_one(input, cfg.replace(output=out), workers, scheduler, as_json, verbose)
+    _finish(ctx, model, rep_path, as_json, verbose)
+
+
+def _refuse_combinations(cfg, ladder: str | None) -> None:
+    """What the command line refuses before it reads anything: a bound with a ladder, bricks or a
+    stride; a ladder with any other budget, a resume, a time budget or an analytic model."""
+
+    if cfg.bound.given:
+        cfg.bound.check()
+        if ladder is not None or cfg.bricking.bricks is not None or cfg.reading.stride > 1:
+            fail(
+                "--max-error (or --psnr) bounds every source voxel of one whole encode: it does not combine with --ladder, --bricks or --stride"
+            )
+    if ladder is not None and (
+        cfg.budget.given or cfg.run.resume or cfg.refinement.time_budget is not None or cfg.run.analytic_output is not None
+    ):
+        fail("--ladder gives the budgets: it does not combine with --budget, --ratio, --bytes, --time-budget, --resume or --save-analytic")
+
+
+def _check_writable(out: Path, rep_path: Path, cfg) -> None:
+    from warpgauss.core.files import check_writable
+
+    force = cfg.run.force or cfg.run.resume
+    check_writable(out, force=force)
+    check_writable(rep_path, force=force)
+
+
+def _encode_one(input, cfg, workers, scheduler, as_json: bool, verbose: bool):
+    """One model: the encode with its progress lines (and a Dask cluster for bricks)."""
+    import warpgauss
+
     status = None if as_json else err_console.status("starting", spinner="dots")
     lines = None if status is None else PhaseLines(status)
+    b = cfg.bricking
+    if b.bricks is None and (
+        workers is not None or scheduler is not None or (b.halo is not None and b.max_device_memory is None and b.max_host_memory is None)
+    ):
+        fail("--halo, --workers and --scheduler apply to a bricked encode: give --bricks XxYxZ (--halo also --max-device-memory)")
     if status is not None:
         status.start()
 
@@ -376,33 +187,17 @@ def encode(
         if lines is not None:
             lines.update(f"iteration {it}/{total}, sample PSNR {rec['sample_psnr_db']:.2f} dB")
 
-    client = None
-    if bricks is None and (
-        workers is not None or scheduler is not None or (halo is not None and max_device_memory is None and max_host_memory is None)
-    ):
-        fail("--halo, --workers and --scheduler apply to a bricked encode: give --bricks XxYxZ (--halo also --max-device-memory)")
-    if bricks is not None:
-        from warpgauss.encoding.scale.cluster import default_client
-        from warpgauss.encoding.scale.plan import parse_bricks
-
-        parse_bricks(bricks)  # refused in one line before a cluster starts
-        if halo is not None and halo < 0:
-            fail(f"--halo must be >= 0 voxels, got {halo}")
-        from warpgauss.encoding.scale.driver import check_bricking
-
-        check_bricking(input, read, example, size, bricks, halo)
-        client, where = default_client(workers, scheduler, device)
-        if status is not None:
-            status.console.print(f"bricks {bricks}: {where}", highlight=False)
-
     def brick_progress(done: int, total: int) -> None:
         if lines is not None:
             lines.update(f"{done}/{total} bricks encoded")
 
+    client = None
     try:
+        if b.bricks is not None:
+            client = _cluster(input, cfg, workers, scheduler, status)
         model = warpgauss.encode(
             input,
-            **cfg.replace(output=out).to_kwargs(),
+            **cfg.to_kwargs(),
             on_stage=None if lines is None else lines.stage,
             on_stats=None if status is None or not verbose else lambda s: status.console.print(_stats_line(s)),
             on_progress=None if status is None else progress,
@@ -419,6 +214,31 @@ def encode(
             client.close()
             if cluster is not None and scheduler is None:
                 cluster.close()
+    return model
+
+
+def _cluster(input, cfg, workers, scheduler, status):
+    """The Dask client a bricked encode runs on, once the bricking is known to split the volume."""
+    from warpgauss.encoding.scale.cluster import default_client
+    from warpgauss.encoding.scale.driver import check_bricking
+    from warpgauss.encoding.scale.plan import parse_bricks
+
+    b, reading = cfg.bricking, cfg.reading
+    parse_bricks(b.bricks)  # refused in one line before a cluster starts
+    if b.halo is not None and b.halo < 0:
+        fail(f"--halo must be >= 0 voxels, got {b.halo}")
+    check_bricking(input, reading.read, reading.example, reading.example_size, b.bricks, b.halo)
+    client, where = default_client(workers, scheduler, cfg.device)
+    if status is not None:
+        status.console.print(f"bricks {b.bricks}: {where}", highlight=False)
+    return client
+
+
+def _finish(ctx: typer.Context, model, rep_path: Path, as_json: bool, verbose: bool) -> None:
+    """The report written beside the model (with the options that repeat the run), the summary or
+    the JSON printed; an interrupted run says how to continue and exits 130."""
+    from warpgauss.core.files import atomic_write_bytes
+
     rep = model.run_report
     rep["report"] = str(rep_path)
     rep["config"] = resolved_config(ctx, rep_path.parent)  # warpgauss encode --config REPORT repeats the run, from any folder

@@ -329,3 +329,17 @@ def pick_array(where: str, found: list[tuple[str, tuple]], wanted, has, noun: st
     if first is None:
         raise WarpgaussError(f"{where} has no 3D {noun}; it holds {list_datasets(found)}")
     return first
+
+
+def parse_shape(text: str | None, what: str = "--shape") -> tuple[int, int, int] | None:
+    """'128x128x64' or '128,128,64' -> (128, 128, 64) as (x, y, z)."""
+    if text is None:
+        return None
+    parts = text.replace(",", "x").replace("X", "x").split("x")
+    try:
+        shape = tuple(int(p) for p in parts)
+    except ValueError:
+        shape = ()
+    if len(shape) != 3 or min(shape) < 1:
+        raise WarpgaussError(f"{what} must be three positive integers XxYxZ (e.g. 128x128x64), got {text!r}")
+    return shape

@@ -5,6 +5,10 @@ reading, run control, bricks, error bound, start), built once from keyword argum
 :class:`~warpgauss.Encoder` and the command line, whose ``--config`` file sets the same options)
 and read by every path. :data:`FIELDS` is the one table from an argument's name to its place; a
 test checks that every argument of ``warpgauss.encode`` has one and that it maps back.
+:data:`OPTIONS` is the one table of how the command line offers the settings (``warpgauss
+encode``'s options are made from it: panel, help, flags, type; the default is the setting's own),
+so that a new setting is written once: a field of its group, a row of :data:`FIELDS` and one of
+:data:`OPTIONS`.
 
 What is not a setting stays beside it: progress callbacks, a Dask client (a connection) and an
 Encoder's session (device buffers between calls).
@@ -15,13 +19,14 @@ from __future__ import annotations
 import dataclasses
 import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from ...errors import WarpgaussError
 from ...format.residual import Bound
 from ...readers import ReadOptions
 from ..allocate import AllocationConfig
-from ..refine import RefineConfig
+from ..refine import LossWeights, RefineConfig
 from .options import EncodeOptions, resolve_refine, with_stop_rules
 from .sizing import check_budget_options
 
@@ -258,3 +263,170 @@ def config_of(names: dict[str, Any]) -> EncodeConfig:
     """The configuration of a function's arguments (``locals()`` of ``warpgauss.encode`` or of a
     path that takes some of its arguments): the names in :data:`FIELDS`, the rest ignored."""
     return EncodeConfig.from_kwargs(**{k: v for k, v in names.items() if k in FIELDS})
+
+
+@dataclass(frozen=True)
+class Option:
+    """A setting as ``warpgauss encode`` offers it: the help panel and text, the flags (none: ``--``
+    and the name with dashes), the command line's type, and its parameter name where that is not
+    the setting's (``negate``: a flag that turns the setting off, ``--no-self-test``)."""
+
+    panel: str
+    help: str
+    type: Any
+    flags: tuple[str, ...] = ()
+    param: str | None = None
+    negate: bool = False
+
+
+# The command line's options of the settings, in --help order within each panel. The key says
+# where the value goes: an argument of warpgauss.encode (a row of FIELDS), or a part of one:
+# read.NAME (ReadOptions), refine.NAME (RefineConfig), refine.weights.NAME (LossWeights).
+OPTIONS: dict[str, Option] = {
+    "example": Option("Input", "Encode a built-in example volume instead of a file", str | None),
+    "example_size": Option("Input", "Edge length of the --example volume", int, flags=("--size",), param="size"),
+    "read.stride": Option("Input", "Take every K-th voxel on each axis", int),
+    "read.shape": Option("Input", "Raw files: XxYxZ when the name does not say", str | None),
+    "read.dtype": Option("Input", "Raw files: uint8, int16, float32, ...", str | None),
+    "read.endian": Option("Input", "Raw files: little (default) or big", str | None),
+    "read.dataset": Option("Input", "HDF5: dataset path (default: first 3D dataset)", str | None),
+    "read.fill_value": Option("Input", "Source value marking missing data (masked out)", float | None),
+    "budget": Option("Budget and format", "Number of Gaussians N (exact)", int | None, flags=("--budget", "-n")),
+    "ratio": Option("Budget and format", "Target compression ratio: a file of at most source bytes / RATIO; default 20", float | None),
+    "file_bytes": Option(
+        "Budget and format", "File size budget in bytes (header included), instead of --budget or --ratio", int | None, flags=("--bytes",)
+    ),
+    "compact": Option("Budget and format", "Write the compact 12-byte/primitive format", bool, flags=("--compact",)),
+    "format": Option(
+        "Budget and format",
+        "File format: coded (default: quantised + Zstandard, about 7-14 B/Gaussian, --ratio/--bytes budgets never exceeded, 99-100 % used), full (float32, 48 B) or compact (12 B)",
+        str | None,
+        flags=("--format",),
+        param="fmt",
+    ),
+    "max_error": Option(
+        "Error bound",
+        "Every decoded voxel within this of the source (source units): a residual stored after the Gaussians; without a budget the Gaussians get 1/1000 of the source's bytes (8 KiB at least)",
+        float | None,
+    ),
+    "max_error_rel": Option(
+        "Error bound", "The bound as a share of the source's value range (e.g. 1e-3), instead of --max-error", float | None
+    ),
+    "residual_psnr": Option(
+        "Error bound",
+        "Instead of a bound: the full-grid PSNR (dB) the decode must reach, with the largest point-wise bound that reaches it",
+        float | None,
+        flags=("--psnr",),
+        param="psnr",
+    ),
+    "seed": Option("Refinement", "Seed: same seed and device give the same model", int),
+    "device": Option("Refinement", "Warp device: cpu, cuda, cuda:N (default: CUDA if present)", str | None),
+    "iterations": Option("Refinement", "Refinement iterations (default 1500; 0: analytic model only)", int | None),
+    "samples": Option(
+        "Refinement",
+        "Samples per iteration (default 3072, x ceil(N / 350000) for large budgets; on a GPU at least voxels / 128 as a power of two in 16384-131072; the report says what it chose)",
+        int | None,
+    ),
+    "preset": Option(
+        "Refinement",
+        "paper (1500 x 3072 whatever N), fast (the default's sampling for 300 iterations) or quality (1500 x 12288)",
+        str | None,
+    ),
+    "self_test": Option(
+        "Refinement", "Skip the binned-vs-dense self-test", bool, flags=("--no-self-test",), param="no_self_test", negate=True
+    ),
+    "time_budget": Option(
+        "Refinement",
+        "Seconds refinement may take: it keeps >= 1,500 iterations, spends spare time on more samples (unless --samples is given), ends in time",
+        float | None,
+    ),
+    "target_psnr": Option(
+        "Refinement", "dB: skip refinement if the analytic model reaches it, else stop once a validation PSNR does", float | None
+    ),
+    "plateau_db": Option(
+        "Refinement",
+        "dB: stop refinement once the validation PSNR gains less than this over 300 iterations",
+        float | None,
+        flags=("--plateau",),
+        param="plateau",
+    ),
+    "refine.lr": Option("Refinement", "Adam base learning rate (per-group multipliers apply)", float),
+    "refine.weights.value_empty": Option(
+        "Loss weights", "Loss weight: value term at empty samples (paper: 0)", float, param="w_value_empty"
+    ),
+    "refine.weights.density": Option("Loss weights", "Loss weight: density towards 1 where occupied", float, param="w_density"),
+    "refine.weights.smooth": Option("Loss weights", "Loss weight: smoothness at the start (anneals)", float, param="w_smooth"),
+    "refine.weights.smooth_final": Option("Loss weights", "Loss weight: smoothness at the end", float, param="w_smooth_final"),
+    "refine.weights.anchor": Option("Loss weights", "Loss weight: anchor of a to V(mu)", float, param="w_anchor"),
+    "refine.weights.aniso": Option("Loss weights", "Loss weight: anisotropy bound 3:1", float, param="w_aniso"),
+    "refine.weights.cap": Option("Loss weights", "Loss weight: scale range", float, param="w_cap"),
+    "bricks": Option(
+        "Bricks and cluster",
+        "Split the grid into bricks, e.g. 2x2x2 (x, y, z), the budget over them up front, each encoded on a Dask worker and merged into one model",
+        str | None,
+    ),
+    "halo": Option(
+        "Bricks and cluster",
+        "Voxels of halo around each brick (default: the longest side / 32, at least 4); a brick caps sigma at halo / 2",
+        int | None,
+    ),
+    "max_device_memory": Option(
+        "Bricks and cluster",
+        "Device memory an encode may use, e.g. 24GiB (default: 90 % of a GPU's free memory); a volume whose encode would not fit is split into bricks and read brick by brick",
+        str | None,
+    ),
+    "max_host_memory": Option(
+        "Bricks and cluster",
+        "Host memory a brick may use, e.g. 16GiB (default: half of what is available); a volume that would not fit is split into bricks and read brick by brick",
+        str | None,
+    ),
+    "checkpoint": Option("Run control", "Refinement checkpoint file; default OUTPUT.ckpt (deleted when the run ends)", Path | None),
+    "checkpoint_every": Option("Run control", "Seconds between checkpoints (Ctrl-C also writes one)", float),
+    "resume": Option("Run control", "Continue an interrupted run from its checkpoint (same input and options)", bool, flags=("--resume",)),
+    "output": Option("Output", "Model file; default NAME.wgs", Path | None, flags=("-o", "--output")),
+    "analytic_output": Option(
+        "Output", "Also write the analytic (pre-refinement) model", Path | None, flags=("--save-analytic",), param="save_analytic"
+    ),
+    "full_eval": Option("Output", "PSNR on the full grid, not 500,000 samples", bool, flags=("--full-eval",)),
+    "force": Option("Output", "Overwrite existing output files", bool, flags=("--force",)),
+    "motion": Option(
+        "Time series",
+        "Move a warm start's Gaussians with the field's motion (block Lucas-Kanade) before refining",
+        bool,
+        flags=("--motion/--no-motion",),
+    ),
+}
+
+_PARTS: dict[str, Any] = {"read": ReadOptions, "refine": RefineConfig, "refine.weights": LossWeights}
+
+
+def option_default(where: str) -> Any:
+    """The default of the setting at ``where`` (a key of :data:`OPTIONS`), as the command line
+    shows it (a negated flag: False)."""
+    if OPTIONS[where].negate:
+        return False
+    group, _, name = where.rpartition(".")
+    return EncodeConfig().get(name) if not group else getattr(_PARTS[group](), name)
+
+
+def config_from_options(values: dict[str, Any], read: dict[str, Any] | None = None) -> EncodeConfig:
+    """The configuration of the command line's values (keyed by :data:`OPTIONS`' keys): parts
+    gathered into their :class:`ReadOptions` and :class:`RefineConfig`, a negated flag turned
+    back. ``read``: reader options the command line sets itself (a series' variable)."""
+    from ...readers.common import parse_shape
+
+    kwargs: dict[str, Any] = {}
+    parts: dict[str, dict[str, Any]] = {g: {} for g in _PARTS}
+    for where, value in values.items():
+        group, _, name = where.rpartition(".")
+        if OPTIONS[where].negate:
+            value = not value
+        if group:
+            parts[group][name] = value
+        else:
+            kwargs[name] = value
+    parts["read"]["shape"] = parse_shape(parts["read"].get("shape"))
+    weights = LossWeights(**parts["refine.weights"])
+    return EncodeConfig.from_kwargs(
+        **kwargs, read=ReadOptions(**parts["read"], **(read or {})), refine=RefineConfig(**parts["refine"], weights=weights)
+    )
