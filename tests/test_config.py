@@ -134,3 +134,26 @@ def test_a_series_keeps_its_stop_rules_from_the_command_line(tmp_path):
     for row in json.loads(r.output)["series"]:
         refinement = warpgauss.Model.load(row["output"]).header["encoding"]["refinement"]
         assert refinement["target_psnr"] == 95.0 and refinement["plateau_db"] == 0.5
+
+
+def test_every_setting_the_command_line_offers_comes_from_the_one_table():
+    """warpgauss encode's options of the settings are OPTIONS' rows: flags, panel, help and the
+    setting's own default; a value given there lands in EncodeConfig where the row says."""
+    import typer
+
+    from warpgauss.cli.encode import encode as command
+    from warpgauss.cli.main import app
+    from warpgauss.encoding.driver.config import FIELDS, OPTIONS, config_from_options, option_default
+
+    click_cmd = typer.main.get_command(app).commands["encode"]
+    params = {p.name: p for p in click_cmd.params}
+    for key, opt in OPTIONS.items():
+        assert key.split(".")[0] in FIELDS or key.startswith(("read.", "refine.")), key
+        p = params[opt.param or key.rpartition(".")[2]]
+        assert p.help == opt.help and p.rich_help_panel == opt.panel and p.default == option_default(key), key
+        assert not opt.flags or set(opt.flags[0].split("/")[0:1]) <= set(p.opts) | set(p.secondary_opts), key
+    assert callable(command)
+    values = {k: option_default(k) for k in OPTIONS}
+    cfg = config_from_options({**values, "refine.weights.cap": 2.5, "read.stride": 3, "self_test": True, "residual_psnr": 40.0})
+    assert cfg.refinement.refine.weights.cap == 2.5 and cfg.reading.stride == 3 and cfg.refinement.self_test is False
+    assert cfg.bound.psnr == 40.0 and cfg.seed == 0 and cfg.start.motion is True

@@ -18,6 +18,7 @@ from typer.testing import CliRunner
 import warpgauss
 from warpgauss.cli.main import app
 from warpgauss.errors import WarpgaussError
+from warpgauss.format import interpolation as I
 from warpgauss.format import residual as R
 from warpgauss.format.wgs import PREFIX, PREFIX_SIZE, read_wgs
 
@@ -189,15 +190,15 @@ def test_every_axis_order_decodes_what_the_encoder_decoded(axes, levels):
     rng = np.random.default_rng(4)
     t = rng.normal(size=(9, 14, 11)).cumsum(axis=2)
     skip = np.zeros(t.shape, bool)
-    q, dec = R._feedback(t, skip, 0.02, False, "cubic", axes, levels)
-    assert np.array_equal(R._decoded(q, 0.02, False, "cubic", axes, levels), dec)
+    q, dec = I.feedback(t, skip, 0.02, False, "cubic", axes, levels)
+    assert np.array_equal(I.decoded(q, 0.02, False, "cubic", axes, levels), dec)
     assert np.abs(dec - t).max() <= 0.01 + 1e-12
     ti = np.rint(t * 100).astype(np.int64)
-    q, dec = R._feedback(ti, skip, 7.0, True, "linear", axes, levels)  # the odd integer step: |error| <= 3
-    assert np.array_equal(R._decoded(q, 7.0, True, "linear", axes, levels), dec) and np.abs(dec - ti).max() <= 3
+    q, dec = I.feedback(ti, skip, 7.0, True, "linear", axes, levels)  # the odd integer step: |error| <= 3
+    assert np.array_equal(I.decoded(q, 7.0, True, "linear", axes, levels), dec) and np.abs(dec - ti).max() <= 3
     seen = np.zeros(t.shape, int)
     seen[(slice(0, 1),) * 3] += 1
-    for _, _, sel in R._interp_passes(t.shape, axes):
+    for _, _, sel in I.interp_passes(t.shape, axes):
         seen[sel] += 1
     assert (seen == 1).all()
 

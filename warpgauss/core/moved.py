@@ -93,7 +93,7 @@ class OldPathFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
     def exec_module(self, module) -> None:
         targets = module._targets
         importlib.import_module(targets[0])  # a missing new module fails here, on import, not on first use
-        deprecated(module.__name__, targets[0])
+        deprecated(module.__name__, " and ".join(targets))
 
 
 def install(table: dict[str, tuple[str, ...]]) -> None:

@@ -49,6 +49,7 @@ import numpy as np
 
 from ..errors import WarpgaussError
 from .coded import zstandard_module
+from .interpolation import AXES, CHOOSE_BLOCK, FLAT, LEVELWISE, ORDERS, cast, decoded, feedback, quantiser
 
 # the Gaussians' ratio in a bounded file when no budget is given: at 1e-2..1e-4 of the range, 1000
 # gave a smaller whole file than 300 on 12 of 15 (volume, bound) pairs (three head MRIs, vortex and
@@ -191,151 +192,6 @@ class Residual:
 
 
 # -- the quantiser ------------------------------------------------------------------------------
-def _quantiser(bound: float, margin: float, dtype: np.dtype) -> tuple[float, bool, np.dtype]:
-    """(step, integer?, decoded dtype) for a bound in source units.
-
-    An integer source keeps its dtype with the odd integer step 2 floor(E) + 1 (|error| <= floor(E)
-    exactly) unless the float step 2E is coarser (E < 1, or its fraction >= 1/2: at E = 0.646 the
-    integer step is lossless, 1 against 1.29): then it decodes to float32 (float64 past 16-bit
-    integers). The float step keeps the readers' margin: 2 (E - margin)."""
-    if dtype.kind in "iu" and (bound < 0.5 or (bound >= 1.0 and bound - math.floor(bound) < 0.5)):
-        return float(2 * math.floor(bound) + 1), True, dtype  # below 1/2: step 1, the source's own integers
-    out = dtype if dtype.kind == "f" else np.dtype(np.float32 if dtype.itemsize <= 2 else np.float64)
-    return 2.0 * (bound - margin) * (1.0 - 2.0**-30), False, out
-
-
-def _quantise(t: np.ndarray, step: float, integer: bool) -> np.ndarray:
-    if integer:
-        return np.floor_divide(t + int(step) // 2, int(step))  # t integer: |t - step q| <= step // 2
-    return np.rint(t / step).astype(np.int64)
-
-
-def _cast(x: np.ndarray, dtype: np.dtype) -> np.ndarray:
-    """float64 or int64 values in the decoded dtype (integers clipped to its range: the source lies
-    within it, so clipping never moves a value away from the source)."""
-    if dtype.kind in "iu":
-        info = np.iinfo(dtype)
-        return np.clip(x, max(info.min, -(2**62)), min(info.max, 2**62)).astype(dtype)
-    with np.errstate(over="ignore", invalid="ignore"):
-        return x.astype(dtype)
-
-
-AXES = "012"  # the axis order of files without one: z, then y, then x at every level; and the raster layout
-ORDERS = ("012", "021", "102", "120", "201", "210")
-CHOOSE_BLOCK = 64  # edge of the central block the interpolation's axis order is chosen on (0.1 s at 64^3)
-# level-wise bounds (alpha, beta), as QoZ tunes SZ3's interpolation: level l (1: the finest) is
-# quantised with the step / min(alpha^(l-1), beta), since an error on a coarse level spreads to
-# every finer point predicted from it. Chosen per interpolation kind on the central block. On the
-# head MRIs at 1e-2 of the range: mean_reg2mean 32.08 -> 33.77 (cubic, 1.25, 2), inia19 and
-# mni_icbm152 keep (1, 1) or gain under 1 % (linear)
-LEVELWISE = ((1.0, 1.0), (1.25, 2.0), (1.5, 2.0), (1.5, 4.0), (2.0, 4.0))
-FLAT = (1.0, 1.0)
-
-
-def _level_step(step: float, integer: bool, levels: tuple[float, float], lv: int) -> float:
-    """The quantisation step of interpolation level ``lv`` (1: the finest): ``step`` over
-    min(alpha^(lv-1), beta), by repeated products of exactly representable numbers (the same on
-    every machine); on the integer lattice the odd step whose half-width is the bound's over that."""
-    alpha, beta = levels
-    f = 1.0
-    for _ in range(lv - 1):
-        f = min(f * alpha, beta)
-    if f == 1.0:
-        return step
-    if integer:
-        return float(2 * math.floor(((int(step) - 1) // 2) / f) + 1)
-    return step / f
-
-
-def _interp_passes(shape: tuple[int, ...], axes: str = AXES):
-    """SZ3's interpolation order: from the coarsest lattice (stride 2^L, stored as it is) down to
-    stride 1, each level along the axes in ``axes``' order (e.g. "201": x, then z, then y): the
-    points at odd multiples of h along that axis, from their neighbours at +-h (and +-3h) on that
-    axis, already known."""
-    order = [int(c) for c in axes]
-    for lv in range(_top_level(shape), 0, -1):
-        h = 1 << (lv - 1)
-        for k, a in enumerate(order):
-            if h >= shape[a]:
-                continue
-            done = order[:k]  # the axes this level has interpolated: known at stride h along them
-            sel = tuple(slice(0, None, h) if b in done else slice(h, None, 2 * h) if b == a else slice(0, None, 2 * h) for b in range(3))
-            yield a, h, sel
-
-
-def _interp_prediction(x: np.ndarray, a: int, h: int, sel, cubic_ok: bool = True) -> np.ndarray:
-    """The integer prediction of the points ``x[sel]`` from their neighbours along axis ``a``:
-    cubic (-1, 9, 9, -1) / 16 where +-h and +-3h exist, linear where only +-h do, else the -h one."""
-    n = x.shape[a]
-    cols = tuple(s if b != a else slice(None) for b, s in enumerate(sel))
-    line = x[cols]  # every point of the lines through the targets (the axis at full resolution)
-    idx = np.arange(h, n, 2 * h)
-
-    def take(i):
-        return np.take(line, np.clip(i, 0, n - 1), axis=a)
-
-    lo1, hi1 = take(idx - h), take(idx + h)
-    has_hi = np.expand_dims(idx + h < n, tuple(b for b in range(3) if b != a))
-    whole = x.dtype.kind in "iu"  # integers: exact integer rounding; float64: the same operations on every machine
-    pred = np.where(has_hi, (lo1 + hi1) >> 1 if whole else (lo1 + hi1) * 0.5, lo1)
-    cubic = np.expand_dims((idx - 3 * h >= 0) & (idx + 3 * h < n), tuple(b for b in range(3) if b != a))
-    if cubic_ok and cubic.any():
-        num = -take(idx - 3 * h) + 9 * lo1 + 9 * hi1 - take(idx + 3 * h)
-        pred = np.where(cubic, (num + 8) >> 4 if whole else num * 0.0625, pred)
-    return pred
-
-
-def _feedback(
-    t: np.ndarray, skip: np.ndarray, step: float, integer: bool, interp: str, axes: str = AXES, levels: tuple[float, float] = FLAT
-) -> tuple[np.ndarray, np.ndarray]:
-    """SZ's quantisation with error feedback: each point is predicted from already decoded points
-    (``interp`` "cubic" or "linear": the interpolation passes; "": 0), its error from that prediction quantised to q,
-    and decoded as prediction + step q (|t - decoded| <= step / 2). ``skip``: points coded as their
-    prediction (q = 0: masked, or stored outright); ``axes``: the passes' axis order; ``levels``: the
-    level-wise bounds (:data:`LEVELWISE`). Returns (q, decoded)."""
-    q = np.zeros(t.shape, np.int64)
-    dec = np.zeros(t.shape, np.int64 if integer else np.float64)
-    if not interp:  # "": no interpolation
-        q[~skip] = _quantise(t[~skip], step, integer)
-        dec[...] = q * np.int64(step) if integer else q * step
-        return q, dec
-    first, s0, passes = _stepped_passes(t.shape, step, integer, axes, levels)
-    q[first] = np.where(skip[first], 0, _quantise(np.where(skip[first], 0, t[first]), s0, integer))  # a skipped value may be NaN
-    dec[first] = q[first] * (np.int64(s0) if integer else s0)
-    for a, h, sel, s in passes:
-        pred = _interp_prediction(dec, a, h, sel, interp == "cubic")
-        qs = np.where(skip[sel], 0, _quantise(np.where(skip[sel], pred, t[sel]) - pred, s, integer))
-        q[sel] = qs
-        dec[sel] = pred + (qs * np.int64(s) if integer else qs * s)
-    return q, dec
-
-
-def _top_level(shape: tuple[int, ...]) -> int:
-    return max(1, int(math.ceil(math.log2(max(max(shape), 2)))))
-
-
-def _stepped_passes(shape: tuple[int, ...], step: float, integer: bool, axes: str, levels: tuple[float, float]):
-    """What the coder and every reader walk alike: the first voxel (the coarsest lattice, predicted
-    as 0) and its step, then (axis, h, selection, step) of each interpolation pass."""
-    first = (slice(0, 1),) * 3
-    s0 = _level_step(step, integer, levels, _top_level(shape) + 1)
-    passes = ((a, h, sel, _level_step(step, integer, levels, h.bit_length())) for a, h, sel in _interp_passes(shape, axes))
-    return first, s0, passes
-
-
-def _decoded(q: np.ndarray, step: float, integer: bool, interp: str, axes: str = AXES, levels: tuple[float, float] = FLAT) -> np.ndarray:
-    """The decoded residual from its q's: what :func:`_feedback` decoded, on any machine."""
-    if not interp:
-        return q * np.int64(step) if integer else q * step
-    dec = np.zeros(q.shape, np.int64 if integer else np.float64)
-    first, s0, passes = _stepped_passes(q.shape, step, integer, axes, levels)
-    dec[first] = q[first] * (np.int64(s0) if integer else s0)
-    for a, h, sel, s in passes:
-        pred = _interp_prediction(dec, a, h, sel, interp == "cubic")
-        dec[sel] = pred + (q[sel] * np.int64(s) if integer else q[sel] * s)
-    return dec
-
-
 def _zigzag(d: np.ndarray) -> np.ndarray:
     return ((d << 1) ^ (d >> 63)).view(np.uint64)
 
@@ -365,7 +221,7 @@ def _compress(raw: bytes, level: int | None = None) -> bytes:
     return zstd.ZstdCompressor(level=lvl, write_checksum=True).compress(raw)
 
 
-def _choose_interpolation(source: np.ndarray, usable: np.ndarray, step: float, integer: bool) -> tuple[str, dict[str, tuple[float, float]]]:
+def choose_interpolation(source: np.ndarray, usable: np.ndarray, step: float, integer: bool) -> tuple[str, dict[str, tuple[float, float]]]:
     """The interpolation's axis order, and each kind's level-wise bounds, that code a central block
     of the source (at most :data:`CHOOSE_BLOCK` a side, no Gaussians, Zstandard 3) smallest: the
     order first (cubic, flat bounds), then (alpha, beta) from :data:`LEVELWISE` for "cubic" and for
@@ -380,7 +236,7 @@ def _choose_interpolation(source: np.ndarray, usable: np.ndarray, step: float, i
         t = np.where(ok, block, 0).astype(np.int64) if integer else np.where(ok, block.astype(np.float64), 0.0)
 
     def size(kind: str, axes: str, levels: tuple[float, float]) -> int:
-        q, _ = _feedback(t, ~ok, step, integer, kind, axes, levels)
+        q, _ = feedback(t, ~ok, step, integer, kind, axes, levels)
         u = _zigzag(q.ravel())
         return len(_compress(_planes(u, _width(u)), 3))
 
@@ -487,11 +343,11 @@ def code_residual(
     lo, hi = float(value_range[0]), float(value_range[1])
     span = hi - lo if hi > lo else max(abs(lo), 1.0)  # a constant volume: its magnitude
     margin = MARGIN_REL * span + 1e-14 * max(abs(lo), abs(hi))  # and float64 rounding at the values' magnitude
-    step, integer, out_dtype = _quantiser(bound, margin, dtype)
+    step, integer, out_dtype = quantiser(bound, margin, dtype)
     ok = np.ones(source.shape, bool) if valid is None else valid
     src64 = source.astype(np.float64)
     facts: dict = {"sizes": {}}
-    axes, levelwise = _choose_interpolation(source, ok & np.isfinite(src64), step, integer)
+    axes, levelwise = choose_interpolation(source, ok & np.isfinite(src64), step, integer)
     best: tuple[int, str, dict[str, bytes], np.ndarray, int, np.ndarray] | None = None
     for name in _candidates(predictors, facts["sizes"]):
         gauss, kind = _parts(name)
@@ -499,7 +355,7 @@ def code_residual(
         with np.errstate(invalid="ignore", over="ignore"):
             t = source.astype(np.int64) - base if integer else src64 - base
             fits = ok & np.isfinite(src64) & (np.abs(t) < _LATTICE_LIMIT * step)
-        q, dec = _feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT))
+        q, dec = feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT))
         x = base + dec
         if integer or not gauss:
             good = _within(x, out_dtype, src64, bound)
@@ -574,7 +430,7 @@ def _base(pred: np.ndarray, fragile: np.ndarray, margin: float, integer: bool, g
 
 def _within(x: np.ndarray, dtype: np.dtype, src64: np.ndarray, bound: float) -> np.ndarray:
     with np.errstate(invalid="ignore", over="ignore"):
-        return np.abs(_cast(x, dtype).astype(np.float64) - src64) <= bound
+        return np.abs(cast(x, dtype).astype(np.float64) - src64) <= bound
 
 
 def _streams(u: np.ndarray, width: int, literal: np.ndarray, source: np.ndarray, valid: np.ndarray | None) -> dict[str, bytes]:
@@ -641,7 +497,7 @@ def check_info(info, n_voxels: int) -> str | None:
 def _claims(info: dict) -> str | None:
     """What in a residual's description (its simple fields checked) claims more than its other
     fields hold: the bound it states must follow from its step, margin and lattice as
-    :func:`_quantiser` made them (the finest level's step is the widest), its decoded dtype must be
+    :func:`quantiser` made them (the finest level's step is the widest), its decoded dtype must be
     one its lattice gives, its relative bound a positive number, and its streams as long as its
     counts need (a frame of nothing is 9 bytes and more)."""
     bound, step, margin = float(info["bound"]), float(info["step"]), float(info["margin"])
@@ -695,9 +551,9 @@ def apply_residual(res: Residual, pred: np.ndarray) -> np.ndarray:
     name = info["predictor"]
     gauss, kind = _parts(name)
     levels = info.get("levels", list(FLAT))
-    dec = _decoded(q, step, integer, kind, info.get("axes", AXES), (float(levels[0]), float(levels[1])))
+    dec = decoded(q, step, integer, kind, info.get("axes", AXES), (float(levels[0]), float(levels[1])))
     base, _ = _base(pred, np.zeros(shape, bool), float(info["margin"]), integer, gauss)
-    out = _cast(base + dec, dtype).ravel()
+    out = cast(base + dec, dtype).ravel()
     count = int(info["literals"])
     gaps = _from_planes(_decompress(frames["positions"], 8 * count, "literal positions"), count, 8).view(np.int64)
     pos = np.cumsum(gaps)
