@@ -316,7 +316,7 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
         "rows": rows,
         "notes": [
             "stage times: CUDA events around repeat back-to-back calls (GPU time incl. launch gaps); CPU: wall clock",
-            "stages and their units (warpgauss/refine/): sample = schedule.begin + Sampler.draw (draw.py); forward, "
+            "stages and their units (warpgauss/encoding/refine/): sample = schedule.begin + Sampler.draw (draw.py); forward, "
             "point_sort, backward = PairPasses (passes.py); update = Update (update.py); bin = Binner.rebin + support "
             "marks (bins.py, draw.py)",
             "forward = point order by cell + evaluation + per-point loss gradients; backward = point-grid sort + balanced "
