@@ -63,4 +63,9 @@ def test_the_wheel_declares_the_command_and_the_codec_entry_point(wheel):
 def test_the_expected_set_sees_the_mapped_folders():
     # the check above is only as good as this list: each mapped folder has its __init__ in it
     want = _expected()
-    assert {"warpgauss/__init__.py", "warpgauss/kernels/__init__.py", "warpgauss/cli/__init__.py", "warpgauss/encoding/driver/__init__.py"} <= want
+    assert {
+        "warpgauss/__init__.py",
+        "warpgauss/kernels/__init__.py",
+        "warpgauss/cli/__init__.py",
+        "warpgauss/encoding/driver/__init__.py",
+    } <= want
