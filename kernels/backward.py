@@ -405,6 +405,97 @@ def pair_grad_chunks(
     part_aw[t] = wp.vec2(s_a, s_w)
 
 
+@wp.func
+def chunk_pair(
+    d: wp.vec3,
+    st: wp.vec4,
+    e: wp.vec3,
+    cq: vec6,
+    a: float,
+    w: float,
+    s_kd: wp.vec3,
+    s_dd: vec6,
+    s_aw: wp.vec2,
+    k: int,
+    count_pairs: int,
+    order: wp.array(dtype=int),
+    pairs: wp.array(dtype=int),
+):
+    """One candidate of :func:`pair_grad_chunks`' loop, its point's state already loaded: the sums
+    (K, D, (dL/da, dL/dw)) with the pair added where it contributes, in the same operations."""
+    if in_box(d, e):
+        g = conic_g(d, cq)
+        if g > 0.0:
+            if count_pairs != 0:
+                wp.atomic_add(pairs, order[k], 1)
+            if st[0] != 0.0 or st[1] != 0.0:
+                gl = st[0] * (a - st[3]) / st[2] + st[1]  # dL/dG / w
+                kk = w * gl * g
+                kd = kk * d
+                s_kd += kd
+                s_dd += vec6(kd[0] * d[0], kd[1] * d[1], kd[2] * d[2], kd[0] * d[1], kd[0] * d[2], kd[1] * d[2])
+                s_aw = wp.vec2(s_aw[0] + st[0] * w * g / st[2], s_aw[1] + g * gl)
+    return s_kd, s_dd, s_aw
+
+
+@wp.kernel
+def pair_grad_chunks_2(
+    owner: wp.array(dtype=int),
+    chunks: wp.array(dtype=int),
+    chunk_cum: wp.array(dtype=int),
+    slot_cell: wp.array(dtype=int),
+    prims: BinnedPrimitives,
+    grid: PointGrid,
+    pos: wp.array(dtype=wp.vec3),
+    state: wp.array(dtype=wp.vec4),
+    order: wp.array(dtype=int),
+    count_pairs: int,
+    pairs: wp.array(dtype=int),
+    part_kd: wp.array(dtype=wp.vec3),
+    part_dd: wp.array(dtype=vec6),
+    part_aw: wp.array(dtype=wp.vec2),
+):
+    """:func:`pair_grad_chunks` reading two candidates at a time (both points' positions and
+    states loaded before either is evaluated), the sums taken in the same order."""
+    t = wp.tid()
+    n = chunk_cum.shape[0]
+    if t >= chunk_cum[n - 1]:
+        return
+    j = owner[t]
+    nc = chunks[j]
+    c = t - (chunk_cum[j] - nc)
+    l = slot_level(slot_cell[j], prims.level_offset)
+    mu = prims.mu[j]
+    cq = prims.conic[j]
+    e = prims.ext[j]
+    a = prims.a[j]
+    w = prims.w[j]
+    lo, hi = box_rows(mu, e, l, grid)
+    s_kd = wp.vec3(0.0, 0.0, 0.0)
+    s_dd = vec6(0.0)
+    s_aw = wp.vec2(0.0, 0.0)
+    acc = int(0)
+    for z in range(lo[2], hi[2] + 1):
+        for y in range(lo[1], hi[1] + 1):
+            r = row_range(grid, l, lo, hi, y, z)
+            k = r[0] + ((c - acc) % nc + nc) % nc
+            while k + nc < r[1]:
+                k1 = k + nc
+                d0 = pos[k] - mu
+                d1 = pos[k1] - mu
+                st0 = state[k]
+                st1 = state[k1]
+                s_kd, s_dd, s_aw = chunk_pair(d0, st0, e, cq, a, w, s_kd, s_dd, s_aw, k, count_pairs, order, pairs)
+                s_kd, s_dd, s_aw = chunk_pair(d1, st1, e, cq, a, w, s_kd, s_dd, s_aw, k1, count_pairs, order, pairs)
+                k = k1 + nc
+            if k < r[1]:
+                s_kd, s_dd, s_aw = chunk_pair(pos[k] - mu, state[k], e, cq, a, w, s_kd, s_dd, s_aw, k, count_pairs, order, pairs)
+            acc += r[1] - r[0]
+    part_kd[t] = s_kd
+    part_dd[t] = s_dd
+    part_aw[t] = s_aw
+
+
 @wp.kernel
 def reduce_chunks(
     chunks: wp.array(dtype=int),  # [N]
