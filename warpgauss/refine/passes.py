@@ -47,7 +47,7 @@ LIST_MAX_ENTRIES = 1 << 26  # (cell, primitive) entries at most (4 int32 arrays:
 LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (fewer re-captures)
 # entries the listed forward pass and candidates the chunked backward pass load at a time (1 or 2:
 # the same sums bit for bit, see kernels.lists.listed_sums_2 and kernels.backward.pair_grad_chunks_2)
-FORWARD_UNROLL = 1
+FORWARD_UNROLL = 2
 BACKWARD_UNROLL = 1
 
 
@@ -302,7 +302,7 @@ class PairPasses:
             self.sort_points(m2)  # the backward pass reads the same sort
             self._sorted = m2
             wp.launch(
-                kl.eval_points_listed_2 if FORWARD_UNROLL == 2 else kl.eval_points_listed,
+                {2: kl.eval_points_listed_2, 4: kl.eval_points_listed_4}.get(int(FORWARD_UNROLL), kl.eval_points_listed),
                 dim=m2,
                 inputs=[s.points, b["order"], prims, b["grid"], b["lists"]],
                 outputs=[self.value, self.density, self.pairs],
