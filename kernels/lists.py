@@ -225,58 +225,6 @@ def listed_sums_2(p: wp.vec3, prims: BinnedPrimitives, grid: PointGrid, lists: C
     return s
 
 
-@wp.func
-def listed_sums_4(p: wp.vec3, prims: BinnedPrimitives, grid: PointGrid, lists: CellLists) -> wp.vec3:
-    """:func:`listed_sums_2` four entries at a time (the same sums bit for bit)."""
-    s = wp.vec3(0.0, 0.0, 0.0)
-    for l in range(grid.size.shape[0]):
-        cid = point_cell(p, l, grid)
-        e = lists.start[cid]
-        end = lists.start[cid + 1]
-        while e + 3 < end:
-            j0 = lists.prim[e]
-            j1 = lists.prim[e + 1]
-            j2 = lists.prim[e + 2]
-            j3 = lists.prim[e + 3]
-            d0 = p - prims.mu[j0]
-            d1 = p - prims.mu[j1]
-            d2 = p - prims.mu[j2]
-            d3 = p - prims.mu[j3]
-            x0 = prims.ext[j0]
-            x1 = prims.ext[j1]
-            x2 = prims.ext[j2]
-            x3 = prims.ext[j3]
-            c0 = prims.conic[j0]
-            c1 = prims.conic[j1]
-            c2 = prims.conic[j2]
-            c3 = prims.conic[j3]
-            s = add_loaded(d0, x0, c0, prims.a[j0], prims.w[j0], s)
-            s = add_loaded(d1, x1, c1, prims.a[j1], prims.w[j1], s)
-            s = add_loaded(d2, x2, c2, prims.a[j2], prims.w[j2], s)
-            s = add_loaded(d3, x3, c3, prims.a[j3], prims.w[j3], s)
-            e += 4
-        while e < end:
-            s = add_pair(p, prims, lists.prim[e], s)
-            e += 1
-    return s
-
-
-@wp.kernel
-def eval_points_listed_4(
-    points: wp.array(dtype=wp.vec3),
-    order: wp.array(dtype=int),
-    prims: BinnedPrimitives,
-    grid: PointGrid,
-    lists: CellLists,
-    value: wp.array(dtype=float),
-    density: wp.array(dtype=float),
-    pairs: wp.array(dtype=int),
-):
-    """:func:`eval_points_listed` reading four list entries at a time (:func:`listed_sums_4`)."""
-    i = order[wp.tid()]
-    store_sums(i, listed_sums_4(points[i], prims, grid, lists), value, density, pairs)
-
-
 @wp.kernel
 def eval_points_listed_2(
     points: wp.array(dtype=wp.vec3),  # [P] query positions

@@ -57,8 +57,8 @@ def test_listed_forward_is_the_bin_walk_bit_for_bit_and_the_dense_pairs(device, 
     from warpgauss.refine import passes
 
     kept = passes.FORWARD_UNROLL
-    try:  # one, two or four entries loaded at a time: the same sums bit for bit
-        for unroll in (1, 2, 4):
+    try:  # one or two entries loaded at a time: the same sums bit for bit
+        for unroll in (1, 2):
             passes.FORWARD_UNROLL = unroll
             for a, b in zip(lists, _forward(r, True)):
                 np.testing.assert_array_equal(a, b)

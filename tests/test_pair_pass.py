@@ -90,26 +90,6 @@ def test_chunked_pass_reruns_bit_identically(device, monkeypatch):
         np.testing.assert_array_equal(x, y)
 
 
-@pytest.mark.parametrize("min_chunk", [1, 3, 128])
-def test_backward_two_at_a_time_is_the_same_bit_for_bit(device, monkeypatch, min_chunk):
-    """Two candidates loaded at a time (BACKWARD_UNROLL 2; odd and even rows, chunks of one
-    candidate, many or few chunks a primitive): the same pairs and the same gradients bit for bit."""
-    from warpgauss.refine import passes
-
-    monkeypatch.setattr(passes, "MIN_CHUNK", min_chunk)
-    runs = []
-    for unroll in (1, 2):
-        monkeypatch.setattr(passes, "BACKWARD_UNROLL", unroll)
-        r = _refiner(device)
-        grads, pairs, _ = _pair_pass(r)
-        runs.append((grads, pairs))
-    np.testing.assert_array_equal(runs[0][1], runs[1][1])
-    assert runs[0][1].sum() > 10 * r.m
-    for x, y in zip(runs[0][0], runs[1][0]):
-        assert np.any(x != 0)
-        np.testing.assert_array_equal(x, y)
-
-
 def test_point_grids_refine_with_more_points_and_stay_bounded():
     """More points per voxel: finer (never coarser) point cells; the global level stays one cell."""
     rng = np.random.default_rng(0)
