@@ -52,6 +52,7 @@ LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (
 # four at a time gained at CR 100 (0.41, 0.55 s) and lost at CR 10 (mean_reg2mean 2.40 -> 2.51 s),
 # and the backward pass two candidates at a time lost 6-18 % (more registers than its 95): dropped
 FORWARD_UNROLL = 2
+BACKWARD_REGISTERS = 0  # registers a thread of the chunked backward may use on CUDA (0: as compiled; 64, 48)
 
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
@@ -374,7 +375,7 @@ class PairPasses:
         wp.utils.array_scan(b["chunks"], b["chunk_cum"], inclusive=True)
         wp.launch(kb.chunk_owner, dim=n, inputs=[b["chunks"], b["chunk_cum"]], outputs=[b["owner"]], device=dev)
         wp.launch(
-            kb.pair_grad_chunks,
+            {64: kb.pair_grad_chunks_r64, 48: kb.pair_grad_chunks_r48}.get(int(BACKWARD_REGISTERS), kb.pair_grad_chunks),
             dim=b["slots"],
             inputs=[
                 b["owner"],
