@@ -405,10 +405,10 @@ def _pair_grad_chunks(
 
 
 pair_grad_chunks = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks")
-# the same kernel with its registers capped (CUDA __maxnreg__; other devices ignore it): 95 registers
-# a thread allow 2 blocks of 256 threads an SM (25 % occupancy, Nsight Compute at 20K x 65,536)
+# the same kernel with its registers capped (CUDA __maxnreg__; other devices ignore it): as compiled,
+# 95 registers a thread allow 2 blocks of 256 threads an SM (25 % occupancy, Nsight Compute at 20K x
+# 65,536); at 64, 4 blocks
 pair_grad_chunks_r64 = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks_r64", cuda_max_registers=64)
-pair_grad_chunks_r48 = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks_r48", cuda_max_registers=48)
 
 
 @wp.kernel

@@ -52,7 +52,11 @@ LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (
 # four at a time gained at CR 100 (0.41, 0.55 s) and lost at CR 10 (mean_reg2mean 2.40 -> 2.51 s),
 # and the backward pass two candidates at a time lost 6-18 % (more registers than its 95): dropped
 FORWARD_UNROLL = 2
-BACKWARD_REGISTERS = 0  # registers a thread of the chunked backward may use on CUDA (0: as compiled; 64, 48)
+# registers a thread of the chunked backward may use on CUDA (0: as compiled, 95). One H200, `bench
+# kernels` rows (results/speed/bench_backward_registers_h200.json): 64 took 1.13 / 10.18 / 3.89 /
+# 29.18 ms at 20K x 65,536 / 20K x 1M / 1.4M x 65,536 / 1.4M x 1M against 1.13 / 11.52 / 4.31 /
+# 32.26 as compiled; 48 spilled (1.21 / 10.86 / 4.16 / 31.15)
+BACKWARD_REGISTERS = 64
 
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
@@ -375,7 +379,7 @@ class PairPasses:
         wp.utils.array_scan(b["chunks"], b["chunk_cum"], inclusive=True)
         wp.launch(kb.chunk_owner, dim=n, inputs=[b["chunks"], b["chunk_cum"]], outputs=[b["owner"]], device=dev)
         wp.launch(
-            {64: kb.pair_grad_chunks_r64, 48: kb.pair_grad_chunks_r48}.get(int(BACKWARD_REGISTERS), kb.pair_grad_chunks),
+            kb.pair_grad_chunks_r64 if BACKWARD_REGISTERS == 64 else kb.pair_grad_chunks,
             dim=b["slots"],
             inputs=[
                 b["owner"],
