@@ -118,7 +118,7 @@ def encode(
         float | None,
         typer.Option(
             rich_help_panel="Refinement",
-            help="Seconds refinement may take: it keeps >= 1,500 iterations, spends spare time on more samples (unless --samples is given), ends in time",
+            help="Seconds the whole encode may take, reading to writing (the kernels' first compile not counted): refinement gets what the other stages leave, keeps >= 1,500 iterations where they fit and spends spare time on more samples (unless --samples is given)",
         ),
     ] = None,
     lr: Annotated[float, typer.Option(rich_help_panel="Refinement", help="Adam base learning rate (per-group multipliers apply)")] = 8e-3,

@@ -207,10 +207,12 @@ def encode(
             "quality" (1,500 x 12,288); explicit ``iterations``/``samples`` override it.
         refine: Learning rates, loss weights and schedule (:class:`warpgauss.optimize.RefineConfig`).
         self_test: Run the binned-vs-dense self-test before refining.
-        time_budget: Seconds refinement may take once its kernels are compiled (set-up, self-test and
-            iterations); spare time goes to more samples per iteration (unless ``samples`` is
-            given) once 1,500 iterations fit, then to iterations (up to 20,000); refinement ends
-            within it, with a valid model at any stop.
+        time_budget: Seconds the whole call may take, reading to writing (the kernels' first
+            compile not counted): refinement gets what the stages before it leave, less a reserve
+            for fitting the byte budget (then the first fit is kept, not a scored choice),
+            evaluating and writing; spare time goes to more samples per iteration (unless
+            ``samples`` is given) once 1,500 iterations fit, then to iterations (up to 20,000);
+            refinement ends within its share, with a valid model at any stop.
         checkpoint: Where refinement writes checkpoints (atomically, every ``checkpoint_every``
             seconds and on Ctrl-C); None: ``OUTPUT.ckpt`` when ``output`` is given, else none.
             Deleted once the model is written.
@@ -305,8 +307,11 @@ def encode_with(
 ) -> Model:
     """:func:`encode` of ``source`` with the settings of ``cfg`` (see :mod:`.config`), the
     callbacks, Dask client and Encoder session beside them."""
+    import time
+
     from .._fs import check_writable
 
+    called = time.perf_counter()  # a time budget is the whole call's
     cfg.budget.check()  # before the output check: say what is wrong with the request first
     run, reading, bricking_ = cfg.run, cfg.reading, cfg.bricking
     read, bricks, device = reading.read, bricking_.bricks, cfg.device
@@ -331,6 +336,7 @@ def encode_with(
     opts = cfg.options(cfg.refinement.resolved(), checkpoint=checkpoint, init=_warm_params(cfg.start.warm_start))
     if opts.init is not None and (bricks is not None or resume):
         raise WarpgaussError("a warm start does not combine with --bricks or --resume")
+    opts.budget_start = called
     if session is not None:
         opts.deadline = session.deadline
         opts.evaluate_start = session.deadline is None  # a call on a time budget scores only its result
