@@ -335,8 +335,7 @@ def frame_grads(s_kd: wp.vec3, s_dd: vec6, R: wp.mat33, inv: wp.vec3):
     return d_mu, d_ls, -(Dr @ L)
 
 
-@wp.kernel
-def pair_grad_chunks(
+def _pair_grad_chunks(
     owner: wp.array(dtype=int),  # [>=T] slot of each chunk
     chunks: wp.array(dtype=int),  # [N] chunks of each slot
     chunk_cum: wp.array(dtype=int),  # [N] inclusive scan of chunks (T = chunk_cum[N - 1])
@@ -403,6 +402,13 @@ def pair_grad_chunks(
     part_kd[t] = s_kd
     part_dd[t] = s_dd
     part_aw[t] = wp.vec2(s_a, s_w)
+
+
+pair_grad_chunks = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks")
+# the same kernel with its registers capped (CUDA __maxnreg__; other devices ignore it): as compiled,
+# 95 registers a thread allow 2 blocks of 256 threads an SM (25 % occupancy, Nsight Compute at 20K x
+# 65,536); at 64, 4 blocks
+pair_grad_chunks_r64 = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks_r64", cuda_max_registers=64)
 
 
 @wp.kernel

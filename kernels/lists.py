@@ -17,7 +17,7 @@ deferred (:func:`warpgauss.kernels.optim.fits_list`), as steps out of reach of a
 import warp as wp
 
 from .backward import PointGrid, box_rows, slot_level
-from .field import BinnedPrimitives, add_pair, level_cell, store_sums
+from .field import BinnedPrimitives, add_pair, conic_g, in_box, level_cell, store_sums, vec6
 from .optim import BIG, cell_faces
 
 wp.set_module_options({"enable_backward": False})
@@ -180,6 +180,65 @@ def eval_points_listed(
     mostly share a cell, so they read the same list)."""
     i = order[wp.tid()]
     store_sums(i, listed_sums(points[i], prims, grid, lists), value, density, pairs)
+
+
+@wp.func
+def add_loaded(d: wp.vec3, e: wp.vec3, c: vec6, a: float, w: float, s: wp.vec3) -> wp.vec3:
+    """:func:`warpgauss.kernels.field.add_pair` on values already loaded (the same operations in
+    the same order, so the same sums bit for bit)."""
+    if not in_box(d, e):
+        return s
+    g = conic_g(d, c)
+    if g > 0.0:
+        return wp.vec3(s[0] + w * a * g, s[1] + w * g, s[2] + 1.0)
+    return s
+
+
+@wp.func
+def listed_sums_2(p: wp.vec3, prims: BinnedPrimitives, grid: PointGrid, lists: CellLists) -> wp.vec3:
+    """:func:`listed_sums` two entries at a time: both entries' primitives are loaded before
+    either is evaluated (their loads overlap instead of waiting on each other), the sums taken in
+    the same order, so the result is the same bit for bit."""
+    s = wp.vec3(0.0, 0.0, 0.0)
+    for l in range(grid.size.shape[0]):
+        cid = point_cell(p, l, grid)
+        e = lists.start[cid]
+        end = lists.start[cid + 1]
+        while e + 1 < end:
+            j0 = lists.prim[e]
+            j1 = lists.prim[e + 1]
+            d0 = p - prims.mu[j0]
+            d1 = p - prims.mu[j1]
+            x0 = prims.ext[j0]
+            x1 = prims.ext[j1]
+            c0 = prims.conic[j0]
+            c1 = prims.conic[j1]
+            a0 = prims.a[j0]
+            a1 = prims.a[j1]
+            w0 = prims.w[j0]
+            w1 = prims.w[j1]
+            s = add_loaded(d0, x0, c0, a0, w0, s)
+            s = add_loaded(d1, x1, c1, a1, w1, s)
+            e += 2
+        if e < end:
+            s = add_pair(p, prims, lists.prim[e], s)
+    return s
+
+
+@wp.kernel
+def eval_points_listed_2(
+    points: wp.array(dtype=wp.vec3),  # [P] query positions
+    order: wp.array(dtype=int),  # [>= P] point index of each thread, sorted by level-0 point cell
+    prims: BinnedPrimitives,
+    grid: PointGrid,
+    lists: CellLists,
+    value: wp.array(dtype=float),  # [P] out: V~
+    density: wp.array(dtype=float),  # [P] out: rho
+    pairs: wp.array(dtype=int),  # [P] out: contributing pairs
+):
+    """:func:`eval_points_listed` reading two list entries at a time (:func:`listed_sums_2`)."""
+    i = order[wp.tid()]
+    store_sums(i, listed_sums_2(points[i], prims, grid, lists), value, density, pairs)
 
 
 @wp.kernel

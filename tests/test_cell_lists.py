@@ -54,6 +54,16 @@ def test_listed_forward_is_the_bin_walk_bit_for_bit_and_the_dense_pairs(device, 
     lists = _forward(r, True)
     for a, b in zip(walk, lists):
         np.testing.assert_array_equal(a, b)
+    from warpgauss.encoding.refine import passes
+
+    kept = passes.FORWARD_UNROLL
+    try:  # one or two entries loaded at a time: the same sums bit for bit
+        for unroll in (1, 2):
+            passes.FORWARD_UNROLL = unroll
+            for a, b in zip(lists, _forward(r, True)):
+                np.testing.assert_array_equal(a, b)
+    finally:
+        passes.FORWARD_UNROLL = kept
     dense = _dense(r)
     np.testing.assert_array_equal(lists[2], dense[2])
     np.testing.assert_allclose(lists[0], dense[0], rtol=2e-5, atol=2e-6)

@@ -90,6 +90,22 @@ def test_chunked_pass_reruns_bit_identically(device, monkeypatch):
         np.testing.assert_array_equal(x, y)
 
 
+def test_register_capped_backward_is_the_same_kernel(device, monkeypatch):
+    """The chunked backward with its registers capped (a CUDA compile option) gives the same
+    pairs and gradients bit for bit."""
+    from warpgauss.encoding.refine import passes
+
+    runs = []
+    for regs in (0, 64):
+        monkeypatch.setattr(passes, "BACKWARD_REGISTERS", regs)
+        grads, pairs, _ = _pair_pass(_refiner(device))
+        runs.append((grads, pairs))
+    for grads, pairs in runs[1:]:
+        np.testing.assert_array_equal(pairs, runs[0][1])
+        for x, y in zip(grads, runs[0][0]):
+            np.testing.assert_array_equal(x, y)
+
+
 def test_point_grids_refine_with_more_points_and_stay_bounded():
     """More points per voxel: finer (never coarser) point cells; the global level stays one cell."""
     rng = np.random.default_rng(0)

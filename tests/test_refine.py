@@ -625,3 +625,33 @@ def test_the_forward_pass_is_chosen_by_the_points_an_iteration(cpu):
     assert forced.split and forced.n_points > SPLIT_MAX_POINTS
     assert auto.forward_pass == "point-major: the CPU"
     assert forced.forward_pass == "split: split_cells=True"
+
+
+def test_a_time_budget_is_the_whole_encodes(cpu, monkeypatch):
+    """--time-budget counts from the call, not from refinement: the refinement's deadline leaves
+    what the stages before it spent and a reserve for the fit, evaluation and writing, and the
+    fit to the bytes keeps its first result (no scored choice) on a budget."""
+    import time
+
+    import warpgauss
+    from warpgauss.encoding.driver import run
+    from warpgauss.readers.synthetic import generate
+
+    seen = {}
+    real = run.EncodeRun.budget_deadline
+
+    def spy(self, now, compile_s):
+        seen["now"], seen["deadline"] = now, real(self, now, compile_s)
+        return seen["deadline"]
+
+    monkeypatch.setattr(run.EncodeRun, "budget_deadline", spy)
+    t0 = time.perf_counter()
+    m = warpgauss.encode(generate("vortex", 32, seed=0), ratio=4, time_budget=6.0, device="cpu", samples=256, self_test=False)
+    note = m.report["refinement"]["time_budget"]["call"]
+    assert note["seconds"] == 6.0
+    assert 0.0 < note["spent_before_refinement_s"] < seen["now"] - t0 + 1e-6  # the stages before refinement count
+    assert note["reserved_after_s"] >= run.TAIL_SHARE * 6.0
+    budget_end = seen["now"] - note["spent_before_refinement_s"] + 6.0
+    assert seen["deadline"] == pytest.approx(budget_end - note["reserved_after_s"], abs=1e-6)
+    assert m.report["refinement"]["time_budget"]["seconds"] <= 6.0 - note["spent_before_refinement_s"] - note["reserved_after_s"] + 1e-3
+    assert any(s["what"] == "coded fit choice" for s in m.report["skipped"])

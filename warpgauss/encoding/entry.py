@@ -127,10 +127,12 @@ def encode(
             "quality" (1,500 x 12,288); explicit ``iterations``/``samples`` override it.
         refine: Learning rates, loss weights and schedule (:class:`warpgauss.encoding.refine.RefineConfig`).
         self_test: Run the binned-vs-dense self-test before refining.
-        time_budget: Seconds refinement may take once its kernels are compiled (set-up, self-test and
-            iterations); spare time goes to more samples per iteration (unless ``samples`` is
-            given) once 1,500 iterations fit, then to iterations (up to 20,000); refinement ends
-            within it, with a valid model at any stop.
+        time_budget: Seconds the whole call may take, reading to writing (the kernels' first
+            compile not counted): refinement gets what the stages before it leave, less a reserve
+            for fitting the byte budget (then the first fit is kept, not a scored choice),
+            evaluating and writing; spare time goes to more samples per iteration (unless
+            ``samples`` is given) once 1,500 iterations fit, then to iterations (up to 20,000);
+            refinement ends within its share, with a valid model at any stop.
         checkpoint: Where refinement writes checkpoints (atomically, every ``checkpoint_every``
             seconds and on Ctrl-C); None: ``OUTPUT.ckpt`` when ``output`` is given, else none.
             Deleted once the model is written.
@@ -282,8 +284,11 @@ def checked_request(source, cfg: EncodeConfig, session) -> tuple[object, str | N
     """Everything refused before any work, in the order a user should hear it: the budget, the
     bound, the outputs, the checkpoint, the warm start, the format. Returns the source (a device
     array wrapped for Warp), the device and the options the encode runs with."""
+    import time
+
     from ..core.files import check_writable
 
+    called = time.perf_counter()  # a time budget is the whole call's
     cfg.budget.check()  # before the output check: say what is wrong with the request first
     run, bricks, device = cfg.run, cfg.bricking.bricks, cfg.device
     if cfg.bound.given:
@@ -304,6 +309,7 @@ def checked_request(source, cfg: EncodeConfig, session) -> tuple[object, str | N
     opts = cfg.options(cfg.refinement.resolved(), checkpoint=checkpoint, init=_warm_params(cfg.start.warm_start))
     if opts.init is not None and (bricks is not None or resume):
         raise WarpgaussError("a warm start does not combine with --bricks or --resume")
+    opts.budget_start = called
     if session is not None:
         opts.deadline = session.deadline
         opts.evaluate_start = session.deadline is None  # a call on a time budget scores only its result

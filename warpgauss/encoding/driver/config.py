@@ -337,7 +337,7 @@ OPTIONS: dict[str, Option] = {
     ),
     "time_budget": Option(
         "Refinement",
-        "Seconds refinement may take: it keeps >= 1,500 iterations, spends spare time on more samples (unless --samples is given), ends in time",
+        "Seconds the whole encode may take, reading to writing (the kernels' first compile not counted): refinement gets what the other stages leave, keeps >= 1,500 iterations where they fit and spends spare time on more samples (unless --samples is given)",
         float | None,
     ),
     "target_psnr": Option(

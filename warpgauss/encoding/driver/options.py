@@ -40,6 +40,7 @@ class EncodeOptions:
     bytes: int | None = None  # file size budget (header included), instead of budget or ratio
     init: np.ndarray | None = None  # warm start: (N, 12) parameters of the previous timestep's model
     deadline: float | None = None  # a time.perf_counter() by which refinement ends (an Encoder's call budget)
+    budget_start: float | None = None  # the time.perf_counter() the call began: a time_budget counts from it
     evaluate_start: bool = True  # EV also scores the starting model (a warm start's: the previous timestep's)
     motion: bool = True  # a warm start's primitives first follow the motion to the new timestep (warpgauss.encoding.motion)
     cold_start_psnr: float | None = None  # warm only if the (moved) start scores at least this, else allocate

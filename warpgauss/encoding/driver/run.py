@@ -21,6 +21,12 @@ from .options import EncodeOptions, encoding_of, header_for
 from .report import budget_facts, run_facts
 from .sizing import coded_budget, resolve_budget, target_bytes
 
+# --time-budget is the whole call's (reading to writing, the kernels' compile not counted):
+# refinement ends early enough to leave this share of it, and TAIL_CODINGS codings of the model
+# at the pilot's measured speed, for what follows (the fit to the byte budget, evaluation, writing)
+TAIL_SHARE = 0.05
+TAIL_CODINGS = 8
+
 
 def encode_field(
     f: Field,
@@ -103,6 +109,7 @@ class EncodeRun(replan.Replan):
         self.coded_bits_note: dict | None = None
         self.refinement: dict = {"iterations": 0}
         self.replan: dict | None = None  # the re-plan of N during refinement (coded byte budgets)
+        self.time_budget_note: dict | None = None  # how --time-budget was shared (budget_deadline)
         self.replan_half: float | None = None  # the sample PSNR half-way to the re-plan
         self.early_eval: dict | None = None
         self.start_eval: dict | None = None  # a warm start scored before refinement (to choose warm or cold)
@@ -119,11 +126,34 @@ class EncodeRun(replan.Replan):
     def stored(self, m: Model) -> tuple[Model, dict | None]:
         """The model as the file will hold it (coded: fitted to the byte budget)."""
         if self.enc == "coded" and self.budget_bytes is not None:
+            if self.opts.time_budget is not None or self.opts.deadline is not None:
+                # on a time budget the first fit is the result: the choice below costs up to 4x
+                # its codings and an evaluation each (mni_icbm152 CR 10 on one H200: 25 codings, 2.9 s)
+                self.skip("coded fit choice", "a time budget: the first fit that meets the bytes is kept, pruning is not tried against it")
+                return m.fit_bytes(self.budget_bytes)
             # where bits would be dropped, pruning instead is tried too and the better PSNR kept
             return m.fit_bytes(self.budget_bytes, score=lambda fitted: float(self._evaluate(fitted, full=False)["psnr_db"]))
         m = m.stored(self.enc)
         m.format = self.enc
         return m, None
+
+    def budget_deadline(self, now: float, compile_s: float) -> float:
+        """When refinement must end for the whole call to keep ``--time-budget``: the call's start
+        plus the budget (and the kernels' compile, which it does not count), less a reserve for
+        what follows refinement: :data:`TAIL_SHARE` of the budget and :data:`TAIL_CODINGS` codings
+        of the model at the pilot's measured seconds a primitive."""
+        opts = self.opts
+        assert opts.time_budget is not None
+        start = now if opts.budget_start is None else opts.budget_start
+        per = (self.sizing or {}).get("coding_seconds_per_primitive", 0.0)
+        tail = TAIL_SHARE * opts.time_budget + TAIL_CODINGS * per * self.n
+        self.time_budget_note = {
+            "seconds": opts.time_budget,
+            "spent_before_refinement_s": now - start - compile_s,
+            "compile_s": compile_s,
+            "reserved_after_s": tail,
+        }
+        return start + compile_s + opts.time_budget - tail
 
     def _evaluate(self, m: Model, full: bool | None = None) -> dict:
         """Stage EV's figures for ``m`` (``full``: every voxel rather than the sample; default:
@@ -272,8 +302,10 @@ class EncodeRun(replan.Replan):
         opts, cfg, dev, refinement = self.opts, self.opts.refine, self.dev, self.refinement
         cap = opts.allocation.resolved_cap(self.f.shape_xyz)
         with self.timer.stage("S2", "refinement"):
+            compiled = time.perf_counter()
             load_kernels(dev)
-            stage_start = time.perf_counter()  # the time budget starts with compiled kernels
+            stage_start = time.perf_counter()
+            compile_s = stage_start - compiled  # the time budget does not count the kernels' compile
             refiner = Refiner(self.dv, self.params, cfg, opts.seed, opts.allocation.scale_min, cap)
             self._sampling_skips(refiner)
             ckpt = Checkpoints(opts, self.params, cfg, dev)
@@ -284,8 +316,8 @@ class EncodeRun(replan.Replan):
                 refiner.set_validation(self.f)
             t0 = time.perf_counter()
             deadline = opts.deadline
-            if opts.time_budget is not None and not opts.resume:  # 5 % reserve for the export
-                deadline = stage_start + 0.95 * opts.time_budget
+            if opts.time_budget is not None and not opts.resume:
+                deadline = self.budget_deadline(stage_start, compile_s)
             ckpt.start(t0)
             after_step = ckpt.maybe_save
             replan_at = self.replan_iteration(deadline)
@@ -327,7 +359,9 @@ class EncodeRun(replan.Replan):
         total = sum(x["seconds"] for x in sessions)
         refinement.update(
             {
-                "time_budget": refiner.budget,
+                "time_budget": refiner.budget
+                if refiner.budget is None or self.time_budget_note is None
+                else {**refiner.budget, "call": self.time_budget_note},
                 "iterations": refiner.cfg.iterations,
                 "samples": refiner.m,
                 "samples_rule": self.base_refine.samples_rule(self.n, self.voxels, dev)[1],

@@ -5,6 +5,7 @@ a coded file of a given size (one place for the rules and their refusals).
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
@@ -107,7 +108,9 @@ def coded_budget(dv, f: Field, opts: EncodeOptions, header: dict, total: int, n_
     pilot_db = evaluate_field(Model(params, header).field(dv.device), f)["psnr_db"]
     expected = pilot_db + (CODED_REFINE_GAIN_DB if refining else 0.0)
     bits, extra = bits_for_psnr(expected)
+    t0 = time.perf_counter()
     data = wgs_bytes(params, header, encoding="coded", bits=bits)
+    coding_s = time.perf_counter() - t0
     payload = payload_size(data)
     bpp = payload / pilot
     # the pilot's own header (the reserved bound is a few hundred bytes wider: at small budgets
@@ -125,6 +128,7 @@ def coded_budget(dv, f: Field, opts: EncodeOptions, header: dict, total: int, n_
         "header_bytes": head,
         "refine_growth": growth,
         "n": n,
+        "coding_seconds_per_primitive": coding_s / pilot,
     }
 
 

@@ -45,6 +45,18 @@ LIST_PAD_SHARE = 0.1  # one H200, three MRIs at CR 10 / 100 / 1000: 0.1 took 49.
 LIST_PAD_VOXELS = 1.0
 LIST_MAX_ENTRIES = 1 << 26  # (cell, primitive) entries at most (4 int32 arrays: 1 GiB); beyond, no lists
 LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (fewer re-captures)
+# list entries the forward pass loads at a time (1 or 2: the same sums bit for bit, see
+# kernels.lists.listed_sums_2). One H200, default encodes of the three MRIs at CR 100 and 10
+# (results/speed/profile_unroll_h200.json, profile_unroll4_h200.json): the listed forward took
+# 0.51 -> 0.45 s, 1.92 -> 1.77, 0.91 -> 0.65, 2.90 -> 1.85 s (mni_icbm152, inia19 at CR 100, 10);
+# four at a time gained at CR 100 (0.41, 0.55 s) and lost at CR 10 (mean_reg2mean 2.40 -> 2.51 s),
+# and the backward pass two candidates at a time lost 6-18 % (more registers than its 95): dropped
+FORWARD_UNROLL = 2
+# registers a thread of the chunked backward may use on CUDA (0: as compiled, 95). One H200, `bench
+# kernels` rows (results/speed/bench_backward_registers_h200.json): 64 took 1.13 / 10.18 / 3.89 /
+# 29.18 ms at 20K x 65,536 / 20K x 1M / 1.4M x 65,536 / 1.4M x 1M against 1.13 / 11.52 / 4.31 /
+# 32.26 as compiled; 48 spilled (1.21 / 10.86 / 4.16 / 31.15)
+BACKWARD_REGISTERS = 64
 
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
@@ -298,7 +310,7 @@ class PairPasses:
             self.sort_points(m2)  # the backward pass reads the same sort
             self._sorted = m2
             wp.launch(
-                kl.eval_points_listed,
+                kl.eval_points_listed_2 if FORWARD_UNROLL == 2 else kl.eval_points_listed,
                 dim=m2,
                 inputs=[s.points, b["order"], prims, b["grid"], b["lists"]],
                 outputs=[self.value, self.density, self.pairs],
@@ -367,7 +379,7 @@ class PairPasses:
         wp.utils.array_scan(b["chunks"], b["chunk_cum"], inclusive=True)
         wp.launch(kb.chunk_owner, dim=n, inputs=[b["chunks"], b["chunk_cum"]], outputs=[b["owner"]], device=dev)
         wp.launch(
-            kb.pair_grad_chunks,
+            kb.pair_grad_chunks_r64 if BACKWARD_REGISTERS == 64 else kb.pair_grad_chunks,
             dim=b["slots"],
             inputs=[
                 b["owner"],
