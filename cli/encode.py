@@ -116,7 +116,7 @@ def encode(
     if input is not None and not series and (len(variables) > 1 or input.exists()):
         from warpgauss.series import time_steps
 
-        series = len(variables) > 1 or time_steps(input, cfg.reading.read.variable) is not None
+        series = len(variables) > 1 or time_steps(input, variables[0] if len(variables) == 1 else None) is not None
     if not series and (cold or warm_iterations is not None or not cfg.start.motion or keyframe_drift is not None):
         fail(SERIES_ONLY)
     if keyframe_drift is not None and keyframe_drift < 0:
@@ -133,7 +133,7 @@ def encode(
         fail(f"no such file: {input}")
     example = cfg.reading.example
     stem = example if example is not None else _stem(input) if input is not None else "volume"
-    out = cfg.run.output or Path(f"{stem}.wgs")
+    out = Path(cfg.run.output) if cfg.run.output is not None else Path(f"{stem}.wgs")
     rep_path = report or out.with_name(out.name + ".report.json")
     _check_writable(out, rep_path, cfg)  # the file the user named first, then its report beside it
     if ladder is not None:
