@@ -138,7 +138,7 @@ def test_the_whole_volume_path_imports_no_bricking_module():
 
 
 def test_the_top_of_the_package_is_a_few_rooms_and_no_module_is_long():
-    top = sorted(p.name for p in (ROOT / "warpgauss").iterdir() if p.name != "__pycache__" and not p.name.endswith(".egg-info"))
+    top = sorted(p.name for p in (ROOT / "warpgauss").iterdir() if p.name != "__pycache__" and not p.is_symlink())
     assert len(top) <= 13, top
     for folder in ("warpgauss", "cli"):
         for path in (ROOT / folder).rglob("*.py"):
