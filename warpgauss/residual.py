@@ -42,6 +42,8 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -59,6 +61,9 @@ DEFAULT_RATIO = 1000.0
 MIN_GAUSSIAN_BYTES = 8192  # and at least this (a small volume's thousandth holds no Gaussian beside its header)
 MARGIN_REL = 1e-9  # of the value range: how far two readers' float64 predictions may differ
 ZSTD_MAX_RATIO = 1 << 16  # Zstandard never expands past ~32,768 : 1 (an RLE block of 128 KiB in 4 bytes)
+# bzip2 tries the layouts Zstandard codes smallest, this many: on the three head MRIs at 1e-2 and
+# 1e-3 of the range the smallest bzip2 frame was always in Zstandard's best two (see _final_symbols)
+BZIP2_LAYOUTS = 2
 ZSTD_LEVEL = 9  # streams up to ZSTD_LARGE_RAW; larger ones level 3 (symbols past a prediction are noise-like)
 ZSTD_LARGE_RAW = 4 << 20
 # on a tie the first: it needs no prediction. "-linear": linear interpolation where cubic would be used
@@ -79,7 +84,11 @@ DTYPES = ("int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint6
 
 
 CODE_BYTES_PER_VOXEL = 120  # host memory coding a residual takes: float64/int64 copies of the grid, and the chosen indices in six storage orders on threads (measured: 101-114 on the head MRIs at 1e-2 and 1e-4)
-DECODE_BYTES_PER_VOXEL = 48  # and applying it: the prediction, the q's, the decoded residual, the result
+# what one predictor's coding holds at once beside that (the differences, q's, decoded values, the
+# checks, the zigzagged q's), for the codings run on threads side by side
+CANDIDATE_BYTES_PER_VOXEL = 56
+DECODE_BYTES_PER_VOXEL = 48
+DEVICE_BYTES_PER_VOXEL = 25  # the passes on a device: the values (8), skips (1), q's (8), decoded (8)  # and applying it: the prediction, the q's, the decoded residual, the result
 
 
 def check_memory(n_voxels: int, per_voxel: int, what: str) -> None:
@@ -136,21 +145,21 @@ class Bound:
 PSNR_TRIES = 4  # codings after the guaranteed bound when --psnr searches the largest bound reaching it
 
 
-def code_for_psnr(source, valid, pred, fragile, target_db: float, value_range, fill_value=None) -> tuple[Residual, dict, dict]:
+def code_for_psnr(source, valid, pred, fragile, target_db: float, value_range, fill_value=None, device=None) -> tuple[Residual, dict, dict]:
     """The residual of the largest bound whose decode reaches ``target_db`` on the full grid: from
     the bound that guarantees it (E = range 10^(-P/20): MSE <= E^2) up to sqrt(3) x 2 that (a
     uniform error has MSE E^2 / 3), bisected in log E over :data:`PSNR_TRIES` codings.
     Returns (residual, coding facts, measured check) of the largest that reached it."""
     lo, hi = value_range
     e0 = Bound(psnr=target_db).absolute(lo, hi)
-    res, facts = code_residual(source, valid, pred, fragile, e0, value_range, fill_value=fill_value)
+    res, facts = code_residual(source, valid, pred, fragile, e0, value_range, fill_value=fill_value, device=device)
     best = (res, facts, verify(res, pred, source, valid, value_range))
     low, high = math.log(e0), math.log(e0 * 2.0 * math.sqrt(3.0))
     tried = [e0]
     for _ in range(PSNR_TRIES):
         mid = 0.5 * (low + high)
         e = math.exp(mid)
-        res, facts = code_residual(source, valid, pred, fragile, e, value_range, fill_value=fill_value)
+        res, facts = code_residual(source, valid, pred, fragile, e, value_range, fill_value=fill_value, device=device)
         check = verify(res, pred, source, valid, value_range)
         tried.append(e)
         if check["psnr_db"] >= target_db:
@@ -286,13 +295,23 @@ def _interp_prediction(x: np.ndarray, a: int, h: int, sel, cubic_ok: bool = True
 
 
 def _feedback(
-    t: np.ndarray, skip: np.ndarray, step: float, integer: bool, interp: str, axes: str = AXES, levels: tuple[float, float] = FLAT
+    t: np.ndarray,
+    skip: np.ndarray,
+    step: float,
+    integer: bool,
+    interp: str,
+    axes: str = AXES,
+    levels: tuple[float, float] = FLAT,
+    device: str | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """SZ's quantisation with error feedback: each point is predicted from already decoded points
     (``interp`` "cubic" or "linear": the interpolation passes; "": 0), its error from that prediction quantised to q,
     and decoded as prediction + step q (|t - decoded| <= step / 2). ``skip``: points coded as their
     prediction (q = 0: masked, or stored outright); ``axes``: the passes' axis order; ``levels``: the
-    level-wise bounds (:data:`LEVELWISE`). Returns (q, decoded)."""
+    level-wise bounds (:data:`LEVELWISE`); ``device``: run the passes as Warp kernels there (the
+    same bits; None: numpy). Returns (q, decoded)."""
+    if interp and device is not None:
+        return _feedback_on(device, t, skip, step, integer, interp, axes, levels)
     q = np.zeros(t.shape, np.int64)
     dec = np.zeros(t.shape, np.int64 if integer else np.float64)
     if not interp:  # "": no interpolation
@@ -308,6 +327,54 @@ def _feedback(
         q[sel] = qs
         dec[sel] = pred + (qs * np.int64(s) if integer else qs * s)
     return q, dec
+
+
+def _feedback_on(
+    device: str, t: np.ndarray, skip: np.ndarray, step: float, integer: bool, interp: str, axes: str, levels: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_feedback`'s interpolation passes as Warp kernels on ``device`` (one launch a pass,
+    :mod:`warpgauss.kernels.interp`): the same q's and decoded values bit for bit."""
+    from ._warp import warp
+    from .kernels import interp as ki
+
+    wp = warp()
+    first, s0, passes = _stepped_passes(t.shape, step, integer, axes, levels)
+    kind = np.int64 if integer else np.float64
+    q0 = np.where(skip[first], 0, _quantise(np.where(skip[first], 0, t[first]), s0, integer))
+    dec0 = np.zeros(t.shape, kind)
+    dec0[first] = q0 * (np.int64(s0) if integer else s0)
+    q = wp.zeros(t.shape, dtype=wp.int64, device=device)
+    dec = wp.array(dec0, dtype=wp.int64 if integer else wp.float64, device=device)
+    del dec0
+    tt = wp.array(np.ascontiguousarray(t, kind), dtype=wp.int64 if integer else wp.float64, device=device)
+    sk = wp.array(np.ascontiguousarray(skip).view(np.uint8), dtype=wp.uint8, device=device)
+    kernel = ki.feedback_pass_i if integer else ki.feedback_pass_f
+    for a, h, sel, s in passes:
+        start = wp.vec3i(*(x.start for x in sel))
+        stride = wp.vec3i(*(x.step for x in sel))
+        dims = tuple(len(range(x.start, n, x.step)) for x, n in zip(sel, t.shape))
+        if min(dims) == 0:
+            continue
+        wstep = wp.int64(int(s)) if integer else wp.float64(s)
+        wp.launch(kernel, dim=dims, inputs=[tt, sk, start, stride, a, h, int(interp == "cubic"), wstep], outputs=[q, dec], device=device)
+    qn = q.numpy()
+    qn[first] = q0
+    return qn, dec.numpy()
+
+
+def residual_device(device: str | None, n_voxels: int) -> str | None:
+    """Where the bounded residual's interpolation passes run: the encode's device (the Warp CPU
+    device too) where it holds their :data:`DEVICE_BYTES_PER_VOXEL`, else None (numpy); the
+    bytes are the same either way."""
+    from ._warp import resolve_device, warp
+
+    wp = warp()
+    dev = wp.get_device(resolve_device(device))
+    if dev.is_cuda:
+        free = getattr(dev, "free_memory", None)
+        if free is not None and n_voxels * DEVICE_BYTES_PER_VOXEL > 0.8 * free:
+            return None
+    return str(dev)
 
 
 def _top_level(shape: tuple[int, ...]) -> int:
@@ -395,21 +462,30 @@ def _choose_interpolation(source: np.ndarray, usable: np.ndarray, step: float, i
 
 def _final_symbols(u: np.ndarray) -> tuple[bytes, str, str]:
     """The chosen predictor's zigzagged q's (on the grid, in their narrowest width) coded harder:
-    in each of the six axis orders (``layout``: the array transposed so, then raster), with
-    Zstandard and with bzip2 (its Burrows-Wheeler transform suits runs of small q's: 15-25 % below
-    Zstandard 3 on the head MRIs), the smallest kept. Returns (frame, codec, layout)."""
+    in each of the six axis orders (``layout``: the array transposed so, then raster) with
+    Zstandard, and in the :data:`BZIP2_LAYOUTS` orders Zstandard coded smallest with bzip2 too (its
+    Burrows-Wheeler transform suits runs of small q's: 15-25 % below Zstandard 3 on the head MRIs,
+    at 10-20x its time); the smallest kept. Returns (frame, codec, layout)."""
     import bz2
-    from concurrent.futures import ThreadPoolExecutor
 
     width = u.dtype.itemsize
 
-    def coded(layout: str) -> list[tuple[int, int, bytes, str, str]]:
-        raw = _planes(np.ascontiguousarray(u.transpose([int(c) for c in layout])).ravel(), width)
-        k = ORDERS.index(layout)
-        return [(len(f), k, f, c, layout) for f, c in ((_compress(raw), "zstd"), (bz2.compress(raw, 9), "bzip2"))]
+    def raw(layout: str) -> bytes:
+        return _planes(np.ascontiguousarray(u.transpose([int(c) for c in layout])).ravel(), width)
 
-    with ThreadPoolExecutor(max_workers=min(len(ORDERS), 4)) as pool:  # bz2 and Zstandard let go of the GIL
-        tried = [t for ts in pool.map(coded, ORDERS) for t in ts]
+    def zstd(layout: str) -> tuple[int, int, bytes, str, str]:
+        f = _compress(raw(layout))
+        return len(f), ORDERS.index(layout), f, "zstd", layout
+
+    def bzip2(layout: str) -> tuple[int, int, bytes, str, str]:
+        f = bz2.compress(raw(layout), 9)
+        return len(f), ORDERS.index(layout), f, "bzip2", layout
+
+    workers = max(1, min(len(ORDERS), os.cpu_count() or 1))
+    with ThreadPoolExecutor(max_workers=workers) as pool:  # bz2 and Zstandard let go of the GIL
+        tried = list(pool.map(zstd, ORDERS))
+        best = [t[4] for t in sorted(tried, key=lambda t: (t[0], t[1]))[:BZIP2_LAYOUTS]]
+        tried += list(pool.map(bzip2, best))
     _, _, frame, codec, layout = min(tried, key=lambda t: (t[0], t[1], t[3]))
     return frame, codec, layout
 
@@ -463,6 +539,7 @@ def code_residual(
     *,
     fill_value: float | None = None,
     predictors: tuple[str, ...] = PREDICTORS,
+    device: str | None = None,
 ) -> tuple[Residual, dict]:
     """Code ``source`` against the prediction so that every valid voxel decodes within ``bound``
     (in the source's dtype, or float where the bound admits values between its integers).
@@ -474,6 +551,7 @@ def code_residual(
         bound: E in source units (> 0).
         value_range: The model's (min, max) (the margin is a share of it).
         predictors: Those to try (the smallest coding wins).
+        device: Where the interpolation passes run as Warp kernels (the same bytes; None: numpy).
 
     Returns:
         (the residual, facts for the report: sizes of every predictor tried, literals, seconds).
@@ -492,14 +570,14 @@ def code_residual(
     src64 = source.astype(np.float64)
     facts: dict = {"sizes": {}}
     axes, levelwise = _choose_interpolation(source, ok & np.isfinite(src64), step, integer)
-    best: tuple[int, str, dict[str, bytes], np.ndarray, int, np.ndarray] | None = None
-    for name in _candidates(predictors, facts["sizes"]):
+
+    def code(name: str) -> tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]:
         gauss, kind = _parts(name)
         base, shaky = _base(pred, fragile, margin, integer, gauss)
         with np.errstate(invalid="ignore", over="ignore"):
             t = source.astype(np.int64) - base if integer else src64 - base
             fits = ok & np.isfinite(src64) & (np.abs(t) < _LATTICE_LIMIT * step)
-        q, dec = _feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT))
+        q, dec = _feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT), device)
         x = base + dec
         if integer or not gauss:
             good = _within(x, out_dtype, src64, bound)
@@ -509,10 +587,30 @@ def code_residual(
         u = _zigzag(q.ravel())
         width = _width(u)
         streams = _streams(u, width, literal, source.astype(out_dtype, copy=False), valid)
-        size = sum(len(b) for b in streams.values())
+        return sum(len(b) for b in streams.values()), streams, literal, width, u.astype(f"<u{width}").reshape(q.shape)
+
+    # the predictors that do not depend on others' sizes are coded on threads (numpy and
+    # Zstandard release the GIL), then the Gaussians plus the interpolation that coded smaller;
+    # the smallest is kept in the serial order, so the result is the one a serial loop gives
+    if device is not None:  # compiled once, before the threads launch it
+        from ._warp import warp
+        from .kernels import interp
+
+        warp().load_module(interp, device=device)
+    done: dict[str, tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]] = {}
+    alone = [n for n in predictors if not all(_parts(n))]
+    with ThreadPoolExecutor(max_workers=_coding_threads(len(alone), source.size)) as ex:
+        done.update(zip(alone, ex.map(code, alone)))
+    sizes = {n: done[n][0] for n in alone}
+    best: tuple[int, str, dict[str, bytes], np.ndarray, int, np.ndarray] | None = None
+    for name in _candidates(predictors, sizes):
+        if name not in done:
+            done[name] = code(name)
+        size = done[name][0]
         facts["sizes"][name] = size
         if best is None or size < best[0]:
-            best = (size, name, streams, literal, width, u.astype(f"<u{width}").reshape(q.shape))
+            best = (size, name, *done[name][1:])
+    done.clear()
     assert best is not None
     size, name, streams, literal, best_width, best_u = best
     streams["symbols"], codec, layout = _final_symbols(best_u)
@@ -548,6 +646,16 @@ def code_residual(
         bytes=len(data),
     )
     return Residual(info, data), facts
+
+
+def _coding_threads(jobs: int, n_voxels: int) -> int:
+    """Threads for ``jobs`` predictor codings at once: the cores, and what memory holds beside the
+    coding's own :data:`CODE_BYTES_PER_VOXEL` (:data:`CANDIDATE_BYTES_PER_VOXEL` a coding)."""
+    from .driver.load import available_memory
+
+    free = available_memory()
+    room = jobs if free is None else int((free - n_voxels * CODE_BYTES_PER_VOXEL) // max(n_voxels * CANDIDATE_BYTES_PER_VOXEL, 1))
+    return max(1, min(jobs, os.cpu_count() or 1, room))
 
 
 def _candidates(predictors: tuple[str, ...], sizes: dict[str, int]):
