@@ -49,7 +49,7 @@ MOVED: dict[str, tuple[str, ...]] = {
         "refine": ("encoding.refine",),
         "refine.*": ("encoding.refine",),
         "region": ("field.region",),
-        "residual": ("format.residual",),
+        "residual": ("format.residual", "format.interpolation", "format.planes"),
         "serve": ("render.serve",),
         "splat": ("render.splat",),
         "stats": ("encoding.stats",),

@@ -9,6 +9,8 @@ import math
 
 import numpy as np
 
+DEVICE_BYTES_PER_VOXEL = 25  # the passes on a device: the values (8), skips (1), q's (8), decoded (8)
+
 
 def quantiser(bound: float, margin: float, dtype: np.dtype) -> tuple[float, bool, np.dtype]:
     """(step, integer?, decoded dtype) for a bound in source units.
@@ -105,13 +107,23 @@ def interp_prediction(x: np.ndarray, a: int, h: int, sel, cubic_ok: bool = True)
 
 
 def feedback(
-    t: np.ndarray, skip: np.ndarray, step: float, integer: bool, interp: str, axes: str = AXES, levels: tuple[float, float] = FLAT
+    t: np.ndarray,
+    skip: np.ndarray,
+    step: float,
+    integer: bool,
+    interp: str,
+    axes: str = AXES,
+    levels: tuple[float, float] = FLAT,
+    device: str | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """SZ's quantisation with error feedback: each point is predicted from already decoded points
     (``interp`` "cubic" or "linear": the interpolation passes; "": 0), its error from that prediction quantised to q,
     and decoded as prediction + step q (|t - decoded| <= step / 2). ``skip``: points coded as their
     prediction (q = 0: masked, or stored outright); ``axes``: the passes' axis order; ``levels``: the
-    level-wise bounds (:data:`LEVELWISE`). Returns (q, decoded)."""
+    level-wise bounds (:data:`LEVELWISE`); ``device``: run the passes as Warp kernels there (the
+    same bits; None: numpy). Returns (q, decoded)."""
+    if interp and device is not None:
+        return feedback_on(device, t, skip, step, integer, interp, axes, levels)
     q = np.zeros(t.shape, np.int64)
     dec = np.zeros(t.shape, np.int64 if integer else np.float64)
     if not interp:  # "": no interpolation
@@ -127,6 +139,54 @@ def feedback(
         q[sel] = qs
         dec[sel] = pred + (qs * np.int64(s) if integer else qs * s)
     return q, dec
+
+
+def feedback_on(
+    device: str, t: np.ndarray, skip: np.ndarray, step: float, integer: bool, interp: str, axes: str, levels: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`feedback`'s interpolation passes as Warp kernels on ``device`` (one launch a pass,
+    :mod:`warpgauss.kernels.interp`): the same q's and decoded values bit for bit."""
+    from ..core.warp import warp
+    from ..kernels import interp as ki
+
+    wp = warp()
+    first, s0, passes = stepped_passes(t.shape, step, integer, axes, levels)
+    kind = np.int64 if integer else np.float64
+    q0 = np.where(skip[first], 0, quantise(np.where(skip[first], 0, t[first]), s0, integer))
+    dec0 = np.zeros(t.shape, kind)
+    dec0[first] = q0 * (np.int64(s0) if integer else s0)
+    q = wp.zeros(t.shape, dtype=wp.int64, device=device)
+    dec = wp.array(dec0, dtype=wp.int64 if integer else wp.float64, device=device)
+    del dec0
+    tt = wp.array(np.ascontiguousarray(t, kind), dtype=wp.int64 if integer else wp.float64, device=device)
+    sk = wp.array(np.ascontiguousarray(skip).view(np.uint8), dtype=wp.uint8, device=device)
+    kernel = ki.feedback_pass_i if integer else ki.feedback_pass_f
+    for a, h, sel, s in passes:
+        start = wp.vec3i(*(x.start for x in sel))
+        stride = wp.vec3i(*(x.step for x in sel))
+        dims = tuple(len(range(x.start, n, x.step)) for x, n in zip(sel, t.shape))
+        if min(dims) == 0:
+            continue
+        wstep = wp.int64(int(s)) if integer else wp.float64(s)
+        wp.launch(kernel, dim=dims, inputs=[tt, sk, start, stride, a, h, int(interp == "cubic"), wstep], outputs=[q, dec], device=device)
+    qn = q.numpy()
+    qn[first] = q0
+    return qn, dec.numpy()
+
+
+def residual_device(device: str | None, n_voxels: int) -> str | None:
+    """Where the bounded residual's interpolation passes run: the encode's device (the Warp CPU
+    device too) where it holds their :data:`DEVICE_BYTES_PER_VOXEL`, else None (numpy); the
+    bytes are the same either way."""
+    from ..core.warp import resolve_device, warp
+
+    wp = warp()
+    dev = wp.get_device(resolve_device(device))
+    if dev.is_cuda:
+        free = getattr(dev, "free_memory", None)
+        if free is not None and n_voxels * DEVICE_BYTES_PER_VOXEL > 0.8 * free:
+            return None
+    return str(dev)
 
 
 def top_level(shape: tuple[int, ...]) -> int:

@@ -32,7 +32,7 @@ smallest: on the three head MRIs at 1e-2 and 1e-3 of the range, x before z befor
 residual 4-17 % smaller than z, y, x, and storing mni_icbm152's q's with x in the middle 1.4-1.6x
 smaller than the raster at 1e-3 (benchmarks/bounded/README.md). The q's are zigzag-mapped to the
 narrowest of 1, 2, 4 or 8 bytes, split into byte planes and coded with Zstandard, as the coded
-model format is (:mod:`warpgauss.format.coded`), or bzip2 where that is smaller. The payload is a sequence of
+model format is (:mod:`warpgauss.coded`), or bzip2 where that is smaller. The payload is a sequence of
 Zstandard frames (q's, literal positions, literal values, mask) whose lengths the header's
 ``residual`` entry lists; reading decompresses each into at most its declared size and refuses a
 frame that claims more than Zstandard can produce from its bytes.
@@ -42,14 +42,16 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import WarpgaussError
-from .coded import zstandard_module
 from .interpolation import AXES, CHOOSE_BLOCK, FLAT, LEVELWISE, ORDERS, cast, decoded, feedback, quantiser
+from .planes import byte_planes, byte_width, compress, decompress, from_planes, unzigzag, zigzag
 
 # the Gaussians' ratio in a bounded file when no budget is given: at 1e-2..1e-4 of the range, 1000
 # gave a smaller whole file than 300 on 12 of 15 (volume, bound) pairs (three head MRIs, vortex and
@@ -59,9 +61,9 @@ from .interpolation import AXES, CHOOSE_BLOCK, FLAT, LEVELWISE, ORDERS, cast, de
 DEFAULT_RATIO = 1000.0
 MIN_GAUSSIAN_BYTES = 8192  # and at least this (a small volume's thousandth holds no Gaussian beside its header)
 MARGIN_REL = 1e-9  # of the value range: how far two readers' float64 predictions may differ
-ZSTD_MAX_RATIO = 1 << 16  # Zstandard never expands past ~32,768 : 1 (an RLE block of 128 KiB in 4 bytes)
-ZSTD_LEVEL = 9  # streams up to ZSTD_LARGE_RAW; larger ones level 3 (symbols past a prediction are noise-like)
-ZSTD_LARGE_RAW = 4 << 20
+# bzip2 tries the layouts Zstandard codes smallest, this many: on the three head MRIs at 1e-2 and
+# 1e-3 of the range the smallest bzip2 frame was always in Zstandard's best two (see _final_symbols)
+BZIP2_LAYOUTS = 2
 # on a tie the first: it needs no prediction. "-linear": linear interpolation where cubic would be used
 # (cubic codes smaller on smooth fields and mean_reg2mean, linear on inia19: 83.7 against 76.9 at 1e-2)
 PREDICTORS = ("interp", "interp-linear", "gaussians+interp", "gaussians+interp-linear", "gaussians")
@@ -80,7 +82,10 @@ DTYPES = ("int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint6
 
 
 CODE_BYTES_PER_VOXEL = 120  # host memory coding a residual takes: float64/int64 copies of the grid, and the chosen indices in six storage orders on threads (measured: 101-114 on the head MRIs at 1e-2 and 1e-4)
-DECODE_BYTES_PER_VOXEL = 48  # and applying it: the prediction, the q's, the decoded residual, the result
+# what one predictor's coding holds at once beside that (the differences, q's, decoded values, the
+# checks, the zigzagged q's), for the codings run on threads side by side
+CANDIDATE_BYTES_PER_VOXEL = 56
+DECODE_BYTES_PER_VOXEL = 48
 
 
 def check_memory(n_voxels: int, per_voxel: int, what: str) -> None:
@@ -137,21 +142,21 @@ class Bound:
 PSNR_TRIES = 4  # codings after the guaranteed bound when --psnr searches the largest bound reaching it
 
 
-def code_for_psnr(source, valid, pred, fragile, target_db: float, value_range, fill_value=None) -> tuple[Residual, dict, dict]:
+def code_for_psnr(source, valid, pred, fragile, target_db: float, value_range, fill_value=None, device=None) -> tuple[Residual, dict, dict]:
     """The residual of the largest bound whose decode reaches ``target_db`` on the full grid: from
     the bound that guarantees it (E = range 10^(-P/20): MSE <= E^2) up to sqrt(3) x 2 that (a
     uniform error has MSE E^2 / 3), bisected in log E over :data:`PSNR_TRIES` codings.
     Returns (residual, coding facts, measured check) of the largest that reached it."""
     lo, hi = value_range
     e0 = Bound(psnr=target_db).absolute(lo, hi)
-    res, facts = code_residual(source, valid, pred, fragile, e0, value_range, fill_value=fill_value)
+    res, facts = code_residual(source, valid, pred, fragile, e0, value_range, fill_value=fill_value, device=device)
     best = (res, facts, verify(res, pred, source, valid, value_range))
     low, high = math.log(e0), math.log(e0 * 2.0 * math.sqrt(3.0))
     tried = [e0]
     for _ in range(PSNR_TRIES):
         mid = 0.5 * (low + high)
         e = math.exp(mid)
-        res, facts = code_residual(source, valid, pred, fragile, e, value_range, fill_value=fill_value)
+        res, facts = code_residual(source, valid, pred, fragile, e, value_range, fill_value=fill_value, device=device)
         check = verify(res, pred, source, valid, value_range)
         tried.append(e)
         if check["psnr_db"] >= target_db:
@@ -192,36 +197,7 @@ class Residual:
 
 
 # -- the quantiser ------------------------------------------------------------------------------
-def _zigzag(d: np.ndarray) -> np.ndarray:
-    return ((d << 1) ^ (d >> 63)).view(np.uint64)
-
-
-def _unzigzag(u: np.ndarray) -> np.ndarray:
-    return (u >> np.uint64(1)).view(np.int64) ^ -(u & np.uint64(1)).view(np.int64)
-
-
-def _width(u: np.ndarray) -> int:
-    top = int(u.max()) if u.size else 0
-    return next(w for w in (1, 2, 4, 8) if top < 1 << (8 * w))
-
-
-def _planes(u: np.ndarray, width: int) -> bytes:
-    b = u.astype(f"<u{width}").view(np.uint8).reshape(-1, width)
-    return b.T.tobytes()  # byte planes: the high bytes, mostly 0, code apart from the low ones
-
-
-def _from_planes(raw: bytes, n: int, width: int) -> np.ndarray:
-    b = np.frombuffer(raw, np.uint8).reshape(width, n).T
-    return np.ascontiguousarray(b).view(f"<u{width}").reshape(n).astype(np.uint64)
-
-
-def _compress(raw: bytes, level: int | None = None) -> bytes:
-    zstd = zstandard_module()
-    lvl = level if level is not None else (ZSTD_LEVEL if len(raw) <= ZSTD_LARGE_RAW else 3)
-    return zstd.ZstdCompressor(level=lvl, write_checksum=True).compress(raw)
-
-
-def choose_interpolation(source: np.ndarray, usable: np.ndarray, step: float, integer: bool) -> tuple[str, dict[str, tuple[float, float]]]:
+def _choose_interpolation(source: np.ndarray, usable: np.ndarray, step: float, integer: bool) -> tuple[str, dict[str, tuple[float, float]]]:
     """The interpolation's axis order, and each kind's level-wise bounds, that code a central block
     of the source (at most :data:`CHOOSE_BLOCK` a side, no Gaussians, Zstandard 3) smallest: the
     order first (cubic, flat bounds), then (alpha, beta) from :data:`LEVELWISE` for "cubic" and for
@@ -237,8 +213,8 @@ def choose_interpolation(source: np.ndarray, usable: np.ndarray, step: float, in
 
     def size(kind: str, axes: str, levels: tuple[float, float]) -> int:
         q, _ = feedback(t, ~ok, step, integer, kind, axes, levels)
-        u = _zigzag(q.ravel())
-        return len(_compress(_planes(u, _width(u)), 3))
+        u = zigzag(q.ravel())
+        return len(compress(byte_planes(u, byte_width(u)), 3))
 
     by_axes = {axes: size("cubic", axes, FLAT) for axes in ORDERS}
     axes = min(ORDERS, key=lambda a: (by_axes[a], ORDERS.index(a)))
@@ -251,51 +227,34 @@ def choose_interpolation(source: np.ndarray, usable: np.ndarray, step: float, in
 
 def _final_symbols(u: np.ndarray) -> tuple[bytes, str, str]:
     """The chosen predictor's zigzagged q's (on the grid, in their narrowest width) coded harder:
-    in each of the six axis orders (``layout``: the array transposed so, then raster), with
-    Zstandard and with bzip2 (its Burrows-Wheeler transform suits runs of small q's: 15-25 % below
-    Zstandard 3 on the head MRIs), the smallest kept. Returns (frame, codec, layout)."""
+    in each of the six axis orders (``layout``: the array transposed so, then raster) with
+    Zstandard, and in the :data:`BZIP2_LAYOUTS` orders Zstandard coded smallest with bzip2 too (its
+    Burrows-Wheeler transform suits runs of small q's: 15-25 % below Zstandard 3 on the head MRIs,
+    at 10-20x its time); the smallest kept. Returns (frame, codec, layout)."""
     import bz2
-    from concurrent.futures import ThreadPoolExecutor
 
     width = u.dtype.itemsize
 
-    def coded(layout: str) -> list[tuple[int, int, bytes, str, str]]:
-        raw = _planes(np.ascontiguousarray(u.transpose([int(c) for c in layout])).ravel(), width)
-        k = ORDERS.index(layout)
-        return [(len(f), k, f, c, layout) for f, c in ((_compress(raw), "zstd"), (bz2.compress(raw, 9), "bzip2"))]
+    def raw(layout: str) -> bytes:
+        return byte_planes(np.ascontiguousarray(u.transpose([int(c) for c in layout])).ravel(), width)
 
-    with ThreadPoolExecutor(max_workers=min(len(ORDERS), 4)) as pool:  # bz2 and Zstandard let go of the GIL
-        tried = [t for ts in pool.map(coded, ORDERS) for t in ts]
+    def zstd(layout: str) -> tuple[int, int, bytes, str, str]:
+        f = compress(raw(layout))
+        return len(f), ORDERS.index(layout), f, "zstd", layout
+
+    def bzip2(layout: str) -> tuple[int, int, bytes, str, str]:
+        f = bz2.compress(raw(layout), 9)
+        return len(f), ORDERS.index(layout), f, "bzip2", layout
+
+    workers = max(1, min(len(ORDERS), os.cpu_count() or 1))
+    with ThreadPoolExecutor(max_workers=workers) as pool:  # bz2 and Zstandard let go of the GIL
+        tried = list(pool.map(zstd, ORDERS))
+        best = [t[4] for t in sorted(tried, key=lambda t: (t[0], t[1]))[:BZIP2_LAYOUTS]]
+        tried += list(pool.map(bzip2, best))
     _, _, frame, codec, layout = min(tried, key=lambda t: (t[0], t[1], t[3]))
     return frame, codec, layout
 
 
-def _decompress(frame: bytes, size: int, what: str, codec: str = "zstd") -> bytes:
-    """A frame's bytes, refused unless it yields exactly ``size`` bytes (checked before allocating
-    against what Zstandard can produce from the frame's length)."""
-    if codec == "zstd" and size > len(frame) * ZSTD_MAX_RATIO + 1024:  # bzip2 is read into at most the size
-        raise WarpgaussError(
-            f"the residual's {what} claim {size:,} bytes from a {len(frame):,}-byte frame, more than Zstandard can produce; the file is damaged"
-        )
-    zstd = zstandard_module()
-    try:
-        if codec == "bzip2":
-            import bz2
-
-            d = bz2.BZ2Decompressor()
-            raw = d.decompress(frame, max_length=size + 1)  # never more than declared (and one byte to tell)
-            if not d.eof and len(raw) <= size:
-                raise OSError
-        else:
-            raw = zstd.ZstdDecompressor().decompress(frame, max_output_size=max(size, 1))
-    except (zstd.ZstdError, OSError, EOFError, ValueError):
-        raise WarpgaussError(f"the residual's {what} do not decompress: the file is damaged; restore it or re-encode") from None
-    if len(raw) != size:
-        raise WarpgaussError(f"the residual's {what} hold {len(raw):,} bytes where the header says {size:,}; the file is damaged")
-    return raw
-
-
-# -- coding --------------------------------------------------------------------------------------
 def prediction(model, device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(P, fragile): the model in float64 source units at every voxel of its grid, clamped to the
     source's range, and the voxels where readers could disagree (see :mod:`warpgauss.kernels.predict`)."""
@@ -319,6 +278,7 @@ def code_residual(
     *,
     fill_value: float | None = None,
     predictors: tuple[str, ...] = PREDICTORS,
+    device: str | None = None,
 ) -> tuple[Residual, dict]:
     """Code ``source`` against the prediction so that every valid voxel decodes within ``bound``
     (in the source's dtype, or float where the bound admits values between its integers).
@@ -330,6 +290,7 @@ def code_residual(
         bound: E in source units (> 0).
         value_range: The model's (min, max) (the margin is a share of it).
         predictors: Those to try (the smallest coding wins).
+        device: Where the interpolation passes run as Warp kernels (the same bytes; None: numpy).
 
     Returns:
         (the residual, facts for the report: sizes of every predictor tried, literals, seconds).
@@ -347,28 +308,48 @@ def code_residual(
     ok = np.ones(source.shape, bool) if valid is None else valid
     src64 = source.astype(np.float64)
     facts: dict = {"sizes": {}}
-    axes, levelwise = choose_interpolation(source, ok & np.isfinite(src64), step, integer)
-    best: tuple[int, str, dict[str, bytes], np.ndarray, int, np.ndarray] | None = None
-    for name in _candidates(predictors, facts["sizes"]):
+    axes, levelwise = _choose_interpolation(source, ok & np.isfinite(src64), step, integer)
+
+    def code(name: str) -> tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]:
         gauss, kind = _parts(name)
         base, shaky = _base(pred, fragile, margin, integer, gauss)
         with np.errstate(invalid="ignore", over="ignore"):
             t = source.astype(np.int64) - base if integer else src64 - base
             fits = ok & np.isfinite(src64) & (np.abs(t) < _LATTICE_LIMIT * step)
-        q, dec = feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT))
+        q, dec = feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT), device)
         x = base + dec
         if integer or not gauss:
             good = _within(x, out_dtype, src64, bound)
         else:  # a reader's prediction lies within the margin: every value between decodes within the bound
             good = _within(x - margin, out_dtype, src64, bound) & _within(x + margin, out_dtype, src64, bound)
         literal = ok & ~(fits & good & ~shaky)
-        u = _zigzag(q.ravel())
-        width = _width(u)
+        u = zigzag(q.ravel())
+        width = byte_width(u)
         streams = _streams(u, width, literal, source.astype(out_dtype, copy=False), valid)
-        size = sum(len(b) for b in streams.values())
+        return sum(len(b) for b in streams.values()), streams, literal, width, u.astype(f"<u{width}").reshape(q.shape)
+
+    # the predictors that do not depend on others' sizes are coded on threads (numpy and
+    # Zstandard release the GIL), then the Gaussians plus the interpolation that coded smaller;
+    # the smallest is kept in the serial order, so the result is the one a serial loop gives
+    if device is not None:  # compiled once, before the threads launch it
+        from ..core.warp import warp
+        from ..kernels import interp
+
+        warp().load_module(interp, device=device)
+    done: dict[str, tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]] = {}
+    alone = [n for n in predictors if not all(_parts(n))]
+    with ThreadPoolExecutor(max_workers=_coding_threads(len(alone), source.size)) as ex:
+        done.update(zip(alone, ex.map(code, alone)))
+    sizes = {n: done[n][0] for n in alone}
+    best: tuple[int, str, dict[str, bytes], np.ndarray, int, np.ndarray] | None = None
+    for name in _candidates(predictors, sizes):
+        if name not in done:
+            done[name] = code(name)
+        size = done[name][0]
         facts["sizes"][name] = size
         if best is None or size < best[0]:
-            best = (size, name, streams, literal, width, u.astype(f"<u{width}").reshape(q.shape))
+            best = (size, name, *done[name][1:])
+    done.clear()
     assert best is not None
     size, name, streams, literal, best_width, best_u = best
     streams["symbols"], codec, layout = _final_symbols(best_u)
@@ -406,6 +387,16 @@ def code_residual(
     return Residual(info, data), facts
 
 
+def _coding_threads(jobs: int, n_voxels: int) -> int:
+    """Threads for ``jobs`` predictor codings at once: the cores, and what memory holds beside the
+    coding's own :data:`CODE_BYTES_PER_VOXEL` (:data:`CANDIDATE_BYTES_PER_VOXEL` a coding)."""
+    from ..core.limits import available_memory
+
+    free = available_memory()
+    room = jobs if free is None else int((free - n_voxels * CODE_BYTES_PER_VOXEL) // max(n_voxels * CANDIDATE_BYTES_PER_VOXEL, 1))
+    return max(1, min(jobs, os.cpu_count() or 1, room))
+
+
 def _candidates(predictors: tuple[str, ...], sizes: dict[str, int]):
     """The predictors to code, in order; the Gaussians plus interpolation only with the kind that
     coded smaller alone (``sizes`` fills as they are coded), so four codings and not five."""
@@ -437,10 +428,10 @@ def _streams(u: np.ndarray, width: int, literal: np.ndarray, source: np.ndarray,
     pos = np.flatnonzero(literal.ravel()).astype(np.int64)
     gaps = np.diff(pos, prepend=np.int64(0)).astype("<u8")
     return {
-        "symbols": _compress(_planes(u, width)),
-        "positions": _compress(_planes(gaps, 8)),
-        "values": _compress(np.ascontiguousarray(source.ravel()[pos]).astype(source.dtype.newbyteorder("<")).tobytes()),
-        "mask": b"" if valid is None else _compress(np.packbits(~valid.ravel()).tobytes()),
+        "symbols": compress(byte_planes(u, width)),
+        "positions": compress(byte_planes(gaps, 8)),
+        "values": compress(np.ascontiguousarray(source.ravel()[pos]).astype(source.dtype.newbyteorder("<")).tobytes()),
+        "mask": b"" if valid is None else compress(np.packbits(~valid.ravel()).tobytes()),
     }
 
 
@@ -545,9 +536,9 @@ def apply_residual(res: Residual, pred: np.ndarray) -> np.ndarray:
     for s in STREAMS:
         frames[s] = data[at : at + info["streams"][s]]
         at += info["streams"][s]
-    u = _from_planes(_decompress(frames["symbols"], n * width, "symbols", info["symbols_codec"]), n, width)
+    u = from_planes(decompress(frames["symbols"], n * width, "symbols", info["symbols_codec"]), n, width)
     layout = [int(c) for c in info.get("layout", AXES)]
-    q = _unzigzag(u).reshape(tuple(shape[a] for a in layout)).transpose(np.argsort(layout))
+    q = unzigzag(u).reshape(tuple(shape[a] for a in layout)).transpose(np.argsort(layout))
     name = info["predictor"]
     gauss, kind = _parts(name)
     levels = info.get("levels", list(FLAT))
@@ -555,14 +546,14 @@ def apply_residual(res: Residual, pred: np.ndarray) -> np.ndarray:
     base, _ = _base(pred, np.zeros(shape, bool), float(info["margin"]), integer, gauss)
     out = cast(base + dec, dtype).ravel()
     count = int(info["literals"])
-    gaps = _from_planes(_decompress(frames["positions"], 8 * count, "literal positions"), count, 8).view(np.int64)
+    gaps = from_planes(decompress(frames["positions"], 8 * count, "literal positions"), count, 8).view(np.int64)
     pos = np.cumsum(gaps)
     if count and (pos.min() < 0 or pos.max() >= n):
         raise WarpgaussError("the residual's literal positions fall outside the grid; the file is damaged")
-    values = np.frombuffer(_decompress(frames["values"], count * dtype.itemsize, "literal values"), dtype.newbyteorder("<"))
+    values = np.frombuffer(decompress(frames["values"], count * dtype.itemsize, "literal values"), dtype.newbyteorder("<"))
     out[pos] = values
     if info["masked"]:
-        raw = _decompress(frames["mask"], (n + 7) // 8, "mask")
+        raw = decompress(frames["mask"], (n + 7) // 8, "mask")
         masked = np.unpackbits(np.frombuffer(raw, np.uint8), count=n).astype(bool)
         if int(masked.sum()) != info["masked"]:
             raise WarpgaussError("the residual's mask does not hold the masked voxels its header counts; the file is damaged")
@@ -576,7 +567,7 @@ def apply_residual(res: Residual, pred: np.ndarray) -> np.ndarray:
 def verify(res: Residual, pred: np.ndarray, source: np.ndarray, valid: np.ndarray | None, value_range) -> dict:
     """Decode as a reader does and check every valid voxel against the bound (a violation is a bug,
     raised, never a warning). Returns the measured maximum error (source units, and as a share of
-    the range) and the PSNRs, by :func:`warpgauss.field.evaluate.score_decode` as ``warpgauss eval``
+    the range) and the PSNRs, by :func:`warpgauss.evaluate.score_decode` as ``warpgauss eval``
     scores the file."""
     from ..field.evaluate import score_decode
 

@@ -29,6 +29,7 @@ def attach_residual(model: Model, source, read, example, example_size, bound: Bo
     and attach it to the model; the report's ``residual`` says what it holds."""
     import time
 
+    from ...format.interpolation import residual_device
     from ...format.residual import code_for_psnr, code_residual, prediction, verify
     from ...readers.lazy import valid_mask
 
@@ -40,11 +41,12 @@ def attach_residual(model: Model, source, read, example, example_size, bound: Bo
     valid = valid_mask(data, fill)
     masked = None if valid.all() else valid
     pred, fragile = prediction(model, device)
+    passes = residual_device(device, data.size)
     t1 = time.perf_counter()
     if bound.psnr is not None:
-        res, facts, check = code_for_psnr(data, masked, pred, fragile, bound.psnr, (lo, hi), fill_value=fill)
+        res, facts, check = code_for_psnr(data, masked, pred, fragile, bound.psnr, (lo, hi), fill_value=fill, device=passes)
     else:
-        res, facts = code_residual(data, masked, pred, fragile, bound.absolute(lo, hi), (lo, hi), fill_value=fill)
+        res, facts = code_residual(data, masked, pred, fragile, bound.absolute(lo, hi), (lo, hi), fill_value=fill, device=passes)
         check = verify(res, pred, data, valid, (lo, hi))
     t2 = time.perf_counter()
     model.residual = res

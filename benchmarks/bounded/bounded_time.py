@@ -1,0 +1,77 @@
+"""Seconds of a bounded encode's residual (issue #52 part 5): its interpolation passes on the
+device against the numpy passes, the same run and the same bytes.
+
+For each volume and bound: a default bounded encode (``warpgauss.encode(..., max_error_rel=B)``,
+the Gaussians at its default ratio), its report's residual seconds; then the residual coded again
+from the same prediction with the passes in numpy (``device=None``) and on the device, timed, and
+their payloads compared. Prints a table, writes JSON.
+
+    python benchmarks/bounded/bounded_time.py --volumes /tmp/vol/mni_icbm152.npy --bounds 1e-2 --out results/bounded/time_h200.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+import warpgauss
+from warpgauss.core.warp import resolve_device
+from warpgauss.encoding.bench import result_header
+from warpgauss.format import interpolation as I
+from warpgauss.format import residual as R
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--volumes", required=True, help="comma list of .npy volumes")
+    ap.add_argument("--bounds", default="1e-2,1e-3")
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    dev = resolve_device(args.device)
+    res = {**result_header("bounded residual seconds", __file__, argv, dev), "rows": []}
+    print("| volume | bound | encode s | residual s (report) | numpy passes s | device passes s | same bytes | ratio |")
+    print("|---|---|---|---|---|---|---|---|")
+    for path in args.volumes.split(","):
+        src = np.load(path)
+        for rel in (float(b) for b in args.bounds.split(",")):
+            t0 = time.perf_counter()
+            m = warpgauss.encode(src, max_error_rel=rel, device=dev)
+            wall = time.perf_counter() - t0
+            rep = m.run_report["residual"]
+            pred, fragile = R.prediction(m, dev)
+            lo, hi = m.value_range
+            bound = float(rep["bound"])
+            t1 = time.perf_counter()
+            a, _ = R.code_residual(src, None, pred, fragile, bound, (lo, hi))
+            t2 = time.perf_counter()
+            b, _ = R.code_residual(src, None, pred, fragile, bound, (lo, hi), device=I.residual_device(dev, src.size))
+            t3 = time.perf_counter()
+            row = {
+                "volume": Path(path).name,
+                "bound_rel": rel,
+                "encode_s": wall,
+                "residual_code_s": rep["code_seconds"],
+                "numpy_code_s": t2 - t1,
+                "device_code_s": t3 - t2,
+                "same_bytes": a.payload() == b.payload(),
+                "compression_ratio": rep["compression_ratio"],
+                "predictor": rep["predictor"],
+            }
+            res["rows"].append(row)
+            print(
+                f"| {row['volume']} | {rel:g} | {wall:.2f} | {row['residual_code_s']:.2f} | {row['numpy_code_s']:.2f} | "
+                f"{row['device_code_s']:.2f} | {row['same_bytes']} | {row['compression_ratio']:.2f} |",
+                flush=True,
+            )
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(res, indent=1))
+    return res
+
+
+if __name__ == "__main__":
+    main()
