@@ -297,7 +297,12 @@ def _print_summary(rep: dict, verbose: bool = False) -> None:
         )
     if b.get("coded_choice"):  # how a coded file met its byte budget: primitives against precision
         label = "the Gaussians' size" if res else "size"
-        out_console.print(f"{label}: {b['coded_choice']}", soft_wrap=True)
+        if verbose:
+            out_console.print(f"{label}: {b['coded_choice']}", soft_wrap=True)
+        else:  # one sentence; the sizing, re-plan and rate control behind --verbose
+            out_console.print(
+                f"{label}: {b['n']:,} Gaussians on the grids their accuracy needs fill the budget (--verbose: how they were chosen)"
+            )
     an = rep["evaluation"].get("analytic")
     if an and ev and an is not ev and rep["refinement"].get("iterations"):
         r = rep["refinement"]

@@ -310,12 +310,13 @@ def test_a_value_of_the_wrong_type_is_refused_in_one_line_naming_where_it_came_f
 
 
 def test_the_summary_says_how_a_coded_file_met_its_size(tmp_path):
-    """The report's coded_choice, printed for people: the sizing, the re-plan and the rate control,
-    in words, without result-file names."""
+    """One sentence on the size by default; with --verbose the report's coded_choice, printed for
+    people: the sizing, the re-plan and the rate control, in words, without result-file names."""
     res = CliRunner().invoke(
         app,
         [
             "encode",
+            "--verbose",
             "--example",
             "vortex",
             "--size",
@@ -335,6 +336,12 @@ def test_the_summary_says_how_a_coded_file_met_its_size(tmp_path):
     assert res.exit_code == 0, res.output
     size = [line for line in res.stdout.splitlines() if line.startswith("size: N ")]
     assert len(size) == 1 and "rate control:" in size[0] and "benchmarks/" not in size[0]
+    n = int(size[0].split()[2].replace(",", ""))
+    res = CliRunner().invoke(app, ["encode", "--example", "vortex", "--size", "32", "--ratio", "20", "--iterations", "10",
+                                   "--samples", "256", "--device", "cpu", "-o", str(tmp_path / "w.wgs")])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    short = [line for line in res.stdout.splitlines() if line.startswith("size: ")]
+    assert short == [f"size: {n:,} Gaussians on the grids their accuracy needs fill the budget (--verbose: how they were chosen)"]
 
 
 def test_encode_and_info_speak_to_people_and_verbose_shows_the_rest(vortex_raw, tmp_path):
