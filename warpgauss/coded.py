@@ -40,6 +40,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from .coded_keys import KEY_AXIS_BITS, centre_keys, decode_keys, encode_keys
+from .coded_keys import LAYOUT as LAYOUT_KEYS
 from .errors import WarpgaussError
 from .export import quat_to_matrix
 
@@ -375,6 +377,8 @@ def coded_order(codes: np.ndarray) -> np.ndarray:
     Equal to ``np.lexsort`` over (every code, then the key), computed as one sort of the key and
     a lexsort of the rows whose key is shared (a few, where centres share a grid cell).
     """
+    if len(codes) == 0:
+        return np.zeros(0, np.intp)
     mu = codes[:, 0:3] - codes[:, 0:3].min(0)
     if int(mu.max(initial=0)) < (1 << 21):
         key = _part1by2(mu[:, 0]) | (_part1by2(mu[:, 1]) << np.uint64(1)) | (_part1by2(mu[:, 2]) << np.uint64(2))
@@ -404,8 +408,11 @@ def _width(max_value: int) -> int:
     return max(1, (int(max_value).bit_length() + 7) // 8)
 
 
-def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tuple[bytes, dict, np.ndarray]:
-    """Code (N, 12) finite parameters.
+def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None, layout: int | None = None) -> tuple[bytes, dict, np.ndarray]:
+    """Code (N, 12) finite parameters, in ``layout`` (None: :data:`LAYOUT_KEYS`, the centres as
+    sorted Morton key gaps (:mod:`warpgauss.coded_keys`), where every axis spans fewer than 2^21
+    codes, else layout 1; 1: per-axis centre deltas and low-aligned byte planes, as warpgauss wrote
+    before format version 3).
 
     Returns:
         ``(payload, quant, order)``: the compressed bytes, the JSON-ready description the decoder
@@ -413,9 +420,20 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tupl
         permutation of ``params`` rows the file stores them in.
     """
     b = check_bits(dict(CODED_BITS if bits is None else bits))
+    if layout not in (None, 1, LAYOUT_KEYS):
+        raise WarpgaussError(f"unknown coded layout {layout!r}; this warpgauss writes layouts 1 and {LAYOUT_KEYS}")
     codes = quantise(params, b)
     order = coded_order(codes)
     codes = codes[order]
+    if layout != 1:
+        keys = centre_keys(codes[:, 0:3])
+        if keys is not None:
+            payload, quant = encode_keys(codes, keys, b)
+            return payload, quant, order
+        if layout == LAYOUT_KEYS:
+            raise WarpgaussError(
+                f"centres spanning 2^{KEY_AXIS_BITS} codes or more on an axis have no layout {LAYOUT_KEYS}; write layout 1"
+            )
     columns, planes, raw = [], [], 0
     for k, name in enumerate(CODED_COLUMNS):
         col = codes[:, k]
@@ -477,6 +495,29 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
         b = check_bits(quant.get("bits"))
     except WarpgaussError as e:
         raise WarpgaussError(f"{e}; the file is damaged or was written by another warpgauss version") from None
+    layout = coded_layout(quant)
+    check_claim(len(payload), n)
+    codes = decode_keys(payload, n, quant, _offset) if layout == LAYOUT_KEYS else _decode_layout1(payload, n, quant)
+    lev = _q_levels(b["q"])
+    if np.any((codes[:, 6] < 0) | (codes[:, 6] > 3)) or np.any((codes[:, 7:10] < 0) | (codes[:, 7:10] > lev)):
+        raise WarpgaussError("coded rotations hold codes outside their range; the file is damaged")
+    if np.any(codes[:, 11] < 1):
+        raise WarpgaussError("coded weights hold codes below 1; the file is damaged")
+    return dequantise(codes, b)
+
+
+def coded_layout(quant: dict) -> int:
+    """The layout of a coded payload description: 1 (no ``layout`` key) or :data:`LAYOUT_KEYS`."""
+    layout = quant.get("layout", 1) if isinstance(quant, dict) else None
+    if isinstance(layout, bool) or layout not in (1, LAYOUT_KEYS):
+        raise WarpgaussError(
+            f"unknown coded layout {layout!r} (this warpgauss reads 1 and {LAYOUT_KEYS}); upgrade warpgauss or the file is damaged"
+        )
+    return int(layout)
+
+
+def _decode_layout1(payload: bytes, n: int, quant: dict) -> np.ndarray:
+    """(n, 12) int64 codes of a layout-1 payload."""
     cols = quant.get("columns")
     if not isinstance(cols, list) or len(cols) != len(CODED_COLUMNS) or not all(isinstance(c, list) and len(c) == 2 for c in cols):
         raise WarpgaussError(f"the coded column list must hold {len(CODED_COLUMNS)} (offset, bytes) pairs; the file is damaged")
@@ -486,7 +527,6 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
             raise WarpgaussError(f"coded column {name} width {w!r} is not 1..8 bytes; the file is damaged")
         widths.append(w)
         offsets.append(_offset(name, off))
-    check_claim(len(payload), n)
     raw = sum(widths) * n
     if quant.get("raw_bytes") != raw:
         raise WarpgaussError(f"coded payload declares {quant.get('raw_bytes')!r} raw bytes, its columns make {raw}; the file is damaged")
@@ -520,9 +560,4 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
         if np.any(np.abs(col) > _MAX_CODE):
             raise WarpgaussError(f"coded column {CODED_COLUMNS[k]} decodes beyond 2^52; the file is damaged")
         codes[:, k] = col
-    lev = _q_levels(b["q"])
-    if np.any((codes[:, 6] < 0) | (codes[:, 6] > 3)) or np.any((codes[:, 7:10] < 0) | (codes[:, 7:10] > lev)):
-        raise WarpgaussError("coded rotations hold codes outside their range; the file is damaged")
-    if np.any(codes[:, 11] < 1):
-        raise WarpgaussError("coded weights hold codes below 1; the file is damaged")
-    return dequantise(codes, b)
+    return codes
