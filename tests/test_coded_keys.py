@@ -4,7 +4,9 @@ earlier files still read, determinism, and refusal of damaged or crafted payload
 
 from __future__ import annotations
 
+import hashlib
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -230,3 +232,30 @@ def test_the_model_bytes_read_back_through_the_container():
     got, header = read_wgs_bytes(data)
     np.testing.assert_array_equal(got, coded.as_stored(p))
     assert header["payload"]["quant"]["layout"] == coded_keys.LAYOUT
+
+
+LAYOUT1_FILE = Path(__file__).parent / "golden" / "coded_layout1.wgs"
+# written by warpgauss 5babf2b (before layout 2) from these parameters; the sha256 of the float32
+# parameters that version read back from it
+LAYOUT1_BITS = {"mu": 3, "log_s": 5, "q": 6, "a": 9, "w": 6}
+LAYOUT1_PARAMS_SHA256 = "402a839f1449fa1ef807445342f3e276747def0cb9c5710b71138af9dd10ca89"
+
+
+def _layout1_params() -> np.ndarray:
+    from conftest import uniform_params
+
+    return uniform_params(np.random.default_rng(53), 300, centre=(0.0, 64.0), log_scale=(-1.0, 2.5), weight=(0.01, 1.0))
+
+
+def test_a_file_written_before_layout_2_reads_as_it_did():
+    params, header = read_wgs(LAYOUT1_FILE)
+    assert hashlib.sha256(params.tobytes()).hexdigest() == LAYOUT1_PARAMS_SHA256
+    assert "layout" not in header["payload"]["quant"]
+    p = _layout1_params()
+    np.testing.assert_array_equal(params, coded.as_stored(p, LAYOUT1_BITS))
+    # the layout-1 writer is the one that wrote it: the same bytes; layout 2 holds the same model
+    hdr = {k: v for k, v in header.items() if k not in ("n", "payload")}
+    assert wgs_bytes(p, hdr, encoding="coded", bits=LAYOUT1_BITS, layout=1) == LAYOUT1_FILE.read_bytes()
+    new = wgs_bytes(p, hdr, encoding="coded", bits=LAYOUT1_BITS)
+    np.testing.assert_array_equal(read_wgs_bytes(new)[0], params)
+    assert len(new) < len(LAYOUT1_FILE.read_bytes())
