@@ -54,6 +54,25 @@ def _structured(n: int, seed: int = 0) -> np.ndarray:
     return p
 
 
+def test_lift_and_unlift_are_inverse():
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 2, 3, 5, 8, 9, 100, 1023, 1024, 1025):
+        c = rng.integers(-(1 << 52), 1 << 52, n)
+        r = coded_keys.lift(c)
+        np.testing.assert_array_equal(coded_keys.unlift(r), c)
+    smooth = np.round(1000 * np.sin(np.arange(4000) / 50.0)).astype(np.int64)
+    assert np.median(np.abs(coded_keys.lift(smooth))) <= 2  # a smooth column leaves small residuals (but at coarse levels)
+
+
+def test_a_column_smooth_along_the_curve_is_stored_as_residuals():
+    p = _structured(4000, 8)
+    payload, quant, _ = coded.encode_coded(p, {"mu": 3, "log_s": 5, "q": 6, "a": 12, "w": 6})
+    mask = int.from_bytes(zstandard.ZstdDecompressor().decompress(payload)[:2], "little")
+    assert mask >> 10 & 1  # the value (a smooth function of the centre) is predicted
+    assert not mask >> 7 & 1  # a random rotation component is not
+    _both(p, {"mu": 3, "log_s": 5, "q": 6, "a": 12, "w": 6})
+
+
 @pytest.mark.parametrize("n", [1, 2, 3, 40, 2500])
 def test_round_trips_equal_layout_1(n):
     _both(realistic_params(np.random.default_rng(n), n))
@@ -173,31 +192,35 @@ def test_crafted_payloads_rejected(tmp_path):
     p = realistic_params(np.random.default_rng(6), 40)
     n = len(p)
     payload, quant, _ = coded.encode_coded(p)
-    blob = zstandard.ZstdDecompressor().decompress(payload)
+    blob = zstandard.ZstdDecompressor().decompress(payload)  # mask (2), symbols (n), bits, planes
     z = zstandard.ZstdCompressor(level=3)
     widths = [w for _, w in quant["columns"]]
-    packed = len(blob) - n - n * sum((w + 7) // 8 for w in widths[3:])
+    packed = len(blob) - 2 - n - n * sum((w + 7) // 8 for w in widths[3:])
+    planes = 2 + n + packed
 
     def edit(at: int, value: int) -> bytes:
         b = bytearray(blob)
         b[at] = value
         return z.compress(bytes(b))
 
-    first_sym = blob[0]
+    nbits = sum(max(s // 2 - 2, 0) for s in blob[2 : 2 + n])
     cases = [
         (z.compress(b"\0" * (len(blob) * 1000)), "claims 40 primitives"),
         (b"not a zstd frame at all but long enough to claim 40 primitives", "does not decompress"),
         (zstandard.ZstdCompressor(write_content_size=False).compress(blob), "frame holds"),
         (z.compress(blob[:-1]), "frame holds|bytes of bits"),
-        (edit(0, 2 * 64), "symbols outside"),  # a gap of 64 bits
-        (edit(0, 1), "symbols outside"),  # a second bit on a gap of 0 bits
-        (edit(0, first_sym + 16), "bytes of bits"),  # a byte more than the packed bits hold
-        (edit(n + packed - 1, blob[n + packed - 1] | 1) if (sum(max(s // 2 - 2, 0) for s in blob[:n]) % 8) else None, "padding bits"),
-        (edit(n + packed, 0xFF) if widths[3] % 8 else None, "padding bits that are not 0"),
+        (edit(1, blob[1] | 0x80), "marks columns"),  # column 15 predicted
+        (edit(0, blob[0] | 0x01), "marks columns"),  # a centre column predicted
+        (edit(2, 2 * 64), "symbols outside"),  # a gap of 64 bits
+        (edit(2, 1), "symbols outside"),  # a second bit on a gap of 0 bits
+        (edit(2, blob[2] + 16), "bytes of bits"),  # a byte more than the packed bits hold
+        (edit(planes - 1, blob[planes - 1] | 1) if nbits % 8 else None, "gaps end in padding bits"),
+        (edit(planes, 0xFF) if widths[3] % 8 else None, "padding bits that are not 0"),
     ]
+    assert sum(bad is not None for bad, _ in cases) >= len(cases) - 1
     # a rotation index of 7 (the column is constant 3: width 0, so give it a width)
     q = {**quant, "columns": [*quant["columns"][:6], [0, 3], *quant["columns"][7:]]}
-    at = n + packed + n * sum((w + 7) // 8 for w in widths[3:6])
+    at = planes + n * sum((w + 7) // 8 for w in widths[3:6])
     b = bytearray(blob)
     b[at:at] = bytes([3 << 5] * n)
     b[at] = 7 << 5
@@ -214,7 +237,7 @@ def test_crafted_payloads_rejected(tmp_path):
 
 def test_keys_that_overflow_are_refused():
     """Gaps that add past 2^63 (each valid alone) are refused rather than wrapped."""
-    sym = bytes([2 * 63, 2 * 63])  # two gaps of 63 bits: 2^62 + ... twice
+    sym = bytes([0, 0, 2 * 63, 2 * 63])  # no column predicted; two gaps of 63 bits: 2^62 + ... twice
     bits = np.packbits(np.ones(2 * 61, np.uint8)).tobytes()
     blob = sym + bits
     quant = {

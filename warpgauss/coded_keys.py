@@ -1,5 +1,7 @@
 """Layout 2 of the ``coded`` payload: the centres as a sorted set of Morton keys, the other
-attributes as top-aligned byte planes; one Zstandard frame (``.wgs`` format version 3).
+attributes as top-aligned byte planes, each column stored as is or as the residual of a
+prediction from its neighbours along the curve, whichever codes smaller; one Zstandard frame
+(``.wgs`` format version 3).
 
 The codes are those of layout 1 (:mod:`warpgauss.coded`: the same grids, the same canonical turns,
 the same storage order), so the accuracy is the same; only their representation differs::
@@ -8,32 +10,45 @@ the same storage order), so the accuracy is the same; only their representation 
                 in storage order (ascending), as gaps from the previous key (the first from 0);
                 each gap g > 0 of e = bit_length(g) bits is one symbol byte 2 e + (g's bit below
                 the leading one; 0 where e = 1) and its e - 2 bits below that, raw (Elias-gamma-
-                like): a byte plane of n symbols and a packed bit string
-    attributes  the nine other columns, each as its offset from its minimum in w bits (w = 0: a
-                constant column, nothing stored), top-aligned into ceil(w / 8) bytes, byte planes
-                from the most significant: the top plane holds a value's top 8 bits, whose
-                distribution is peaked, the lower ones its nearly uniform low bits
+                like): a byte plane of n symbols and a packed bit string (most significant first)
+    attributes  the nine other columns, each either its values or its residuals after
+                :func:`lift` (position i, an odd multiple of 2^L, predicted by the mean of the
+                positions 2^L before and after it, which a decoder has from the coarser levels:
+                every level is one vectorised step both ways); as its offset from its minimum in
+                w bits (w = 0: a constant column, nothing stored), top-aligned into ceil(w / 8)
+                bytes, byte planes from the most significant: the top plane holds a value's top
+                8 bits, whose distribution is peaked, the lower ones its nearly uniform low bits
 
-Frame contents in order: the n gap symbols, the packed remainder bits, then each attribute
-column's planes; each ends a Zstandard block (each block gets its own literal table), levels as
-:data:`warpgauss.coded.ZSTD_LEVELS`, the smaller frame kept.
+Frame contents in order: a 2-byte little-endian mask of the columns stored as residuals (bit k:
+column k of :data:`warpgauss.coded.CODED_COLUMNS`, 3-11 only), the n gap symbols (one block with
+the mask), the packed bits (a block), then for each group of :data:`GROUPS` its columns' first
+planes, then their second planes, ... (a block each: a group shares a literal table). Levels as
+:data:`warpgauss.coded.ZSTD_LEVELS`, the smaller frame kept. The description in the header holds
+the bit depths, per column ``[offset, width in bits]`` (the centre columns: the axis minimum and
+the bit length of the axis span) and ``"layout": 2``; no raw size: the frame declares it, and a
+reader checks it against what the columns make before it decompresses.
 
-Why this and not neighbour prediction or context models (measured on 21 refined H200 models, three
-head MRIs at CR 10-1000 and the vortex and interface fields at 256^3,
-``benchmarks/results/format/coded_context_*.json``): once a Gaussian's canonical turn and
-the absolute grids fix its codes, its log-scales, turn, value and weight are close to independent
-of its neighbours' and of one another: predicting from the previous Gaussian or conditioning on
-the neighbours' codes raised the adaptive code length (the learning cost exceeds what the context
-explains), conditioning the log-scales on each other gained at most 1 bit a Gaussian on two MRIs
-and nothing on the third. The centres are where the bytes were: layout 1 stored three per-axis
-deltas along the Morton order, about 3 bits a Gaussian above the entropy of the set (the order
-of N centres carries no information: log2 N! bits), which the key gaps recover; a Hilbert key
-codes 0.4 % smaller gaps than Morton's, not worth a second curve. The top-aligned planes recover
-what splitting a 9-12 bit column at its lowest byte lost (up to 0.5 bits a value).
+Why this and not context models (measured on 21 refined H200 models, three head MRIs at CR
+10-1000 and the vortex and interface fields at 256^3, ``benchmarks/accuracy/coded_context.py``,
+``benchmarks/results/accuracy/coded_context_cpu.json``): once a Gaussian's canonical turn and the
+absolute grids fix its codes, its log-scales, turn, value and weight are close to independent of
+its neighbours' and of one another on the MRIs: a residual from the mean of its 4 nearest coded
+neighbours had a larger order-0 entropy than the log-scales, turn and weight themselves on every
+MRI model, and the value's fell by 0.3 bits at most; an adaptive count model conditioned on that
+mean (8 buckets) saved at most 0.4 % of the file at CR 100-1000 and cost up to 2 % at small N
+(what it must learn), 0.3-1.9 % at CR 10-30, 2.3-5.3 % on the interface field (its log-scales
+follow the neighbours'): not worth a sequential adaptive coder in numpy. The centres are where the
+bytes were: layout 1 stored three per-axis deltas along the Morton order, about 3 bits a Gaussian
+above the entropy of the set (the order of N centres carries no information: log2 N! bits), which
+the key gaps recover (Hilbert keys' gaps take 0.03-0.08 bits a Gaussian less, 0.1 % of the file:
+not worth a second curve). The value is smooth along the curve on the fields (vortex: 11.3 ->
+9.2-10.0 bits as residuals), hence the per-column choice. The top-aligned planes recover what
+splitting a 9-12 bit column at its lowest byte lost (up to 0.5 bits a value).
 
 Decoding checks every declared width and offset against the header before it allocates,
-decompresses into at most the declared size, checks the symbols, the bit count and that the keys
-ascend without overflow, and rejects codes outside their ranges; no pickle.
+decompresses into at most what the columns can make, checks the mask, the symbols, the bit count
+and its padding, that the keys ascend without overflow and the centres stay within their declared
+spans, and rejects codes outside their ranges; no pickle.
 """
 
 from __future__ import annotations
@@ -45,6 +60,7 @@ from .errors import WarpgaussError
 LAYOUT = 2
 KEY_AXIS_BITS = 21  # Morton keys of 3 x 21 bits: a wider centre range is stored in layout 1
 _MAX_E = 63  # a gap's bit length: keys are below 2^63
+_LIFTABLE = sum(1 << k for k in range(3, 12))  # the columns that may be stored as lift() residuals
 
 
 def _bit_length(v: np.ndarray) -> np.ndarray:
@@ -144,6 +160,74 @@ def _planes(v: np.ndarray, w: int) -> list[bytes]:
     return [((aligned >> np.uint64(8 * (nb - 1 - j))) & np.uint64(0xFF)).astype(np.uint8).tobytes() for j in range(nb)]
 
 
+def _predicted(c: np.ndarray, s: int) -> np.ndarray:
+    """The predictions of positions s, 3s, 5s, ... of ``c`` (along axis 0) from positions i - s
+    and i + s: their mean, rounded down (i - s alone where i + s is past the end)."""
+    left = c[0 : len(c) - s : 2 * s]
+    right = c[2 * s :: 2 * s]
+    if len(right) < len(left):
+        right = np.concatenate([right, left[len(right) :]])
+    return (left + right) >> 1
+
+
+def lift(c: np.ndarray) -> np.ndarray:
+    """Residuals of int64 values ``c`` (storage order, along axis 0) after predicting each from
+    the two nearest of a coarser level: position i, an odd multiple of s = 2^L, from the mean
+    (rounded down) of positions i - s and i + s (i - s alone past the end); position 0 is its own
+    residual. Each level is one vectorised step."""
+    r = c.copy()
+    s = 1
+    while s < len(c):
+        r[s :: 2 * s] = c[s :: 2 * s] - _predicted(c, s)
+        s *= 2
+    return r
+
+
+def unlift(r: np.ndarray) -> np.ndarray:
+    """The values whose :func:`lift` residuals are ``r`` (the coarsest level first)."""
+    c = r.copy()
+    s = 1
+    while 2 * s < len(r):
+        s *= 2
+    while s >= 1 and len(r) > 1:
+        c[s :: 2 * s] = r[s :: 2 * s] + _predicted(c, s)
+        s //= 2
+    return c
+
+
+def _column(c: np.ndarray) -> tuple[int, int, list[bytes]]:
+    """(offset, width in bits, top-aligned planes) of an int64 column."""
+    off = int(c.min()) if len(c) else 0
+    v = c - off
+    w = int(v.max()).bit_length() if len(c) else 0
+    return off, w, _planes(v, w)
+
+
+def _zstd_size(planes: list[bytes]) -> int:
+    """Bytes of Zstandard level 1 frames of each plane (to compare two forms of a column)."""
+    from .coded import zstandard_module
+
+    co = zstandard_module().ZstdCompressor(level=1)
+    return sum(len(co.compress(p)) for p in planes)
+
+
+def _plane_bits(planes: list[bytes]) -> float:
+    """Order-0 entropy (bits) of byte planes, each alone: what a literal table per plane costs."""
+    total = 0.0
+    for p in planes:
+        counts = np.bincount(np.frombuffer(p, np.uint8), minlength=256)
+        counts = counts[counts > 0]
+        total -= float((counts * np.log2(counts / counts.sum())).sum())
+    return total
+
+
+# the attribute columns whose planes share a Zstandard block (a literal table): the three
+# log-scales, the rotation index, the three rotation components, the value, the weight. Columns of
+# one distribution gain nothing from tables of their own, and at small N a table is a share of the
+# file: 1.4 % at N 767 (mni_icbm152 CR 1000), 0.6-1.0 % at 2,000-3,400, +-0.1 % from 10,000
+GROUPS = ((3, 4, 5), (6,), (7, 8, 9), (10,), (11,))
+
+
 def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int]) -> tuple[bytes, dict]:
     """Layout-2 payload and description of (n, 12) codes in storage order whose centre keys
     ``keys`` (:func:`centre_keys`) ascend."""
@@ -152,21 +236,32 @@ def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int]) -> tu
     n = len(codes)
     sym, packed, nbits = _gap_streams(keys)
     columns: list[list[int]] = []
-    planes = [sym, packed]
     mu_min = codes[:, 0:3].min(0) if n else np.zeros(3, np.int64)
     for k in range(3):
         span = int(codes[:, k].max() - mu_min[k]) if n else 0
         columns.append([int(mu_min[k]), span.bit_length()])
+    mask = 0
+    col_planes: dict[int, list[bytes]] = {}
+    residuals = lift(codes[:, 3:12]) if n > 2 else None  # every attribute column at once
     for k in range(3, 12):
-        col = codes[:, k]
-        off = int(col.min()) if n else 0
-        v = col - off
-        w = int(v.max()).bit_length() if n else 0
-        columns.append([off, w])
-        planes += _planes(v, w)
-    raw = sum(len(p) for p in planes)
+        col = _column(codes[:, k])
+        if col[1] and residuals is not None:  # a stored column: its residuals may code smaller;
+            # they are kept where their planes' order-0 entropy is smaller and one Zstandard
+            # compression each confirms it (the entropy alone misjudged a width crossing 8 bits)
+            lifted = _column(residuals[:, k - 3])
+            if abs(lifted[0]) <= 1 << 52 and lifted[1] <= 53 and _plane_bits(lifted[2]) < _plane_bits(col[2]):
+                if _zstd_size(lifted[2]) < _zstd_size(col[2]):
+                    col = lifted
+                    mask |= 1 << k
+        columns.append([col[0], col[1]])
+        col_planes[k] = col[2]
+    blocks = [mask.to_bytes(2, "little") + sym, packed]
+    for group in GROUPS:
+        for j in range(max(len(col_planes[k]) for k in group)):
+            blocks.append(b"".join(col_planes[k][j] for k in group if j < len(col_planes[k])))
+    raw = sum(len(p) for p in blocks)
     assert len(packed) == (nbits + 7) // 8
-    payload = _compress_planes(planes, raw)
+    payload = _compress_planes(blocks, raw)
     # no raw size: the frame declares it (checked against the columns before it is decompressed),
     # so the description is no wider than layout 1's and a header reserved for either holds both
     return payload, {"bits": bits, "columns": columns, "layout": LAYOUT}
@@ -188,7 +283,7 @@ def decode_keys(payload: bytes, n: int, quant: dict, offset_check) -> np.ndarray
         offsets.append(offset_check(name, off))
         widths.append(w)
     nplanes = sum((w + 7) // 8 for w in widths[3:])
-    fixed = n + nplanes * n
+    fixed = 2 + n + nplanes * n
     most = fixed + (n * (_MAX_E - 2) + 7) // 8  # every gap of 63 bits
     zstd = zstandard_module()
     try:
@@ -200,7 +295,10 @@ def decode_keys(payload: bytes, n: int, quant: dict, offset_check) -> np.ndarray
         raise WarpgaussError(f"coded payload does not decompress ({err}); the file is damaged") from None
     if len(blob) != raw:
         raise WarpgaussError(f"coded payload decompresses to {len(blob)} bytes, expected {raw}; the file is damaged")
-    buf = np.frombuffer(blob, np.uint8)
+    mask = int.from_bytes(blob[:2], "little")
+    if mask & ~_LIFTABLE:
+        raise WarpgaussError(f"coded payload marks columns {mask:#x} as predicted, only {_LIFTABLE:#x} can be; the file is damaged")
+    buf = np.frombuffer(blob, np.uint8)[2:]
     sym = buf[:n].astype(np.int64)
     e, top = sym >> 1, sym & 1
     if np.any(e > _MAX_E) or np.any((e < 2) & (top != 0)):
@@ -228,17 +326,21 @@ def decode_keys(payload: bytes, n: int, quant: dict, offset_check) -> np.ndarray
             )
         codes[:, k] = offsets[k] + c
     at = n + npacked
+    aligned = {k: np.zeros(n, np.uint64) for k in range(3, 12)}
+    for group in GROUPS:  # the encoder's order: a group's first planes, then its second, ...
+        for j in range(max((widths[k] + 7) // 8 for k in group)):
+            for k in group:
+                if j < (widths[k] + 7) // 8:
+                    aligned[k] = (aligned[k] << np.uint64(8)) | buf[at : at + n].astype(np.uint64)
+                    at += n
     for k in range(3, 12):
         w = widths[k]
         nb = (w + 7) // 8
-        aligned = np.zeros(n, np.uint64)
-        for _ in range(nb):
-            aligned = (aligned << np.uint64(8)) | buf[at : at + n].astype(np.uint64)
-            at += n
         pad = np.uint64(8 * nb - w)
-        if nb and np.any(aligned & ((np.uint64(1) << pad) - np.uint64(1))):
+        if nb and np.any(aligned[k] & ((np.uint64(1) << pad) - np.uint64(1))):
             raise WarpgaussError(f"coded column {CODED_COLUMNS[k]} holds padding bits that are not 0; the file is damaged")
-        codes[:, k] = offsets[k] + (aligned >> pad).astype(np.int64)
+        v = offsets[k] + (aligned[k] >> pad).astype(np.int64)
+        codes[:, k] = unlift(v) if mask >> k & 1 else v
     if np.any(np.abs(codes) > _MAX_CODE):
         raise WarpgaussError("coded columns decode beyond 2^52; the file is damaged")
     return codes
