@@ -15,7 +15,7 @@ import pytest
 
 import warpgauss
 from warpgauss.errors import WarpgaussError
-from warpgauss.format.wgs import FORMAT_VERSION, MAGIC, PREFIX, PREFIX_SIZE
+from warpgauss.format.wgs import MAGIC, PREFIX, PREFIX_SIZE
 from warpgauss.readers.synthetic import generate
 
 BOMB_N = 30_000_000
@@ -40,7 +40,7 @@ def _zeros_frame(raw: int) -> bytes:
 def _bomb(real: bytes, n: int) -> bytes:
     """A coded .wgs with a consistent header and checksums whose payload is a frame of zeros
     claiming ``n`` primitives (a real coded file's header, edited)."""
-    (hlen,) = PREFIX.unpack(real[:PREFIX_SIZE])[2:3]
+    _, version, hlen, _ = PREFIX.unpack(real[:PREFIX_SIZE])  # the real file's version (its layout's)
     header = json.loads(real[PREFIX_SIZE : PREFIX_SIZE + hlen])
     quant = header["payload"]["quant"]
     quant["columns"] = [[0, 1] for _ in quant["columns"]]
@@ -50,7 +50,7 @@ def _bomb(real: bytes, n: int) -> bytes:
     header["payload"]["payload_bytes"] = len(payload)
     header["payload"]["sha256"] = hashlib.sha256(payload).hexdigest()
     area = json.dumps(header).encode()
-    return PREFIX.pack(MAGIC, FORMAT_VERSION, len(area), zlib.crc32(area)) + area + payload
+    return PREFIX.pack(MAGIC, version, len(area), zlib.crc32(area)) + area + payload
 
 
 @pytest.fixture(scope="module")
@@ -107,11 +107,11 @@ def test_parameters_that_code_below_the_floor_are_not_written(tmp_path):
 
 def _with_header(real: bytes, edit) -> bytes:
     """A real file with its header edited (and its checksum made right again)."""
-    (hlen,) = PREFIX.unpack(real[:PREFIX_SIZE])[2:3]
+    _, version, hlen, _ = PREFIX.unpack(real[:PREFIX_SIZE])
     header = json.loads(real[PREFIX_SIZE : PREFIX_SIZE + hlen])
     edit(header)
     area = json.dumps(header).encode()
-    return PREFIX.pack(MAGIC, FORMAT_VERSION, len(area), zlib.crc32(area)) + area + real[PREFIX_SIZE + hlen :]
+    return PREFIX.pack(MAGIC, version, len(area), zlib.crc32(area)) + area + real[PREFIX_SIZE + hlen :]
 
 
 @pytest.mark.parametrize("spacing", [[0.0, 1.0, 1.0], [1.0, -0.5, 1.0]])

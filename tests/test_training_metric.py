@@ -213,7 +213,9 @@ def test_fit_bytes_with_a_score_keeps_the_fit_that_scores_best():
     from warpgauss.format import coded, ratefit
 
     p = realistic_params(np.random.default_rng(9), 3000)
-    budget = int(len(coded.encode_coded(p)[0]) * 0.8)
+    budget = int(
+        len(coded.encode_coded(p)[0]) * 0.7
+    )  # where the first fit prunes no more than bits alone (at 0.8 with layout 2 it prunes 77, bits alone none)
     plain = ratefit.fit_bytes(p, budget)
     assert any(s.endswith("-1") for s in plain[2]["steps"]) and "choice" not in plain[2]
 

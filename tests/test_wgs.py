@@ -465,8 +465,11 @@ def test_crafted_headers_rejected(tmp_path, mutate, match):
 def test_unsupported_version_and_empty_model_rejected(tmp_path):
     p = realistic_params(np.random.default_rng(0), 3)
     header, payload = _valid_header(p)
-    _craft(tmp_path / "v3.wgs", header, payload, version=3)
-    with pytest.raises(WarpgaussError, match="unsupported .wgs format version 3"):
+    _craft(tmp_path / "v4.wgs", header, payload, version=4)
+    with pytest.raises(WarpgaussError, match="unsupported .wgs format version 4"):
+        read_wgs(tmp_path / "v4.wgs")
+    _craft(tmp_path / "v3.wgs", header, payload, version=3)  # version 3 is a coded payload in layout 2
+    with pytest.raises(WarpgaussError, match="version 3 file without a layout 2 coded payload"):
         read_wgs(tmp_path / "v3.wgs")
     _craft(tmp_path / "v2.wgs", header, payload, version=2)  # version 2 is a file with a residual
     with pytest.raises(WarpgaussError, match="version 2 file without a residual"):

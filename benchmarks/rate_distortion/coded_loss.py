@@ -62,7 +62,7 @@ for pair in pairs:
             "payload_bytes_per_primitive": len(payload) / m.n,
             "psnr_db": p,
             "loss_db": base - p,
-            "raw_bytes_per_primitive": quant["raw_bytes"] / m.n,
+            "raw_bytes_per_primitive": coded.zstandard_module().get_frame_parameters(payload).content_size / m.n,  # either layout
             "file_bytes": total,
         }
         print(

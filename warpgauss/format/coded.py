@@ -21,7 +21,7 @@ that each gets its own literal (Huffman) table: one table for all planes mixed, 
 compression of the concatenation gives at small N, cost 7-10 % (refined models of 2,900-3,800
 Gaussians: mni_icbm152 at CR 300 9.35 -> 8.47 B a Gaussian, interface 96^3 at CR 100 8.89 ->
 7.97; 1 % at 75,000, inia19 at CR 30, 7.79 -> 7.70; the order-0 entropy of the columns' values is
-8.02 / 7.64 / 7.50). The frame is coded at :data:`ZSTD_LEVELS` and the smaller kept (matches
+8.02 / 7.64 / 7.50). The frame is coded at :data:`.zframes.ZSTD_LEVELS` and the smaller kept (matches
 across the planes buy little: level 19 codes them larger than level 1 and takes 80x as long).
 Zstandard rather than a range coder of our own: a well-kept, fast, bounded-memory library with a
 frame checksum and a declared content size; an adaptive model-based coder would save the 2-5 %
@@ -30,35 +30,36 @@ measured). A reader of any warpgauss version decodes either layout: it is one fr
 
 Decoding checks every declared width, offset and length against the header before it allocates,
 decompresses into at most the declared size, and rejects codes outside their ranges; no pickle.
+
+That is layout 1, the layout of ``.wgs`` format versions 1 and 2. New files are written in layout
+2 (:mod:`warpgauss.coded_keys`, format version 3: the same codes and order, the centres as sorted
+Morton key gaps, 4-9 % smaller on refined models), or in layout 1 where a centre axis spans 2^21
+codes or more; :func:`decode_coded` reads both, and :func:`encode_coded` writes either.
 """
 
 from __future__ import annotations
 
 import math
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from ..errors import WarpgaussError
+from .coded_keys import KEY_AXIS_BITS, centre_keys, decode_keys, encode_keys
+from .coded_keys import LAYOUT as LAYOUT_KEYS
 from .export import quat_to_matrix
+from .zframes import _MAX_CODE, CODED_COLUMNS, _compress_planes, _part1by2, zstandard_module
 
 # measured on four real volumes (benchmarks/results/rate_distortion/coded_loss_mri_cpu.json): every bit here costs less
 # PSNR than the primitives its bytes would buy (about 0.4 dB a byte at these budgets)
 CODED_BITS: dict[str, int] = {"mu": 2, "log_s": 4, "q": 5, "a": 7, "w": 5}
-# the frame of planes is coded at each level and the smaller kept: level 1 was the smaller on three
-# refined models of four, level 9 on the fourth (mni_icbm152 at CR 1000, 688 Gaussians: 9.67 and
-# 9.31 B a Gaussian); both take 2-11 ms a megabyte of planes, where level 19 took 135
-ZSTD_LEVELS = (1, 9)
 # CODED_BITS keep the quantisation noise below the error of 30-42 dB models; a more accurate model
 # needs finer grids: one bit on every attribute per this many dB above BITS_REFERENCE_DB (each bit
 # halves the noise). Measured: a 51.2 dB vortex model lost 2.07 dB at CODED_BITS, 0.14 dB at +2.
 BITS_REFERENCE_DB = 40.0
 DB_PER_BIT = 6.0
 Q_RANGE = 1.0 / math.sqrt(2.0)
-CODED_COLUMNS = ("mu_x", "mu_y", "mu_z", "log_sx", "log_sy", "log_sz", "q_index", "q_0", "q_1", "q_2", "a", "w")
 _DELTA = ("mu_x", "mu_y", "mu_z")
-_MAX_CODE = 1 << 52  # |code| bound: every code and difference is exact in float64 and int64
 
 
 # The least payload a coded primitive may take. Real models take more: 5.7-6.4 bytes a Gaussian at
@@ -78,14 +79,6 @@ def check_claim(payload_bytes: int, n: int) -> None:
             f"the coded payload of {payload_bytes:,} bytes claims {n:,} primitives ({payload_bytes / max(n, 1):.3g} bytes each; "
             f"real models take more than 2, this reader refuses below {MIN_PAYLOAD_PER_PRIMITIVE:g}): the file is damaged or crafted"
         )
-
-
-def zstandard_module():
-    try:
-        import zstandard
-    except ImportError:  # pragma: no cover - a dependency of the package
-        raise WarpgaussError("the coded model format needs the 'zstandard' package: pip install zstandard") from None
-    return zstandard
 
 
 def check_bits(bits) -> dict[str, int]:
@@ -354,20 +347,6 @@ def as_stored(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndar
     return dequantise(codes[coded_order(codes)], bits)
 
 
-def _part1by2(v: np.ndarray) -> np.ndarray:
-    """Spread the low 21 bits of v to every third bit (Morton interleave of one axis)."""
-    v = v.astype(np.uint64) & np.uint64(0x1FFFFF)
-    for shift, mask in (
-        (32, 0x1F00000000FFFF),
-        (16, 0x1F0000FF0000FF),
-        (8, 0x100F00F00F00F00F),
-        (4, 0x10C30C30C30C30C3),
-        (2, 0x1249249249249249),
-    ):
-        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
-    return v
-
-
 def coded_order(codes: np.ndarray) -> np.ndarray:
     """The storage order: by Morton code of the centre codes (offset to 0), ties by every code; a
     centre range wider than 2^21 codes on an axis falls back to z, y, x order.
@@ -375,6 +354,8 @@ def coded_order(codes: np.ndarray) -> np.ndarray:
     Equal to ``np.lexsort`` over (every code, then the key), computed as one sort of the key and
     a lexsort of the rows whose key is shared (a few, where centres share a grid cell).
     """
+    if len(codes) == 0:
+        return np.zeros(0, np.intp)
     mu = codes[:, 0:3] - codes[:, 0:3].min(0)
     if int(mu.max(initial=0)) < (1 << 21):
         key = _part1by2(mu[:, 0]) | (_part1by2(mu[:, 1]) << np.uint64(1)) | (_part1by2(mu[:, 2]) << np.uint64(2))
@@ -404,8 +385,11 @@ def _width(max_value: int) -> int:
     return max(1, (int(max_value).bit_length() + 7) // 8)
 
 
-def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tuple[bytes, dict, np.ndarray]:
-    """Code (N, 12) finite parameters.
+def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None, layout: int | None = None) -> tuple[bytes, dict, np.ndarray]:
+    """Code (N, 12) finite parameters, in ``layout`` (None: :data:`LAYOUT_KEYS`, the centres as
+    sorted Morton key gaps (:mod:`warpgauss.coded_keys`), where every axis spans fewer than 2^21
+    codes, else layout 1; 1: per-axis centre deltas and low-aligned byte planes, as warpgauss wrote
+    before format version 3).
 
     Returns:
         ``(payload, quant, order)``: the compressed bytes, the JSON-ready description the decoder
@@ -413,9 +397,20 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tupl
         permutation of ``params`` rows the file stores them in.
     """
     b = check_bits(dict(CODED_BITS if bits is None else bits))
+    if layout not in (None, 1, LAYOUT_KEYS):
+        raise WarpgaussError(f"unknown coded layout {layout!r}; this warpgauss writes layouts 1 and {LAYOUT_KEYS}")
     codes = quantise(params, b)
     order = coded_order(codes)
     codes = codes[order]
+    if layout != 1:
+        keys = centre_keys(codes[:, 0:3])
+        if keys is not None:
+            payload, quant = encode_keys(codes, keys, b)
+            return payload, quant, order
+        if layout == LAYOUT_KEYS:
+            raise WarpgaussError(
+                f"centres spanning 2^{KEY_AXIS_BITS} codes or more on an axis have no layout {LAYOUT_KEYS}; write layout 1"
+            )
     columns, planes, raw = [], [], 0
     for k, name in enumerate(CODED_COLUMNS):
         col = codes[:, k]
@@ -437,32 +432,6 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None) -> tupl
     return payload, quant, order
 
 
-PARALLEL_MIN_BYTES = 1 << 18  # raw planes from which the Zstandard levels run on threads
-
-
-def _compress_planes(planes: list[bytes], raw: int) -> bytes:
-    """One Zstandard frame of ``planes`` (``raw`` bytes in all), a block ended after each plane, at
-    each of :data:`ZSTD_LEVELS`; the smallest (the first of equals)."""
-    zstd = zstandard_module()
-
-    def frame(level: int) -> bytes:
-        co = zstd.ZstdCompressor(level=level, write_checksum=True).compressobj(size=raw)
-        out = []
-        for plane in planes:
-            out.append(co.compress(plane))
-            out.append(co.flush(zstd.COMPRESSOBJ_FLUSH_BLOCK))
-        out.append(co.flush())
-        return b"".join(out)
-
-    # the levels on threads of their own (Zstandard releases the GIL): the same frames, in parallel
-    if raw >= PARALLEL_MIN_BYTES and len(ZSTD_LEVELS) > 1:
-        with ThreadPoolExecutor(max_workers=len(ZSTD_LEVELS)) as ex:
-            frames = list(ex.map(frame, ZSTD_LEVELS))
-    else:
-        frames = [frame(level) for level in ZSTD_LEVELS]
-    return min(frames, key=len)  # the first of equals
-
-
 def _offset(name: str, v) -> int:
     if isinstance(v, bool) or not isinstance(v, int) or abs(v) > _MAX_CODE:
         raise WarpgaussError(f"coded column {name} offset must be an integer of at most 2^52, got {v!r}; the file is damaged")
@@ -477,6 +446,29 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
         b = check_bits(quant.get("bits"))
     except WarpgaussError as e:
         raise WarpgaussError(f"{e}; the file is damaged or was written by another warpgauss version") from None
+    layout = coded_layout(quant)
+    check_claim(len(payload), n)
+    codes = decode_keys(payload, n, quant, _offset) if layout == LAYOUT_KEYS else _decode_layout1(payload, n, quant)
+    lev = _q_levels(b["q"])
+    if np.any((codes[:, 6] < 0) | (codes[:, 6] > 3)) or np.any((codes[:, 7:10] < 0) | (codes[:, 7:10] > lev)):
+        raise WarpgaussError("coded rotations hold codes outside their range; the file is damaged")
+    if np.any(codes[:, 11] < 1):
+        raise WarpgaussError("coded weights hold codes below 1; the file is damaged")
+    return dequantise(codes, b)
+
+
+def coded_layout(quant: dict) -> int:
+    """The layout of a coded payload description: 1 (no ``layout`` key) or :data:`LAYOUT_KEYS`."""
+    layout = quant.get("layout", 1) if isinstance(quant, dict) else None
+    if isinstance(layout, bool) or layout not in (1, LAYOUT_KEYS):
+        raise WarpgaussError(
+            f"unknown coded layout {layout!r} (this warpgauss reads 1 and {LAYOUT_KEYS}); upgrade warpgauss or the file is damaged"
+        )
+    return int(layout)
+
+
+def _decode_layout1(payload: bytes, n: int, quant: dict) -> np.ndarray:
+    """(n, 12) int64 codes of a layout-1 payload."""
     cols = quant.get("columns")
     if not isinstance(cols, list) or len(cols) != len(CODED_COLUMNS) or not all(isinstance(c, list) and len(c) == 2 for c in cols):
         raise WarpgaussError(f"the coded column list must hold {len(CODED_COLUMNS)} (offset, bytes) pairs; the file is damaged")
@@ -486,7 +478,6 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
             raise WarpgaussError(f"coded column {name} width {w!r} is not 1..8 bytes; the file is damaged")
         widths.append(w)
         offsets.append(_offset(name, off))
-    check_claim(len(payload), n)
     raw = sum(widths) * n
     if quant.get("raw_bytes") != raw:
         raise WarpgaussError(f"coded payload declares {quant.get('raw_bytes')!r} raw bytes, its columns make {raw}; the file is damaged")
@@ -520,9 +511,4 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
         if np.any(np.abs(col) > _MAX_CODE):
             raise WarpgaussError(f"coded column {CODED_COLUMNS[k]} decodes beyond 2^52; the file is damaged")
         codes[:, k] = col
-    lev = _q_levels(b["q"])
-    if np.any((codes[:, 6] < 0) | (codes[:, 6] > 3)) or np.any((codes[:, 7:10] < 0) | (codes[:, 7:10] > lev)):
-        raise WarpgaussError("coded rotations hold codes outside their range; the file is damaged")
-    if np.any(codes[:, 11] < 1):
-        raise WarpgaussError("coded weights hold codes below 1; the file is damaged")
-    return dequantise(codes, b)
+    return codes

@@ -12,6 +12,11 @@ Layout (little-endian, SPEC section 6)::
     residual            optional: a bounded residual's Zstandard frames, described by the header's
                         ``residual`` entry (:mod:`warpgauss.format.residual`)
 
+The format version is 1, or 2 for a file with a residual, or 3 for a file whose coded payload is in
+layout 2 (:mod:`warpgauss.coded_keys`; with or without a residual, as its header says): a reader
+refuses a version it predates ("upgrade warpgauss") rather than misread the payload, and reads
+every earlier version.
+
 A full-precision file is therefore exactly ``48 N + H`` bytes, and ``H`` is known before the
 parameters exist (:func:`header_size` reserves room for the fields written last), so a budget can
 be derived from a target compression ratio.
@@ -67,12 +72,19 @@ import numpy as np
 
 from ..core.files import atomic_write_bytes, check_writable
 from ..errors import WarpgaussError
+from .coded_keys import LAYOUT as CODED_KEYS_LAYOUT
 from .compact import decode_compact, encode_compact, quant_dict
 from .residual import Residual
 
 MAGIC = b"WGAUSS\x00\x01"
 FORMAT_VERSION = 1
 RESIDUAL_VERSION = 2  # a file with a residual: a reader that predates residuals refuses it by its version
+# a coded payload in layout 2 (centres as sorted Morton key gaps, warpgauss.coded_keys), with or
+# without a residual (the header's "residual" entry says which): a reader that predates the layout
+# refuses the file by its version rather than misreading the payload; every other file is written
+# as version 1 or 2, as before
+CODED_KEYS_VERSION = 3
+VERSIONS = (FORMAT_VERSION, RESIDUAL_VERSION, CODED_KEYS_VERSION)
 HEADER_BLOCK = 4096
 PREFIX_SIZE = 20  # magic (8) + version (4) + JSON length (4) + CRC32 (4)
 PREFIX = struct.Struct("<8sIII")
@@ -150,6 +162,7 @@ def _coded_placeholder() -> dict:
     """A coded payload description with every number at its widest (for header sizes)."""
     from .coded import CODED_BITS, CODED_COLUMNS
 
+    # layout 1's at its widest; layout 2's (widths in bits, a layout key, no raw size) is narrower
     return {"bits": {k: 24 for k in CODED_BITS}, "columns": [[-(1 << 52), 8]] * len(CODED_COLUMNS), "raw_bytes": _N_PLACEHOLDER}
 
 
@@ -241,6 +254,7 @@ def write_wgs(
     force: bool = False,
     bits: dict | None = None,
     residual: Residual | None = None,
+    layout: int | None = None,
 ) -> int:
     """Write a ``.wgs`` file atomically (nothing partial is ever left at ``path``).
 
@@ -258,6 +272,8 @@ def write_wgs(
             :data:`HEADER_BLOCK` that fits, which equals :func:`header_size` of this header.
         force: Replace an existing file.
         residual: A bounded residual (:mod:`warpgauss.format.residual`), stored after the primitives.
+        layout: The coded payload's layout (:func:`warpgauss.format.coded.encode_coded`; None: the
+            newest that holds the model; 1: as warpgauss wrote before format version 3).
 
     Returns:
         The file size in bytes: ``48 N + H`` (``12 N + H`` compact, payload + H coded), plus the
@@ -265,7 +281,7 @@ def write_wgs(
     """
     dest = check_writable(path, force=force)
     encoding = resolve_encoding(compact, encoding)
-    data = wgs_bytes(params, header, encoding=encoding, header_size=header_size, bits=bits, residual=residual)
+    data = wgs_bytes(params, header, encoding=encoding, header_size=header_size, bits=bits, residual=residual, layout=layout)
     if encoding == "coded":  # no file is written that read_wgs would refuse
         from .coded import MIN_PAYLOAD_PER_PRIMITIVE
 
@@ -293,10 +309,12 @@ def wgs_bytes(
     header_size: int | None = None,
     bits: dict | None = None,
     residual: Residual | None = None,
+    layout: int | None = None,
 ) -> bytes:
     """The bytes :func:`write_wgs` writes (for sizes and in-memory round trips); ``bits``: the
     coded bit depths (default :data:`warpgauss.format.coded.CODED_BITS`); ``residual``: appended after
-    the primitives, described by the header's ``residual`` entry."""
+    the primitives, described by the header's ``residual`` entry; ``layout``: the coded payload's
+    layout (None: the newest that holds the model)."""
     p = _validated_params(params)
     n = p.shape[0]
     encoding = resolve_encoding(False, encoding)
@@ -305,7 +323,7 @@ def wgs_bytes(
     elif encoding == "coded":
         from .coded import encode_coded
 
-        payload, quant, _ = encode_coded(p, bits)
+        payload, quant, _ = encode_coded(p, bits, layout)
     else:
         payload, quant = p.astype("<f4", copy=False).tobytes(), None
     tail = b"" if residual is None else residual.payload()
@@ -329,7 +347,10 @@ def wgs_bytes(
     if H - PREFIX_SIZE > 0xFFFFFFFF:
         raise WarpgaussError(f"header of {H} bytes is too large for the format (max 4 GiB); shrink the header")
     area = body + b" " * (H - need)
-    version = FORMAT_VERSION if residual is None else RESIDUAL_VERSION
+    if quant is not None and quant.get("layout") == CODED_KEYS_LAYOUT:
+        version = CODED_KEYS_VERSION
+    else:
+        version = FORMAT_VERSION if residual is None else RESIDUAL_VERSION
     prefix = PREFIX.pack(MAGIC, version, len(area), zlib.crc32(area))
     return b"".join([prefix, area, payload, tail])
 
@@ -389,9 +410,9 @@ def _parse(f: BinaryIO, size: int, label: str, payload: bool) -> tuple[np.ndarra
     magic, version, hlen, crc = PREFIX.unpack(f.read(PREFIX_SIZE))
     if magic != MAGIC:
         raise bad("not a warpgauss model file (bad magic); give a .wgs file written by warpgauss")
-    if version not in (FORMAT_VERSION, RESIDUAL_VERSION):
+    if version not in VERSIONS:
         raise bad(
-            f"unsupported .wgs format version {version} (this warpgauss reads versions {FORMAT_VERSION} and {RESIDUAL_VERSION}); "
+            f"unsupported .wgs format version {version} (this warpgauss reads versions {VERSIONS[0]} to {VERSIONS[-1]}); "
             "upgrade warpgauss or re-encode the volume"
         )
     if hlen > size - PREFIX_SIZE:
@@ -444,7 +465,12 @@ def _parse(f: BinaryIO, size: int, label: str, payload: bool) -> tuple[np.ndarra
         what = "ranges" if enc == "compact96" else "description"
         raise bad(f"the header lacks the {enc} quantisation {what} ('quant'); the file is damaged")
     extra = 0
-    if ("residual" in header) != (version == RESIDUAL_VERSION):
+    keyed = enc == "coded" and isinstance(info["quant"], dict) and info["quant"].get("layout") == CODED_KEYS_LAYOUT
+    if keyed != (version == CODED_KEYS_VERSION):
+        raise bad(
+            f"a version {version} file {'without' if version == CODED_KEYS_VERSION else 'with'} a layout {CODED_KEYS_LAYOUT} coded payload; the file is damaged"
+        )
+    if version != CODED_KEYS_VERSION and ("residual" in header) != (version == RESIDUAL_VERSION):
         raise bad(f"a version {version} file {'without' if version == RESIDUAL_VERSION else 'with'} a residual; the file is damaged")
     if "residual" in header:  # checked in full by warpgauss.format.residual.check_info before it is read
         claimed = header["residual"].get("payload_bytes") if isinstance(header["residual"], dict) else None

@@ -117,6 +117,9 @@ def coded_budget(dv, f: Field, opts: EncodeOptions, header: dict, total: int, n_
     # that is a good share of the payload)
     head = len(data) - payload + 32
     growth = CODED_REFINE_GROWTH if refining else 1.0
+    # n_bound counted the reserved header (its fields at their widest): the pilot's own leaves a
+    # few hundred bytes more, which at a budget of a few hundred payload bytes is most of it
+    n_bound = max(n_bound, min(seed_limit(f.eligible, f.occupied), int((total - head) // CODED_BPP_FLOOR)))
     n = max(1, min(n_bound, int((total - head) // (bpp * growth))))
     return n, {
         "pilot_n": pilot,

@@ -1,0 +1,346 @@
+"""Layout 2 of the ``coded`` payload: the centres as a sorted set of Morton keys, the other
+attributes as top-aligned byte planes, each column stored as is or as the residual of a
+prediction from its neighbours along the curve, whichever codes smaller; one Zstandard frame
+(``.wgs`` format version 3).
+
+The codes are those of layout 1 (:mod:`warpgauss.coded`: the same grids, the same canonical turns,
+the same storage order), so the accuracy is the same; only their representation differs::
+
+    centres     the Morton key of each centre code (offset to the per-axis minimum, 21 bits an axis),
+                in storage order (ascending), as gaps from the previous key (the first from 0);
+                each gap g > 0 of e = bit_length(g) bits is one symbol byte 2 e + (g's bit below
+                the leading one; 0 where e = 1) and its e - 2 bits below that, raw (Elias-gamma-
+                like): a byte plane of n symbols and a packed bit string (most significant first)
+    attributes  the nine other columns, each either its values or its residuals after
+                :func:`lift` (position i, an odd multiple of 2^L, predicted by the mean of the
+                positions 2^L before and after it, which a decoder has from the coarser levels:
+                every level is one vectorised step both ways); as its offset from its minimum in
+                w bits (w = 0: a constant column, nothing stored), top-aligned into ceil(w / 8)
+                bytes, byte planes from the most significant: the top plane holds a value's top
+                8 bits, whose distribution is peaked, the lower ones its nearly uniform low bits
+
+Frame contents in order: a 2-byte little-endian mask of the columns stored as residuals (bit k:
+column k of :data:`warpgauss.format.zframes.CODED_COLUMNS`, 3-11 only), the n gap symbols (one block with
+the mask), the packed bits (a block), then for each group of :data:`GROUPS` its columns' first
+planes, then their second planes, ... (a block each: a group shares a literal table). Levels as
+:data:`warpgauss.format.zframes.ZSTD_LEVELS`, the smaller frame kept. The description in the header holds
+the bit depths, per column ``[offset, width in bits]`` (the centre columns: the axis minimum and
+the bit length of the axis span) and ``"layout": 2``; no raw size: the frame declares it, and a
+reader checks it against what the columns make before it decompresses.
+
+Why this and not context models (measured on 21 refined H200 models, three head MRIs at CR
+10-1000 and the vortex and interface fields at 256^3, ``benchmarks/accuracy/coded_context.py``,
+``benchmarks/results/accuracy/coded_context_cpu.json``): once a Gaussian's canonical turn and the
+absolute grids fix its codes, its log-scales, turn, value and weight are close to independent of
+its neighbours' and of one another on the MRIs: a residual from the mean of its 4 nearest coded
+neighbours had a larger order-0 entropy than the log-scales, turn and weight themselves on every
+MRI model, and the value's fell by 0.3 bits at most; an adaptive count model conditioned on that
+mean (8 buckets) saved at most 0.4 % of the file at CR 100-1000 and cost up to 2 % at small N
+(what it must learn), 0.3-1.9 % at CR 10-30, 2.3-5.3 % on the interface field (its log-scales
+follow the neighbours'): not worth a sequential adaptive coder in numpy. The centres are where the
+bytes were: layout 1 stored three per-axis deltas along the Morton order, about 3 bits a Gaussian
+above the entropy of the set (the order of N centres carries no information: log2 N! bits), which
+the key gaps recover (Hilbert keys' gaps take 0.03-0.08 bits a Gaussian less, 0.1 % of the file:
+not worth a second curve). The value is smooth along the curve on the fields (vortex: 11.3 ->
+9.2-10.0 bits as residuals), hence the per-column choice. The top-aligned planes recover what
+splitting a 9-12 bit column at its lowest byte lost (up to 0.5 bits a value).
+
+Decoding checks every declared width and offset against the header before it allocates,
+decompresses into at most what the columns can make, checks the mask, the symbols, the bit count
+and its padding, that the keys ascend without overflow and the centres stay within their declared
+spans, and rejects codes outside their ranges; no pickle.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import WarpgaussError
+
+LAYOUT = 2
+KEY_AXIS_BITS = 21  # Morton keys of 3 x 21 bits: a wider centre range is stored in layout 1
+_MAX_E = 63  # a gap's bit length: keys are below 2^63
+_LIFTABLE = sum(1 << k for k in range(3, 12))  # the columns that may be stored as lift() residuals
+
+
+def _bit_length(v: np.ndarray) -> np.ndarray:
+    """Bit lengths (int64) of uint64 values."""
+    e = np.zeros(len(v), np.int64)
+    g = v.copy()
+    for sh in (32, 16, 8, 4, 2, 1):
+        big = g >= np.uint64(1 << sh)
+        e += big * sh
+        g = np.where(big, g >> np.uint64(sh), g)
+    return e + (g > 0)
+
+
+def _compact1by2(v: np.ndarray) -> np.ndarray:
+    """Every third bit of v gathered into the low 21 bits (inverse of the Morton spread)."""
+    v = v & np.uint64(0x1249249249249249)
+    for shift, mask in (
+        (2, 0x10C30C30C30C30C3),
+        (4, 0x100F00F00F00F00F),
+        (8, 0x1F0000FF0000FF),
+        (16, 0x1F00000000FFFF),
+        (32, 0x1FFFFF),
+    ):
+        v = (v | (v >> np.uint64(shift))) & np.uint64(mask)
+    return v
+
+
+def centre_keys(mu: np.ndarray) -> np.ndarray | None:
+    """Morton keys (uint64) of centre codes ``mu`` (n, 3) offset to their minimum, or None where an
+    axis spans 2^21 codes or more."""
+    from .zframes import _part1by2
+
+    if len(mu) == 0:
+        return np.zeros(0, np.uint64)
+    m = mu - mu.min(0)
+    if int(m.max()) >= 1 << KEY_AXIS_BITS:
+        return None
+    return _part1by2(m[:, 0]) | (_part1by2(m[:, 1]) << np.uint64(1)) | (_part1by2(m[:, 2]) << np.uint64(2))
+
+
+def _gap_streams(keys: np.ndarray) -> tuple[bytes, bytes, int]:
+    """(symbol plane, packed remainder bits, bit count) of ascending keys."""
+    gap = np.diff(keys, prepend=np.uint64(0))
+    e = _bit_length(gap)
+    top = np.where(e >= 2, (gap >> np.maximum(e - 2, 0).astype(np.uint64)) & np.uint64(1), 0).astype(np.int64)
+    sym = (2 * e + top).astype(np.uint8)
+    r = np.maximum(e - 2, 0)  # raw bits below the leading one and the symbol's bit
+    rest = gap & ((np.uint64(1) << r.astype(np.uint64)) - np.uint64(1))
+    packed, total = pack_fields(rest, r)
+    return sym.tobytes(), packed, total
+
+
+def pack_fields(v: np.ndarray, r: np.ndarray) -> tuple[bytes, int]:
+    """Values ``v`` (uint64, each below 2^r) as fields of ``r`` (0-61) bits, most significant bit
+    first, one after the other; (bytes, bit count), the last byte padded with 0 bits. Word by word
+    (a field spans at most two 64-bit words), not bit by bit."""
+    total = int(r.sum())
+    if total == 0:
+        return b"", 0
+    keep = r > 0
+    v, r = v[keep], r[keep]
+    s = np.cumsum(r) - r  # each field's first bit
+    w, off = s >> 6, s & 63
+    end = off + r
+    fits = end <= 64
+    words = np.zeros((total + 63) // 64 + 1, np.uint64)
+    first = np.where(fits, v << np.where(fits, 64 - end, 0).astype(np.uint64), v >> np.where(fits, 0, end - 64).astype(np.uint64))
+    np.bitwise_or.at(words, w, first)
+    over = ~fits
+    np.bitwise_or.at(words, w[over] + 1, v[over] << (128 - end[over]).astype(np.uint64))
+    return words.astype(">u8").tobytes()[: (total + 7) // 8], total
+
+
+def unpack_fields(data: bytes, r: np.ndarray) -> np.ndarray:
+    """The uint64 fields of widths ``r`` (0-61) that :func:`pack_fields` packed into ``data``
+    (its bit count checked by the caller)."""
+    out = np.zeros(len(r), np.uint64)
+    keep = np.flatnonzero(r)
+    if len(keep) == 0:
+        return out
+    rk = r[keep]
+    s = np.cumsum(rk) - rk
+    w, off = s >> 6, (s & 63).astype(np.uint64)
+    words = np.frombuffer(bytes(data) + bytes(16 - len(data) % 8), ">u8").astype(np.uint64)
+    hi = words[w] << off
+    lo = np.where(off > 0, words[w + 1] >> (np.uint64(64) - np.where(off > 0, off, np.uint64(1))), np.uint64(0))
+    out[keep] = (hi | lo) >> (64 - rk).astype(np.uint64)
+    return out
+
+
+def _planes(v: np.ndarray, w: int) -> list[bytes]:
+    """Top-aligned byte planes (most significant first) of values below 2^w."""
+    nb = (w + 7) // 8
+    if nb == 0:
+        return []
+    aligned = v.astype(np.uint64) << np.uint64(8 * nb - w)
+    return [((aligned >> np.uint64(8 * (nb - 1 - j))) & np.uint64(0xFF)).astype(np.uint8).tobytes() for j in range(nb)]
+
+
+def _predicted(c: np.ndarray, s: int) -> np.ndarray:
+    """The predictions of positions s, 3s, 5s, ... of ``c`` (along axis 0) from positions i - s
+    and i + s: their mean, rounded down (i - s alone where i + s is past the end)."""
+    left = c[0 : len(c) - s : 2 * s]
+    right = c[2 * s :: 2 * s]
+    if len(right) < len(left):
+        right = np.concatenate([right, left[len(right) :]])
+    return (left + right) >> 1
+
+
+def lift(c: np.ndarray) -> np.ndarray:
+    """Residuals of int64 values ``c`` (storage order, along axis 0) after predicting each from
+    the two nearest of a coarser level: position i, an odd multiple of s = 2^L, from the mean
+    (rounded down) of positions i - s and i + s (i - s alone past the end); position 0 is its own
+    residual. Each level is one vectorised step."""
+    r = c.copy()
+    s = 1
+    while s < len(c):
+        r[s :: 2 * s] = c[s :: 2 * s] - _predicted(c, s)
+        s *= 2
+    return r
+
+
+def unlift(r: np.ndarray) -> np.ndarray:
+    """The values whose :func:`lift` residuals are ``r`` (the coarsest level first)."""
+    c = r.copy()
+    s = 1
+    while 2 * s < len(r):
+        s *= 2
+    while s >= 1 and len(r) > 1:
+        c[s :: 2 * s] = r[s :: 2 * s] + _predicted(c, s)
+        s //= 2
+    return c
+
+
+def _column(c: np.ndarray) -> tuple[int, int, list[bytes]]:
+    """(offset, width in bits, top-aligned planes) of an int64 column."""
+    off = int(c.min()) if len(c) else 0
+    v = c - off
+    w = int(v.max()).bit_length() if len(c) else 0
+    return off, w, _planes(v, w)
+
+
+def _zstd_size(planes: list[bytes]) -> int:
+    """Bytes of Zstandard level 1 frames of each plane (to compare two forms of a column)."""
+    from .zframes import zstandard_module
+
+    co = zstandard_module().ZstdCompressor(level=1)
+    return sum(len(co.compress(p)) for p in planes)
+
+
+def _plane_bits(planes: list[bytes]) -> float:
+    """Order-0 entropy (bits) of byte planes, each alone: what a literal table per plane costs."""
+    total = 0.0
+    for p in planes:
+        counts = np.bincount(np.frombuffer(p, np.uint8), minlength=256)
+        counts = counts[counts > 0]
+        total -= float((counts * np.log2(counts / counts.sum())).sum())
+    return total
+
+
+# the attribute columns whose planes share a Zstandard block (a literal table): the three
+# log-scales, the rotation index, the three rotation components, the value, the weight. Columns of
+# one distribution gain nothing from tables of their own, and at small N a table is a share of the
+# file: 1.4 % at N 767 (mni_icbm152 CR 1000), 0.6-1.0 % at 2,000-3,400, +-0.1 % from 10,000
+GROUPS = ((3, 4, 5), (6,), (7, 8, 9), (10,), (11,))
+
+
+def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int]) -> tuple[bytes, dict]:
+    """Layout-2 payload and description of (n, 12) codes in storage order whose centre keys
+    ``keys`` (:func:`centre_keys`) ascend."""
+    from .zframes import _compress_planes
+
+    n = len(codes)
+    sym, packed, nbits = _gap_streams(keys)
+    columns: list[list[int]] = []
+    mu_min = codes[:, 0:3].min(0) if n else np.zeros(3, np.int64)
+    for k in range(3):
+        span = int(codes[:, k].max() - mu_min[k]) if n else 0
+        columns.append([int(mu_min[k]), span.bit_length()])
+    mask = 0
+    col_planes: dict[int, list[bytes]] = {}
+    residuals = lift(codes[:, 3:12]) if n > 2 else None  # every attribute column at once
+    for k in range(3, 12):
+        col = _column(codes[:, k])
+        if col[1] and residuals is not None:  # a stored column: its residuals may code smaller;
+            # they are kept where their planes' order-0 entropy is smaller and one Zstandard
+            # compression each confirms it (the entropy alone misjudged a width crossing 8 bits)
+            lifted = _column(residuals[:, k - 3])
+            if abs(lifted[0]) <= 1 << 52 and lifted[1] <= 53 and _plane_bits(lifted[2]) < _plane_bits(col[2]):
+                if _zstd_size(lifted[2]) < _zstd_size(col[2]):
+                    col = lifted
+                    mask |= 1 << k
+        columns.append([col[0], col[1]])
+        col_planes[k] = col[2]
+    blocks = [mask.to_bytes(2, "little") + sym, packed]
+    for group in GROUPS:
+        for j in range(max(len(col_planes[k]) for k in group)):
+            blocks.append(b"".join(col_planes[k][j] for k in group if j < len(col_planes[k])))
+    raw = sum(len(p) for p in blocks)
+    assert len(packed) == (nbits + 7) // 8
+    payload = _compress_planes(blocks, raw)
+    # no raw size: the frame declares it (checked against the columns before it is decompressed),
+    # so the description is no wider than layout 1's and a header reserved for either holds both
+    return payload, {"bits": bits, "columns": columns, "layout": LAYOUT}
+
+
+def decode_keys(payload: bytes, n: int, quant: dict, offset_check) -> np.ndarray:
+    """(n, 12) int64 codes of a layout-2 payload (in the file's order); ``offset_check(name, v)``
+    validates a declared offset. Raises :class:`WarpgaussError` on anything inconsistent."""
+    from .zframes import _MAX_CODE, CODED_COLUMNS, zstandard_module
+
+    cols = quant.get("columns")
+    if not isinstance(cols, list) or len(cols) != len(CODED_COLUMNS) or not all(isinstance(c, list) and len(c) == 2 for c in cols):
+        raise WarpgaussError(f"the coded column list must hold {len(CODED_COLUMNS)} (offset, bits) pairs; the file is damaged")
+    offsets, widths = [], []
+    for k, ((off, w), name) in enumerate(zip(cols, CODED_COLUMNS)):
+        hi = KEY_AXIS_BITS if k < 3 else 53
+        if isinstance(w, bool) or not isinstance(w, int) or not 0 <= w <= hi:
+            raise WarpgaussError(f"coded column {name} width {w!r} is not 0..{hi} bits; the file is damaged")
+        offsets.append(offset_check(name, off))
+        widths.append(w)
+    nplanes = sum((w + 7) // 8 for w in widths[3:])
+    fixed = 2 + n + nplanes * n
+    most = fixed + (n * (_MAX_E - 2) + 7) // 8  # every gap of 63 bits
+    zstd = zstandard_module()
+    try:
+        raw = zstd.get_frame_parameters(payload).content_size
+        if not fixed <= raw <= most:
+            raise WarpgaussError(f"coded payload frame holds {raw} bytes, its columns make {fixed} to {most}; the file is damaged")
+        blob = zstd.ZstdDecompressor().decompress(payload, max_output_size=raw)
+    except zstd.ZstdError as err:
+        raise WarpgaussError(f"coded payload does not decompress ({err}); the file is damaged") from None
+    if len(blob) != raw:
+        raise WarpgaussError(f"coded payload decompresses to {len(blob)} bytes, expected {raw}; the file is damaged")
+    mask = int.from_bytes(blob[:2], "little")
+    if mask & ~_LIFTABLE:
+        raise WarpgaussError(f"coded payload marks columns {mask:#x} as predicted, only {_LIFTABLE:#x} can be; the file is damaged")
+    buf = np.frombuffer(blob, np.uint8)[2:]
+    sym = buf[:n].astype(np.int64)
+    e, top = sym >> 1, sym & 1
+    if np.any(e > _MAX_E) or np.any((e < 2) & (top != 0)):
+        raise WarpgaussError("coded centre gaps hold symbols outside their range; the file is damaged")
+    r = np.maximum(e - 2, 0)
+    nbits = int(r.sum())
+    npacked = raw - fixed
+    if npacked != (nbits + 7) // 8:
+        raise WarpgaussError(f"coded centre gaps need {(nbits + 7) // 8} bytes of bits, the payload holds {npacked}; the file is damaged")
+    gap = np.where(e > 0, np.uint64(1) << np.maximum(e - 1, 0).astype(np.uint64), np.uint64(0))
+    gap |= top.astype(np.uint64) << r.astype(np.uint64)
+    if nbits:
+        if int(buf[n + npacked - 1]) & ((1 << (8 * npacked - nbits)) - 1):
+            raise WarpgaussError("coded centre gaps end in padding bits that are not 0; the file is damaged")
+        gap |= unpack_fields(buf[n : n + npacked].tobytes(), r)
+    keys = np.cumsum(gap, dtype=np.uint64)
+    if n and (np.any(keys[1:] < keys[:-1]) or keys[-1] >= np.uint64(1 << 63)):
+        raise WarpgaussError("coded centre keys overflow; the file is damaged")
+    codes = np.empty((n, 12), np.int64)
+    for k in range(3):
+        c = _compact1by2(keys >> np.uint64(k)).astype(np.int64)
+        if np.any(c >= 1 << widths[k]):
+            raise WarpgaussError(
+                f"coded column {CODED_COLUMNS[k]} holds a centre beyond its declared {widths[k]} bits; the file is damaged"
+            )
+        codes[:, k] = offsets[k] + c
+    at = n + npacked
+    aligned = {k: np.zeros(n, np.uint64) for k in range(3, 12)}
+    for group in GROUPS:  # the encoder's order: a group's first planes, then its second, ...
+        for j in range(max((widths[k] + 7) // 8 for k in group)):
+            for k in group:
+                if j < (widths[k] + 7) // 8:
+                    aligned[k] = (aligned[k] << np.uint64(8)) | buf[at : at + n].astype(np.uint64)
+                    at += n
+    for k in range(3, 12):
+        w = widths[k]
+        nb = (w + 7) // 8
+        pad = np.uint64(8 * nb - w)
+        if nb and np.any(aligned[k] & ((np.uint64(1) << pad) - np.uint64(1))):
+            raise WarpgaussError(f"coded column {CODED_COLUMNS[k]} holds padding bits that are not 0; the file is damaged")
+        v = offsets[k] + (aligned[k] >> pad).astype(np.int64)
+        codes[:, k] = unlift(v) if mask >> k & 1 else v
+    if np.any(np.abs(codes) > _MAX_CODE):
+        raise WarpgaussError("coded columns decode beyond 2^52; the file is damaged")
+    return codes
