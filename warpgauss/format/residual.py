@@ -310,13 +310,17 @@ def code_residual(
     facts: dict = {"sizes": {}}
     axes, levelwise = _choose_interpolation(source, ok & np.isfinite(src64), step, integer)
 
-    def code(name: str) -> tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]:
+    def passes(name: str):
         gauss, kind = _parts(name)
         base, shaky = _base(pred, fragile, margin, integer, gauss)
         with np.errstate(invalid="ignore", over="ignore"):
             t = source.astype(np.int64) - base if integer else src64 - base
             fits = ok & np.isfinite(src64) & (np.abs(t) < _LATTICE_LIMIT * step)
-        q, dec = feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT), device)
+        return base, shaky, fits, feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT), device)
+
+    def code(name: str, done_passes=None) -> tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]:
+        gauss, _ = _parts(name)
+        base, shaky, fits, (q, dec) = passes(name) if done_passes is None else done_passes
         x = base + dec
         if integer or not gauss:
             good = _within(x, out_dtype, src64, bound)
@@ -331,15 +335,14 @@ def code_residual(
     # the predictors that do not depend on others' sizes are coded on threads (numpy and
     # Zstandard release the GIL), then the Gaussians plus the interpolation that coded smaller;
     # the smallest is kept in the serial order, so the result is the one a serial loop gives
-    if device is not None:  # compiled once, before the threads launch it
-        from ..core.warp import warp
-        from ..kernels import interp
-
-        warp().load_module(interp, device=device)
     done: dict[str, tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]] = {}
     alone = [n for n in predictors if not all(_parts(n))]
+    # on a device the passes run first, from this thread (Warp's streams belong to it), one after
+    # the other; the rest of each coding on threads
+    ran = [passes(n) for n in alone] if device is not None else [None] * len(alone)
     with ThreadPoolExecutor(max_workers=_coding_threads(len(alone), source.size)) as ex:
-        done.update(zip(alone, ex.map(code, alone)))
+        done.update(zip(alone, ex.map(code, alone, ran)))
+    del ran
     sizes = {n: done[n][0] for n in alone}
     best: tuple[int, str, dict[str, bytes], np.ndarray, int, np.ndarray] | None = None
     for name in _candidates(predictors, sizes):
