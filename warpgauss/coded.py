@@ -45,7 +45,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from .coded_keys import KEY_AXIS_BITS, centre_keys, decode_keys, encode_keys
+from .coded_keys import _MAX_CODE, CODED_COLUMNS, KEY_AXIS_BITS, _part1by2, centre_keys, check_keys, decode_keys, encode_keys
 from .coded_keys import LAYOUT as LAYOUT_KEYS
 from .errors import WarpgaussError
 from .export import quat_to_matrix
@@ -63,9 +63,7 @@ ZSTD_LEVELS = (1, 9)
 BITS_REFERENCE_DB = 40.0
 DB_PER_BIT = 6.0
 Q_RANGE = 1.0 / math.sqrt(2.0)
-CODED_COLUMNS = ("mu_x", "mu_y", "mu_z", "log_sx", "log_sy", "log_sz", "q_index", "q_0", "q_1", "q_2", "a", "w")
 _DELTA = ("mu_x", "mu_y", "mu_z")
-_MAX_CODE = 1 << 52  # |code| bound: every code and difference is exact in float64 and int64
 
 
 # The least payload a coded primitive may take. Real models take more: 5.7-6.4 bytes a Gaussian at
@@ -361,20 +359,6 @@ def as_stored(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndar
     return dequantise(codes[coded_order(codes)], bits)
 
 
-def _part1by2(v: np.ndarray) -> np.ndarray:
-    """Spread the low 21 bits of v to every third bit (Morton interleave of one axis)."""
-    v = v.astype(np.uint64) & np.uint64(0x1FFFFF)
-    for shift, mask in (
-        (32, 0x1F00000000FFFF),
-        (16, 0x1F0000FF0000FF),
-        (8, 0x100F00F00F00F00F),
-        (4, 0x10C30C30C30C30C3),
-        (2, 0x1249249249249249),
-    ):
-        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
-    return v
-
-
 def coded_order(codes: np.ndarray) -> np.ndarray:
     """The storage order: by Morton code of the centre codes (offset to 0), ties by every code; a
     centre range wider than 2^21 codes on an axis falls back to z, y, x order.
@@ -433,8 +417,8 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None, layout:
     if layout != 1:
         keys = centre_keys(codes[:, 0:3])
         if keys is not None:
-            payload, quant = encode_keys(codes, keys, b)
-            return payload, quant, order
+            blocks, quant = encode_keys(codes, keys, b)
+            return _compress_planes(blocks, sum(len(p) for p in blocks)), quant, order
         if layout == LAYOUT_KEYS:
             raise WarpgaussError(
                 f"centres spanning 2^{KEY_AXIS_BITS} codes or more on an axis have no layout {LAYOUT_KEYS}; write layout 1"
@@ -502,13 +486,33 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
         raise WarpgaussError(f"{e}; the file is damaged or was written by another warpgauss version") from None
     layout = coded_layout(quant)
     check_claim(len(payload), n)
-    codes = decode_keys(payload, n, quant, _offset) if layout == LAYOUT_KEYS else _decode_layout1(payload, n, quant)
+    if layout == LAYOUT_KEYS:
+        offsets, widths, least, most = check_keys(quant, n, _offset)
+        codes = decode_keys(_decompress(payload, least, most), n, offsets, widths)
+    else:
+        codes = _decode_layout1(payload, n, quant)
     lev = _q_levels(b["q"])
     if np.any((codes[:, 6] < 0) | (codes[:, 6] > 3)) or np.any((codes[:, 7:10] < 0) | (codes[:, 7:10] > lev)):
         raise WarpgaussError("coded rotations hold codes outside their range; the file is damaged")
     if np.any(codes[:, 11] < 1):
         raise WarpgaussError("coded weights hold codes below 1; the file is damaged")
     return dequantise(codes, b)
+
+
+def _decompress(payload: bytes, least: int, most: int) -> bytes:
+    """The contents of a Zstandard frame that declares from ``least`` to ``most`` bytes (checked
+    before it is decompressed, into at most that)."""
+    zstd = zstandard_module()
+    try:
+        raw = zstd.get_frame_parameters(payload).content_size
+        if not least <= raw <= most:
+            raise WarpgaussError(f"coded payload frame holds {raw} bytes, its columns make {least} to {most}; the file is damaged")
+        blob = zstd.ZstdDecompressor().decompress(payload, max_output_size=raw)
+    except zstd.ZstdError as e:
+        raise WarpgaussError(f"coded payload does not decompress ({e}); the file is damaged") from None
+    if len(blob) != raw:
+        raise WarpgaussError(f"coded payload decompresses to {len(blob)} bytes, expected {raw}; the file is damaged")
+    return blob
 
 
 def coded_layout(quant: dict) -> int:
