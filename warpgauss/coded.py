@@ -69,7 +69,8 @@ _DELTA = ("mu_x", "mu_y", "mu_z")
 # The least payload a coded primitive may take. Real models take more: 5.7-6.4 bytes a Gaussian at
 # the coarsest depths bits_for_psnr gives (10 dB) and 2.2-3.4 at the least the rate control ever
 # keeps (_MIN_BITS), on the analytic models of the four 48^3 examples at N 2,000-4,000; 6.9-14.0
-# refined (README's table); the same row repeated 20,000 times codes to 0.0015. A file claiming more primitives than its payload could hold at this floor (a small
+# refined (README's table); in layout 2 2.1-2.7 at _MIN_BITS (N 3,000: bubbles 2.07, vortex 2.60)
+# and 6.4-12.8 refined; the same row repeated 20,000 times codes to 0.0015. A file claiming more primitives than its payload could hold at this floor (a small
 # frame of zeros claiming millions) is refused before anything is decompressed or allocated, and
 # no file is written that this check would refuse.
 MIN_PAYLOAD_PER_PRIMITIVE = 1.0
