@@ -10,7 +10,7 @@ from reference.field_ref import covariances
 from test_wgs import _craft, _valid_header, make_header, realistic_params
 
 from warpgauss.errors import WarpgaussError
-from warpgauss.format import coded, ratefit, zframes
+from warpgauss.format import coded, ratefit
 from warpgauss.format.wgs import header_size, read_wgs, wgs_bytes, write_wgs
 
 
@@ -144,7 +144,7 @@ def test_each_plane_is_a_block_and_the_smaller_level_is_kept(monkeypatch):
     payload, quant, _ = coded.encode_coded(p)
     sizes = {}
     for level in (1, 9, 19):
-        monkeypatch.setattr(zframes, "ZSTD_LEVELS", (level,))
+        monkeypatch.setattr(coded, "ZSTD_LEVELS", (level,))
         one, quant_l, _ = coded.encode_coded(p)
         assert quant_l == quant
         np.testing.assert_array_equal(coded.decode_coded(one, len(p), quant_l), coded.decode_coded(payload, len(p), quant))
@@ -396,7 +396,7 @@ def test_the_rate_control_on_threads_and_with_kept_columns_fits_as_the_serial_se
     results = {}
     for mode in ("threads", "serial"):
         if mode == "serial":
-            monkeypatch.setattr(zframes, "ThreadPoolExecutor", _Serial)  # the Zstandard levels
+            monkeypatch.setattr(coded, "ThreadPoolExecutor", _Serial)  # the Zstandard levels
             monkeypatch.setattr(ratefit, "ThreadPoolExecutor", _Serial)  # the export choice's alternatives
             monkeypatch.setattr(coded._FitCodes, "codes", lambda self, params, b: None)
         for budget in (int(0.8 * full), int(0.45 * full)):

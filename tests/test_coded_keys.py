@@ -282,3 +282,30 @@ def test_a_file_written_before_layout_2_reads_as_it_did():
     new = wgs_bytes(p, hdr, encoding="coded", bits=LAYOUT1_BITS)
     np.testing.assert_array_equal(read_wgs_bytes(new)[0], params)
     assert len(new) < len(LAYOUT1_FILE.read_bytes())
+
+
+def test_mutated_frames_decode_or_are_refused_in_one_line():
+    """Bytes changed, dropped or added inside a valid frame (the file's SHA-256 set aside), and
+    widths changed in the description: a model or a WarpgaussError, never another exception."""
+    rng = np.random.default_rng(11)
+    z = zstandard.ZstdCompressor(level=1)
+    refused = 0
+    for _ in range(150):
+        n = int(rng.integers(1, 40))
+        p = realistic_params(rng, n)
+        payload, quant, _ = coded.encode_coded(p)
+        blob = bytearray(zstandard.ZstdDecompressor().decompress(payload))
+        for _ in range(int(rng.integers(1, 4))):
+            blob[int(rng.integers(0, len(blob)))] = int(rng.integers(0, 256))
+        if rng.random() < 0.2:
+            blob = blob[:-1] if rng.random() < 0.5 else blob + bytes([int(rng.integers(0, 256))])
+        q = {**quant, "columns": [list(c) for c in quant["columns"]]}
+        if rng.random() < 0.3:
+            q["columns"][int(rng.integers(0, 12))][1] = int(rng.integers(0, 60))
+        try:
+            out = coded.decode_coded(z.compress(bytes(blob)), n, q)
+            assert out.shape == (n, 12) and np.isfinite(out).all()
+        except WarpgaussError as e:
+            assert "\n" not in str(e)
+            refused += 1
+    assert refused > 50

@@ -21,7 +21,7 @@ that each gets its own literal (Huffman) table: one table for all planes mixed, 
 compression of the concatenation gives at small N, cost 7-10 % (refined models of 2,900-3,800
 Gaussians: mni_icbm152 at CR 300 9.35 -> 8.47 B a Gaussian, interface 96^3 at CR 100 8.89 ->
 7.97; 1 % at 75,000, inia19 at CR 30, 7.79 -> 7.70; the order-0 entropy of the columns' values is
-8.02 / 7.64 / 7.50). The frame is coded at :data:`.zframes.ZSTD_LEVELS` and the smaller kept (matches
+8.02 / 7.64 / 7.50). The frame is coded at :data:`ZSTD_LEVELS` and the smaller kept (matches
 across the planes buy little: level 19 codes them larger than level 1 and takes 80x as long).
 Zstandard rather than a range coder of our own: a well-kept, fast, bounded-memory library with a
 frame checksum and a declared content size; an adaptive model-based coder would save the 2-5 %
@@ -41,18 +41,22 @@ from __future__ import annotations
 
 import math
 import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from ..errors import WarpgaussError
-from .coded_keys import KEY_AXIS_BITS, centre_keys, decode_keys, encode_keys
+from .coded_keys import _MAX_CODE, CODED_COLUMNS, KEY_AXIS_BITS, _part1by2, centre_keys, check_keys, decode_keys, encode_keys
 from .coded_keys import LAYOUT as LAYOUT_KEYS
 from .export import quat_to_matrix
-from .zframes import _MAX_CODE, CODED_COLUMNS, _compress_planes, _part1by2, zstandard_module
 
 # measured on four real volumes (benchmarks/results/rate_distortion/coded_loss_mri_cpu.json): every bit here costs less
 # PSNR than the primitives its bytes would buy (about 0.4 dB a byte at these budgets)
 CODED_BITS: dict[str, int] = {"mu": 2, "log_s": 4, "q": 5, "a": 7, "w": 5}
+# the frame of planes is coded at each level and the smaller kept: level 1 was the smaller on three
+# refined models of four, level 9 on the fourth (mni_icbm152 at CR 1000, 688 Gaussians: 9.67 and
+# 9.31 B a Gaussian); both take 2-11 ms a megabyte of planes, where level 19 took 135
+ZSTD_LEVELS = (1, 9)
 # CODED_BITS keep the quantisation noise below the error of 30-42 dB models; a more accurate model
 # needs finer grids: one bit on every attribute per this many dB above BITS_REFERENCE_DB (each bit
 # halves the noise). Measured: a 51.2 dB vortex model lost 2.07 dB at CODED_BITS, 0.14 dB at +2.
@@ -65,7 +69,8 @@ _DELTA = ("mu_x", "mu_y", "mu_z")
 # The least payload a coded primitive may take. Real models take more: 5.7-6.4 bytes a Gaussian at
 # the coarsest depths bits_for_psnr gives (10 dB) and 2.2-3.4 at the least the rate control ever
 # keeps (_MIN_BITS), on the analytic models of the four 48^3 examples at N 2,000-4,000; 6.9-14.0
-# refined (README's table); the same row repeated 20,000 times codes to 0.0015. A file claiming more primitives than its payload could hold at this floor (a small
+# refined (README's table); in layout 2 2.1-2.7 at _MIN_BITS (N 3,000: bubbles 2.07, vortex 2.60)
+# and 6.4-12.8 refined; the same row repeated 20,000 times codes to 0.0015. A file claiming more primitives than its payload could hold at this floor (a small
 # frame of zeros claiming millions) is refused before anything is decompressed or allocated, and
 # no file is written that this check would refuse.
 MIN_PAYLOAD_PER_PRIMITIVE = 1.0
@@ -79,6 +84,14 @@ def check_claim(payload_bytes: int, n: int) -> None:
             f"the coded payload of {payload_bytes:,} bytes claims {n:,} primitives ({payload_bytes / max(n, 1):.3g} bytes each; "
             f"real models take more than 2, this reader refuses below {MIN_PAYLOAD_PER_PRIMITIVE:g}): the file is damaged or crafted"
         )
+
+
+def zstandard_module():
+    try:
+        import zstandard
+    except ImportError:  # pragma: no cover - a dependency of the package
+        raise WarpgaussError("the coded model format needs the 'zstandard' package: pip install zstandard") from None
+    return zstandard
 
 
 def check_bits(bits) -> dict[str, int]:
@@ -405,8 +418,8 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None, layout:
     if layout != 1:
         keys = centre_keys(codes[:, 0:3])
         if keys is not None:
-            payload, quant = encode_keys(codes, keys, b)
-            return payload, quant, order
+            blocks, quant = encode_keys(codes, keys, b)
+            return _compress_planes(blocks, sum(len(p) for p in blocks)), quant, order
         if layout == LAYOUT_KEYS:
             raise WarpgaussError(
                 f"centres spanning 2^{KEY_AXIS_BITS} codes or more on an axis have no layout {LAYOUT_KEYS}; write layout 1"
@@ -432,6 +445,32 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None, layout:
     return payload, quant, order
 
 
+PARALLEL_MIN_BYTES = 1 << 18  # raw planes from which the Zstandard levels run on threads
+
+
+def _compress_planes(planes: list[bytes], raw: int) -> bytes:
+    """One Zstandard frame of ``planes`` (``raw`` bytes in all), a block ended after each plane, at
+    each of :data:`ZSTD_LEVELS`; the smallest (the first of equals)."""
+    zstd = zstandard_module()
+
+    def frame(level: int) -> bytes:
+        co = zstd.ZstdCompressor(level=level, write_checksum=True).compressobj(size=raw)
+        out = []
+        for plane in planes:
+            out.append(co.compress(plane))
+            out.append(co.flush(zstd.COMPRESSOBJ_FLUSH_BLOCK))
+        out.append(co.flush())
+        return b"".join(out)
+
+    # the levels on threads of their own (Zstandard releases the GIL): the same frames, in parallel
+    if raw >= PARALLEL_MIN_BYTES and len(ZSTD_LEVELS) > 1:
+        with ThreadPoolExecutor(max_workers=len(ZSTD_LEVELS)) as ex:
+            frames = list(ex.map(frame, ZSTD_LEVELS))
+    else:
+        frames = [frame(level) for level in ZSTD_LEVELS]
+    return min(frames, key=len)  # the first of equals
+
+
 def _offset(name: str, v) -> int:
     if isinstance(v, bool) or not isinstance(v, int) or abs(v) > _MAX_CODE:
         raise WarpgaussError(f"coded column {name} offset must be an integer of at most 2^52, got {v!r}; the file is damaged")
@@ -448,13 +487,33 @@ def decode_coded(payload: bytes, n: int, quant: dict) -> np.ndarray:
         raise WarpgaussError(f"{e}; the file is damaged or was written by another warpgauss version") from None
     layout = coded_layout(quant)
     check_claim(len(payload), n)
-    codes = decode_keys(payload, n, quant, _offset) if layout == LAYOUT_KEYS else _decode_layout1(payload, n, quant)
+    if layout == LAYOUT_KEYS:
+        offsets, widths, least, most = check_keys(quant, n, _offset)
+        codes = decode_keys(_decompress(payload, least, most), n, offsets, widths)
+    else:
+        codes = _decode_layout1(payload, n, quant)
     lev = _q_levels(b["q"])
     if np.any((codes[:, 6] < 0) | (codes[:, 6] > 3)) or np.any((codes[:, 7:10] < 0) | (codes[:, 7:10] > lev)):
         raise WarpgaussError("coded rotations hold codes outside their range; the file is damaged")
     if np.any(codes[:, 11] < 1):
         raise WarpgaussError("coded weights hold codes below 1; the file is damaged")
     return dequantise(codes, b)
+
+
+def _decompress(payload: bytes, least: int, most: int) -> bytes:
+    """The contents of a Zstandard frame that declares from ``least`` to ``most`` bytes (checked
+    before it is decompressed, into at most that)."""
+    zstd = zstandard_module()
+    try:
+        raw = zstd.get_frame_parameters(payload).content_size
+        if not least <= raw <= most:
+            raise WarpgaussError(f"coded payload frame holds {raw} bytes, its columns make {least} to {most}; the file is damaged")
+        blob = zstd.ZstdDecompressor().decompress(payload, max_output_size=raw)
+    except zstd.ZstdError as e:
+        raise WarpgaussError(f"coded payload does not decompress ({e}); the file is damaged") from None
+    if len(blob) != raw:
+        raise WarpgaussError(f"coded payload decompresses to {len(blob)} bytes, expected {raw}; the file is damaged")
+    return blob
 
 
 def coded_layout(quant: dict) -> int:

@@ -3,7 +3,7 @@ attributes as top-aligned byte planes, each column stored as is or as the residu
 prediction from its neighbours along the curve, whichever codes smaller; one Zstandard frame
 (``.wgs`` format version 3).
 
-The codes are those of layout 1 (:mod:`warpgauss.coded`: the same grids, the same canonical turns,
+The codes are those of layout 1 (:mod:`warpgauss.format.coded`: the same grids, the same canonical turns,
 the same storage order), so the accuracy is the same; only their representation differs::
 
     centres     the Morton key of each centre code (offset to the per-axis minimum, 21 bits an axis),
@@ -20,10 +20,10 @@ the same storage order), so the accuracy is the same; only their representation 
                 8 bits, whose distribution is peaked, the lower ones its nearly uniform low bits
 
 Frame contents in order: a 2-byte little-endian mask of the columns stored as residuals (bit k:
-column k of :data:`warpgauss.format.zframes.CODED_COLUMNS`, 3-11 only), the n gap symbols (one block with
+column k of :data:`CODED_COLUMNS`, 3-11 only), the n gap symbols (one block with
 the mask), the packed bits (a block), then for each group of :data:`GROUPS` its columns' first
 planes, then their second planes, ... (a block each: a group shares a literal table). Levels as
-:data:`warpgauss.format.zframes.ZSTD_LEVELS`, the smaller frame kept. The description in the header holds
+:data:`warpgauss.format.coded.ZSTD_LEVELS`, the smaller frame kept. The description in the header holds
 the bit depths, per column ``[offset, width in bits]`` (the centre columns: the axis minimum and
 the bit length of the axis span) and ``"layout": 2``; no raw size: the frame declares it, and a
 reader checks it against what the columns make before it decompresses.
@@ -58,6 +58,8 @@ import numpy as np
 from ..errors import WarpgaussError
 
 LAYOUT = 2
+CODED_COLUMNS = ("mu_x", "mu_y", "mu_z", "log_sx", "log_sy", "log_sz", "q_index", "q_0", "q_1", "q_2", "a", "w")  # both layouts'
+_MAX_CODE = 1 << 52  # |code| bound: every code and difference is exact in float64 and int64
 KEY_AXIS_BITS = 21  # Morton keys of 3 x 21 bits: a wider centre range is stored in layout 1
 _MAX_E = 63  # a gap's bit length: keys are below 2^63
 _LIFTABLE = sum(1 << k for k in range(3, 12))  # the columns that may be stored as lift() residuals
@@ -72,6 +74,20 @@ def _bit_length(v: np.ndarray) -> np.ndarray:
         e += big * sh
         g = np.where(big, g >> np.uint64(sh), g)
     return e + (g > 0)
+
+
+def _part1by2(v: np.ndarray) -> np.ndarray:
+    """Spread the low 21 bits of v to every third bit (Morton interleave of one axis)."""
+    v = v.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in (
+        (32, 0x1F00000000FFFF),
+        (16, 0x1F0000FF0000FF),
+        (8, 0x100F00F00F00F00F),
+        (4, 0x10C30C30C30C30C3),
+        (2, 0x1249249249249249),
+    ):
+        v = (v | (v << np.uint64(shift))) & np.uint64(mask)
+    return v
 
 
 def _compact1by2(v: np.ndarray) -> np.ndarray:
@@ -91,8 +107,6 @@ def _compact1by2(v: np.ndarray) -> np.ndarray:
 def centre_keys(mu: np.ndarray) -> np.ndarray | None:
     """Morton keys (uint64) of centre codes ``mu`` (n, 3) offset to their minimum, or None where an
     axis spans 2^21 codes or more."""
-    from .zframes import _part1by2
-
     if len(mu) == 0:
         return np.zeros(0, np.uint64)
     m = mu - mu.min(0)
@@ -205,9 +219,9 @@ def _column(c: np.ndarray) -> tuple[int, int, list[bytes]]:
 
 def _zstd_size(planes: list[bytes]) -> int:
     """Bytes of Zstandard level 1 frames of each plane (to compare two forms of a column)."""
-    from .zframes import zstandard_module
+    import zstandard  # a dependency of the package (warpgauss.format.coded.zstandard_module says so where it is missing)
 
-    co = zstandard_module().ZstdCompressor(level=1)
+    co = zstandard.ZstdCompressor(level=1)
     return sum(len(co.compress(p)) for p in planes)
 
 
@@ -228,11 +242,9 @@ def _plane_bits(planes: list[bytes]) -> float:
 GROUPS = ((3, 4, 5), (6,), (7, 8, 9), (10,), (11,))
 
 
-def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int]) -> tuple[bytes, dict]:
-    """Layout-2 payload and description of (n, 12) codes in storage order whose centre keys
-    ``keys`` (:func:`centre_keys`) ascend."""
-    from .zframes import _compress_planes
-
+def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int]) -> tuple[list[bytes], dict]:
+    """Layout-2 frame blocks (the frame's contents, each to end a Zstandard block) and description
+    of (n, 12) codes in storage order whose centre keys ``keys`` (:func:`centre_keys`) ascend."""
     n = len(codes)
     sym, packed, nbits = _gap_streams(keys)
     columns: list[list[int]] = []
@@ -259,19 +271,16 @@ def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int]) -> tu
     for group in GROUPS:
         for j in range(max(len(col_planes[k]) for k in group)):
             blocks.append(b"".join(col_planes[k][j] for k in group if j < len(col_planes[k])))
-    raw = sum(len(p) for p in blocks)
     assert len(packed) == (nbits + 7) // 8
-    payload = _compress_planes(blocks, raw)
     # no raw size: the frame declares it (checked against the columns before it is decompressed),
     # so the description is no wider than layout 1's and a header reserved for either holds both
-    return payload, {"bits": bits, "columns": columns, "layout": LAYOUT}
+    return blocks, {"bits": bits, "columns": columns, "layout": LAYOUT}
 
 
-def decode_keys(payload: bytes, n: int, quant: dict, offset_check) -> np.ndarray:
-    """(n, 12) int64 codes of a layout-2 payload (in the file's order); ``offset_check(name, v)``
-    validates a declared offset. Raises :class:`WarpgaussError` on anything inconsistent."""
-    from .zframes import _MAX_CODE, CODED_COLUMNS, zstandard_module
-
+def check_keys(quant: dict, n: int, offset_check) -> tuple[list[int], list[int], int, int]:
+    """(offsets, widths, least and most frame bytes) of a layout-2 description of ``n`` primitives,
+    every field checked (``offset_check(name, v)`` validates a declared offset) before anything
+    is allocated or decompressed."""
     cols = quant.get("columns")
     if not isinstance(cols, list) or len(cols) != len(CODED_COLUMNS) or not all(isinstance(c, list) and len(c) == 2 for c in cols):
         raise WarpgaussError(f"the coded column list must hold {len(CODED_COLUMNS)} (offset, bits) pairs; the file is damaged")
@@ -284,17 +293,17 @@ def decode_keys(payload: bytes, n: int, quant: dict, offset_check) -> np.ndarray
         widths.append(w)
     nplanes = sum((w + 7) // 8 for w in widths[3:])
     fixed = 2 + n + nplanes * n
-    most = fixed + (n * (_MAX_E - 2) + 7) // 8  # every gap of 63 bits
-    zstd = zstandard_module()
-    try:
-        raw = zstd.get_frame_parameters(payload).content_size
-        if not fixed <= raw <= most:
-            raise WarpgaussError(f"coded payload frame holds {raw} bytes, its columns make {fixed} to {most}; the file is damaged")
-        blob = zstd.ZstdDecompressor().decompress(payload, max_output_size=raw)
-    except zstd.ZstdError as err:
-        raise WarpgaussError(f"coded payload does not decompress ({err}); the file is damaged") from None
-    if len(blob) != raw:
-        raise WarpgaussError(f"coded payload decompresses to {len(blob)} bytes, expected {raw}; the file is damaged")
+    return offsets, widths, fixed, fixed + (n * (_MAX_E - 2) + 7) // 8  # at most: every gap of 63 bits
+
+
+def decode_keys(blob: bytes, n: int, offsets: list[int], widths: list[int]) -> np.ndarray:
+    """(n, 12) int64 codes of a layout-2 frame's contents ``blob`` (in the file's order), its
+    description checked by :func:`check_keys`. Raises :class:`WarpgaussError` on anything
+    inconsistent."""
+    raw = len(blob)
+    fixed = 2 + n + sum((w + 7) // 8 for w in widths[3:]) * n
+    if raw < fixed:
+        raise WarpgaussError(f"coded payload holds {raw} bytes, its columns make {fixed} at least; the file is damaged")
     mask = int.from_bytes(blob[:2], "little")
     if mask & ~_LIFTABLE:
         raise WarpgaussError(f"coded payload marks columns {mask:#x} as predicted, only {_LIFTABLE:#x} can be; the file is damaged")
