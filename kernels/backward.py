@@ -240,32 +240,6 @@ def row_range(grid: PointGrid, l: int, lo: wp.vec3i, hi: wp.vec3i, y: int, z: in
 
 
 @wp.kernel
-def count_keys(
-    sorted_keys: wp.array(dtype=int),  # [>=K] cell id of each entry, ascending
-    count: int,  # K entries (the launch has K threads)
-    counts: wp.array(dtype=int),  # [C + 1] out (zeroed before): entries of each cell
-):
-    """Entries per cell: the last entry of each run of equal keys finds the run's first by a
-    binary search and writes the run's length (no atomics: thousands of entries of one cell would
-    queue on one address). Their exclusive prefix sum is the cell start table, empty cells holding
-    the next cell's start (:func:`warpgauss.field.gaussians.cell_starts`)."""
-    i = wp.tid()
-    key = sorted_keys[i]
-    if i + 1 < count:
-        if sorted_keys[i + 1] == key:
-            return
-    lo = int(0)
-    hi = i
-    while lo < hi:  # first entry of this key
-        mid = (lo + hi) / 2
-        if sorted_keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
-    counts[key] = i + 1 - lo
-
-
-@wp.kernel
 def pair_work(
     slot_cell: wp.array(dtype=int),  # [N] cell id each sorted slot is binned in
     prims: BinnedPrimitives,
@@ -405,9 +379,7 @@ def _pair_grad_chunks(
 
 
 pair_grad_chunks = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks")
-# the same kernel with its registers capped (CUDA __maxnreg__; other devices ignore it): as compiled,
-# 95 registers a thread allow 2 blocks of 256 threads an SM (25 % occupancy, Nsight Compute at 20K x
-# 65,536); at 64, 4 blocks
+# capped at 64 registers a thread on CUDA (as compiled 95: 2 blocks of 256 an SM, 25 % occupancy)
 pair_grad_chunks_r64 = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks_r64", cuda_max_registers=64)
 
 

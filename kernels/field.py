@@ -533,3 +533,29 @@ def slot_cells(
     c = wp.tid()
     for j in range(cell_start[c], cell_end[c]):
         slot_cell[j] = c
+
+
+@wp.kernel
+def count_keys(
+    sorted_keys: wp.array(dtype=int),  # [>=K] cell id of each entry, ascending
+    count: int,  # K entries (the launch has K threads)
+    counts: wp.array(dtype=int),  # [C + 1] out (zeroed before): entries of each cell
+):
+    """Entries per cell: the last entry of each run of equal keys finds the run's first by a
+    binary search and writes the run's length (no atomics: thousands of entries of one cell would
+    queue on one address). Their exclusive prefix sum is the cell start table, empty cells holding
+    the next cell's start (:func:`warpgauss.field.gaussians.cell_starts`)."""
+    i = wp.tid()
+    key = sorted_keys[i]
+    if i + 1 < count:
+        if sorted_keys[i + 1] == key:
+            return
+    lo = int(0)
+    hi = i
+    while lo < hi:  # first entry of this key
+        mid = (lo + hi) / 2
+        if sorted_keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    counts[key] = i + 1 - lo

@@ -10,23 +10,16 @@ computes the numpy reference's bits: a reader on any machine replays the encoder
 exactly, which is what makes the bound hold (tested against the numpy passes bit for bit).
 """
 
+from typing import Any
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})
 
 
 @wp.func
-def line_value_f(dec: wp.array3d(dtype=wp.float64), z: int, y: int, x: int, axis: int, c: int) -> wp.float64:
-    """dec at (z, y, x) with the coordinate along ``axis`` replaced by c."""
-    if axis == 0:
-        return dec[c, y, x]
-    if axis == 1:
-        return dec[z, c, x]
-    return dec[z, y, c]
-
-
-@wp.func
-def line_value_i(dec: wp.array3d(dtype=wp.int64), z: int, y: int, x: int, axis: int, c: int) -> wp.int64:
+def line_value(dec: wp.array3d(dtype=Any), z: int, y: int, x: int, axis: int, c: int):
+    """dec at (z, y, x) with the coordinate along ``axis`` replaced by c (float64 or int64)."""
     if axis == 0:
         return dec[c, y, x]
     if axis == 1:
@@ -43,14 +36,14 @@ def target(tid_z: int, tid_y: int, tid_x: int, start: wp.vec3i, stride: wp.vec3i
 def predict_f(dec: wp.array3d(dtype=wp.float64), p: wp.vec3i, axis: int, h: int, n: int, cubic: int) -> wp.float64:
     """(lo + hi) * 0.5 where +h exists, else lo; (-a + 9 lo + 9 hi - b) * 0.0625 where +-3h exist."""
     c = p[axis]
-    lo1 = line_value_f(dec, p[0], p[1], p[2], axis, c - h)
+    lo1 = line_value(dec, p[0], p[1], p[2], axis, c - h)
     pred = lo1
     if c + h < n:
-        hi1 = line_value_f(dec, p[0], p[1], p[2], axis, c + h)
+        hi1 = line_value(dec, p[0], p[1], p[2], axis, c + h)
         pred = (lo1 + hi1) * wp.float64(0.5)
         if cubic != 0 and c - 3 * h >= 0 and c + 3 * h < n:
-            a = line_value_f(dec, p[0], p[1], p[2], axis, c - 3 * h)
-            b = line_value_f(dec, p[0], p[1], p[2], axis, c + 3 * h)
+            a = line_value(dec, p[0], p[1], p[2], axis, c - 3 * h)
+            b = line_value(dec, p[0], p[1], p[2], axis, c + 3 * h)
             num = -a + wp.float64(9.0) * lo1 + wp.float64(9.0) * hi1 - b
             pred = num * wp.float64(0.0625)
     return pred
@@ -60,14 +53,14 @@ def predict_f(dec: wp.array3d(dtype=wp.float64), p: wp.vec3i, axis: int, h: int,
 def predict_i(dec: wp.array3d(dtype=wp.int64), p: wp.vec3i, axis: int, h: int, n: int, cubic: int) -> wp.int64:
     """The integer lattice's rounding: (lo + hi) >> 1, (-a + 9 lo + 9 hi - b + 8) >> 4."""
     c = p[axis]
-    lo1 = line_value_i(dec, p[0], p[1], p[2], axis, c - h)
+    lo1 = line_value(dec, p[0], p[1], p[2], axis, c - h)
     pred = lo1
     if c + h < n:
-        hi1 = line_value_i(dec, p[0], p[1], p[2], axis, c + h)
+        hi1 = line_value(dec, p[0], p[1], p[2], axis, c + h)
         pred = (lo1 + hi1) >> wp.int64(1)
         if cubic != 0 and c - 3 * h >= 0 and c + 3 * h < n:
-            a = line_value_i(dec, p[0], p[1], p[2], axis, c - 3 * h)
-            b = line_value_i(dec, p[0], p[1], p[2], axis, c + 3 * h)
+            a = line_value(dec, p[0], p[1], p[2], axis, c - 3 * h)
+            b = line_value(dec, p[0], p[1], p[2], axis, c + 3 * h)
             num = -a + wp.int64(9) * lo1 + wp.int64(9) * hi1 - b
             pred = (num + wp.int64(8)) >> wp.int64(4)
     return pred

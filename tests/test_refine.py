@@ -574,7 +574,7 @@ def test_support_marks_count_the_boxes_reaching_each_brick(device):
     widened 5-sigma boxes reaching it (numpy brute force), for boxes inside, across the edge of,
     outside and far larger than the grid."""
     from warpgauss.core.warp import warp
-    from warpgauss.kernels import sampling as ks
+    from warpgauss.kernels import support as ksup
 
     wp = warp()
     rng = np.random.default_rng(11)
@@ -587,18 +587,18 @@ def test_support_marks_count_the_boxes_reaching_each_brick(device):
     marks = wp.zeros(nb, dtype=int, device=device)
     everything = wp.zeros(1, dtype=int, device=device)
     wp.launch(
-        ks.mark_support,
+        ksup.mark_support,
         dim=n,
         inputs=[wp.array(mu, dtype=wp.vec3, device=device), wp.array(ext, dtype=wp.vec3, device=device)],
         outputs=[marks, everything],
         device=device,
     )
     for axis, lines in ((0, (nb[1], nb[2])), (2, (nb[0], nb[1])), (1, (nb[0], nb[2]))):  # any order
-        wp.launch(ks.prefix_sum_axis, dim=lines, inputs=[marks, axis], device=device)
+        wp.launch(ksup.prefix_sum_axis, dim=lines, inputs=[marks, axis], device=device)
     expect = np.zeros(nb, np.int64)
     size = np.array(nb[::-1])  # x, y, z
     for c, e in zip(mu.astype(np.float64), ext.astype(np.float64)):
-        h = e + float(ks.SUPPORT_MARGIN)
+        h = e + float(ksup.SUPPORT_MARGIN)
         lo = np.clip(np.floor(np.ceil(c - h - 0.5) / 4), 0, size - 1).astype(int)
         hi = np.clip(np.floor(np.floor(c + h + 0.5) / 4), 0, size - 1).astype(int)
         expect[lo[2] : hi[2] + 1, lo[1] : hi[1] + 1, lo[0] : hi[0] + 1] += 1

@@ -281,7 +281,7 @@ class Sampler:
 
     def mark_support(self, mu, ext) -> None:
         """Re-mark the support bricks from prepared centres and half-extents (any order)."""
-        from ...kernels import sampling as ks
+        from ...kernels import support as ksup
 
         if not self.uniform_support:
             return
@@ -289,10 +289,10 @@ class Sampler:
         marks, everything, _ = self.support_marks
         marks.zero_()
         everything.zero_()
-        wp.launch(ks.mark_support, dim=mu.shape[0], inputs=[mu, ext], outputs=[marks, everything], device=dev)
+        wp.launch(ksup.mark_support, dim=mu.shape[0], inputs=[mu, ext], outputs=[marks, everything], device=dev)
         bz, by, bx = marks.shape
         for axis, lines in ((2, (bz, by)), (1, (bz, bx)), (0, (by, bx))):  # x, y, z: the order does not matter
-            wp.launch(ks.prefix_sum_axis, dim=lines, inputs=[marks, axis], device=dev)
+            wp.launch(ksup.prefix_sum_axis, dim=lines, inputs=[marks, axis], device=dev)
         self.index_support()
 
     @property
@@ -304,11 +304,11 @@ class Sampler:
 
     def index_support(self) -> None:
         """Prefix sums of the supported voxels per brick, the index the sampler draws from."""
-        from ...kernels import sampling as ks
+        from ...kernels import support as ksup
 
         marks, everything, counts = self.support_marks
         nz, ny, nx = self.dv.values.shape
-        self._wp.launch(ks.support_counts, dim=marks.shape, inputs=[marks, everything, nz, ny, nx], outputs=[counts], device=self.device)
+        self._wp.launch(ksup.support_counts, dim=marks.shape, inputs=[marks, everything, nz, ny, nx], outputs=[counts], device=self.device)
         self._wp.utils.array_scan(counts.flatten(), self.support, inclusive=True)
 
     def reach(self) -> int:
@@ -328,7 +328,7 @@ class Sampler:
         """Sum of squared errors over the voxels the draw cannot reach, where the model is 0 (the
         empty voxels of unsupported bricks: their V^2); None where that is not known (the
         uniform stratum drawn among the occupied voxels: the model is not 0 off them). Syncs."""
-        from ...kernels import sampling as ks
+        from ...kernels import support as ksup
 
         if self.uniform_occupied:
             return None
@@ -338,7 +338,7 @@ class Sampler:
         counts = self.support_marks[2]
         out = wp.empty(counts.shape, dtype=float, device=self.device)
         wp.launch(
-            ks.unreached_squares, dim=counts.shape, inputs=[dv.values, dv.mask, dv.has_mask, counts], outputs=[out], device=self.device
+            ksup.unreached_squares, dim=counts.shape, inputs=[dv.values, dv.mask, dv.has_mask, counts], outputs=[out], device=self.device
         )
         return float(out.numpy().astype(np.float64).sum())  # per-brick partials summed in a fixed order
 

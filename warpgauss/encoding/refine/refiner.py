@@ -32,6 +32,8 @@ from .bins import Binner
 from .config import RefineConfig
 from .draw import Sampler
 from .passes import PARTIAL_MAX_ENTRIES, PairPasses, picks_split
+from .persist import Checkpointed
+from .reports import Reported
 from .schedule import MAX_BUDGET_ITERATIONS, BudgetPlan, Schedule, smooth_weight
 from .state import Primitives
 from .stop import VALIDATION_POINTS, StopRule
@@ -57,22 +59,20 @@ def load_kernels(device: str) -> None:
     budget pays for it."""
     from ...kernels import backward as kb
     from ...kernels import field as kf
+    from ...kernels import lists as kl
     from ...kernels import optim as ko
     from ...kernels import sampling as ks
+    from ...kernels import support as ksup
 
     wp = warp()
-    for module in (kf, ko, kb, ks):
+    for module in (kf, ko, kb, ks, ksup, kl):
         wp.load_module(module, device=device)
 
 
 SILENT_LOGIT = 1.0e4  # sigmoid(-1e4) is exactly 0 in float32: a silenced (frozen) primitive's weight
-# draws of samples the end-of-training estimates (Refiner.end_estimate) average over, and the salt
-# of their RNG streams (apart from the training's, SAMPLER_SALT)
-END_DRAWS = 8
-END_SALT = 77_773
 
 
-class Refiner:
+class Refiner(Checkpointed, Reported):
     """N primitives under refinement on one device.
 
     The training state (raw parameters, Adam moments, prepared primitives) lives in *slot order*,
@@ -465,203 +465,6 @@ class Refiner:
     def support_share(self) -> float | None:
         """Share of the grid's voxels the uniform stratum is drawn from now (see :class:`.draw.Sampler`)."""
         return self.sampler.support_share()
-
-    # -- checkpoints -------------------------------------------------------------------------
-
-    def state_arrays(self) -> tuple[dict, dict]:
-        """Everything the next iterations depend on, between two steps: (arrays, scalars).
-
-        Arrays are in slot order with the bins as they stand (cells, slot bounds), so that
-        :meth:`restore` continues bit-identically on the same device; the prepared primitives
-        are not stored, since they are a function of the raw parameters.
-        """
-        s, b, p, smp = self.state, self.state.bounds, self.state.prims, self.sampler
-        arrays = {
-            "raw": s.raw.numpy(),
-            "m1": s.m1.numpy(),
-            "m2": s.m2.numpy(),
-            "ids": s.ids.numpy(),
-            "bounds_lo": b.lo.numpy(),
-            "bounds_hi": b.hi.numpy(),
-            "bounds_cell": b.cell.numpy(),
-            "cell_start": p.cell_start.numpy(),
-            "cell_end": p.cell_end.numpy(),
-            "counts": s.counts.numpy(),
-            "reach": s.reach.numpy(),
-            "list_centre": self.passes.list_centre.numpy(),
-            "list_half": self.passes.list_half.numpy(),
-            # the support as marked at the last re-bin, not as the current primitives would mark it
-            "support": (smp.support_marks[0].numpy().reshape(-1) != 0).astype(np.uint8) if smp.uniform_support else np.zeros(0, np.uint8),
-            **smp.error_arrays(),
-        }
-        plan = s.binned
-        scalars = {
-            "n": self.n,
-            "iteration": self.iteration,
-            "iterations": self.cfg.iterations,
-            "samples": self.m,
-            "touch_scale": self.touch_scale,
-            "contacts": self.contacts,
-            "rebins": self.rebins,
-            "n_train": self.state.n_train,
-            "silenced": self.silenced,
-            "split": self.split,
-            "support_everything": int(smp.support_marks[1].numpy()[0]) if smp.uniform_support else 0,
-            "plan": {
-                "sizes": list(plan.sizes),
-                "dims": [list(d) for d in plan.dims],
-                "offsets": list(plan.offsets),
-                "total_cells": plan.total_cells,
-            },
-        }
-        return {k: np.ascontiguousarray(v) for k, v in arrays.items()}, scalars
-
-    def restore(self, arrays: dict, scalars: dict) -> None:
-        """Continue from :meth:`state_arrays` (same primitives count; shapes checked by the caller)."""
-        from ...field.gaussians import BinPlan, set_plan
-
-        dev, s = self.device, self.state
-        p, b = s.prims, s.bounds
-        if int(scalars["n"]) != self.n:
-            raise WarpgaussError(f"checkpoint holds {scalars['n']} primitives, this run has {self.n}")
-        pl = scalars["plan"]
-        plan = BinPlan(
-            tuple(float(x) for x in pl["sizes"]),
-            tuple(tuple(int(v) for v in d) for d in pl["dims"]),
-            tuple(int(x) for x in pl["offsets"]),
-            int(pl["total_cells"]),
-        )
-        s.plan = plan
-        set_plan(p, plan, dev, arrays["cell_start"], arrays["cell_end"])
-        self.binner.slot_cells()
-        self.passes.invalidate()
-        for dst, key in (
-            (s.raw, "raw"),
-            (s.m1, "m1"),
-            (s.m2, "m2"),
-            (s.ids, "ids"),
-            (b.lo, "bounds_lo"),
-            (b.hi, "bounds_hi"),
-            (b.cell, "bounds_cell"),
-            (s.counts, "counts"),
-            (s.reach, "reach"),
-            (self.passes.list_centre, "list_centre"),
-            (self.passes.list_half, "list_half"),
-        ):
-            dst.assign(arrays[key])
-        self.passes.lists_restored()
-        it = int(scalars["iteration"])
-        refit = self.cfg.quantise_mode == "refit"
-        self.quant.on = int(self.quantising(it) and not refit)
-        if refit and self.quantising(it) and it > int(self.cfg.quantise_from * self.cfg.iterations):
-            self._freeze_geometry()  # the geometry was fixed before the checkpoint
-        radius = self.binner.prep[4]  # scratch: the prepared primitives go straight into slot order
-        self.binner.prepare_into([p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w, p.conic])
-        s.zero_grads()
-        smp = self.sampler
-        if smp.uniform_support:
-            marks, everything, _ = smp.support_marks
-            if arrays["support"].size != marks.size:
-                raise WarpgaussError(f"checkpoint holds {arrays['support'].size} support bricks, this run has {marks.size}")
-            marks.assign(arrays["support"].reshape(marks.shape).astype(np.int32))
-            everything.fill_(int(scalars.get("support_everything", 0)))
-            smp.index_support()
-        smp.restore_errors(arrays["errors_new"], arrays["errors"])
-        if int(scalars["samples"]) != self.m:
-            self.set_samples(int(scalars["samples"]))
-        if int(scalars["iterations"]) != self.cfg.iterations:
-            self.cfg = dataclasses.replace(self.cfg, iterations=int(scalars["iterations"]))
-            self.write_schedule()
-        self.split = bool(scalars["split"])
-        self.iteration = int(scalars["iteration"])
-        self.schedule.set_iteration(self.iteration)
-        self.touch_scale = float(scalars["touch_scale"])
-        self.schedule.touch.fill_(self.touch_scale)
-        self.contacts = scalars["contacts"]
-        self.binner.rebins = int(scalars["rebins"])
-        self.state.n_train = int(scalars.get("n_train", self.state.n_train))  # after a silence()
-        # a checkpoint holds no bricked run (no frozen neighbours): every frozen row was silenced
-        self.silenced = int(scalars.get("silenced", self.state.n - self.state.n_train))
-        self._graph = None
-
-    # -- reports -----------------------------------------------------------------------------
-
-    def losses(self) -> dict:
-        """Loss terms of the last iteration, a running PSNR estimate over its samples and, with
-        importance weights, their estimate of the decoded model's full-grid PSNR
-        (``grid_psnr_db``, see :meth:`grid_mse_estimate`; syncs)."""
-        if self.state.clean:
-            self.updater.finish_grads()  # per-primitive terms of the current parameters (pair buffers are zero)
-        pl = self.point_loss.numpy().astype(np.float64).sum(0)
-        rl = self.state.reg_loss.numpy().astype(np.float64).sum(0)
-        terms = {"value": pl[0], "density": pl[1], "smooth": pl[2], "anchor": rl[0], "aniso": rl[1], "cap": rl[2]}
-        terms = {k: float(x) for k, x in terms.items()}
-        terms["total"] = float(sum(terms.values()))
-        return terms | self._psnr_terms(*self._drawn())
-
-    def _drawn(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The current samples' model values, targets and weights (float64; syncs)."""
-        v = self.value.numpy()[: self.m].astype(np.float64)
-        return v, self.target.numpy().astype(np.float64), self.weight.numpy().astype(np.float64)
-
-    def _psnr_terms(self, v: np.ndarray, t: np.ndarray, om: np.ndarray) -> dict:
-        """``sample_psnr_db`` (the weighted MSE over the samples) and, where it can be estimated,
-        ``grid_psnr_db`` (:meth:`grid_mse_estimate`) of these model values, targets and weights."""
-        mse = float(np.sum(om * (v - t) ** 2) / max(om.sum(), 1.0))
-        out = {"sample_psnr_db": float(10 * np.log10(1 / max(mse, 1e-20)))}
-        grid = self.grid_mse_estimate(v, t, om)
-        if grid is not None:
-            out["grid_psnr_db"] = float(10 * np.log10(1 / max(grid, 1e-20)))
-        return out
-
-    def grid_mse_estimate(self, v: np.ndarray, t: np.ndarray, om: np.ndarray) -> float | None:
-        """The full-grid MSE of the decoded model (values clamped as the decode clamps them)
-        estimated from this iteration's samples: with importance weights 1 / (D q(v)) the mean of
-        w e^2 times D estimates the squared error summed over the voxels the draw reaches; the
-        voxels it cannot reach decode to 0 and add their V^2 (:meth:`.draw.Sampler.unreached_error`);
-        over the grid's valid voxels. None without importance weights, or where the unreached
-        voxels' model values are not known. ``sample_psnr_db`` is the MSE over the reach alone
-        (the rate control's input, as calibrated)."""
-        if not self.cfg.importance:
-            return None
-        unreached = self.sampler.unreached_error()
-        if unreached is None:
-            return None
-        e = np.clip(v, 0.0, 1.0) - t
-        valid = int(getattr(self.dv.field, "n_valid", 0)) or int(self.dv.values.size)
-        reached = float(np.sum(om * e * e)) * self.sampler.reach() / max(len(v), 1)
-        return (reached + unreached) / valid
-
-    def end_estimate(self, draws: int = END_DRAWS) -> dict:
-        """The current model's ``sample_psnr_db`` and ``grid_psnr_db`` (see :meth:`losses`) over
-        ``draws`` fresh sample draws (RNG streams of their own, :data:`END_SALT`; forward passes
-        only). Fresh, because the model has stepped on the last iterations' samples: scored on
-        those it read 0.1-1.6 dB above the decoded model's grid PSNR (H200, three MRIs and two
-        512^3 fields), where one iteration's draw scored before its step was within 0.7 dB.
-        Parameters and the iteration count are left as they were; empty before the first
-        iteration. Syncs."""
-        if self.iteration == 0 or draws <= 0:
-            return {}
-        from ..allocate import rng_stream
-
-        stream = self._wp.zeros(1, dtype=int, device=self.device)
-        drawn = []
-        for j in range(draws):
-            stream.assign(np.array([rng_stream(self.seed, j, salt=END_SALT)], np.int32))
-            self.sampler.draw(stream)
-            self.passes.points_changed()
-            self.forward()
-            drawn.append(self._drawn())
-        v, t, om = (np.concatenate(parts) for parts in zip(*drawn))
-        return {"draws": draws, "samples": len(v)} | self._psnr_terms(v, t, om)
-
-    def skipped_steps(self) -> int:
-        """Primitive updates skipped because their gradient or result was not finite, so far."""
-        return int(self.state.counts.numpy()[0])
-
-    def deferred_steps(self) -> int:
-        """Primitive updates deferred to the next re-bin (they would have left their cell's reach)."""
-        return int(self.state.counts.numpy()[1])
 
     # -- the run -----------------------------------------------------------------------------
 
