@@ -105,13 +105,7 @@ def encode_series(
         "max_host_memory",
     )
     kw = {k: v for k, v in cfg.to_kwargs().items() if k not in per_step}
-    out = output or Path("series.wgs")
-    name = str(out / "step.wgs") if out.is_dir() else str(out)  # a folder: step_000.wgs ... inside it
-    if len(variables) > 1 and "{var" not in name:
-        name = str(Path(name).with_name(f"{Path(name).stem}_{{var}}{Path(name).suffix or '.wgs'}"))
-    if "{t" not in name:
-        p = Path(name)
-        name = str(p.with_name(f"{p.stem}_{{t:03d}}{p.suffix or '.wgs'}"))
+    name = _series_name(output, variables)
     from warpgauss.core.files import check_writable
     from warpgauss.series.steps import series_chains
 
@@ -183,6 +177,24 @@ def encode_series(
     if as_json:
         print_json({"series": rows})
         return
+    _print_series(rows)
+
+
+def _series_name(output, variables: list[str]) -> str:
+    """The models' path pattern: ``output`` (a folder: step.wgs inside it) with {var} where there
+    are several variables and {t:03d} where the pattern holds no step."""
+    out = output or Path("series.wgs")
+    name = str(out / "step.wgs") if out.is_dir() else str(out)  # a folder: step_000.wgs ... inside it
+    if len(variables) > 1 and "{var" not in name:
+        name = str(Path(name).with_name(f"{Path(name).stem}_{{var}}{Path(name).suffix or '.wgs'}"))
+    if "{t" not in name:
+        p = Path(name)
+        name = str(p.with_name(f"{p.stem}_{{t:03d}}{p.suffix or '.wgs'}"))
+    return name
+
+
+def _print_series(rows: list[dict]) -> None:
+    """The series' table: a row per timestep and variable."""
     from rich.table import Table
 
     table = Table(show_edge=False, header_style="bold")

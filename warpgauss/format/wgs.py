@@ -398,13 +398,9 @@ def read_wgs_bytes(data: bytes) -> tuple[np.ndarray, dict]:
     return params, header
 
 
-def _parse(f: BinaryIO, size: int, label: str, payload: bool) -> tuple[np.ndarray | None, dict]:
-    """Validate and read the model whose ``size`` bytes ``f`` holds from its start (``label``: its
-    name in errors); ``payload`` False: the header only."""
-
-    def bad(msg: str) -> WarpgaussError:
-        return WarpgaussError(f"{label}: {msg}")
-
+def _read_header(f: BinaryIO, size: int, bad) -> tuple[int, int, dict]:
+    """The prefix and the header of a model file: (version, header length, header), checked
+    (magic, version, length, CRC32, a JSON object); ``bad(msg)`` makes the error."""
     if size < PREFIX_SIZE:
         raise bad(f"not a warpgauss model file (only {size} bytes, shorter than the {PREFIX_SIZE}-byte prefix)")
     magic, version, hlen, crc = PREFIX.unpack(f.read(PREFIX_SIZE))
@@ -430,6 +426,17 @@ def _parse(f: BinaryIO, size: int, label: str, payload: bool) -> tuple[np.ndarra
         raise bad("the header is not valid UTF-8 JSON: the file is damaged; restore it or re-encode") from None
     if not isinstance(header, dict):
         raise bad("the header is not a JSON object: the file is damaged; restore it or re-encode")
+    return version, hlen, header
+
+
+def _parse(f: BinaryIO, size: int, label: str, payload: bool) -> tuple[np.ndarray | None, dict]:
+    """Validate and read the model whose ``size`` bytes ``f`` holds from its start (``label``: its
+    name in errors); ``payload`` False: the header only."""
+
+    def bad(msg: str) -> WarpgaussError:
+        return WarpgaussError(f"{label}: {msg}")
+
+    version, hlen, header = _read_header(f, size, bad)
     for key in ("n", "payload"):
         if key not in header:
             raise bad(f"the header lacks the required key '{key}'; the file was not written by warpgauss")

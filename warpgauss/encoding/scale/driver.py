@@ -106,41 +106,40 @@ def encode_bricked(
             params, seams = refit_seams(
                 f, plan, params, opts.refine, allocation, brick_seed(opts.seed, len(plan)), dev, order.seam_refit, dv=dv
             )
-    merged = Model(params, header)
-    merged.coded_bits = None if sizing is None else sizing["bits"]
     bits_note = _accuracy_bits(results, plan) if enc == "coded" else None
-    if bits_note is not None:  # finer grids for a more accurate model, as the monolithic encode codes
-        merged.coded_bits = bits_note["bits"]
-    fit = None
-    if enc == "coded" and budget_bytes is not None:
-        model, fit = merged.fit_bytes(budget_bytes)
-    else:
-        model = merged.stored(enc)
-        model.format = enc
+    model, fit = _stored(Model(params, header), enc, budget_bytes, sizing, bits_note)
     evaluation: dict = {}
     if evaluate:
         from ...field.evaluate import evaluate_field
 
         with timer.stage("EV", "evaluation"):
             evaluation["final"] = evaluate_field(model.field(dev), f, full=full_eval)
-    bricks_report = _brick_rows(plan, stats, results)
-    model.report = {
+    bricking = {
+        "bricks_xyz": list(counts_xyz),
+        "halo": halo,
+        "scale_cap": allocation.scale_cap,
+        "scheduler": "this process" if client is None else str(client.scheduler.address),
+        "wall_seconds": wall,
+        "volume_to_workers": sharing,
+        "schedule": order.report(),
+        "waves": waves,
+        "seam_refit": seams,
+        "workers": _workers(results),
+        "bricks": _brick_rows(plan, stats, results),
+        "rule": "detail share by interior sum of |grad V|, coverage share by occupied voxels, largest remainders, seed limits",
+    }
+    model.report = _report(
+        model, f, opts, dev, input_info, evaluation, bricking, budget_facts(model, opts, f, enc, budget_bytes, sizing, fit, note=bits_note)
+    )
+    return model
+
+
+def _report(model: Model, f: Field, opts: EncodeOptions, dev: str, input_info, evaluation: dict, bricking: dict, budget: dict) -> dict:
+    """A bricked encode's run report: the run's facts, its budget and bricking, its evaluation."""
+    return {
         **run_facts(dev, input_info, f),
-        "budget": budget_facts(model, opts, f, enc, budget_bytes, sizing, fit, note=bits_note),
-        "bricking": {
-            "bricks_xyz": list(counts_xyz),
-            "halo": halo,
-            "scale_cap": allocation.scale_cap,
-            "scheduler": "this process" if client is None else str(client.scheduler.address),
-            "wall_seconds": wall,
-            "volume_to_workers": sharing,
-            "schedule": order.report(),
-            "waves": waves,
-            "seam_refit": seams,
-            "workers": _workers(results),
-            "bricks": bricks_report,
-            "rule": "detail share by interior sum of |grad V|, coverage share by occupied voxels, largest remainders, seed limits",
-        },
+        "budget": budget,
+        "bricking": bricking,
         "seed": opts.seed,
         "refinement": {"iterations": opts.refine.iterations, "per_brick": True},
         "evaluation": evaluation,
@@ -148,7 +147,19 @@ def encode_bricked(
         "interrupted": False,
         "skipped": [],
     }
-    return model
+
+
+def _stored(merged: Model, enc: str, budget_bytes: int | None, sizing: dict | None, bits_note: dict | None) -> tuple[Model, dict | None]:
+    """The merged model as the file holds it: coded on the grids its accuracy asks for (as the
+    monolithic encode codes) and fitted to a byte budget, or stored in ``enc``; and the fit."""
+    merged.coded_bits = None if sizing is None else sizing["bits"]
+    if bits_note is not None:  # finer grids for a more accurate model
+        merged.coded_bits = bits_note["bits"]
+    if enc == "coded" and budget_bytes is not None:
+        return merged.fit_bytes(budget_bytes)
+    model = merged.stored(enc)
+    model.format = enc
+    return model, None
 
 
 def _run_bricks(f, plan, stats, opts, allocation, n, dev, client, resident, max_device_memory, timer, on_progress, waves, order):
