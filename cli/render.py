@@ -157,14 +157,7 @@ def render(
 
     check_png(output)
     check_writable(output, force=force)
-    if not input.exists():
-        raise WarpgaussError(f"no such file: {input}")
-    if method is not None and method not in ("march", "cached", "splat"):
-        raise WarpgaussError(f"--method must be march, cached or splat, got {method!r}")
-    if cache_res is not None and method not in (None, "cached"):
-        raise WarpgaussError(f"--cache-res applies to --method cached, not {method}")
-    if cache_res is not None and cache_res < 1:
-        raise WarpgaussError(f"--cache-res must be a positive number of voxels along the longest axis, got {cache_res}")
+    _check_method(input, method, cache_res)
     width, height = parse_size(size)
     camera = Camera(
         azimuth=azimuth,
@@ -215,6 +208,23 @@ def render(
     if as_json:
         print_json(summary)
         return
+    _print_render(output, summary, diff_gain)
+
+
+def _check_method(input: Path, method: str | None, cache_res: int | None) -> None:
+    """Refuse a missing input, an unknown --method and a --cache-res it does not take."""
+    if not input.exists():
+        raise WarpgaussError(f"no such file: {input}")
+    if method is not None and method not in ("march", "cached", "splat"):
+        raise WarpgaussError(f"--method must be march, cached or splat, got {method!r}")
+    if cache_res is not None and method not in (None, "cached"):
+        raise WarpgaussError(f"--cache-res applies to --method cached, not {method}")
+    if cache_res is not None and cache_res < 1:
+        raise WarpgaussError(f"--cache-res must be a positive number of voxels along the longest axis, got {cache_res}")
+
+
+def _print_render(output: Path, summary: dict, diff_gain: float) -> None:
+    """What ``render`` wrote, for people: the image, its renderer and time; a comparison's scores."""
     cache = ""
     if "cache_seconds" in summary:
         cache = f"; cache {'x'.join(map(str, summary['cache_shape']))} built once in {summary['cache_seconds']:.3f} s"

@@ -114,14 +114,77 @@ class Area:
         return False
 
 
+def _controls(viewer: Viewer) -> None:
+    """The page's right-hand panel (inside the layout being built): facts, frame time, renderer,
+    colormap, transfer function, shading, density, time step, comparison, the command line."""
+    from trame.widgets import color_opacity_editor as coe
+    from trame.widgets import html
+    from trame.widgets import vuetify3 as v3
+
+    with html.Div(style="width:380px;overflow-y:auto;font-size:13px"):
+        html.Div("{{ facts }}", id="facts", style="white-space:pre-line;margin-bottom:8px")
+        html.Div("frame {{ frame_ms }} ms", id="frame_ms", style="margin-bottom:8px")
+        v3.VSelect(
+            label="renderer",
+            v_model=("method",),
+            items=("['cached', 'march', 'splat'" + (", 'bounded'" if any(m.residual is not None for m in viewer.models) else "") + "]",),
+            density="compact",
+            id="method",
+        )
+        v3.VSelect(
+            label="colormap",
+            v_model=("colormap",),
+            items=("[" + ", ".join(f"'{p}'" for p in PRESETS) + "]",),
+            density="compact",
+            id="colormap",
+        )
+        coe.ColorOpacityEditor(
+            v_model_colorNodes=("colors",),
+            v_model_opacityNodes=("opacities",),
+            scalar_range=("[0, 1]",),
+            histograms=("hist",),
+            histograms_range=("[0, 1]",),
+            show_histograms=True,
+            style="width:100%;height:200px;",
+            id="coe",
+        )
+        v3.VSwitch(label="shading", v_model=("shading",), density="compact", hide_details=True, id="shading")
+        v3.VSlider(label="density (log10)", v_model=("density_log",), min=-1.5, max=1.5, step=0.1, hide_details=True, id="density")
+        v3.VSlider(
+            label="time step",
+            v_model=("time",),
+            min=0,
+            max=("steps - 1",),
+            step=1,
+            v_show=("steps > 1",),
+            hide_details=True,
+            id="time",
+        )
+        v3.VSwitch(
+            label="compare with volume",
+            v_model=("compare",),
+            v_show=("has_volume",),
+            density="compact",
+            hide_details=True,
+            id="compare",
+        )
+        html.Div("the same view on the command line:", style="margin-top:8px")
+        html.Code("{{ command }}", id="command", style="display:block;word-break:break-all;font-size:11px")
+        html.A(
+            "download {{ tf_file }} (the edited colours, for --tf)",
+            v_show=("custom_colors",),
+            href=("'data:application/json;charset=utf-8,' + encodeURIComponent(tf_json)",),
+            download=("tf_file",),
+            id="tf_download",
+        )
+
+
 def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = None):
     """The trame server of a viewer's page (not started)."""
     require_trame()
     from trame.app import get_server
     from trame.ui.vuetify3 import SinglePageLayout
-    from trame.widgets import color_opacity_editor as coe
     from trame.widgets import html, rca
-    from trame.widgets import vuetify3 as v3
 
     server = get_server(name, client_type="vue3")
     state, ctrl = server.state, server.controller
@@ -211,69 +274,7 @@ def make_app(viewer: Viewer, *, name: str = "warpgauss", title: str | None = Non
                     ):
                         html.Div("model (Gaussians)", style="flex:1;text-align:center")
                         html.Div("source volume", style="flex:1;text-align:center")
-                with html.Div(style="width:380px;overflow-y:auto;font-size:13px"):
-                    html.Div("{{ facts }}", id="facts", style="white-space:pre-line;margin-bottom:8px")
-                    html.Div("frame {{ frame_ms }} ms", id="frame_ms", style="margin-bottom:8px")
-                    v3.VSelect(
-                        label="renderer",
-                        v_model=("method",),
-                        items=(
-                            "['cached', 'march', 'splat'"
-                            + (", 'bounded'" if any(m.residual is not None for m in viewer.models) else "")
-                            + "]",
-                        ),
-                        density="compact",
-                        id="method",
-                    )
-                    v3.VSelect(
-                        label="colormap",
-                        v_model=("colormap",),
-                        items=("[" + ", ".join(f"'{p}'" for p in PRESETS) + "]",),
-                        density="compact",
-                        id="colormap",
-                    )
-                    coe.ColorOpacityEditor(
-                        v_model_colorNodes=("colors",),
-                        v_model_opacityNodes=("opacities",),
-                        scalar_range=("[0, 1]",),
-                        histograms=("hist",),
-                        histograms_range=("[0, 1]",),
-                        show_histograms=True,
-                        style="width:100%;height:200px;",
-                        id="coe",
-                    )
-                    v3.VSwitch(label="shading", v_model=("shading",), density="compact", hide_details=True, id="shading")
-                    v3.VSlider(
-                        label="density (log10)", v_model=("density_log",), min=-1.5, max=1.5, step=0.1, hide_details=True, id="density"
-                    )
-                    v3.VSlider(
-                        label="time step",
-                        v_model=("time",),
-                        min=0,
-                        max=("steps - 1",),
-                        step=1,
-                        v_show=("steps > 1",),
-                        hide_details=True,
-                        id="time",
-                    )
-                    v3.VSwitch(
-                        label="compare with volume",
-                        v_model=("compare",),
-                        v_show=("has_volume",),
-                        density="compact",
-                        hide_details=True,
-                        id="compare",
-                    )
-                    html.Div("the same view on the command line:", style="margin-top:8px")
-                    html.Code("{{ command }}", id="command", style="display:block;word-break:break-all;font-size:11px")
-                    html.A(
-                        "download {{ tf_file }} (the edited colours, for --tf)",
-                        v_show=("custom_colors",),
-                        href=("'data:application/json;charset=utf-8,' + encodeURIComponent(tf_json)",),
-                        download=("tf_file",),
-                        id="tf_download",
-                    )
-
+                _controls(viewer)
     handler = _view_handler(view, _Forward())
     ctrl.view_update = handler.update
     return server
