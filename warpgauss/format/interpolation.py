@@ -131,14 +131,20 @@ def feedback(
         dec[...] = q * np.int64(step) if integer else q * step
         return q, dec
     first, s0, passes = stepped_passes(t.shape, step, integer, axes, levels)
-    q[first] = np.where(skip[first], 0, quantise(np.where(skip[first], 0, t[first]), s0, integer))  # a skipped value may be NaN
-    dec[first] = q[first] * (np.int64(s0) if integer else s0)
+    q[first], dec[first] = first_coded(t, skip, first, s0, integer)
     for a, h, sel, s in passes:
         pred = interp_prediction(dec, a, h, sel, interp == "cubic")
         qs = np.where(skip[sel], 0, quantise(np.where(skip[sel], pred, t[sel]) - pred, s, integer))
         q[sel] = qs
         dec[sel] = pred + (qs * np.int64(s) if integer else qs * s)
     return q, dec
+
+
+def first_coded(t: np.ndarray, skip: np.ndarray, first, s0: float, integer: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The first voxel's (q, decoded value): the coarsest lattice, predicted as 0, on step ``s0``
+    (q = 0 where it is skipped; a skipped value may be NaN)."""
+    q0 = np.where(skip[first], 0, quantise(np.where(skip[first], 0, t[first]), s0, integer))
+    return q0, q0 * (np.int64(s0) if integer else s0)
 
 
 def feedback_on(
@@ -151,14 +157,12 @@ def feedback_on(
 
     wp = warp()
     first, s0, passes = stepped_passes(t.shape, step, integer, axes, levels)
-    kind = np.int64 if integer else np.float64
-    q0 = np.where(skip[first], 0, quantise(np.where(skip[first], 0, t[first]), s0, integer))
-    dec0 = np.zeros(t.shape, kind)
-    dec0[first] = q0 * (np.int64(s0) if integer else s0)
+    kind, wkind = (np.int64, wp.int64) if integer else (np.float64, wp.float64)
+    q0, dec0 = first_coded(t, skip, first, s0, integer)
     q = wp.zeros(t.shape, dtype=wp.int64, device=device)
-    dec = wp.array(dec0, dtype=wp.int64 if integer else wp.float64, device=device)
-    del dec0
-    tt = wp.array(np.ascontiguousarray(t, kind), dtype=wp.int64 if integer else wp.float64, device=device)
+    dec = wp.zeros(t.shape, dtype=wkind, device=device)
+    dec[first].assign(np.asarray(dec0, kind))
+    tt = wp.array(np.ascontiguousarray(t, kind), dtype=wkind, device=device)
     sk = wp.array(np.ascontiguousarray(skip).view(np.uint8), dtype=wp.uint8, device=device)
     kernel = ki.feedback_pass_i if integer else ki.feedback_pass_f
     for a, h, sel, s in passes:

@@ -12,8 +12,9 @@ quantisation indices q entropy-coded. The predictors are tried and the smallest 
 each interpolation also linear ("interp-linear", "gaussians+interp-linear"), as SZ3 chooses; the
 Gaussians plus interpolation are coded only with the kind that coded smaller alone.
 
-The interpolation runs on decoded values in float64 numpy (the same operations, so the same bits,
-on every machine) and never on P: a reader's prediction enters only as the final ``P + r``. Where
+The interpolation runs on decoded values in float64 numpy, or as Warp kernels on the encode's
+device with floating-point contraction off (:mod:`warpgauss.kernels.interp`; the same operations,
+so the same bits, on every machine) and never on P: a reader's prediction enters only as the final ``P + r``. Where
 a reader's float64 prediction may differ from the encoder's (by less than ``MARGIN_REL`` of the
 value range: CPU against CUDA measured about 1e-15), the step keeps that margin and a voxel is
 checked at both ends of it; a voxel with a pair on the 5-sigma cut (``fragile``: a reader may
@@ -32,7 +33,7 @@ smallest: on the three head MRIs at 1e-2 and 1e-3 of the range, x before z befor
 residual 4-17 % smaller than z, y, x, and storing mni_icbm152's q's with x in the middle 1.4-1.6x
 smaller than the raster at 1e-3 (benchmarks/bounded/README.md). The q's are zigzag-mapped to the
 narrowest of 1, 2, 4 or 8 bytes, split into byte planes and coded with Zstandard, as the coded
-model format is (:mod:`warpgauss.coded`), or bzip2 where that is smaller. The payload is a sequence of
+model format is (:mod:`warpgauss.format.coded`), or bzip2 where that is smaller. The payload is a sequence of
 Zstandard frames (q's, literal positions, literal values, mask) whose lengths the header's
 ``residual`` entry lists; reading decompresses each into at most its declared size and refuses a
 frame that claims more than Zstandard can produce from its bytes.
