@@ -16,7 +16,7 @@ deferred (:func:`warpgauss.kernels.optim.fits_list`), as steps out of reach of a
 
 import warp as wp
 
-from .backward import PointGrid, box_rows, frame_grads, slot_level
+from .backward import PointGrid, box_rows, slot_level
 from .field import BinnedPrimitives, add_pair, conic_g, in_box, level_cell, store_sums, vec6
 from .optim import BIG, cell_faces
 
@@ -239,135 +239,6 @@ def eval_points_listed_2(
     """:func:`eval_points_listed` reading two list entries at a time (:func:`listed_sums_2`)."""
     i = order[wp.tid()]
     store_sums(i, listed_sums_2(points[i], prims, grid, lists), value, density, pairs)
-
-
-@wp.kernel
-def list_positions(
-    keys: wp.array(dtype=int),  # [>= entries] point cell of each entry, sorted
-    values: wp.array(dtype=int),  # [>= entries] slot of each entry, cell order
-    total: int,  # entries
-    slot_cell: wp.array(dtype=int),  # [N]
-    prims: BinnedPrimitives,
-    grid: PointGrid,
-    centre: wp.array(dtype=wp.vec3),  # [N]
-    half: wp.array(dtype=wp.vec3),  # [N]
-    counts_cum: wp.array(dtype=int),  # [N] inclusive scan of list_count's counts
-    entry_pos: wp.array(dtype=int),  # [>= entries] out: sorted position of each slot's entries, slot by slot
-):
-    """Where each (slot, cell) entry went in the sort (one thread per sorted entry): slot j's
-    entries, in the order :func:`list_fill` wrote them (its cells x fastest), are
-    ``entry_pos[counts_cum[j] - count_j : counts_cum[j]]``, which the listed backward pass
-    (:func:`reduce_listed`) sums in that fixed order."""
-    k = wp.tid()
-    if k >= total:
-        return
-    j = values[k]
-    l, lo, hi = listed_cells(j, slot_cell, prims, grid, centre, half)
-    dims = grid.dims[l]
-    c = keys[k] - grid.offset[l]
-    x = c % dims[0]
-    y = (c / dims[0]) % dims[1]
-    z = c / (dims[0] * dims[1])
-    nx = hi[0] - lo[0] + 1
-    ny = hi[1] - lo[1] + 1
-    rank = ((z - lo[2]) * ny + (y - lo[1])) * nx + (x - lo[0])
-    entry_pos[counts_cum[j] - nx * ny * (hi[2] - lo[2] + 1) + rank] = k
-
-
-def _pair_grad_listed(
-    keys: wp.array(dtype=int),  # [>= entries] point cell of each entry, sorted
-    lists: CellLists,
-    prims: BinnedPrimitives,
-    grid: PointGrid,
-    pos: wp.array(dtype=wp.vec3),  # [K] sorted point positions (backward.gather_point_state)
-    state: wp.array(dtype=wp.vec4),  # [K] sorted point states
-    order: wp.array(dtype=int),  # [>=K] point index of each sorted entry (for the pair count)
-    count_pairs: int,  # 1: add each contributing pair to pairs[point] (tests, self-test)
-    pairs: wp.array(dtype=int),  # [P] out (zeroed before when counting)
-    part_kd: wp.array(dtype=wp.vec3),  # [>= entries] out: sum of k d of each entry
-    part_dd: wp.array(dtype=vec6),  # [>= entries] out: sum of k d d^T (xx, yy, zz, xy, xz, yz)
-    part_aw: wp.array(dtype=wp.vec2),  # [>= entries] out: (dL/da, dL/dw)
-):
-    """Partial gradients of one list entry: its primitive against the points of its cell (one
-    thread per entry, launched over the lists' capacity; threads past the entry count return).
-
-    The transpose of the listed forward pass: the threads of a warp hold consecutive entries,
-    mostly of one cell, so they read the same points (one load serves the warp) and each sums
-    its own primitive's terms in registers; no atomics. A primitive listed in a cell is every
-    primitive whose box reaches it, so every contributing pair is visited once.
-    """
-    k = wp.tid()
-    if k >= lists.start[lists.start.shape[0] - 1]:
-        return
-    c = keys[k]
-    j = lists.prim[k]
-    mu = prims.mu[j]
-    cq = prims.conic[j]
-    e = prims.ext[j]
-    a = prims.a[j]
-    w = prims.w[j]
-    s_kd = wp.vec3(0.0, 0.0, 0.0)
-    s_dd = vec6(0.0)
-    s_a = float(0.0)
-    s_w = float(0.0)
-    for q in range(grid.start[c], grid.start[c + 1]):
-        d = pos[q] - mu
-        if in_box(d, e):
-            g = conic_g(d, cq)
-            if g > 0.0:
-                if count_pairs != 0:
-                    wp.atomic_add(pairs, order[q], 1)
-                st = state[q]
-                if st[0] != 0.0 or st[1] != 0.0:
-                    gl = st[0] * (a - st[3]) / st[2] + st[1]  # dL/dG / w
-                    kk = w * gl * g
-                    kd = kk * d
-                    s_kd += kd
-                    s_dd += vec6(kd[0] * d[0], kd[1] * d[1], kd[2] * d[2], kd[0] * d[1], kd[0] * d[2], kd[1] * d[2])
-                    s_a += st[0] * w * g / st[2]
-                    s_w += g * gl
-    part_kd[k] = s_kd
-    part_dd[k] = s_dd
-    part_aw[k] = wp.vec2(s_a, s_w)
-
-
-pair_grad_listed = wp.kernel(_pair_grad_listed, name="pair_grad_listed")
-pair_grad_listed_r64 = wp.kernel(_pair_grad_listed, name="pair_grad_listed_r64", cuda_max_registers=64)
-
-
-@wp.kernel
-def reduce_listed(
-    counts: wp.array(dtype=int),  # [N] entries of each slot (list_count)
-    counts_cum: wp.array(dtype=int),  # [N] inclusive scan of counts
-    entry_pos: wp.array(dtype=int),  # [>= entries] from list_positions
-    prims: BinnedPrimitives,
-    part_kd: wp.array(dtype=wp.vec3),  # [>= entries] from pair_grad_listed
-    part_dd: wp.array(dtype=vec6),
-    part_aw: wp.array(dtype=wp.vec2),
-    d_mu: wp.array(dtype=wp.vec3),  # [N] out (cell order, overwritten): dL/dmu
-    d_ls: wp.array(dtype=wp.vec3),  # [N] out: dL/dlog-sigma
-    d_rot: wp.array(dtype=wp.mat33),  # [N] out: dL/dR
-    d_a: wp.array(dtype=float),  # [N] out: dL/da
-    d_w: wp.array(dtype=float),  # [N] out: dL/dw (activated weight)
-):
-    """Sum each slot's entry partials in its cells' order and turn them into the pair gradients
-    (one thread per slot), as :func:`warpgauss.kernels.backward.reduce_chunks` does for chunks."""
-    j = wp.tid()
-    end = counts_cum[j]
-    s_kd = wp.vec3(0.0, 0.0, 0.0)
-    s_dd = vec6(0.0)
-    s_aw = wp.vec2(0.0, 0.0)
-    for t in range(end - counts[j], end):
-        k = entry_pos[t]
-        s_kd += part_kd[k]
-        s_dd += part_dd[k]
-        s_aw += part_aw[k]
-    g_mu, g_ls, g_rot = frame_grads(s_kd, s_dd, prims.rot[j], prims.inv_s2[j])
-    d_mu[j] = g_mu
-    d_ls[j] = g_ls
-    d_rot[j] = g_rot
-    d_a[j] = s_aw[0]
-    d_w[j] = s_aw[1]
 
 
 @wp.kernel

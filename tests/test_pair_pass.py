@@ -59,7 +59,6 @@ def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkey
     summation order: rounding only)."""
     from warpgauss.encoding.refine import passes
 
-    monkeypatch.setattr(passes, "LISTED_BACKWARD_MAX_ENTRIES", 0)  # the chunk pass, not the lists
     monkeypatch.setattr(passes, "MIN_CHUNK", min_chunk)
     monkeypatch.setattr(passes, "MAX_CHUNKS", max_chunks)
     monkeypatch.setattr(passes, "chunk_capacity", lambda n_points: capacity)
@@ -75,75 +74,27 @@ def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkey
         assert stats["chunks"] >= stats["candidates"] // min_chunk > 5 * r.n  # really split
     else:
         assert stats["chunk_size"] >= stats["candidates"] / capacity
-    assert stats["backward"] == "chunks"
     assert stats["candidates"] >= pairs.sum()
     assert_matches_atomic_scatter(r, mine, pairs)
 
 
-@pytest.mark.parametrize("listed", [False, True], ids=["chunks", "listed"])
-def test_pair_pass_reruns_bit_identically(device, monkeypatch, listed):
+def test_chunked_pass_reruns_bit_identically(device, monkeypatch):
     from warpgauss.encoding.refine import passes
 
-    if not listed:
-        monkeypatch.setattr(passes, "LISTED_BACKWARD_MAX_ENTRIES", 0)
     monkeypatch.setattr(passes, "MIN_CHUNK", 3)
     runs = []
     for _ in range(2):
         r = _refiner(device)
-        grads, _, stats = _pair_pass(r)
-        assert stats["backward"] == ("listed" if listed else "chunks")
-        runs.append(grads)
+        runs.append(_pair_pass(r)[0])
     for x, y in zip(*runs):
         np.testing.assert_array_equal(x, y)
 
 
-def test_listed_backward_visits_the_forward_pairs_and_equals_the_atomic_scatter(device):
-    """The backward pass through the cell lists (one thread per (cell, primitive) entry): every
-    contributing pair of the forward pass once, and the gradients of the point-major atomic
-    scatter and of the chunk pass (other summation orders: rounding only)."""
-    from warpgauss.encoding.refine import passes
-
-    r = _refiner(device)
-    mine, pairs, stats = _pair_pass(r)
-    assert stats["backward"] == "listed" and r.passes.backward_listed()
-    np.testing.assert_array_equal(pairs, r.pairs.numpy())
-    assert pairs.sum() > 10 * r.m
-    assert stats["candidates"] >= pairs.sum() and stats["chunks"] == r.passes.list_entries > r.n
-    assert_matches_atomic_scatter(r, mine, pairs)
-    kept = passes.LISTED_BACKWARD_MAX_ENTRIES
-    try:
-        passes.LISTED_BACKWARD_MAX_ENTRIES = 0
-        r.passes.backward(count_pairs=True)
-        assert r.pair_pass_stats()["backward"] == "chunks"
-        for x, y in zip(mine, r.pair_grads):
-            y = y.numpy()
-            np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-6 * float(np.abs(y).max()))
-    finally:
-        passes.LISTED_BACKWARD_MAX_ENTRIES = kept
-
-
-def test_listed_backward_needs_lists_that_fit_and_every_point(device, monkeypatch):
-    """No lists, lists above the entry limit, or a pass over part of the points: the chunk pass."""
-    from warpgauss.encoding.refine import passes
-
-    r = _refiner(device)
-    r.passes.buffers()  # the lists are indexed with the buffers
-    assert r.passes.backward_listed() and not r.passes.backward_listed(r.passes.n_points - 1)
-    monkeypatch.setattr(passes, "LISTED_BACKWARD_MAX_ENTRIES", 10)
-    r2 = _refiner(device)
-    r2.passes.buffers()
-    assert r2.passes.listed and not r2.passes.backward_listed()
-    assert _pair_pass(r2)[2]["backward"] == "chunks"
-
-
-@pytest.mark.parametrize("listed", [False, True], ids=["chunks", "listed"])
-def test_register_capped_backward_is_the_same_kernel(device, monkeypatch, listed):
-    """The backward pass with its registers capped (a CUDA compile option) gives the same
+def test_register_capped_backward_is_the_same_kernel(device, monkeypatch):
+    """The chunked backward with its registers capped (a CUDA compile option) gives the same
     pairs and gradients bit for bit."""
     from warpgauss.encoding.refine import passes
 
-    if not listed:
-        monkeypatch.setattr(passes, "LISTED_BACKWARD_MAX_ENTRIES", 0)
     runs = []
     for regs in (0, 64):
         monkeypatch.setattr(passes, "BACKWARD_REGISTERS", regs)

@@ -34,9 +34,7 @@ for _ in range(25):
     r.step()
 wp.synchronize()
 res["plan_sizes"] = [float(s) for s in r.plan.sizes]
-res["pair_pass"] = {
-    k: (list(v) if isinstance(v, (list, tuple)) else v if isinstance(v, str) else float(v)) for k, v in r.pair_pass_stats().items()
-}
+res["pair_pass"] = {k: (float(v) if not isinstance(v, (list, tuple)) else list(v)) for k, v in r.pair_pass_stats().items()}
 pb = r.passes.buffers()
 res["point_grid_sizes"] = [float(s) for s in pb["grid_plan"].sizes]
 rad = r.binner.prep[4].numpy()

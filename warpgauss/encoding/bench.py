@@ -230,18 +230,6 @@ def _iteration_rows(r, timer: Timer, repeat: int) -> dict[str, Any]:
     return out
 
 
-def _chunks_backward_ms(r, timer: Timer, repeat: int) -> float:
-    """The backward pass timed with the balanced chunk pass instead of the cell lists."""
-    from .refine import passes
-
-    kept = passes.LISTED_BACKWARD_MAX_ENTRIES
-    passes.LISTED_BACKWARD_MAX_ENTRIES = 0
-    try:
-        return timer.ms(r.backward, repeat)
-    finally:
-        passes.LISTED_BACKWARD_MAX_ENTRIES = kept
-
-
 def _device_bytes(wp, device: str) -> int | None:
     if wp.get_device(device).is_cuda and wp.is_mempool_enabled(device):
         return int(wp.get_mempool_used_mem_current(device))
@@ -286,9 +274,6 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
             row["point_sort_ms"] = timer.ms(lambda: r.passes.sort_points(2 * m), cfg.repeat)
             row["backward_ms"] = timer.ms(r.backward, cfg.repeat)
             stats = r.pair_pass_stats()
-            row["backward_pass"] = stats["backward"]
-            if stats["backward"] == "listed":  # the balanced chunk pass it replaced, same points
-                row["backward_chunks_ms"] = _chunks_backward_ms(r, timer, cfg.repeat)
             row["backward_candidates_per_pair"] = stats["candidates"] / max(2 * m * row["pairs_per_point"], 1.0)
             row["backward_chunks"] = stats["chunks"]
             row["backward_chunk_size"] = stats["chunk_size"]
@@ -415,7 +400,6 @@ def _format_row(r: dict) -> str:
     s = (
         f"N {r['n']:>9,d} M {r['samples']:>9,d} | sample {r['sample_ms']:8.3f} fwd {r['forward_ms']:8.3f} "
         f"bwd {r['backward_ms']:8.3f}"
-        + (f" (chunks {r['backward_chunks_ms']:8.3f})" if "backward_chunks_ms" in r else "")
         + (f" (atomic {r['backward_atomic_ms']:8.3f})" if "backward_atomic_ms" in r else "")
         + f" upd {r['update_ms']:8.3f} | iter {r['iteration_ms']:8.3f}"
     )

@@ -13,8 +13,6 @@ order. No float atomics: reruns are bit-identical.
 
 from __future__ import annotations
 
-from typing import Any
-
 from ...core.warp import warp
 from .draw import Sampler
 from .state import Primitives
@@ -59,11 +57,6 @@ FORWARD_UNROLL = 2
 # 29.18 ms at 20K x 65,536 / 20K x 1M / 1.4M x 65,536 / 1.4M x 1M against 1.13 / 11.52 / 4.31 /
 # 32.26 as compiled; 48 spilled (1.21 / 10.86 / 4.16 / 31.15)
 BACKWARD_REGISTERS = 64
-# the backward pass through the cell lists (one thread per (cell, primitive) entry, the points of
-# the cell shared by the warp; kernels.lists.pair_grad_listed) where the forward pass is listed and
-# the lists hold at most this many entries (their partial sums take 44 B an entry); the balanced
-# chunk pass otherwise (0: always the chunks)
-LISTED_BACKWARD_MAX_ENTRIES = 1 << 24
 
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
@@ -105,13 +98,11 @@ class PairPasses:
         self.list_half = self._wp.zeros(n, dtype=self._wp.vec3, device=self.device)
         self._list_counts = self._wp.zeros(n, dtype=int, device=self.device)
         self._list_cum = self._wp.zeros(n, dtype=int, device=self.device)
-        self._list_keys: Any = None  # [2 capacity] sort keys (point cell), then values (slot): CellLists.prim
+        self._list_keys = None  # [2 capacity] sort keys (point cell), then values (slot): CellLists.prim
         self._list_values = None
         self._inputs_ready = False  # list_centre / list_half hold a listing (set by relist or restore)
         self.listed = False  # the forward pass reads the lists (set when they are indexed)
         self.list_entries = 0
-        self._entry_pos: Any = None  # [capacity] sorted position of each slot's list entries (kernels.lists.list_positions)
-        self._list_parts: Any = None  # [capacity] partial sums of the listed backward pass, one per entry
         self._sorted: int | None = None  # points sorted on the point grids this iteration (forward -> backward)
 
     @property
@@ -235,7 +226,7 @@ class PairPasses:
 
         wp, dev, st, b = self._wp, self.device, self.state, self._buf
         assert b is not None
-        was = (self.listed, self._list_keys, self._list_parts)
+        was = (self.listed, self._list_keys)
         grid = b["grid"]
         args = [st.slot_cell, st.prims, grid, self.list_centre, self.list_half]
         n = st.n
@@ -255,36 +246,18 @@ class PairPasses:
             self._list_values = wp.empty(2 * cap, dtype=int, device=dev)
             wp.utils.radix_sort_pairs(self._list_keys, self._list_values, cap)  # CUB's scratch for the largest sort, before any capture
             b["list_start"] = None
-            self._entry_pos = wp.empty(cap, dtype=int, device=dev)
-            self._list_parts = None
-        cap = self._entry_pos.shape[0]
-        if self._list_parts is None and cap <= LISTED_BACKWARD_MAX_ENTRIES:
-            from ...kernels import field as kf
-
-            self._list_parts = (
-                wp.empty(cap, dtype=wp.vec3, device=dev),
-                wp.empty(cap, dtype=kf.vec6, device=dev),
-                wp.empty(cap, dtype=wp.vec2, device=dev),
-            )
         if b.get("list_start") is None:
             b["list_start"] = wp.zeros(b["grid_plan"].total_cells + 1, dtype=int, device=dev)
         wp.launch(kl.list_fill, dim=n, inputs=[*args, self._list_cum], outputs=[self._list_keys, self._list_values], device=dev)
         cells = b["grid_plan"].total_cells
         wp.utils.radix_sort_pairs(self._list_keys, self._list_values, total, 0, max(1, (cells - 1).bit_length()))
         cell_starts(self._list_keys, total, b["cell_counts"], b["list_start"], dev)
-        wp.launch(
-            kl.list_positions,
-            dim=total,
-            inputs=[self._list_keys, self._list_values, total, *args, self._list_cum],
-            outputs=[self._entry_pos],
-            device=dev,
-        )
         wp.launch(kl.list_region, dim=n, inputs=args, outputs=[st.bounds.box_lo, st.bounds.box_hi], device=dev)
         cl = kl.CellLists()
         cl.start, cl.prim = b["list_start"], self._list_values
         b["lists"] = cl
         self.listed = True
-        return was[0] != self.listed or was[1] is not self._list_keys or was[2] is not self._list_parts
+        return was[0] != self.listed or was[1] is not self._list_keys
 
     def sort_points(self, count: int) -> None:
         """Bin the first ``count`` points on every level's point grid and sort them by cell
@@ -393,9 +366,6 @@ class PairPasses:
         )
         if count_pairs:
             self.back_pairs.zero_()
-        if self.backward_listed(count):
-            self._backward_listed(count_pairs)
-            return
         grid, cap = b["grid"], b["capacity"]
         wp.launch(kb.pair_work, dim=n, inputs=[st.slot_cell, st.prims, grid], outputs=[b["work"]], device=dev)
         wp.utils.array_scan(b["work"], b["work_cum"], inclusive=True)
@@ -431,36 +401,6 @@ class PairPasses:
         )
         st.clean = False
 
-    def backward_listed(self, count: int | None = None) -> bool:
-        """Whether the backward pass over ``count`` points (all by default) runs through the cell
-        lists: the forward pass is listed, every point is in the pass and the lists' partial sums
-        fit (:data:`LISTED_BACKWARD_MAX_ENTRIES`)."""
-        count = self.n_points if count is None else int(count)
-        return self.listed and self._list_parts is not None and count == self.n_points and LISTED_BACKWARD_MAX_ENTRIES > 0
-
-    def _backward_listed(self, count_pairs: bool) -> None:
-        """One thread per list entry over the lists' capacity, then each slot's entries summed in
-        a fixed order (:func:`warpgauss.kernels.lists.reduce_listed`)."""
-        from ...kernels import lists as kl
-
-        wp, dev, b, st = self._wp, self.device, self._buf, self.state
-        assert b is not None and self._list_parts is not None and self._entry_pos is not None
-        wp.launch(
-            kl.pair_grad_listed_r64 if BACKWARD_REGISTERS == 64 else kl.pair_grad_listed,
-            dim=self._entry_pos.shape[0],
-            inputs=[self._list_keys, b["lists"], st.prims, b["grid"], b["pos"], b["state"], b["order"], int(count_pairs)],
-            outputs=[self.back_pairs, *self._list_parts],
-            device=dev,
-        )
-        wp.launch(
-            kl.reduce_listed,
-            dim=st.n,
-            inputs=[self._list_counts, self._list_cum, self._entry_pos, st.prims, *self._list_parts],
-            outputs=list(st.pair_grads),
-            device=dev,
-        )
-        st.clean = False
-
     def atomic_pairs(self, kernel, count: int) -> None:
         """A point-major pair kernel (float atomics; the references of tests and the self-test)."""
         st = self.state
@@ -477,21 +417,7 @@ class PairPasses:
         """The last backward pass's load (syncs): candidate points, chunks and chunk size, and
         the point grids' cell edges."""
         b, n = self.buffers(), self.state.n
-        if self.backward_listed():  # entries and the points of their cells (host-side count)
-            import numpy as np
-
-            start = b["grid"].start.numpy().astype(np.int64)
-            cells = self._list_keys.numpy()[: self.list_entries]
-            return {
-                "backward": "listed",
-                "candidates": int((start[cells + 1] - start[cells]).sum()),
-                "chunks": self.list_entries,
-                "chunk_size": 0,
-                "chunk_capacity": int(self._entry_pos.shape[0]),
-                "point_cells": list(b["grid_plan"].sizes[:-1]),
-            }
         return {
-            "backward": "chunks",
             "candidates": int(b["work_cum"][n - 1 :].numpy()[0]),
             "chunks": int(b["chunk_cum"][n - 1 :].numpy()[0]),
             "chunk_size": int(b["chunk_size"].numpy()[0]),
