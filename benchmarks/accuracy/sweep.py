@@ -36,6 +36,11 @@ Variants (``--variants``, comma list):
     err50-s16k the error stratum at half the samples, at 16,384 samples an iteration
     late       the late re-plan on (``replan.REPLAN_LATE``: more Gaussians taken out half-way
                from the re-plan to the end where the model will need more bits)
+    nosmooth   the smoothness term off (``LossWeights.smooth`` 0): no partner points, half the
+               points of an iteration
+    nosmooth-2x
+               the smoothness term off at twice the samples on a GPU (one per 64 voxels, up to
+               262,144): as many points an iteration as the defaults
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -69,6 +74,8 @@ from warpgauss.encoding.driver import (  # noqa: E402
     replan,  # noqa: E402 - the rate-control constants
 )
 from warpgauss.encoding.refine import RefineConfig  # noqa: E402
+from warpgauss.encoding.refine import config as refine_config  # noqa: E402
+from warpgauss.encoding.refine.config import LossWeights  # noqa: E402
 
 HEAD_MRIS = "mean_reg2mean.nii.gz,mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz,inia19-t1-brain.nii.gz"
 # name: (RefineConfig fields, (prune share, refit share)[, refined bits from, refit learning-rate scale])
@@ -97,7 +104,11 @@ VARIANTS: dict[str, tuple] = {
     "err75": ({"error_share": 0.75}, (None, None)),
     "err50-s16k": ({"error_share": 0.5, "samples": 16384, "auto_samples": False}, (None, None)),
     "late": ({}, (None, None)),
+    "nosmooth": ({"weights": LossWeights(smooth=0.0)}, (None, None)),
+    "nosmooth-2x": ({"weights": LossWeights(smooth=0.0)}, (None, None)),
 }
+# variants that change a constant of warpgauss.encoding.refine.config for their encodes
+CONFIG_CONSTANTS: dict[str, dict[str, int]] = {"nosmooth-2x": {"GPU_VOXELS_PER_SAMPLE": 64, "GPU_MAX_SAMPLES": 262_144}}
 # variants that change a constant of warpgauss.encoding.driver.replan for their encodes
 REPLAN_CONSTANTS: dict[str, dict[str, object]] = {"late": {"REPLAN_LATE": True}}
 # variants that change a constant of warpgauss.format.coded for their encodes
@@ -119,6 +130,10 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
     saved_replan = {k: getattr(replan, k) for k in replan_constants}
     for k, v in replan_constants.items():
         setattr(replan, k, v)
+    config_constants = CONFIG_CONSTANTS.get(variant, {})
+    saved_config = {k: getattr(refine_config, k) for k in config_constants}
+    for k, v in config_constants.items():
+        setattr(refine_config, k, v)
     if prune is not None:
         ratefit.PRUNE_SHARE = prune
     if refit is not None:
@@ -138,6 +153,8 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
             setattr(coded, k, v)
         for k, v in saved_replan.items():
             setattr(replan, k, v)
+        for k, v in saved_config.items():
+            setattr(refine_config, k, v)
     return model, seconds
 
 
