@@ -60,10 +60,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "rate_distortion"))
 
 import bench_rd  # noqa: E402  (the volumes and the full-grid PSNR every RD figure uses)
 
-from warpgauss import (
-    coded,  # noqa: E402
-    ratefit,
-)
+from warpgauss.format import coded, ratefit  # noqa: E402
 from warpgauss.core.profiling import StageRecorder  # noqa: E402
 from warpgauss.encoding.allocate import AllocationConfig  # noqa: E402
 from warpgauss.encoding.bench import result_header  # noqa: E402
