@@ -60,7 +60,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "rate_distortion"))
 
 import bench_rd  # noqa: E402  (the volumes and the full-grid PSNR every RD figure uses)
 
-from warpgauss.format import coded, ratefit  # noqa: E402
 from warpgauss.core.profiling import StageRecorder  # noqa: E402
 from warpgauss.encoding.allocate import AllocationConfig  # noqa: E402
 from warpgauss.encoding.bench import result_header  # noqa: E402
@@ -73,6 +72,7 @@ from warpgauss.encoding.driver import (  # noqa: E402
 from warpgauss.encoding.refine import RefineConfig  # noqa: E402
 from warpgauss.encoding.refine import config as refine_config  # noqa: E402
 from warpgauss.encoding.refine.config import LossWeights  # noqa: E402
+from warpgauss.format import coded, ratefit  # noqa: E402
 
 HEAD_MRIS = "mean_reg2mean.nii.gz,mni_icbm152_t1_tal_nlin_sym_09a_converted.nii.gz,inia19-t1-brain.nii.gz"
 # name: (RefineConfig fields, (prune share, refit share)[, refined bits from, refit learning-rate scale])
