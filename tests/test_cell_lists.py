@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from warpgauss.encoding.refine import RefineConfig, Refiner
+from warpgauss.encoding.refine import LossWeights, RefineConfig, Refiner
 from warpgauss.field.analysis import DeviceVolume, normalise
 
 
@@ -19,6 +19,7 @@ def _refiner(device, n=300, samples=1024, seed=0, field="vortex", size=24, **cfg
     dv = DeviceVolume(f, device)
     ac = AllocationConfig()
     params, _ = allocate(dv, n, seed, ac, StageRecorder())
+    cfg.setdefault("weights", LossWeights(smooth=0.01))  # the partner points in the passes too
     return Refiner(dv, params, RefineConfig(iterations=60, samples=samples, **cfg), seed, ac.scale_min, ac.resolved_cap(f.shape_xyz))
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import assert_matches_atomic_scatter
 
-from warpgauss.encoding.refine import RefineConfig, Refiner
+from warpgauss.encoding.refine import LossWeights, RefineConfig, Refiner
 from warpgauss.field.analysis import DeviceVolume, normalise
 from warpgauss.field.gaussians import BinPlan, plan_bins, plan_point_grids
 
@@ -20,7 +20,7 @@ def _refiner(device, n=300, samples=1024, seed=0):
     dv = DeviceVolume(f, device)
     cfg = AllocationConfig()
     params, _ = allocate(dv, n, seed, cfg, StageRecorder())
-    rc = RefineConfig(iterations=1, samples=samples)
+    rc = RefineConfig(iterations=1, samples=samples, weights=LossWeights(smooth=0.01))  # partner points too
     return Refiner(dv, params, rc, seed, cfg.scale_min, cfg.resolved_cap(f.shape_xyz))
 
 

@@ -143,7 +143,11 @@ def test_presets_keep_the_papers_sampling():
     importance weights and half the samples where the error is."""
     cfg = resolve_refine(None, "paper", None, None)
     assert (cfg.jitter, cfg.importance, cfg.error_share, cfg.auto_samples) == (0.5, False, 0.0, False)
-    assert {k: getattr(cfg, k) for k in PRESETS["paper"]} == PRESETS["paper"]
+    assert {k: getattr(cfg, k) for k in PRESETS["paper"] if k != "weights"} == {k: v for k, v in PRESETS["paper"].items() if k != "weights"}
+    assert (cfg.weights.smooth, cfg.weights.smooth_final) == (0.01, 0.0001)  # the paper's smoothness term, annealed
+    assert RefineConfig().weights.smooth == 0.0  # the default has none: no partner points
+    mine = resolve_refine(RefineConfig(weights=dataclasses.replace(RefineConfig().weights, density=0.5)), "paper", None, None)
+    assert mine.weights.density == 0.5 and mine.weights.smooth == 0.01  # the preset sets only the smoothness
     fast, default = resolve_refine(None, "fast", None, None), RefineConfig()
     assert fast.iterations == 300 and default.iterations == 1500
     assert fast == dataclasses.replace(default, iterations=300)

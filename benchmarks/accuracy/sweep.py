@@ -37,10 +37,11 @@ Variants (``--variants``, comma list):
     late       the late re-plan on (``replan.REPLAN_LATE``: more Gaussians taken out half-way
                from the re-plan to the end where the model will need more bits)
     nosmooth   the smoothness term off (``LossWeights.smooth`` 0): no partner points, half the
-               points of an iteration
+               points of an iteration (the default since issue #52)
     nosmooth-2x
                the smoothness term off at twice the samples on a GPU (one per 64 voxels, up to
-               262,144): as many points an iteration as the defaults
+               262,144): as many points an iteration as the defaults had with the term on
+    smooth     the smoothness term on, 0.01 annealed to 0.0001 (the default before issue #52)
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -103,6 +104,7 @@ VARIANTS: dict[str, tuple] = {
     "late": ({}, (None, None)),
     "nosmooth": ({"weights": LossWeights(smooth=0.0)}, (None, None)),
     "nosmooth-2x": ({"weights": LossWeights(smooth=0.0)}, (None, None)),
+    "smooth": ({"weights": LossWeights(smooth=0.01, smooth_final=0.0001)}, (None, None)),
 }
 # variants that change a constant of warpgauss.encoding.refine.config for their encodes
 CONFIG_CONSTANTS: dict[str, dict[str, int]] = {"nosmooth-2x": {"GPU_VOXELS_PER_SAMPLE": 64, "GPU_MAX_SAMPLES": 262_144}}

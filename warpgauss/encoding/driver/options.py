@@ -73,7 +73,11 @@ def resolve_refine(refine: RefineConfig | None, preset: str | None, iterations: 
     if preset is not None:
         if preset not in PRESETS:
             raise WarpgaussError(f"unknown preset {preset!r}; use one of {', '.join(PRESETS)}")
-        cfg = dataclasses.replace(cfg, **PRESETS[preset])
+        fields = dict(PRESETS[preset])
+        weights = fields.pop("weights", None)  # loss weights the preset sets, the others kept
+        cfg = dataclasses.replace(cfg, **fields)
+        if weights:
+            cfg = dataclasses.replace(cfg, weights=dataclasses.replace(cfg.weights, **weights))
     if iterations is not None:
         if iterations < 0:
             raise WarpgaussError(f"--iterations must be >= 0, got {iterations}")

@@ -19,7 +19,15 @@ from ...errors import WarpgaussError
 # MRIs 88-90 % in 0.95-1.31 s a whole encode, vortex / interface 512^3 65 / 81 %;
 # benchmarks/results/speed/profile_fast_*_h200.json). The paper's mode: --preset paper --iterations 300.
 PRESETS: dict[str, dict[str, Any]] = {  # paper and quality: exactly these settings, no sample count raised for large budgets
-    "paper": {"iterations": 1500, "samples": 3072, "auto_samples": False, "jitter": 0.5, "importance": False, "error_share": 0.0},
+    "paper": {
+        "iterations": 1500,
+        "samples": 3072,
+        "auto_samples": False,
+        "jitter": 0.5,
+        "importance": False,
+        "error_share": 0.0,
+        "weights": {"smooth": 0.01, "smooth_final": 0.0001},  # the paper's smoothness, strong to weak
+    },
     "fast": {"iterations": 300},
     "quality": {"iterations": 1500, "samples": 12288, "auto_samples": False},
 }
@@ -39,7 +47,12 @@ class LossWeights:
     Measured (vortex, interface, bubbles at 40^3 with 1,200 Gaussians, 200-600 iterations, PSNR of
     the refined model): the density term costs 0.3-2.5 dB at 0.01 and more at 0.1, so it is kept
     only as a weak regulariser (0.001) against runaway overlap; smoothness at 1.0 costs 1-2 dB
-    and off gains 0.2-0.5 dB, so it starts weak (0.01) and anneals to 0.0001; the anchor is
+    and off gains 0.2-0.5 dB, so it is off (0; the paper preset anneals it from 0.01 to 0.0001):
+    its partner points were half of every iteration's pair work. One H200, the three MRIs of
+    ``../shared/data`` at CR 10 / 30 / 100 / 300 / 1000, full-grid PSNR of the coded file, against
+    0.01 -> 0.0001 (``benchmarks/results/accuracy/sweep_nosmooth_mri_h200.json``): mean_reg2mean
+    +0.43 / +0.23 / +0.07 / +0.06 / +0.10 dB, mni_icbm152 +0.00 / +0.00 / -0.05 / +0.12 / +0.01,
+    inia19 +1.60 / +0.67 / +0.20 / +0.08 / +0.03, encodes 10-30 % shorter; the anchor is
     neutral at 0.001 and costs 0.7-3 dB at 0.1; ``value_empty`` 0 (the paper supervises occupied
     samples only) loses 0.7 dB on the interface field, because full-field PSNR counts empty space,
     so empty samples are fitted too (1). The anisotropy and cap terms are stiff penalties that act
@@ -48,7 +61,7 @@ class LossWeights:
 
     value_empty: float = 1.0
     density: float = 0.001
-    smooth: float = 0.01
+    smooth: float = 0.0
     smooth_final: float = 0.0001
     anchor: float = 0.001
     aniso: float = 1.0
