@@ -42,6 +42,8 @@ Variants (``--variants``, comma list):
                the smoothness term off at twice the samples on a GPU (one per 64 voxels, up to
                262,144): as many points an iteration as the defaults had with the term on
     smooth     the smoothness term on, 0.01 annealed to 0.0001 (the default before issue #52)
+    nosmooth-2x-it1000
+               nosmooth-2x at 1,000 iterations
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -104,10 +106,12 @@ VARIANTS: dict[str, tuple] = {
     "late": ({}, (None, None)),
     "nosmooth": ({"weights": LossWeights(smooth=0.0)}, (None, None)),
     "nosmooth-2x": ({"weights": LossWeights(smooth=0.0)}, (None, None)),
+    "nosmooth-2x-it1000": ({"weights": LossWeights(smooth=0.0), "iterations": 1000}, (None, None)),
     "smooth": ({"weights": LossWeights(smooth=0.01, smooth_final=0.0001)}, (None, None)),
 }
 # variants that change a constant of warpgauss.encoding.refine.config for their encodes
-CONFIG_CONSTANTS: dict[str, dict[str, int]] = {"nosmooth-2x": {"GPU_VOXELS_PER_SAMPLE": 64, "GPU_MAX_SAMPLES": 262_144}}
+TWICE_THE_SAMPLES = {"GPU_VOXELS_PER_SAMPLE": 64, "GPU_MAX_SAMPLES": 262_144}
+CONFIG_CONSTANTS: dict[str, dict[str, int]] = {"nosmooth-2x": TWICE_THE_SAMPLES, "nosmooth-2x-it1000": TWICE_THE_SAMPLES}
 # variants that change a constant of warpgauss.encoding.driver.replan for their encodes
 REPLAN_CONSTANTS: dict[str, dict[str, object]] = {"late": {"REPLAN_LATE": True}}
 # variants that change a constant of warpgauss.format.coded for their encodes
