@@ -27,8 +27,11 @@ PARTIAL_MAX_ENTRIES = 1 << 24  # (point, neighbour cell) partial sums of the spl
 # (benchmarks/refine/forward_split.py, results/refine/forward_split_h200.json): the split pass
 # steps 1.26-2.15x faster at 16,384 points (8,192 samples and partners), is 0.9-1.4x at 32,768 (1.3-1.4x
 # faster at N 200,000, 0.1-0.3 ms slower at N 20,000) and 0.58-0.96x of the point-major pass at
-# 65,536, where one thread per point already fills the GPU
-SPLIT_MAX_POINTS = 1 << 15
+# 65,536, where one thread per point already fills the GPU. Since the smoothness term is off by
+# default (no partner points), inia19 evaluates 32,768 points an iteration: there the split pass
+# took 3.48 s for a CR 100 encode against 2.40 point-major (N 22,000; 2.46 / 1.82 s at CR 1000;
+# results/speed/profile_nosmooth_split_h200.json), so the split pass stops at 16,384
+SPLIT_MAX_POINTS = 1 << 14
 # between SPLIT_MAX_POINTS and this many points (exclusive) the split pass is kept for at least
 # SPLIT_DENSE_PRIMITIVES primitives, whose points each visit more of them: vortex 512^3 on one H200
 # at 20,000 samples (40,000 points), N 400,000: split 4.9 ms a step against 6.7; a 2x2x2 brick of
