@@ -52,7 +52,10 @@ class LossWeights:
     ``../shared/data`` at CR 10 / 30 / 100 / 300 / 1000, full-grid PSNR of the coded file, against
     0.01 -> 0.0001 (``benchmarks/results/accuracy/sweep_nosmooth_mri_h200.json``): mean_reg2mean
     +0.43 / +0.23 / +0.07 / +0.06 / +0.10 dB, mni_icbm152 +0.00 / +0.00 / -0.05 / +0.12 / +0.01,
-    inia19 +1.60 / +0.67 / +0.20 / +0.08 / +0.03, encodes 10-30 % shorter; the anchor is
+    inia19 +1.60 / +0.67 / +0.20 / +0.08 / +0.03, encodes 10-30 % shorter; but the smooth vortex
+    at 256^3 loses 0.92 / 0.60 dB at CR 30 / 100 (+0.02 at 300; interface -0.01 / +0.16 / -0.05;
+    ``sweep_nosmooth_fields256_h200.json``), where the points, not the term, were what it used
+    (the term off at twice the samples: +0.31 / -0.15 / +0.21 dB); the anchor is
     neutral at 0.001 and costs 0.7-3 dB at 0.1; ``value_empty`` 0 (the paper supervises occupied
     samples only) loses 0.7 dB on the interface field, because full-field PSNR counts empty space,
     so empty samples are fitted too (1). The anisotropy and cap terms are stiff penalties that act
