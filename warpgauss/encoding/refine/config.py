@@ -35,9 +35,11 @@ AUTO_BATCH_PRIMITIVES = 350_000  # the default raises the samples by one batch p
 AUTO_MAX_BATCHES = 16
 # on a CUDA device the default also draws one sample per this many voxels an iteration, as a power
 # of two within these bounds (see RefineConfig.samples_rule for the measurements)
-GPU_VOXELS_PER_SAMPLE = 128
+# (64 and 262,144 since the smoothness term is off by default, issue #52: as many points an
+# iteration as the samples and their partners were, see RefineConfig.samples_rule)
+GPU_VOXELS_PER_SAMPLE = 64
 GPU_MIN_SAMPLES = 16_384
-GPU_MAX_SAMPLES = 131_072
+GPU_MAX_SAMPLES = 262_144
 
 
 @dataclass
@@ -54,8 +56,8 @@ class LossWeights:
     +0.43 / +0.23 / +0.07 / +0.06 / +0.10 dB, mni_icbm152 +0.00 / +0.00 / -0.05 / +0.12 / +0.01,
     inia19 +1.60 / +0.67 / +0.20 / +0.08 / +0.03, encodes 10-30 % shorter; but the smooth vortex
     at 256^3 loses 0.92 / 0.60 dB at CR 30 / 100 (+0.02 at 300; interface -0.01 / +0.16 / -0.05;
-    ``sweep_nosmooth_fields256_h200.json``), where the points, not the term, were what it used
-    (the term off at twice the samples: +0.31 / -0.15 / +0.21 dB); the anchor is
+    ``sweep_nosmooth_fields256_h200.json``), where the points, not the term, were what it used,
+    so a GPU draws twice the samples instead (:meth:`RefineConfig.samples_rule`); the anchor is
     neutral at 0.001 and costs 0.7-3 dB at 0.1; ``value_empty`` 0 (the paper supervises occupied
     samples only) loses 0.7 dB on the interface field, because full-field PSNR counts empty space,
     so empty samples are fitted too (1). The anisotropy and cap terms are stiff penalties that act
@@ -230,6 +232,15 @@ class RefineConfig:
         at ratio 100, coded): 3,072 -> 16,384 -> 65,536 samples gained +1.2 to +1.9 dB, then
         -0.3 to +0.6 dB, and 131,072 another 0.1-0.2 dB; refinement 1.9-4.0 s at 3,072 and
         4.6-10.0 s at 65,536. On the CPU (one thread runs a kernel) the primitive rule alone.
+        Since the smoothness term is off by default (no partner points) the rule draws twice
+        the samples it did (one per 64 voxels, up to 262,144): the points an iteration of
+        before, which gained, against the term on at half as many (one H200, same runs,
+        ``benchmarks/results/accuracy/sweep_nosmooth_*_h200.json``): mean_reg2mean CR 10 / 30 /
+        100 / 300 / 1000 +1.39 / +0.32 / +0.40 / +0.23 / +0.30 dB, mni_icbm152 -0.45 (the rate
+        control chose 110,170 Gaussians for 136,505) / +0.64 / +0.32 / +0.18 / +0.07, inia19 +3.77
+        / +1.53 / +0.59 / +0.31 / +0.17, vortex 256^3 CR 30 / 100 / 300 +0.31 / -0.15 / +0.21,
+        interface 256^3 +0.14 / +0.44 / +0.14, in about the same time; the term off at the old
+        count was 10-45 % faster but lost 0.92 / 0.60 dB on the vortex.
         """
         if not self.auto_samples or self.iterations == 0:
             return self.samples, "as set" if not self.auto_samples else "no refinement"

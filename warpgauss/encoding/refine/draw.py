@@ -21,8 +21,8 @@ STRATA = (0.35, 0.40, 0.25)  # high (V > 0.4), occupied mid-range, uniform (SPEC
 # the error stratum is drawn only where its map sees at least this many samples a 4^3 cell over
 # its memory (rebin_every x samples / (1 - error_decay) / cells): below, most cells hold no error
 # yet and the stratum keeps re-drawing the few that were sampled. A GPU encode's samples (one per
-# 128 voxels, at most 131,072) give 16.7 up to 256^3, 2.1 at 512^3, 0.26 at 1024^3 and 0.033 at
-# 2048^3 (the same in each brick). Measured: the 2048^3 out-of-core field on one H200 (3x3x4
+# 128 voxels, at most 131,072, when this was measured; now one per 64, at most 262,144) gave 16.7
+# up to 256^3, 2.1 at 512^3, 0.26 at 1024^3 and 0.033 at 2048^3 (the same in each brick). Measured: the 2048^3 out-of-core field on one H200 (3x3x4
 # bricks, N 4,000,000) 59.14 dB with the stratum, 62.05 without
 # (bricked/out_of_core2048_err0_h200.json); float32 on the CPU, N 3,000, 400 iterations
 # (accuracy/error_density_cpu.json): the interface at 192^3 -0.46 / -0.23 dB at 0.019 / 0.039,
