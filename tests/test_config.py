@@ -63,6 +63,28 @@ def test_every_encode_argument_has_one_place_in_the_configuration():
     assert len({v for v in FIELDS.values()}) == len(FIELDS)  # no two arguments share a place
 
 
+def test_every_encode_argument_is_described_once_in_full_and_once_in_a_line():
+    """encode's docstring gives one line a keyword and points to docs/guide/options.md, which
+    describes every keyword (issue #54: encode within 120 lines), with its command-line flags."""
+    import re
+    from pathlib import Path
+
+    from warpgauss.encoding.driver.config import OPTIONS
+
+    params = list(inspect.signature(warpgauss.encode).parameters)
+    doc = inspect.getdoc(warpgauss.encode) or ""
+    args = doc.split("Args:\n", 1)[1].split("\n\n", 1)[0].splitlines()
+    assert [line.split(":", 1)[0].strip() for line in args] == params  # one line each, in order
+    assert "(guide/options.md)" in doc
+    page = (Path(__file__).resolve().parents[1] / "docs" / "guide" / "options.md").read_text()
+    entries = dict(re.findall(r"^- \*\*`(\w+)`\*\*(.*?)(?=^- |^#|\Z)", page, re.M | re.S))
+    assert sorted(entries) == sorted(params)
+    for key, opt in OPTIONS.items():
+        if key in entries:
+            flags = [f for flag in opt.flags for f in flag.split("/")] or [f"--{key.replace('_', '-')}"]
+            assert all(f"`{f}`" in entries[key].split(":", 1)[0] for f in flags), (key, flags)
+
+
 def test_each_setting_maps_to_its_place_and_back():
     for name, value in SAMPLE.items():
         cfg = EncodeConfig.from_kwargs(**{name: value})

@@ -144,3 +144,33 @@ def test_the_top_of_the_package_is_a_few_rooms_and_no_module_is_long():
         for path in (ROOT / folder).rglob("*.py"):
             n = len(path.read_text().splitlines())
             assert n <= 600, f"{path.relative_to(ROOT)}: {n} lines"
+
+
+def _long_functions(folders: tuple[str, ...], most: int = 120, root: Path = ROOT) -> list[str]:
+    """Functions (methods and nested ones too) longer than ``most`` lines, counted from the ``def``
+    line to the last line, decorators excluded."""
+    long = []
+    for folder in folders:
+        for path in sorted((root / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    n = (node.end_lineno or node.lineno) - node.lineno + 1
+                    if n > most:
+                        long.append(f"{path.relative_to(root)}:{node.lineno} {node.name}: {n} lines")
+    return long
+
+
+def test_no_function_outside_kernels_is_long():
+    """Issue #54: no function above 120 lines outside kernels/: the API, the drivers, the command
+    line, and the benchmarks, examples and tests beside them."""
+    assert _long_functions(("warpgauss", "cli", "benchmarks", "examples", "tests")) == []
+
+
+def test_the_long_function_finder_counts_from_def_to_end(tmp_path):
+    body = "\n".join(f"    x{i} = {i}" for i in range(119))  # with the def line: 120, the decorator not counted
+    (tmp_path / "pkg").mkdir()
+    method = body.replace("\n", "\n    ")
+    (tmp_path / "pkg" / "m.py").write_text(
+        f"@staticmethod\ndef ok():\n{body}\n\n\nclass C:\n    def long(self):\n    {method}\n        return 1\n"
+    )
+    assert _long_functions(("pkg",), root=tmp_path) == ["pkg/m.py:125 long: 121 lines"]

@@ -52,7 +52,42 @@ def cluster(k: int, device: str):
     return client
 
 
-def main(argv=None) -> dict:
+def _series(args, counts: list[int], clients: dict, common: dict, result: dict, save) -> None:
+    """The series part: ``--series`` timesteps encoded across each cluster, timesteps per second
+    against one GPU."""
+    steps = list(generate_series(args.field, args.series_size, args.series))
+    base_rate = None
+    for k in counts:
+        t0 = time.perf_counter()
+        models = encode_series(steps, budget=args.series_budget, client=clients[k], **common)
+        sec = time.perf_counter() - t0
+        rate = len(steps) / sec
+        base_rate = base_rate or rate
+        result["rows"].append(
+            {
+                "what": "series",
+                "size": args.series_size,
+                "timesteps": len(steps),
+                "n": int(models[0].n),
+                "gpus": k,
+                "seconds": sec,
+                "timesteps_per_second": rate,
+                "speedup": rate / base_rate,
+                "psnr_db": [m.report["psnr_db"] for m in models],
+                "warm": [bool(m.report["series"]["warm_start"]) for m in models],
+                "encode_seconds": [m.report.get("total_seconds") for m in models],
+            }
+        )
+        print(
+            f"series of {len(steps)} at {args.series_size}^3 on {k} GPU(s): {sec:.1f} s, {rate:.3f} timesteps/s, "
+            f"speed-up {rate / base_rate:.2f}x, PSNR {min(m.report['psnr_db'] for m in models):.2f}-"
+            f"{max(m.report['psnr_db'] for m in models):.2f} dB",
+            flush=True,
+        )
+        save()
+
+
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--field", default="vortex")
     ap.add_argument("--sizes", default="1024", help='comma list of cube sizes ("": none, the series alone)')
@@ -73,6 +108,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--no-waves", action="store_true", help="leave out the default schedule (the waves; with --together)")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
+    return ap
+
+
+def main(argv=None) -> dict:
+    ap = _parser()
     args = ap.parse_args(argv)
     dev = resolve_device(args.device)
     schedules = ([] if args.no_waves else [None]) + [float(x) for x in filter(None, args.together.split(","))]
@@ -177,36 +217,7 @@ def main(argv=None) -> dict:
                 )
             del vol, bases
         if args.series > 0:
-            steps = list(generate_series(args.field, args.series_size, args.series))
-            base_rate = None
-            for k in counts:
-                t0 = time.perf_counter()
-                models = encode_series(steps, budget=args.series_budget, client=clients[k], **common)
-                sec = time.perf_counter() - t0
-                rate = len(steps) / sec
-                base_rate = base_rate or rate
-                result["rows"].append(
-                    {
-                        "what": "series",
-                        "size": args.series_size,
-                        "timesteps": len(steps),
-                        "n": int(models[0].n),
-                        "gpus": k,
-                        "seconds": sec,
-                        "timesteps_per_second": rate,
-                        "speedup": rate / base_rate,
-                        "psnr_db": [m.report["psnr_db"] for m in models],
-                        "warm": [bool(m.report["series"]["warm_start"]) for m in models],
-                        "encode_seconds": [m.report.get("total_seconds") for m in models],
-                    }
-                )
-                print(
-                    f"series of {len(steps)} at {args.series_size}^3 on {k} GPU(s): {sec:.1f} s, {rate:.3f} timesteps/s, "
-                    f"speed-up {rate / base_rate:.2f}x, PSNR {min(m.report['psnr_db'] for m in models):.2f}-"
-                    f"{max(m.report['psnr_db'] for m in models):.2f} dB",
-                    flush=True,
-                )
-                save()
+            _series(args, counts, clients, common, result, save)
     finally:
         for c in clients.values():
             c.close()

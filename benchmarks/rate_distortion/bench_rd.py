@@ -835,7 +835,105 @@ def _missing_wg(entry: dict | None, args) -> list[float] | None:
     return [r for r in args.ratios if float(r) not in have]
 
 
-def main(argv=None) -> dict:
+def _result(args, argv, dev: str, wp, refine, versions: dict, warm: float | None, gen_s: dict) -> dict:
+    """The result file's head: the device, the versions, the command and the settings of the run."""
+    fixed = bool(args.ratios)
+    settings = {
+        "match_tol": args.match_tol,
+        "codec_workers": args.workers,
+        "codec_timing": "single-threaded codec calls"
+        + (f", {args.workers} at a time in separate processes (after all warpgauss rows)" if args.workers > 0 else ""),
+        "psnr": "10 log10(1/MSE), full grid, normalised by the volume's finite min/max, masked voxels excluded; same function for every codec",
+        "ratio": "source bytes (voxels x source dtype size) / compressed bytes; SZ3 and ZFP compress float32 in source units, "
+        "SPERR the float32 field normalised by min/max",
+    }
+    if fixed:
+        settings.update(
+            {
+                "mode": "fixed ratios",
+                "ratios": list(args.ratios),
+                "warpgauss": None
+                if args.no_warpgauss
+                else {
+                    "options": "warpgauss encode VOLUME --ratio R"
+                    + (f" --preset {args.preset}" if args.preset else "")
+                    + (f" --iterations {args.iterations}" if args.iterations is not None else "")
+                    + (f" --format {args.format}" if args.format else ""),
+                    "format": encoding_of(EncodeOptions(format=args.format)),
+                    "preset": args.preset,
+                    "evaluate": not args.no_evaluate,
+                    "encode_s": "encode call (S1a to EV, reading excluded) + save of the .wgs",
+                    "decode_s": "Model.load + full-grid decode",
+                },
+                "iterations": refine.iterations,
+                "samples": refine.samples,
+                "zfp_min_rate": args.zfp_min_rate,
+            }
+        )
+    else:
+        settings.update(
+            {
+                "preset": args.preset,
+                "iterations": refine.iterations,
+                "samples": refine.samples,
+                "budgets": args.budgets,
+                "min_ratio": args.min_ratio,
+            }
+        )
+    return {
+        "benchmark": "rate-distortion at fixed ratios: warpgauss (defaults, coded) vs SZ3, ZFP (fixed rate) and SPERR (bpp)"
+        if fixed
+        else "rate-distortion: warpgauss (full precision, compact) vs SZ3 (abs error bound) vs ZFP (fixed rate, fixed accuracy)",
+        "command": "python benchmarks/rate_distortion/bench_rd.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+        "device": dev,
+        "device_name": device_name(dev),
+        "cpu_count": os.cpu_count(),
+        "host": platform.node(),
+        "warp_version": wp.config.version,
+        "warpgauss_version": warpgauss.__version__,
+        "codec_versions": {"pysz": versions["pysz"], "zfpy": versions["zfpy"], "numcodecs-wasm-sperr": versions["numcodecs_wasm_sperr"]},
+        "codecs": args.codecs,
+        "warpgauss_run": not args.no_warpgauss,
+        "numpy_version": np.__version__,
+        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "warmup_seconds": warm,
+        "generation_seconds": gen_s,
+        "settings": settings,
+        "volumes": {},
+        "complete": False,
+    }
+
+
+def _choose_codecs(ap: argparse.ArgumentParser, args) -> dict:
+    """--codecs checked and narrowed to those installed (``args.codecs`` becomes a list); the
+    reference codecs' versions (None: not installed)."""
+    fixed = bool(args.ratios)
+    if args.codecs is None:
+        args.codecs = "sz3,zfp,sperr" if fixed else "sz3,zfp"
+    wanted = [c for c in args.codecs.split(",") if c and c != "none"]
+    unknown = [c for c in wanted if c not in CODEC_MODULES]
+    if unknown or ("sperr" in wanted and not fixed):
+        ap.error(f"--codecs: {', '.join(unknown) or 'sperr'} not known{'' if unknown else ' without --ratios'}")
+    versions = {m: _available(m) for m in ("pysz", "zfpy", "numcodecs_wasm_sperr")}
+    args.codecs = [c for c in wanted if versions[CODEC_MODULES[c]]]
+    for c in [c for c in wanted if c not in args.codecs]:
+        print(f"{c}: not installed (pip install -e '.[bench]'): skipped", flush=True)
+    return versions
+
+
+def _resumed(args, result: dict) -> dict:
+    """The volumes of the run ``--resume`` names (none without it), noted in ``result``."""
+    if not args.resume:
+        return {}
+    before = json.loads(Path(args.resume).read_text())
+    result["resumed_from"] = str(args.resume)
+    # where the reused rows (the warpgauss ones at least) were measured; this run's fields say
+    # where the rows it adds were
+    result["previous_run"] = {k: before.get(k) for k in ("device", "device_name", "host", "cpu_count", "warp_version", "date", "command")}
+    return before["volumes"]
+
+
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--fields", default=",".join(EXAMPLES), help="example fields (comma list; '' for none)")
     ap.add_argument("--size", type=int, default=256, help="example field size (cube edge)")
@@ -898,6 +996,11 @@ def main(argv=None) -> dict:
     )
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--out", default="benchmarks/results/rate_distortion/bench_rd_cpu.json")
+    return ap
+
+
+def main(argv=None) -> dict:
+    ap = _parser()
     args = ap.parse_args(argv)
     fixed = bool(args.ratios)
     if args.no_warpgauss and not fixed:
@@ -917,16 +1020,7 @@ def main(argv=None) -> dict:
         )
         if args.generate_only:
             return {"generated": gen_s}
-    if args.codecs is None:
-        args.codecs = "sz3,zfp,sperr" if fixed else "sz3,zfp"
-    wanted = [c for c in args.codecs.split(",") if c and c != "none"]
-    unknown = [c for c in wanted if c not in CODEC_MODULES]
-    if unknown or ("sperr" in wanted and not fixed):
-        ap.error(f"--codecs: {', '.join(unknown) or 'sperr'} not known{'' if unknown else ' without --ratios'}")
-    versions = {m: _available(m) for m in ("pysz", "zfpy", "numcodecs_wasm_sperr")}
-    args.codecs = [c for c in wanted if versions[CODEC_MODULES[c]]]
-    for c in [c for c in wanted if c not in args.codecs]:
-        print(f"{c}: not installed (pip install -e '.[bench]'): skipped", flush=True)
+    versions = _choose_codecs(ap, args)
 
     wp = warp()
     dev = resolve_device(args.device)
@@ -937,86 +1031,14 @@ def main(argv=None) -> dict:
         warm = time.perf_counter() - t0
     refine = resolve_refine(None, args.preset, args.iterations, None)
     out = Path(args.out)
-    settings = {
-        "match_tol": args.match_tol,
-        "codec_workers": args.workers,
-        "codec_timing": "single-threaded codec calls"
-        + (f", {args.workers} at a time in separate processes (after all warpgauss rows)" if args.workers > 0 else ""),
-        "psnr": "10 log10(1/MSE), full grid, normalised by the volume's finite min/max, masked voxels excluded; same function for every codec",
-        "ratio": "source bytes (voxels x source dtype size) / compressed bytes; SZ3 and ZFP compress float32 in source units, "
-        "SPERR the float32 field normalised by min/max",
-    }
-    if fixed:
-        settings.update(
-            {
-                "mode": "fixed ratios",
-                "ratios": list(args.ratios),
-                "warpgauss": None
-                if args.no_warpgauss
-                else {
-                    "options": "warpgauss encode VOLUME --ratio R"
-                    + (f" --preset {args.preset}" if args.preset else "")
-                    + (f" --iterations {args.iterations}" if args.iterations is not None else "")
-                    + (f" --format {args.format}" if args.format else ""),
-                    "format": encoding_of(EncodeOptions(format=args.format)),
-                    "preset": args.preset,
-                    "evaluate": not args.no_evaluate,
-                    "encode_s": "encode call (S1a to EV, reading excluded) + save of the .wgs",
-                    "decode_s": "Model.load + full-grid decode",
-                },
-                "iterations": refine.iterations,
-                "samples": refine.samples,
-                "zfp_min_rate": args.zfp_min_rate,
-            }
-        )
-    else:
-        settings.update(
-            {
-                "preset": args.preset,
-                "iterations": refine.iterations,
-                "samples": refine.samples,
-                "budgets": args.budgets,
-                "min_ratio": args.min_ratio,
-            }
-        )
-    result = {
-        "benchmark": "rate-distortion at fixed ratios: warpgauss (defaults, coded) vs SZ3, ZFP (fixed rate) and SPERR (bpp)"
-        if fixed
-        else "rate-distortion: warpgauss (full precision, compact) vs SZ3 (abs error bound) vs ZFP (fixed rate, fixed accuracy)",
-        "command": "python benchmarks/rate_distortion/bench_rd.py " + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
-        "device": dev,
-        "device_name": device_name(dev),
-        "cpu_count": os.cpu_count(),
-        "host": platform.node(),
-        "warp_version": wp.config.version,
-        "warpgauss_version": warpgauss.__version__,
-        "codec_versions": {"pysz": versions["pysz"], "zfpy": versions["zfpy"], "numcodecs-wasm-sperr": versions["numcodecs_wasm_sperr"]},
-        "codecs": args.codecs,
-        "warpgauss_run": not args.no_warpgauss,
-        "numpy_version": np.__version__,
-        "date": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-        "warmup_seconds": warm,
-        "generation_seconds": gen_s,
-        "settings": settings,
-        "volumes": {},
-        "complete": False,
-    }
+    result = _result(args, argv, dev, wp, refine, versions, warm, gen_s)
 
     def add(label, row):
         result["volumes"][label]["rows"].append(row)
         _print(label, row)
         _write(result, out)
 
-    prev = {}
-    if args.resume:
-        before = json.loads(Path(args.resume).read_text())
-        prev = before["volumes"]
-        result["resumed_from"] = str(args.resume)
-        # where the reused rows (the warpgauss ones at least) were measured; this run's fields say
-        # where the rows it adds were
-        result["previous_run"] = {
-            k: before.get(k) for k in ("device", "device_name", "host", "cpu_count", "warp_version", "date", "command")
-        }
+    prev = _resumed(args, result)
     plans, seen = [], {}
     with tempfile.TemporaryDirectory(prefix="bench_rd_") as work:
         for k, (label, src, raw, path) in enumerate(volumes(args)):

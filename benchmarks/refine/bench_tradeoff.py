@@ -188,50 +188,11 @@ def plan_runs(presets: list[str], time_budgets: list[float], budget_preset: str,
     return runs
 
 
-def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--fields", default="vortex,bubbles,turbulence,interface")
-    ap.add_argument("--sizes", default="512,1024", help="voxels per axis, comma list")
-    ap.add_argument("--budget", "--budgets", dest="budgets", default="1400000", help="N Gaussians, comma list")
-    ap.add_argument("--presets", default="paper,fast,quality", help="paper (the baseline) always runs first")
-    ap.add_argument("--time-budgets", default="0.25,0.5,1,2,4", help="seconds, comma list ('' for none)")
-    ap.add_argument("--time-budget-preset", default=BASELINE, help="preset (samples per iteration) of the time-budget runs")
-    ap.add_argument("--iterations-override", type=int, default=None, help="iterations of every preset run (quick checks)")
-    ap.add_argument("--no-self-test", action="store_true", help="skip the refiner's self-test (it counts against a time budget)")
-    ap.add_argument("--device", default=None)
-    ap.add_argument("--seed", type=int, default=0, help="encoding seed (the fields use seed 0)")
-    ap.add_argument(
-        "--max-seconds",
-        type=float,
-        default=None,
-        help="start no field or run after this much wall time, nor one expected (from the same run's earlier rows) to end past it",
-    )
-    ap.add_argument("--out", default="benchmarks/results/refine/bench_tradeoff.json")
-    args = ap.parse_args(argv)
-    t_start = time.perf_counter()
+def _result(args, argv, dev: str, wp, fields, sizes, budgets, runs, warm: float) -> dict:
+    """The result file's head: the device, the versions, the command and the configuration."""
+    from warpgauss.core.warp import device_name
 
-    import warpgauss
-    from warpgauss.core.warp import device_name, resolve_device, warp
-    from warpgauss.encoding.refine import PRESETS
-    from warpgauss.readers.synthetic import EXAMPLES, generate
-
-    wp = warp()
-    dev = resolve_device(args.device)
-    fields, sizes, budgets = _names(args.fields), _ints(args.sizes), _ints(args.budgets)
-    runs = plan_runs(_names(args.presets), _floats(args.time_budgets), args.time_budget_preset, args.iterations_override)
-    out = Path(args.out)
-    for p in {r["preset"] for r in runs}:
-        if p not in PRESETS:
-            ap.error(f"unknown preset {p!r}; use {', '.join(PRESETS)}")
-    for f in fields:
-        if f not in EXAMPLES:
-            ap.error(f"unknown field {f!r}; use {', '.join(EXAMPLES)}")
-
-    t0 = time.perf_counter()
-    warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64)  # compiles every module
-    warm = time.perf_counter() - t0
-
-    result = {
+    return {
         "benchmark": "run time against error: PSNR vs refinement seconds per preset and time budget",
         "device": dev,
         "device_name": device_name(dev),
@@ -258,6 +219,57 @@ def main(argv=None) -> dict:
         "skipped": [],
         "complete": False,
     }
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--fields", default="vortex,bubbles,turbulence,interface")
+    ap.add_argument("--sizes", default="512,1024", help="voxels per axis, comma list")
+    ap.add_argument("--budget", "--budgets", dest="budgets", default="1400000", help="N Gaussians, comma list")
+    ap.add_argument("--presets", default="paper,fast,quality", help="paper (the baseline) always runs first")
+    ap.add_argument("--time-budgets", default="0.25,0.5,1,2,4", help="seconds, comma list ('' for none)")
+    ap.add_argument("--time-budget-preset", default=BASELINE, help="preset (samples per iteration) of the time-budget runs")
+    ap.add_argument("--iterations-override", type=int, default=None, help="iterations of every preset run (quick checks)")
+    ap.add_argument("--no-self-test", action="store_true", help="skip the refiner's self-test (it counts against a time budget)")
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--seed", type=int, default=0, help="encoding seed (the fields use seed 0)")
+    ap.add_argument(
+        "--max-seconds",
+        type=float,
+        default=None,
+        help="start no field or run after this much wall time, nor one expected (from the same run's earlier rows) to end past it",
+    )
+    ap.add_argument("--out", default="benchmarks/results/refine/bench_tradeoff.json")
+    return ap
+
+
+def main(argv=None) -> dict:
+    ap = _parser()
+    args = ap.parse_args(argv)
+    t_start = time.perf_counter()
+
+    import warpgauss
+    from warpgauss.core.warp import resolve_device, warp
+    from warpgauss.encoding.refine import PRESETS
+    from warpgauss.readers.synthetic import EXAMPLES, generate
+
+    wp = warp()
+    dev = resolve_device(args.device)
+    fields, sizes, budgets = _names(args.fields), _ints(args.sizes), _ints(args.budgets)
+    runs = plan_runs(_names(args.presets), _floats(args.time_budgets), args.time_budget_preset, args.iterations_override)
+    out = Path(args.out)
+    for p in {r["preset"] for r in runs}:
+        if p not in PRESETS:
+            ap.error(f"unknown preset {p!r}; use {', '.join(PRESETS)}")
+    for f in fields:
+        if f not in EXAMPLES:
+            ap.error(f"unknown field {f!r}; use {', '.join(EXAMPLES)}")
+
+    t0 = time.perf_counter()
+    warpgauss.encode(generate("vortex", 16), budget=50, device=dev, iterations=2, samples=64)  # compiles every module
+    warm = time.perf_counter() - t0
+
+    result = _result(args, argv, dev, wp, fields, sizes, budgets, runs, warm)
     rows, skipped = result["rows"], result["skipped"]
     write_json(out, result)
 

@@ -104,96 +104,57 @@ def encode(
 ) -> Model:
     """Encode a volume into a fixed budget of Gaussians.
 
+    One line a keyword here; [Encode options](guide/options.md) (``docs/guide/options.md``) says
+    everything of each, grouped as :class:`~warpgauss.encoding.driver.config.EncodeConfig` holds them.
+
     Args:
-        source: File path, 3D numpy array (nz, ny, nx), or a device array: a Warp array or any
-            DLPack / ``__cuda_array_interface__`` producer (CuPy, PyTorch, JAX), any real dtype
-            and strides, normalised and encoded on its device with no host copy of its voxels
-            (``device`` None: the array's own); None with ``example``.
-        budget: Number of primitives N (exact); or give ``ratio``.
-        ratio: Target compression ratio: the file holds at most floor(S_src / R) bytes; N =
-            floor((S_src / R - H) / 48) (12 with ``compact``; measured for ``format="coded"``).
-        file_bytes: The file size budget in bytes instead (header included). A coded file is
-            never larger and uses at least 95 % of it where bit depths allow (see
-            :func:`warpgauss.format.ratefit.fit_bytes`; the report's ``budget`` says what was done).
+        source: File path, 3D numpy array (nz, ny, nx) or device array (encoded on its device); None with ``example``.
+        budget: Number of primitives N (exact); or give ``ratio`` or ``file_bytes`` (none: ratio 20).
+        ratio: Target compression ratio: the file holds at most floor(S_src / R) bytes.
+        file_bytes: The file size budget in bytes instead (header included; never exceeded).
         seed: Encoding seed; same seed and device give the same model.
         device: Warp device; None picks CUDA when present, else CPU.
         iterations: Refinement iterations (default 1,500, the paper's; 0: analytic model only).
-        samples: Samples per iteration (default 3,072, the paper's, times ceil(N / 350,000) for
-            large budgets, 12,288 at 1.4M; on a GPU at least one per 128 voxels as a power of two
-            within 16,384-131,072; see :meth:`RefineConfig.samples_rule`; the report's
-            ``refinement.samples_rule`` says what was chosen).
-        preset: "paper" (1,500 x 3,072 whatever N), "fast" (the default's sampling for 300
-            iterations; the paper's time-budget mode is "paper" with ``iterations=300``) or
-            "quality" (1,500 x 12,288); explicit ``iterations``/``samples`` override it.
+        samples: Samples per iteration (default 3,072, more for large N and on a GPU).
+        preset: "paper", "fast" (300 iterations) or "quality"; explicit ``iterations``/``samples`` override it.
         refine: Learning rates, loss weights and schedule (:class:`warpgauss.encoding.refine.RefineConfig`).
         self_test: Run the binned-vs-dense self-test before refining.
-        time_budget: Seconds the whole call may take, reading to writing (the kernels' first
-            compile not counted): refinement gets what the stages before it leave, less a reserve
-            for fitting the byte budget (then the first fit is kept, not a scored choice),
-            evaluating and writing; spare time goes to more samples per iteration (unless
-            ``samples`` is given) once 1,500 iterations fit, then to iterations (up to 20,000);
-            refinement ends within its share, with a valid model at any stop.
-        checkpoint: Where refinement writes checkpoints (atomically, every ``checkpoint_every``
-            seconds and on Ctrl-C); None: ``OUTPUT.ckpt`` when ``output`` is given, else none.
-            Deleted once the model is written.
+        time_budget: Seconds the whole call may take, reading to writing (the first compile not counted).
+        checkpoint: Refinement's checkpoint file (None: ``OUTPUT.ckpt`` when ``output`` is given).
         checkpoint_every: Seconds between checkpoints.
-        resume: Continue from the checkpoint (same input and options; the result is the model an
-            uninterrupted run gives, bit-identical on the same CPU). Overwrites ``output``.
-        target_psnr: Skip refinement if the analytic model reaches this PSNR (dB), else stop it
-            once a 65,536-voxel validation PSNR, checked every 100 iterations, does.
-        plateau_db: Stop refinement once that validation PSNR gained less than this (dB) over
-            the last 300 iterations.
+        resume: Continue from the checkpoint (same input and options). Overwrites ``output``.
+        target_psnr: Skip refinement if the analytic model reaches this PSNR (dB), else stop once validation does.
+        plateau_db: Stop refinement once the validation PSNR gained less than this (dB) over 300 iterations.
         compact: Size the budget (and the report) for the compact 12-byte format.
-        format: The file format: "coded" (the default: quantised and entropy-coded, about
-            7-14 B/primitive on refined models; the returned model is the stored one), "float32"
-            (alias "full", 48 B) or "compact96" (alias "compact", 12 B). Overrides ``compact``.
+        format: "coded" (default, about 6.2-12.8 B a primitive), "float32" ("full", 48 B) or "compact96" ("compact", 12 B).
         example: Built-in example volume name instead of ``source``.
         example_size: Size of the example volume.
-        read: Reader options (shape, dtype, endian, dataset, variable, stride, fill value).
-        allocation: Allocation knobs.
+        read: Reader options (:class:`warpgauss.readers.ReadOptions`).
+        allocation: Allocation knobs (:class:`warpgauss.encoding.allocate.AllocationConfig`).
         evaluate: Run stage EV (PSNR).
         full_eval: EV on the full grid instead of 500,000 sampled voxels.
         output: If given, write the model there (stage S3; atomic).
         force: Overwrite ``output`` if it exists.
+        analytic_output: Also write the analytic (pre-refinement) model there.
         on_stage: Optional callback(name, title) as each stage starts (progress display).
         on_stats: Optional callback(stats) once the structure statistics exist (before allocation).
         on_progress: Optional callback(iteration, total, losses) during refinement.
-        analytic_output: Also write the analytic (pre-refinement) model there.
-
-        bricks: Split the grid into bricks (``"2x2x2"``, counts x, y, z) with a halo, the budget
-            over them before refinement, and encode each on its own (see :mod:`warpgauss.encoding.scale.bricks`).
-        halo: Voxels of halo around each brick (default :func:`warpgauss.encoding.scale.plan.default_halo`: 4, 16 at 512^3).
+        bricks: Split the grid into bricks (``"2x2x2"``, counts x, y, z), each encoded on its own.
+        halo: Voxels of halo around each brick.
         client: A ``distributed.Client``: the bricks run on its cluster (None: in this process).
         on_bricks: Optional callback(bricks done, bricks) during a bricked encode.
-        max_device_memory: Bytes (or ``"24GiB"``) one encode may use on the device; default: 90 %
-            of what a CUDA device has free (none on the CPU). Without ``bricks``, a volume whose
-            monolithic encode would not fit it, or that has more voxels than the kernels index, is
-            bricked (:func:`warpgauss.encoding.scale.plan.choose_bricks`), and a file read on demand.
-        max_host_memory: The same for this machine's memory (default: half of what is available
-            now); a bricked encode of a file keeps one brick's box in memory at a time.
-        warm_start: A :class:`Model` (or its ``(N, 12)`` parameters) of the previous timestep of
-            the same grid and budget: refinement starts from it instead of the analytic
-            allocation (stage S1b-S1e is skipped; the report's ``evaluation.analytic`` is the
-            starting model on this timestep).
-        motion: With ``warm_start``, first move every primitive with the motion from the
-            previous model to this timestep (block Lucas-Kanade on a pyramid, see
-            :mod:`warpgauss.encoding.motion`; stage S1m); False: start where the previous model was.
-        max_error: A point-wise bound in source units: a residual stored after the Gaussians
-            makes every valid voxel of ``decode()`` lie within it of the source, on any device
-            (:mod:`warpgauss.format.residual`; stage S4). The Gaussians keep the budget given, by
-            default the source's bytes / :data:`warpgauss.format.residual.DEFAULT_RATIO` (at least
-            :data:`warpgauss.format.residual.MIN_GAUSSIAN_BYTES`); render and view use them alone.
+        max_device_memory: Bytes (or ``"24GiB"``) one encode may use on the device; a larger one is bricked.
+        max_host_memory: The same for this machine's memory.
+        warm_start: A :class:`Model` (or its (N, 12) parameters) of the previous timestep to refine from.
+        motion: With ``warm_start``, first move the primitives with the field's motion.
+        max_error: A point-wise bound in source units, kept by a residual stored after the Gaussians.
         max_error_rel: The bound as a share of the source's value range instead.
-        residual_psnr: Instead of a bound, the full-grid PSNR (dB) the decode must reach: the
-            largest bound that reaches it (:func:`warpgauss.format.residual.code_for_psnr`).
-        session: The state a :class:`warpgauss.Encoder` keeps between its calls (device buffers
-            and this call's deadline); not for direct use.
-        progress: Print refinement's progress on one line of standard error (iteration, the
-            samples' PSNR), as the command line does; None (the default): where a person watches,
-            a terminal or a notebook, not in logs. ``on_progress`` replaces it.
+        residual_psnr: Instead of a bound, the full-grid PSNR (dB) the decode must reach.
+        session: The state a :class:`warpgauss.Encoder` keeps between its calls; not for direct use.
+        progress: Print refinement's progress on standard error (None: where a person watches).
 
     Returns:
-        The :class:`Model`, with ``model.report`` holding the run report.
+        The :class:`Model` (the stored one), with ``model.report`` holding the run report.
     """
     line = None
     if on_progress is None and (progress if progress is not None else watched()):

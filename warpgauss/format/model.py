@@ -523,7 +523,9 @@ class Model:
                 encoded grid, or ``box`` at the encoded resolution).
             box: A region, ``((x0, x1), (y0, y1), (z0, z1))`` in voxel coordinates of the encoded
                 grid, as :meth:`decode` takes it.
-            device, normalised, residual: As :meth:`decode`.
+            device: As :meth:`decode`.
+            normalised: As :meth:`decode`.
+            residual: As :meth:`decode`.
             name: The point-data array's name (default: the header's name, else "value").
 
         Returns:

@@ -125,8 +125,9 @@ def encode_series(
         sources: A glob pattern, a list of paths / 3D arrays in time order, or one HDF5 /
             netCDF / Zarr file whose variable has a time axis ``(t, z, y, x)``.
         variables: Several variables (datasets, arrays) of the files: one chain of models each.
-        budget, ratio: The budget of timestep 0 (``warpgauss.encode``'s); later timesteps take
-            its N exactly.
+        budget: The budget of timestep 0 (``warpgauss.encode``'s); later timesteps take its N
+            exactly.
+        ratio: The same as a compression ratio, instead of ``budget``.
         output_pattern: If given, timestep t of variable v is written to
             ``output_pattern.format(t=t, var=v)`` (``{var}`` is needed with several variables).
         cold: Encode every timestep from its own analytic allocation.

@@ -28,7 +28,7 @@ from ...readers import ReadOptions
 from ..allocate import AllocationConfig
 from ..refine import LossWeights, RefineConfig
 from .options import EncodeOptions, resolve_refine, with_stop_rules
-from .sizing import check_budget_options
+from .sizing import CODED_BPP_MEASURED, check_budget_options
 
 
 @dataclass(frozen=True)
@@ -279,6 +279,8 @@ class Option:
     negate: bool = False
 
 
+_BPP = "{:g}-{:g}".format(*CODED_BPP_MEASURED)  # a coded Gaussian's bytes, as --format's help quotes them
+
 # The command line's options of the settings, in --help order within each panel. The key says
 # where the value goes: an argument of warpgauss.encode (a row of FIELDS), or a part of one:
 # read.NAME (ReadOptions), refine.NAME (RefineConfig), refine.weights.NAME (LossWeights).
@@ -299,7 +301,7 @@ OPTIONS: dict[str, Option] = {
     "compact": Option("Budget and format", "Write the compact 12-byte/primitive format", bool, flags=("--compact",)),
     "format": Option(
         "Budget and format",
-        "File format: coded (default: quantised + Zstandard, about 7-14 B/Gaussian, --ratio/--bytes budgets never exceeded, 99-100 % used), full (float32, 48 B) or compact (12 B)",
+        f"File format: coded (default: quantised + Zstandard, about {_BPP} B/Gaussian as measured on refined models, --ratio/--bytes budgets never exceeded, 99-100 % used), full (float32, 48 B) or compact (12 B)",
         str | None,
         flags=("--format",),
         param="fmt",

@@ -16,11 +16,17 @@ from ...format.model import Model
 from ..allocate import allocate
 from .options import DEFAULT_RATIO, EncodeOptions, encoding_of
 
-# bytes a Gaussian takes in a coded file of a refined model, as measured (H200, default settings,
-# benchmarks/results/RD.md round 11): 6.9-11.4 on the three head MRIs at CR 10-1000, 8.6-14.0 on
-# the 512^3 example fields at CR 100-1000 (more accurate models code on finer grids); what
-# `warpgauss stats` quotes before anything is encoded
-CODED_BPP_MEASURED = (6.9, 14.0)
+# payload bytes a Gaussian of a refined model's coded file (layout 2, format version 3), as measured,
+# rounded outwards; `warpgauss stats` quotes it before anything is encoded and adds the header
+# itself. End to end (H200, default settings, commit bf04a95; (file bytes - header) / N): 6.28-10.21
+# on the three head MRIs at CR 10-1000 (CR 10: benchmarks/results/speed/profile_final_h200.json;
+# CR 100-1000: benchmarks/results/accuracy/sweep_round3_h200.json, 7.0-8.7; file bytes / N
+# 6.29-10.22, a 1.9 KB header weighs at small N). The same refined models re-coded in layout 2
+# (benchmarks/results/accuracy/coded_context_cpu.json): 6.36-10.40 on the MRIs, 7.77-10.09 on
+# interface 256^3 and 12.11-12.75 on vortex 256^3 at CR 30-300 (more accurate models code on finer
+# grids). The 512^3 example fields were not measured in layout 2 (layout 1: 8.6-14.0, RD.md round
+# 11; layout 2 codes a model 4.4-8.8 % smaller).
+CODED_BPP_MEASURED = (6.2, 12.8)
 CODED_BPP_SIZING = 12  # bytes per primitive a coded file needs at most in practice (the "no room" check)
 CODED_BPP_FLOOR = 4  # and at least: bounds N before its coded size is measured
 # coded bytes per primitive of a refined model over its analytic allocation's: 1.19 / 1.22 / 1.22 /
