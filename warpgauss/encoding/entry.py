@@ -94,6 +94,7 @@ def encode(
     on_bricks: Callable[[int, int], None] | None = None,
     max_device_memory: int | str | None = None,
     max_host_memory: int | str | None = None,
+    read_by_bricks: bool | None = None,
     warm_start=None,
     motion: bool = True,
     max_error: float | None = None,
@@ -170,7 +171,13 @@ def encode(
             monolithic encode would not fit it, or that has more voxels than the kernels index, is
             bricked (:func:`warpgauss.encoding.scale.plan.choose_bricks`), and a file read on demand.
         max_host_memory: The same for this machine's memory (default: half of what is available
-            now); a bricked encode of a file keeps one brick's box in memory at a time.
+            now); a bricked encode of a file that does not fit it keeps one brick's box in memory
+            at a time.
+        read_by_bricks: With ``bricks``, a file in a format read on demand is read brick by brick
+            (True) or whole (False); None (the default): whole where its encode fits the host
+            limit (:func:`read_by_bricks_rule`; a volume held whole gets the seams' joint refit,
+            which needs the whole grid), else brick by brick. Bricks chosen by the memory
+            limits are read brick by brick unless this is False.
         warm_start: A :class:`Model` (or its ``(N, 12)`` parameters) of the previous timestep of
             the same grid and budget: refinement starts from it instead of the analytic
             allocation (stage S1b-S1e is skipped; the report's ``evaluation.analytic`` is the
@@ -274,6 +281,7 @@ def encode_with(
             chosen="by the device and host limits" if path.chosen else "given",
             max_device_memory=path.device_limit,
             read_lazily=bool(info.get("read_lazily")),
+            read_why=path.why,
         )
     else:
         model = encode_whole(f, info, source, cfg, opts, device, timer, on_stats=on_stats, on_progress=on_progress)
@@ -416,6 +424,7 @@ class EncodePath:
     lazy: bool
     device_limit: int | None
     chosen: bool
+    why: str = ""  # why a bricked file is read brick by brick or whole
 
 
 def choose_path(source, cfg: EncodeConfig, device, workers: int = 1) -> EncodePath:
@@ -431,8 +440,11 @@ def choose_path(source, cfg: EncodeConfig, device, workers: int = 1) -> EncodePa
     limit = None if b.max_device_memory is None else parse_memory(b.max_device_memory, "--max-device-memory")
     host = host_limit(b.max_host_memory)
     is_file = read_on_demand(source, cfg.reading.example)
+    if bricks is not None and is_file:
+        lazy, why = read_by_bricks_rule(header_shape(source, cfg.reading.read), host, b.read_by_bricks)
+        return EncodePath(bricks, lazy, limit, False, why)
     if bricks is not None or not is_file:
-        return EncodePath(bricks, bricks is not None and is_file, limit, False)
+        return EncodePath(bricks, False, limit, False, "" if bricks is None else "not a file read on demand: the volume is in memory")
     shape_xyz = header_shape(source, cfg.reading.read)
     voxels = int(np.prod(shape_xyz, dtype=np.int64))
     if host is None:
@@ -448,4 +460,27 @@ def choose_path(source, cfg: EncodeConfig, device, workers: int = 1) -> EncodePa
     counts = choose_bricks(shape_xyz, int(budget or 0), limit, int(halo), host, workers)
     if counts == (1, 1, 1):
         return EncodePath(None, False, limit, False)
-    return EncodePath(counts, True, limit, True)
+    if b.read_by_bricks is False:
+        return EncodePath(counts, False, limit, True, "asked (read_by_bricks False)")
+    return EncodePath(counts, True, limit, True, "the bricks were chosen because the whole encode does not fit a memory limit")
+
+
+def read_by_bricks_rule(shape_xyz, host: int | None, asked: bool | None) -> tuple[bool, str]:
+    """Whether a file given bricks is read brick by brick, and why: as ``asked``; else where the
+    whole volume's encode would not fit ``host`` bytes (default :data:`~warpgauss.core.limits.HOST_SHARE`
+    of the memory available now) at :data:`~warpgauss.core.limits.HOST_BYTES_PER_VOXEL`. A volume read
+    whole gets the seams' joint refit (it needs the whole grid in one process): read brick by
+    brick, bubbles 48^3 in 2x2x2 bricks lost 2.4 dB against the monolithic encode (issue #55)."""
+    from ..core.limits import HOST_BYTES_PER_VOXEL, HOST_SHARE, available_memory
+
+    if asked is not None:
+        return bool(asked), f"asked (read_by_bricks {bool(asked)})"
+    need = HOST_BYTES_PER_VOXEL * int(np.prod([int(v) for v in shape_xyz], dtype=np.int64))
+    if host is None:
+        free = available_memory()
+        host = None if free is None else int(HOST_SHARE * free)
+    if host is None:
+        return False, "no host limit is known: the volume is read whole"
+    if need <= host:
+        return False, f"the whole volume fits the host limit (about {need / 2**30:.2f} GiB of {host / 2**30:.1f} GiB)"
+    return True, f"the whole volume would need about {need / 2**30:.1f} GiB of host memory, {host / 2**30:.1f} GiB allowed"
