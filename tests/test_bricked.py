@@ -289,8 +289,11 @@ def test_a_gpu_cluster_gives_each_worker_its_own_gpu(monkeypatch):
         gpu_ids(4)
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
     assert gpu_ids(3) == ["0", "1", "2"]
+    from warpgauss.encoding.scale import schedule as wsched
+
     v = generate("interface", 20)
-    serial = warpgauss.encode(v, budget=150, bricks="2x1x1", halo=2, **FAST)
+    with wsched.schedule(False, wsched.CPU_TOGETHER_SEAM_REFIT):  # as two CPU workers run a bricking of one-brick waves
+        serial = warpgauss.encode(v, budget=150, bricks="2x1x1", halo=2, **FAST)
     client = gpu_client(2, ids=["3", "8"])
     try:
         seen = client.run(lambda: __import__("os").environ.get("CUDA_VISIBLE_DEVICES"))

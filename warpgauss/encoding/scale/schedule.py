@@ -64,14 +64,15 @@ SEAM_REFIT: float | None = None
 # bricks start on the device (DEVICE_SETUP; one_gpu_*_device_setup_h200.json): the same models in
 # 1.42x / 1.46x at 512^3 and 1.17x / 1.19x at 1024^3.
 TOGETHER_SEAM_REFIT = 0.25
-# On the CPU, where the bricks run in waves in this process with the whole volume in memory, the
-# seams are refit after the waves for this share of the iterations: 2x2x2 at 48^3, 3,000
-# Gaussians, 200 iterations, seed 3 (issue #55): bubbles 65.86 -> 66.93 dB (monolithic 68.21),
-# vortex 54.21 -> 54.82, interface 39.14 -> 39.85, for 0-14 % more time
-CPU_WAVES_SEAM_REFIT = 0.25
+# On the CPU, where the bricks run in waves with the whole volume in this process, the seams are
+# refit after the waves for this share of the iterations. 2x2x2 at 48^3, 3,000 Gaussians, 200
+# iterations, seed 3, coded (issue #55; monolithic: bubbles 68.21, vortex 55.14, interface 40.05
+# dB): without a refit bubbles 65.86, vortex 54.21, interface 39.14; at 0.25 66.93 / 54.82 /
+# 39.85 (0-14 % more time); at 0.5 69.32 / 55.76 / 40.78 (about 8-15 % more time than 0.25)
+CPU_WAVES_SEAM_REFIT = 0.5
 # Bricks started together on a Dask cluster of CPU processes (choose_schedule), the seams then
-# refit on this process's CPU for this share of the iterations: bubbles 48^3 2x2x2, 3,000
-# Gaussians, 200 iterations, seed 3 (issue #55): 66.22 dB at 0.25, 68.78 at 0.5 (monolithic 68.21)
+# refit on this process's CPU for this share of the iterations. The 48^3 case above: bubbles 66.22
+# dB at 0.25, 68.78 at 0.5; at 0.5 vortex 54.89, interface 40.34 (0.5 under the waves' 0.5 refit)
 CPU_TOGETHER_SEAM_REFIT = 0.5
 
 
