@@ -107,6 +107,7 @@ def test_a_file_given_bricks_is_read_whole_where_it_fits_the_host_limit(tmp_path
     assert lazy and "GiB allowed" in why
     assert read_by_bricks_rule((40, 40, 40), None, True) == (True, "asked (read_by_bricks True)")
     assert read_by_bricks_rule((40, 40, 40), 10**12, True)[0] and not read_by_bricks_rule((4, 4, 4), 1, False)[0]
+    assert read_by_bricks_rule((40, 40, 40), 10**12, None, gpu_cluster=True)[0]  # waves with no refit there: the workers read their boxes
     import json
 
     from typer.testing import CliRunner
