@@ -185,10 +185,15 @@ def test_dask_workers_read_their_own_boxes(tmp_path):
     client = local_client(2)
     try:
         on_cluster = warpgauss.encode(str(raw), budget=150, bricks="2x1x2", halo=2, client=client, read_by_bricks=True, **FAST)
+        whole = warpgauss.encode(str(raw), budget=150, bricks="2x1x2", halo=2, client=client, **FAST)  # issue #55's path, small
     finally:
         client.close()
         client.cluster.close()
     assert on_cluster.report["bricking"]["read_lazily"]
+    # the file fits the host limit: read whole, every brick at once over both workers, the seams refit here
+    b = whole.report["bricking"]
+    assert not b["read_lazily"] and b["schedule"]["waves"] == "together" and b["seam_refit"]["iterations"] > 0
+    assert len(b["workers"]) == 2 and b["volume_to_workers"] == "a temporary file the workers read"
     np.testing.assert_array_equal(serial.params, on_cluster.params)
 
 
