@@ -118,7 +118,7 @@ def choose_schedule(
         together = True
         why = f"a Dask cluster of {workers} CPU processes that waves of {smallest_wave(counts)} brick(s) would leave idle; the seams refit on this process's CPU"
     elif client is not None:
-        together, why = False, "a Dask cluster"
+        together, why = False, "a Dask cluster whose waves hold a brick for every worker" if on_cpu else "a Dask cluster"
     elif on_cpu:
         together, why = False, "the CPU steps bricks one at a time"
     else:
