@@ -76,12 +76,18 @@ def test_bricked_encode_is_exact_and_repeatable():
 
 
 def test_bricked_encode_on_a_local_dask_cluster_equals_the_serial_one(monkeypatch):
+    """The same schedule gives the same model in this process and on a cluster. By default a
+    cluster of 2 CPU workers starts a 2x1x2 bricking's bricks together (its waves hold one brick:
+    one worker would idle) and refits the seams here; the waves, asked for, still run there."""
     distributed = pytest.importorskip("distributed")
     import warpgauss.readers.lazy
+    from warpgauss.encoding.scale import schedule as wsched
     from warpgauss.encoding.scale.cluster import local_client
 
     v = generate("interface", 24)
     serial = warpgauss.encode(v, budget=250, bricks="2x1x2", halo=2, **FAST)
+    with wsched.schedule(False, wsched.CPU_TOGETHER_SEAM_REFIT):
+        serial_together = warpgauss.encode(v, budget=250, bricks="2x1x2", halo=2, **FAST)
     client = local_client(2)
     try:
         on_cluster = warpgauss.encode(v, budget=250, bricks="2x1x2", halo=2, client=client, **FAST)
@@ -91,22 +97,26 @@ def test_bricked_encode_on_a_local_dask_cluster_equals_the_serial_one(monkeypatc
             raise OSError(28, "No space left on device")
 
         monkeypatch.setattr(warpgauss.readers.lazy, "shared", full)  # no room for the shared copy: the graph carries the boxes
-        no_room = warpgauss.encode(v, budget=250, bricks="2x1x2", halo=2, client=client, **FAST)
+        with wsched.schedule(True, wsched.CPU_WAVES_SEAM_REFIT):  # the waves, as in this process
+            no_room = warpgauss.encode(v, budget=250, bricks="2x1x2", halo=2, client=client, **FAST)
     finally:
         client.close()
         client.cluster.close()
     assert isinstance(client, distributed.Client) and workers == {"cpu"}
-    np.testing.assert_array_equal(serial.params, on_cluster.params)
+    np.testing.assert_array_equal(serial_together.params, on_cluster.params)
     rep = on_cluster.report["bricking"]
+    assert rep["schedule"]["waves"] == "together" and rep["schedule"]["seam_refit_share"] == wsched.CPU_TOGETHER_SEAM_REFIT
+    assert serial.report["bricking"]["schedule"]["waves"] == "neighbours first"
     assert rep["scheduler"].startswith("tcp://")
     # the local workers read the volume from one temporary file, not from the task graph
     assert rep["volume_to_workers"] == "a temporary file the workers read"
     assert serial.report["bricking"]["volume_to_workers"] == "this process"
     assert no_room.report["bricking"]["volume_to_workers"] == "the boxes in the task graph (no shared copy: No space left on device)"
     np.testing.assert_array_equal(no_room.params, serial.params)
-    assert [w["bricks"] for w in rep["waves"]] == [1, 1, 1, 1]
+    assert [w["bricks"] for w in rep["waves"]] == [4] and [w["bricks"] for w in no_room.report["bricking"]["waves"]] == [1, 1, 1, 1]
     assert all(0 < w["worker_seconds"] <= w["seconds"] for w in rep["waves"])
     assert sum(w["bricks"] for w in rep["workers"].values()) == 4 and "this process" not in rep["workers"]
+    assert len(rep["workers"]) == 2  # the wave split over both workers
     assert all(w["host_peak_rss_bytes"] > 2**20 and w["device_peak_bytes"] is None for w in rep["workers"].values())
 
 
@@ -279,8 +289,11 @@ def test_a_gpu_cluster_gives_each_worker_its_own_gpu(monkeypatch):
         gpu_ids(4)
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES")
     assert gpu_ids(3) == ["0", "1", "2"]
+    from warpgauss.encoding.scale import schedule as wsched
+
     v = generate("interface", 20)
-    serial = warpgauss.encode(v, budget=150, bricks="2x1x1", halo=2, **FAST)
+    with wsched.schedule(False, wsched.CPU_TOGETHER_SEAM_REFIT):  # as two CPU workers run a bricking of one-brick waves
+        serial = warpgauss.encode(v, budget=150, bricks="2x1x1", halo=2, **FAST)
     client = gpu_client(2, ids=["3", "8"])
     try:
         seen = client.run(lambda: __import__("os").environ.get("CUDA_VISIBLE_DEVICES"))
@@ -538,6 +551,12 @@ def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volu
     assert not cpu.together and cpu.seam_refit == wsched.CPU_WAVES_SEAM_REFIT and "CPU" in cpu.why
     on_cluster = wsched.choose_schedule("cpu", object(), False, shape, n, 100, None)
     assert not on_cluster.together and on_cluster.seam_refit == wsched.CPU_WAVES_SEAM_REFIT  # the same model as here
+    # a CPU cluster whose waves would leave workers idle: every brick at once, split over them
+    idle = wsched.choose_schedule("cpu", object(), False, shape, n, 100, None, (2, 2, 2), 2)
+    assert idle.together and idle.seam_refit == wsched.CPU_TOGETHER_SEAM_REFIT and "idle" in idle.why
+    busy = wsched.choose_schedule("cpu", object(), False, shape, n, 100, None, (4, 4, 2), 2)  # waves of 4 bricks
+    assert not busy.together and busy.seam_refit == wsched.CPU_WAVES_SEAM_REFIT
+    assert not wsched.choose_schedule("cpu", object(), True, shape, n, 100, None, (2, 2, 2), 2).together  # read brick by brick
     assert wsched.choose_schedule("cpu", None, True, shape, n, 100, None).seam_refit == 0.0  # read brick by brick
     assert wsched.choose_schedule("cpu", None, False, shape, n, 0, None).seam_refit == 0.0  # no refinement
     real = ww.warp()
@@ -554,7 +573,7 @@ def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volu
     monkeypatch.setattr(ww, "warp", lambda: real)
     with wsched.schedule(False, None):
         set_ = wsched.choose_schedule("cpu", None, False, shape, n, 100, None)
-        assert set_.together and set_.seam_refit == wsched.TOGETHER_SEAM_REFIT and "set" in set_.why
+        assert set_.together and set_.seam_refit == wsched.CPU_TOGETHER_SEAM_REFIT and "set" in set_.why  # together on the CPU
     with wsched.schedule(True, 0.5):
         assert wsched.choose_schedule("cpu", None, False, shape, n, 100, None) == wsched.BrickSchedule(
             False, 0.5, "set (bricked.NEIGHBOURS_FIRST)"
@@ -662,3 +681,36 @@ def test_a_bricked_coded_model_is_coded_on_grids_for_its_accuracy():
     assert note["bits_added"] > 0 and note["bits"] == coded.coded_bits
     assert psnr(coded) >= psnr(full) - 0.5, (psnr(coded), psnr(full))
     assert [b["sample_psnr_db"] is not None for b in coded.report["bricking"]["bricks"]] == [True] * 8
+
+
+@pytest.mark.slow
+def test_issue_55_a_bricked_file_on_two_cpu_workers_is_within_half_a_db_of_the_whole_and_twice_its_time(tmp_path):
+    """Issue #55's CPU target: ``warpgauss encode`` of bubbles 48^3 as a raw file, N 3,000, 200
+    iterations, seed 3, ``--bricks 2x2x2 --workers 2 --device cpu`` within 0.5 dB of the same
+    encode without the bricks and in at most twice its time (both timed here, one after the other;
+    the cluster started before). The file is read whole, its bricks start together over both
+    workers and the seams are refit here; read brick by brick it lost 2.35 dB in 2.6x the time."""
+    import time
+
+    pytest.importorskip("distributed")
+    from warpgauss.encoding.scale.cluster import local_client
+
+    path = tmp_path / "b_48x48x48_float32.raw"
+    generate("bubbles", 48).astype(np.float32).tofile(path)
+    kw = dict(budget=3000, iterations=200, seed=3, device="cpu", full_eval=True, progress=False)
+    warpgauss.encode(generate("vortex", 16), budget=50, iterations=2, samples=64, device="cpu")  # compiled before the clock
+    t0 = time.perf_counter()
+    mono = warpgauss.encode(str(path), **kw)
+    mono_s = time.perf_counter() - t0
+    client = local_client(2)
+    try:
+        t0 = time.perf_counter()
+        bricked = warpgauss.encode(str(path), bricks="2x2x2", client=client, **kw)
+        bricked_s = time.perf_counter() - t0
+    finally:
+        client.close()
+        client.cluster.close()
+    b = bricked.report["bricking"]
+    assert not b["read_lazily"] and b["schedule"]["waves"] == "together" and b["seam_refit"]["iterations"] > 0
+    assert bricked.report["psnr_db"] >= mono.report["psnr_db"] - 0.5, (bricked.report["psnr_db"], mono.report["psnr_db"])
+    assert bricked_s <= 2.0 * mono_s, (bricked_s, mono_s)

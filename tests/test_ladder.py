@@ -123,6 +123,7 @@ NOT_FOR_LADDERS = {
     "residual_psnr": "a bounded residual is one encode's",
     "max_device_memory": "a ladder encodes the whole volume",
     "max_host_memory": "a ladder encodes the whole volume",
+    "read_by_bricks": "a ladder encodes the whole volume",
     "on_bricks": "a ladder encodes the whole volume",
     "on_stats": "the statistics are shared by the ladder",
     "warm_start": "warm starts belong to series",

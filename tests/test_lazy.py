@@ -76,13 +76,50 @@ def test_a_file_read_brick_by_brick_encodes_as_the_array_in_memory(tmp_path):
         mem = warpgauss.encode(v, budget=160, bricks="2x1x2", halo=2, **FAST)
     for path, kw in ((raw, {}), (h5, {})):
         read = warpgauss.readers.ReadOptions(dataset="t0/rho") if path == h5 else None
-        lazy = warpgauss.encode(str(path), budget=160, bricks="2x1x2", halo=2, read=read, **FAST, **kw)
+        lazy = warpgauss.encode(str(path), budget=160, bricks="2x1x2", halo=2, read=read, read_by_bricks=True, **FAST, **kw)
         assert lazy.report["bricking"]["read_lazily"] and lazy.report["bricking"]["chosen"] == "given"
         assert lazy.report["bricking"]["seam_refit"] is None
         np.testing.assert_array_equal(lazy.params, mem.params)
         assert lazy.report["psnr_db"] == pytest.approx(mem.report["psnr_db"], abs=1e-6)
         # no counting pass of its own: the bricks' statistics count the file, as the whole array counts
         assert lazy.report["budget"]["n_max"] == mem.report["budget"]["n_max"]
+
+
+def test_a_file_given_bricks_is_read_whole_where_it_fits_the_host_limit(tmp_path):
+    """Issue #55: a small file with --bricks was always read brick by brick, so it got no seams'
+    refit (which needs the whole grid). Read whole where its encode fits the host limit, it gets
+    the refit, and the model of the same array in memory bit for bit; read_by_bricks=True, or a
+    host limit it does not fit, keeps the lazy path."""
+    from warpgauss.core.limits import HOST_BYTES_PER_VOXEL
+    from warpgauss.encoding.entry import read_by_bricks_rule
+
+    v = generate("vortex", 20)
+    raw, _, _ = _files(tmp_path, v)
+    whole = warpgauss.encode(str(raw), budget=160, bricks="2x1x2", halo=2, **FAST)
+    b = whole.report["bricking"]
+    assert not b["read_lazily"] and "fits the host limit" in b["read_why"]
+    assert b["seam_refit"] is not None and b["seam_refit"]["iterations"] > 0
+    mem = warpgauss.encode(v, budget=160, bricks="2x1x2", halo=2, **FAST)
+    np.testing.assert_array_equal(whole.params, mem.params)
+    need = HOST_BYTES_PER_VOXEL * 40**3
+    assert read_by_bricks_rule((40, 40, 40), int(need), None)[0] is False
+    lazy, why = read_by_bricks_rule((40, 40, 40), int(need) - 1, None)
+    assert lazy and "GiB allowed" in why
+    assert read_by_bricks_rule((40, 40, 40), None, True) == (True, "asked (read_by_bricks True)")
+    assert read_by_bricks_rule((40, 40, 40), 10**12, True)[0] and not read_by_bricks_rule((4, 4, 4), 1, False)[0]
+    assert read_by_bricks_rule((40, 40, 40), 10**12, None, gpu_cluster=True)[0]  # waves with no refit there: the workers read their boxes
+    import json
+
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+
+    base = ["encode", str(raw), "--budget", "120", "--iterations", "5", "--device", "cpu", "--no-self-test", "--format", "full"]
+    for flag, lazy_read in (("--read-by-bricks", True), ("--read-whole", False)):
+        out = tmp_path / f"{flag}.wgs"
+        r = CliRunner().invoke(app, [*base, "--bricks", "2x1x1", "--halo", "2", "--workers", "0", flag, "-o", str(out)])
+        assert r.exit_code == 0, r.output
+        assert json.loads(out.with_name(out.name + ".report.json").read_text())["bricking"]["read_lazily"] is lazy_read
 
 
 def test_a_budget_past_the_seed_limit_of_a_file_read_brick_by_brick_is_refused_before_refinement(tmp_path):
@@ -92,7 +129,7 @@ def test_a_budget_past_the_seed_limit_of_a_file_read_brick_by_brick_is_refused_b
     v.tofile(raw)
     out = tmp_path / "v.wgs"
     with pytest.raises(WarpgaussError, match="seed limit|can hold at most"):
-        warpgauss.encode(str(raw), budget=500, bricks="2x1x1", halo=2, output=out, **FAST)
+        warpgauss.encode(str(raw), budget=500, bricks="2x1x1", halo=2, output=out, read_by_bricks=True, **FAST)
     assert not out.exists()
 
 
@@ -144,14 +181,19 @@ def test_dask_workers_read_their_own_boxes(tmp_path):
 
     v = generate("interface", 20)
     raw, _, _ = _files(tmp_path, v)
-    serial = warpgauss.encode(str(raw), budget=150, bricks="2x1x2", halo=2, **FAST)
+    serial = warpgauss.encode(str(raw), budget=150, bricks="2x1x2", halo=2, read_by_bricks=True, **FAST)
     client = local_client(2)
     try:
-        on_cluster = warpgauss.encode(str(raw), budget=150, bricks="2x1x2", halo=2, client=client, **FAST)
+        on_cluster = warpgauss.encode(str(raw), budget=150, bricks="2x1x2", halo=2, client=client, read_by_bricks=True, **FAST)
+        whole = warpgauss.encode(str(raw), budget=150, bricks="2x1x2", halo=2, client=client, **FAST)  # issue #55's path, small
     finally:
         client.close()
         client.cluster.close()
     assert on_cluster.report["bricking"]["read_lazily"]
+    # the file fits the host limit: read whole, every brick at once over both workers, the seams refit here
+    b = whole.report["bricking"]
+    assert not b["read_lazily"] and b["schedule"]["waves"] == "together" and b["seam_refit"]["iterations"] > 0
+    assert len(b["workers"]) == 2 and b["volume_to_workers"] == "a temporary file the workers read"
     np.testing.assert_array_equal(serial.params, on_cluster.params)
 
 
@@ -220,7 +262,7 @@ def test_zarr_stores_are_read_whole_or_by_bricks(tmp_path):
 
     with wsched.schedule(None, 0.0):  # the seams' refit needs the volume whole: the store read by bricks has none
         mem = warpgauss.encode(v, budget=150, bricks="1x2x2", halo=2, **FAST)
-    from_store = warpgauss.encode(str(path), budget=150, bricks="1x2x2", halo=2, **FAST)
+    from_store = warpgauss.encode(str(path), budget=150, bricks="1x2x2", halo=2, read_by_bricks=True, **FAST)
     assert from_store.report["bricking"]["read_lazily"]
     np.testing.assert_array_equal(from_store.params, mem.params)
     with pytest.raises(WarpgaussError, match="has no array 'nope'"):

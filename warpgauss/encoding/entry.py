@@ -94,6 +94,7 @@ def encode(
     on_bricks: Callable[[int, int], None] | None = None,
     max_device_memory: int | str | None = None,
     max_host_memory: int | str | None = None,
+    read_by_bricks: bool | None = None,
     warm_start=None,
     motion: bool = True,
     max_error: float | None = None,
@@ -145,6 +146,7 @@ def encode(
         on_bricks: Optional callback(bricks done, bricks) during a bricked encode.
         max_device_memory: Bytes (or ``"24GiB"``) one encode may use on the device; a larger one is bricked.
         max_host_memory: The same for this machine's memory.
+        read_by_bricks: With ``bricks``, read a file brick by brick (True) or whole (False); None: whole where it fits.
         warm_start: A :class:`Model` (or its (N, 12) parameters) of the previous timestep to refine from.
         motion: With ``warm_start``, first move the primitives with the field's motion.
         max_error: A point-wise bound in source units, kept by a residual stored after the Gaussians.
@@ -191,7 +193,7 @@ def encode_with(
     once (whole or bricked), stage P, the path, then export and the report."""
     source, device, opts = checked_request(source, cfg, session)
     run, reading, bricking = cfg.run, cfg.reading, cfg.bricking
-    workers = 1 if client is None else max(1, len(client.scheduler_info().get("workers", {})))
+    workers = 0 if client is None else max(1, len(client.scheduler_info().get("workers", {})))  # 0: this process
     path = choose_path(source, cfg, device, workers)
     timer = StageRecorder(on_stage=on_stage)
     with timer.stage("P", "load and normalise"):
@@ -235,6 +237,7 @@ def encode_with(
             chosen="by the device and host limits" if path.chosen else "given",
             max_device_memory=path.device_limit,
             read_lazily=bool(info.get("read_lazily")),
+            read_why=path.why,
         )
     else:
         model = encode_whole(f, info, source, cfg, opts, device, timer, on_stats=on_stats, on_progress=on_progress)
@@ -377,13 +380,16 @@ class EncodePath:
     lazy: bool
     device_limit: int | None
     chosen: bool
+    why: str = ""  # why a bricked file is read brick by brick or whole
 
 
-def choose_path(source, cfg: EncodeConfig, device, workers: int = 1) -> EncodePath:
-    """The one decision between the two paths. Given bricks are kept; otherwise a file whose
-    whole encode would not fit the device or host limit (or the kernels' voxel index) is bricked
-    by :func:`~warpgauss.encoding.scale.plan.choose_bricks` (with a wave for each of a cluster's
-    ``workers``). Only a format that can be read on demand is looked at before it is read."""
+def choose_path(source, cfg: EncodeConfig, device, workers: int = 0) -> EncodePath:
+    """The one decision between the two paths. Given bricks are kept (a file read whole or brick
+    by brick by :func:`read_by_bricks_rule`); otherwise a file whose whole encode would not fit
+    the device or host limit (or the kernels' voxel index) is bricked by
+    :func:`~warpgauss.encoding.scale.plan.choose_bricks` (with a wave for each of a cluster's
+    ``workers``; 0: no cluster, this process). Only a format that can be read on demand is looked
+    at before it is read."""
     from ..core.limits import HOST_SHARE, available_memory, brick_device_bytes, default_device_limit, parse_memory
     from ..core.warp import resolve_device
 
@@ -392,8 +398,12 @@ def choose_path(source, cfg: EncodeConfig, device, workers: int = 1) -> EncodePa
     limit = None if b.max_device_memory is None else parse_memory(b.max_device_memory, "--max-device-memory")
     host = host_limit(b.max_host_memory)
     is_file = read_on_demand(source, cfg.reading.example)
+    if bricks is not None and is_file:
+        gpu_cluster = workers > 0 and resolve_device(device).startswith("cuda")
+        lazy, why = read_by_bricks_rule(header_shape(source, cfg.reading.read), host, b.read_by_bricks, gpu_cluster)
+        return EncodePath(bricks, lazy, limit, False, why)
     if bricks is not None or not is_file:
-        return EncodePath(bricks, bricks is not None and is_file, limit, False)
+        return EncodePath(bricks, False, limit, False, "" if bricks is None else "not a file read on demand: the volume is in memory")
     shape_xyz = header_shape(source, cfg.reading.read)
     voxels = int(np.prod(shape_xyz, dtype=np.int64))
     if host is None:
@@ -409,4 +419,32 @@ def choose_path(source, cfg: EncodeConfig, device, workers: int = 1) -> EncodePa
     counts = choose_bricks(shape_xyz, int(budget or 0), limit, int(halo), host, workers)
     if counts == (1, 1, 1):
         return EncodePath(None, False, limit, False)
-    return EncodePath(counts, True, limit, True)
+    if b.read_by_bricks is False:
+        return EncodePath(counts, False, limit, True, "asked (read_by_bricks False)")
+    return EncodePath(counts, True, limit, True, "the bricks were chosen because the whole encode does not fit a memory limit")
+
+
+def read_by_bricks_rule(shape_xyz, host: int | None, asked: bool | None, gpu_cluster: bool = False) -> tuple[bool, str]:
+    """Whether a file given bricks is read brick by brick, and why: as ``asked``; on a cluster of
+    GPU workers (``gpu_cluster``: their bricks run in waves with no seams' refit, so the whole
+    volume would buy nothing and be copied to a file for the workers); else where the whole
+    volume's encode would not fit ``host`` bytes (default :data:`~warpgauss.core.limits.HOST_SHARE`
+    of the memory available now) at :data:`~warpgauss.core.limits.HOST_BYTES_PER_VOXEL`. A volume
+    read whole gets the seams' joint refit (it needs the whole grid in one process): read brick
+    by brick, bubbles 48^3 in 2x2x2 bricks on two CPU workers lost 2.35 dB against the monolithic
+    encode (issue #55)."""
+    from ..core.limits import HOST_BYTES_PER_VOXEL, HOST_SHARE, available_memory
+
+    if asked is not None:
+        return bool(asked), f"asked (read_by_bricks {bool(asked)})"
+    if gpu_cluster:
+        return True, "a cluster of GPU workers runs the bricks in waves without the seams' refit: the workers read their own boxes"
+    need = HOST_BYTES_PER_VOXEL * int(np.prod([int(v) for v in shape_xyz], dtype=np.int64))
+    if host is None:
+        free = available_memory()
+        host = None if free is None else int(HOST_SHARE * free)
+    if host is None:
+        return False, "no host limit is known: the volume is read whole"
+    if need <= host:
+        return False, f"the whole volume fits the host limit (about {need / 2**30:.2f} GiB of {host / 2**30:.1f} GiB)"
+    return True, f"the whole volume would need about {need / 2**30:.1f} GiB of host memory, {host / 2**30:.1f} GiB allowed"

@@ -104,6 +104,7 @@ class Bricking:
     halo: int | None = None
     max_device_memory: int | str | None = None
     max_host_memory: int | str | None = None
+    read_by_bricks: bool | None = None  # a file's boxes read one by one (None: where it does not fit the host limit)
 
 
 @dataclass(frozen=True)
@@ -238,6 +239,7 @@ FIELDS: dict[str, tuple[str | None, str]] = {
     "halo": ("bricking", "halo"),
     "max_device_memory": ("bricking", "max_device_memory"),
     "max_host_memory": ("bricking", "max_host_memory"),
+    "read_by_bricks": ("bricking", "read_by_bricks"),
     "max_error": ("bound", "max_error"),
     "max_error_rel": ("bound", "max_error_rel"),
     "residual_psnr": ("bound", "psnr"),
@@ -381,6 +383,12 @@ OPTIONS: dict[str, Option] = {
         "Bricks and cluster",
         "Host memory a brick may use, e.g. 16GiB (default: half of what is available); a volume that would not fit is split into bricks and read brick by brick",
         str | None,
+    ),
+    "read_by_bricks": Option(
+        "Bricks and cluster",
+        "A bricked file read brick by brick, one box in memory at a time (--read-by-bricks), or whole (--read-whole); default: whole where it fits --max-host-memory (then the seams are refit over the whole grid), else by bricks",
+        bool | None,
+        flags=("--read-by-bricks/--read-whole",),
     ),
     "checkpoint": Option("Run control", "Refinement checkpoint file; default OUTPUT.ckpt (deleted when the run ends)", Path | None),
     "checkpoint_every": Option("Run control", "Seconds between checkpoints (Ctrl-C also writes one)", float),

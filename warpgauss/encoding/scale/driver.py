@@ -76,7 +76,8 @@ def encode_bricked(
     allocation = dataclasses.replace(opts.allocation, scale_cap=cap)
     halo = default_halo(cap) if halo is None else int(halo)
     plan = plan_bricks(f.shape_xyz, counts_xyz, halo)
-    order = choose_schedule(dev, client, is_lazy(f.values), f.shape_xyz, n, opts.refine.iterations, max_device_memory)
+    workers = 0 if client is None else max(1, len(client.scheduler_info().get("workers", {})))
+    order = choose_schedule(dev, client, is_lazy(f.values), f.shape_xyz, n, opts.refine.iterations, max_device_memory, counts_xyz, workers)
     # the whole volume on this process's device (the coded pilot's, or for the seams' refit): the
     # bricks' statistics are taken there, and the bricks of this process cut their boxes from it
     resident = None

@@ -64,11 +64,16 @@ SEAM_REFIT: float | None = None
 # bricks start on the device (DEVICE_SETUP; one_gpu_*_device_setup_h200.json): the same models in
 # 1.42x / 1.46x at 512^3 and 1.17x / 1.19x at 1024^3.
 TOGETHER_SEAM_REFIT = 0.25
-# On the CPU, where the bricks run in waves in this process with the whole volume in memory, the
-# seams are refit after the waves for this share of the iterations: 2x2x2 at 48^3, 3,000
-# Gaussians, 200 iterations, seed 3 (issue #55): bubbles 65.86 -> 66.93 dB (monolithic 68.21),
-# vortex 54.21 -> 54.82, interface 39.14 -> 39.85, for 0-14 % more time
-CPU_WAVES_SEAM_REFIT = 0.25
+# On the CPU, where the bricks run in waves with the whole volume in this process, the seams are
+# refit after the waves for this share of the iterations. 2x2x2 at 48^3, 3,000 Gaussians, 200
+# iterations, seed 3, coded (issue #55; monolithic: bubbles 68.21, vortex 55.14, interface 40.05
+# dB): without a refit bubbles 65.86, vortex 54.21, interface 39.14; at 0.25 66.93 / 54.82 /
+# 39.85 (0-14 % more time); at 0.5 69.32 / 55.76 / 40.78 (about 8-15 % more time than 0.25)
+CPU_WAVES_SEAM_REFIT = 0.5
+# Bricks started together on a Dask cluster of CPU processes (choose_schedule), the seams then
+# refit on this process's CPU for this share of the iterations. The 48^3 case above: bubbles 66.22
+# dB at 0.25, 68.78 at 0.5; at 0.5 vortex 54.89, interface 40.34 (0.5 under the waves' 0.5 refit)
+CPU_TOGETHER_SEAM_REFIT = 0.5
 
 
 @dataclass(frozen=True)
@@ -84,17 +89,23 @@ class BrickSchedule:
         return {"waves": "together" if self.together else "neighbours first", "seam_refit_share": self.seam_refit, "why": self.why}
 
 
-def choose_schedule(device: str, client, lazy: bool, shape_xyz, n: int, iterations: int, limit: int | None) -> BrickSchedule:
+def choose_schedule(
+    device: str, client, lazy: bool, shape_xyz, n: int, iterations: int, limit: int | None, counts=None, workers: int = 1
+) -> BrickSchedule:
     """The bricks' :class:`BrickSchedule`: :data:`NEIGHBOURS_FIRST` and :data:`SEAM_REFIT` where set;
     otherwise every brick at once and the seams refit (:data:`TOGETHER_SEAM_REFIT`) in this
     process on a GPU whose ``limit`` (default :func:`default_device_limit`) holds the whole volume
-    for the refit, and the waves everywhere else: on the CPU (bricks step one at a time there,
-    so starting them together buys no time, and at 96-128^3 it cost 0.9-1.0 dB on the vortex),
-    on a Dask cluster (measured with the waves; bit for bit the same model on any number of
+    for the refit; every brick at once too, and the seams refit on this process's CPU
+    (:data:`CPU_TOGETHER_SEAM_REFIT`), on a Dask cluster of CPU ``workers`` that the waves of a
+    bricking of ``counts`` (x, y, z) would leave idle (:func:`~warpgauss.encoding.scale.plan.smallest_wave`
+    smaller than the workers: 2x2x2 runs 8 waves of one brick); and the waves everywhere else: on
+    the CPU in this process (bricks step one at a time there, so starting them together buys no
+    time), on a GPU cluster (measured with the waves; bit for bit the same model on any number of
     workers either way), for a volume read brick by brick (the refit needs it whole), without
-    refinement. After waves whose volume this process holds whole on its CPU (with or without a
-    cluster) the seams are refit for :data:`CPU_WAVES_SEAM_REFIT` of the iterations."""
+    refinement. After waves whose volume this process holds whole on its CPU the seams are refit
+    for :data:`CPU_WAVES_SEAM_REFIT` of the iterations."""
     from ...core.warp import warp
+    from .plan import smallest_wave
 
     on_cpu = not warp().get_device(device).is_cuda
     if NEIGHBOURS_FIRST is not None:
@@ -103,8 +114,11 @@ def choose_schedule(device: str, client, lazy: bool, shape_xyz, n: int, iteratio
         together, why = False, "no refinement"
     elif lazy:
         together, why = False, "the volume is read brick by brick (the seams' refit needs it whole on one device)"
+    elif client is not None and on_cpu and counts is not None and smallest_wave(counts) < workers:
+        together = True
+        why = f"a Dask cluster of {workers} CPU processes that waves of {smallest_wave(counts)} brick(s) would leave idle; the seams refit on this process's CPU"
     elif client is not None:
-        together, why = False, "a Dask cluster"
+        together, why = False, "a Dask cluster whose waves hold a brick for every worker" if on_cpu else "a Dask cluster"
     elif on_cpu:
         together, why = False, "the CPU steps bricks one at a time"
     else:
@@ -114,7 +128,7 @@ def choose_schedule(device: str, client, lazy: bool, shape_xyz, n: int, iteratio
         why = "one GPU that holds the whole volume for the seams' refit"
         if limit is not None and not together:
             why = f"the seams' refit would need about {need / 2**30:.1f} GiB of the device, {limit / 2**30:.1f} GiB allowed"
-    share = TOGETHER_SEAM_REFIT if together else 0.0
+    share = (CPU_TOGETHER_SEAM_REFIT if on_cpu else TOGETHER_SEAM_REFIT) if together else 0.0
     if SEAM_REFIT is None and not together and iterations > 0 and not lazy and on_cpu:
         # this process holds the whole volume on the CPU: the seams are refit after the waves, on
         # a cluster as here (the same model on any number of workers)
