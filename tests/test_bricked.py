@@ -684,33 +684,26 @@ def test_a_bricked_coded_model_is_coded_on_grids_for_its_accuracy():
 
 
 @pytest.mark.slow
-def test_issue_55_a_bricked_file_on_two_cpu_workers_is_within_half_a_db_of_the_whole_and_twice_its_time(tmp_path):
+def test_issue_55_a_bricked_file_on_two_cpu_workers_is_within_half_a_db_of_the_whole(tmp_path):
     """Issue #55's CPU target: ``warpgauss encode`` of bubbles 48^3 as a raw file, N 3,000, 200
     iterations, seed 3, ``--bricks 2x2x2 --workers 2 --device cpu`` within 0.5 dB of the same
-    encode without the bricks and in at most twice its time (both timed here, one after the other;
-    the cluster started before). The file is read whole, its bricks start together over both
-    workers and the seams are refit here; read brick by brick it lost 2.35 dB in 2.6x the time."""
-    import time
-
+    encode without the bricks. The file is read whole, its bricks start together over both workers
+    and the seams are refit here; read brick by brick it lost 2.35 dB. Its time (at most 2x the
+    whole's) is a benchmark's: ``benchmarks/bricked/bricked_vs_mono.py --from-file --workers 2``
+    (``benchmarks/results/scale/round3.json``), not a unit test's."""
     pytest.importorskip("distributed")
     from warpgauss.encoding.scale.cluster import local_client
 
     path = tmp_path / "b_48x48x48_float32.raw"
     generate("bubbles", 48).astype(np.float32).tofile(path)
     kw = dict(budget=3000, iterations=200, seed=3, device="cpu", full_eval=True, progress=False)
-    warpgauss.encode(generate("vortex", 16), budget=50, iterations=2, samples=64, device="cpu")  # compiled before the clock
-    t0 = time.perf_counter()
     mono = warpgauss.encode(str(path), **kw)
-    mono_s = time.perf_counter() - t0
     client = local_client(2)
     try:
-        t0 = time.perf_counter()
         bricked = warpgauss.encode(str(path), bricks="2x2x2", client=client, **kw)
-        bricked_s = time.perf_counter() - t0
     finally:
         client.close()
         client.cluster.close()
     b = bricked.report["bricking"]
     assert not b["read_lazily"] and b["schedule"]["waves"] == "together" and b["seam_refit"]["iterations"] > 0
     assert bricked.report["psnr_db"] >= mono.report["psnr_db"] - 0.5, (bricked.report["psnr_db"], mono.report["psnr_db"])
-    assert bricked_s <= 2.0 * mono_s, (bricked_s, mono_s)
