@@ -641,8 +641,8 @@ def test_a_time_budget_is_the_whole_encodes(cpu, monkeypatch):
     seen = {}
     real = run.EncodeRun.budget_deadline
 
-    def spy(self, now, compile_s):
-        seen["now"], seen["deadline"] = now, real(self, now, compile_s)
+    def spy(self, now, compile_s, eval_s=0.0):
+        seen["now"], seen["deadline"] = now, real(self, now, compile_s, eval_s)
         return seen["deadline"]
 
     monkeypatch.setattr(run.EncodeRun, "budget_deadline", spy)
@@ -652,6 +652,11 @@ def test_a_time_budget_is_the_whole_encodes(cpu, monkeypatch):
     assert note["seconds"] == 6.0
     assert 0.0 < note["spent_before_refinement_s"] < seen["now"] - t0 + 1e-6  # the stages before refinement count
     assert note["reserved_after_s"] >= run.TAIL_SHARE * 6.0
+    # the reserve holds the final model's evaluation, measured on the analytic model before refinement
+    assert note["reserved_evaluation_s"] > 0 and any(s["stage"] == "EVa" for s in m.report["stages"])
+    assert note["reserved_after_s"] == pytest.approx(run.TAIL_SHARE * 6.0 + note["reserved_coding_s"] + note["reserved_evaluation_s"])
+    assert note["reserved_coding_s"] >= run.TAIL_CODINGS * m.report["budget"]["coded_sizing"]["coding_seconds"] > 0
+    assert m.report["evaluation"]["analytic"]["psnr_db"] > 0  # measured once, before refinement
     budget_end = seen["now"] - note["spent_before_refinement_s"] + 6.0
     assert seen["deadline"] == pytest.approx(budget_end - note["reserved_after_s"], abs=1e-6)
     assert m.report["refinement"]["time_budget"]["seconds"] <= 6.0 - note["spent_before_refinement_s"] - note["reserved_after_s"] + 1e-3

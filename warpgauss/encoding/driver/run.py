@@ -112,6 +112,7 @@ class EncodeRun(replan.Replan):
         self.time_budget_note: dict | None = None  # how --time-budget was shared (budget_deadline)
         self.replan_half: float | None = None  # the sample PSNR half-way to the re-plan
         self.early_eval: dict | None = None
+        self.early_eval_s = 0.0  # seconds the early evaluation took
         self.start_eval: dict | None = None  # a warm start scored before refinement (to choose warm or cold)
         self.start_choice: dict | None = None
         self.evaluation: dict = {}
@@ -137,23 +138,40 @@ class EncodeRun(replan.Replan):
         m.format = self.enc
         return m, None
 
-    def budget_deadline(self, now: float, compile_s: float) -> float:
+    def budget_deadline(self, now: float, compile_s: float, eval_s: float = 0.0) -> float:
         """When refinement must end for the whole call to keep ``--time-budget``: the call's start
         plus the budget (and the kernels' compile, which it does not count), less a reserve for
-        what follows refinement: :data:`TAIL_SHARE` of the budget and :data:`TAIL_CODINGS` codings
-        of the model at the pilot's measured seconds a primitive."""
+        what follows refinement: :data:`TAIL_SHARE` of the budget, :data:`TAIL_CODINGS` codings
+        of the model at the pilot's measured seconds a primitive (at least the pilot's own coding
+        time: a coding has a fixed cost) and ``eval_s``, the measured evaluation of the analytic
+        model, for the final model's."""
         opts = self.opts
         assert opts.time_budget is not None
         start = now if opts.budget_start is None else opts.budget_start
-        per = (self.sizing or {}).get("coding_seconds_per_primitive", 0.0)
-        tail = TAIL_SHARE * opts.time_budget + TAIL_CODINGS * per * self.n
+        sizing = self.sizing or {}
+        coding = max(sizing.get("coding_seconds_per_primitive", 0.0) * self.n, sizing.get("coding_seconds", 0.0))
+        tail = TAIL_SHARE * opts.time_budget + TAIL_CODINGS * coding + eval_s
         self.time_budget_note = {
             "seconds": opts.time_budget,
             "spent_before_refinement_s": now - start - compile_s,
             "compile_s": compile_s,
             "reserved_after_s": tail,
+            "reserved_evaluation_s": eval_s,
+            "reserved_coding_s": TAIL_CODINGS * coding,
         }
         return start + compile_s + opts.time_budget - tail
+
+    def _budget_eval_s(self) -> float:
+        """On a time budget: evaluate the analytic model now (stage EV would, after refinement)
+        and return the seconds it took, the reserve for evaluating the final model; 0 when
+        nothing will be evaluated or the analytic model's figures exist already."""
+        if not self.do_evaluate or self.opts.init is not None:
+            return 0.0
+        if self.early_eval is None:
+            t = time.perf_counter()
+            self.early_eval = self._evaluate(self.analytic)
+            self.early_eval_s = time.perf_counter() - t
+        return self.early_eval_s
 
     def _evaluate(self, m: Model, full: bool | None = None) -> dict:
         """Stage EV's figures for ``m`` (``full``: every voxel rather than the sample; default:
@@ -275,7 +293,9 @@ class EncodeRun(replan.Replan):
         if not (cfg.iterations > 0 and cfg.target_psnr is not None and self.do_evaluate):
             return
         with self.timer.stage("EVa", "analytic model evaluation (for --target-psnr)"):
+            t = time.perf_counter()
             self.early_eval = self._evaluate(self.analytic)
+            self.early_eval_s = time.perf_counter() - t
         if self.early_eval["psnr_db"] < cfg.target_psnr:
             return
         self.skip(
@@ -301,6 +321,10 @@ class EncodeRun(replan.Replan):
 
         opts, cfg, dev, refinement = self.opts, self.opts.refine, self.dev, self.refinement
         cap = opts.allocation.resolved_cap(self.f.shape_xyz)
+        eval_s = 0.0
+        if opts.time_budget is not None and not opts.resume:
+            with self.timer.stage("EVa", "analytic model evaluation (measures the time budget's reserve for the final one)"):
+                eval_s = self._budget_eval_s()
         with self.timer.stage("S2", "refinement"):
             compiled = time.perf_counter()
             load_kernels(dev)
@@ -317,7 +341,7 @@ class EncodeRun(replan.Replan):
             t0 = time.perf_counter()
             deadline = opts.deadline
             if opts.time_budget is not None and not opts.resume:
-                deadline = self.budget_deadline(stage_start, compile_s)
+                deadline = self.budget_deadline(stage_start, compile_s, eval_s)
             ckpt.start(t0)
             after_step = ckpt.maybe_save
             replan_at = self.replan_iteration(deadline)

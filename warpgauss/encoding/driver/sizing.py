@@ -138,6 +138,7 @@ def coded_budget(dv, f: Field, opts: EncodeOptions, header: dict, total: int, n_
         "refine_growth": growth,
         "n": n,
         "coding_seconds_per_primitive": coding_s / pilot,
+        "coding_seconds": coding_s,  # one coding of the pilot: a coding's fixed cost at least
     }
 
 
