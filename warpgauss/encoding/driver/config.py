@@ -359,7 +359,12 @@ OPTIONS: dict[str, Option] = {
         "Loss weights", "Loss weight: value term at empty samples (paper: 0)", float, param="w_value_empty"
     ),
     "refine.weights.density": Option("Loss weights", "Loss weight: density towards 1 where occupied", float, param="w_density"),
-    "refine.weights.smooth": Option("Loss weights", "Loss weight: smoothness at the start (anneals)", float, param="w_smooth"),
+    "refine.weights.smooth": Option(
+        "Loss weights",
+        "Loss weight: smoothness at the start, annealed (default 0: off, no partner points; the paper: 0.01)",
+        float,
+        param="w_smooth",
+    ),
     "refine.weights.smooth_final": Option("Loss weights", "Loss weight: smoothness at the end", float, param="w_smooth_final"),
     "refine.weights.anchor": Option("Loss weights", "Loss weight: anchor of a to V(mu)", float, param="w_anchor"),
     "refine.weights.aniso": Option("Loss weights", "Loss weight: anisotropy bound 3:1", float, param="w_aniso"),
