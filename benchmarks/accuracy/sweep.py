@@ -125,18 +125,12 @@ CODED_CONSTANTS: dict[str, dict[str, float]] = {
 def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
     fields, (prune, refit), *more = VARIANTS[variant]
     saved = ratefit.PRUNE_SHARE, replan.REFIT_SHARE, replan.REFINED_BITS, replan.REFIT_LR
-    constants = CODED_CONSTANTS.get(variant, {})
-    saved_constants = {k: getattr(coded, k) for k in constants}
-    for k, v in constants.items():
-        setattr(coded, k, v)
-    replan_constants = REPLAN_CONSTANTS.get(variant, {})
-    saved_replan = {k: getattr(replan, k) for k in replan_constants}
-    for k, v in replan_constants.items():
-        setattr(replan, k, v)
-    config_constants = CONFIG_CONSTANTS.get(variant, {})
-    saved_config = {k: getattr(refine_config, k) for k in config_constants}
-    for k, v in config_constants.items():
-        setattr(refine_config, k, v)
+    # the variant's module constants, each module's old values kept for the restore below
+    constants = [(coded, CODED_CONSTANTS), (replan, REPLAN_CONSTANTS), (refine_config, CONFIG_CONSTANTS)]
+    saved_constants = [(m, {k: getattr(m, k) for k in table.get(variant, {})}) for m, table in constants]
+    for m, table in constants:
+        for k, v in table.get(variant, {}).items():
+            setattr(m, k, v)
     if prune is not None:
         ratefit.PRUNE_SHARE = prune
     if refit is not None:
@@ -152,12 +146,9 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
         seconds = time.perf_counter() - t0
     finally:
         ratefit.PRUNE_SHARE, replan.REFIT_SHARE, replan.REFINED_BITS, replan.REFIT_LR = saved
-        for k, v in saved_constants.items():
-            setattr(coded, k, v)
-        for k, v in saved_replan.items():
-            setattr(replan, k, v)
-        for k, v in saved_config.items():
-            setattr(refine_config, k, v)
+        for m, old in saved_constants:
+            for k, v in old.items():
+                setattr(m, k, v)
     return model, seconds
 
 

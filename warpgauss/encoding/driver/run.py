@@ -168,10 +168,15 @@ class EncodeRun(replan.Replan):
         if not self.do_evaluate or self.opts.init is not None:
             return 0.0
         if self.early_eval is None:
-            t = time.perf_counter()
-            self.early_eval = self._evaluate(self.analytic)
-            self.early_eval_s = time.perf_counter() - t
+            self._evaluate_analytic_early()
         return self.early_eval_s
+
+    def _evaluate_analytic_early(self) -> None:
+        """Stage EV's figures of the analytic model before refinement (EV reuses them), and the
+        seconds they took."""
+        t = time.perf_counter()
+        self.early_eval = self._evaluate(self.analytic)
+        self.early_eval_s = time.perf_counter() - t
 
     def _evaluate(self, m: Model, full: bool | None = None) -> dict:
         """Stage EV's figures for ``m`` (``full``: every voxel rather than the sample; default:
@@ -293,9 +298,8 @@ class EncodeRun(replan.Replan):
         if not (cfg.iterations > 0 and cfg.target_psnr is not None and self.do_evaluate):
             return
         with self.timer.stage("EVa", "analytic model evaluation (for --target-psnr)"):
-            t = time.perf_counter()
-            self.early_eval = self._evaluate(self.analytic)
-            self.early_eval_s = time.perf_counter() - t
+            self._evaluate_analytic_early()
+        assert self.early_eval is not None
         if self.early_eval["psnr_db"] < cfg.target_psnr:
             return
         self.skip(
