@@ -1,0 +1,118 @@
+"""What one refinement iteration costs after a default encode, piece by piece (issue #52, part 2).
+
+For each volume and ratio: a default encode (after a warm-up that compiles every module), then,
+on the refiner it trained (its state as the encode left it): the captured iteration replayed
+(GPU time per replay, CUDA events; the host's wall per replay with a sync every step, which
+includes the Python loop a real run pays), the same iteration as plain launches, one re-bin, one
+loss record, and, where PyTorch is importable, every kernel a replay runs (CUB's sorts and scans
+included, which Warp's own activity timing does not see) from PyTorch's profiler.
+
+    python benchmarks/speed/iteration_floor.py --volumes mni_icbm152.npy --ratios 1000,100 --out OUT.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import warpgauss
+from warpgauss.core.warp import resolve_device, warp
+from warpgauss.encoding.bench import Timer, result_header
+from warpgauss.encoding.refine import Refiner
+from warpgauss.readers.synthetic import generate
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--volumes", default="vortex@32", help="paths or NAME@SIZE (a built-in example field), comma-separated")
+    ap.add_argument("--ratios", default="1000,100")
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--repeat", type=int, default=100)
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args(argv)
+    wp = warp()
+    dev = resolve_device(args.device)
+    warpgauss.encode(generate("vortex", 32), ratio=10, device=dev)
+    res = {**result_header("one refinement iteration piece by piece", __file__, argv, dev), "rows": []}
+    for vol in args.volumes.split(","):
+        src = generate(vol.split("@")[0], int(vol.split("@")[1]), seed=0) if "@" in vol else vol
+        for ratio in (float(r) for r in args.ratios.split(",")):
+            refiner, wall = _encode(src, ratio, dev)
+            row = {"volume": Path(vol).name, "ratio": ratio, "encode_s": wall, **_pieces(refiner, dev, args.repeat)}
+            row["kernels_per_replay"] = _kernels(refiner, dev)
+            print(json.dumps({k: v for k, v in row.items() if k != "kernels_per_replay"}))
+            for name, (us, count) in list(row["kernels_per_replay"].items())[:30]:
+                print(f"    {us:9.1f} us {count:6.2f}x  {name}")
+            res["rows"].append(row)
+            wp.synchronize_device(dev)
+    Path(args.out).write_text(json.dumps(res, indent=1))
+    return res
+
+
+def _encode(src, ratio: float, dev: str):
+    """A default encode; the last refiner it stepped and the encode's wall seconds."""
+    seen: list[Refiner] = []
+    step = Refiner.step
+
+    def spy(self):
+        if not seen or seen[-1] is not self:
+            seen.append(self)
+        return step(self)
+
+    Refiner.step = spy  # type: ignore[method-assign]
+    try:
+        warp().synchronize_device(dev)
+        t = time.perf_counter()
+        warpgauss.encode(src, ratio=ratio, device=dev)
+        wall = time.perf_counter() - t
+    finally:
+        Refiner.step = step  # type: ignore[method-assign]
+    return seen[-1], wall
+
+
+def _pieces(r: Refiner, dev: str, repeat: int) -> dict:
+    """GPU ms of a replay and of plain launches, host ms of a synced step, a re-bin and a loss record."""
+    wp = warp()
+    timer = Timer(dev)
+    out = {"n": r.n, "m": r.m, "points": r.passes.n_points, "forward_pass": r.forward_pass, "levels": len(r.state.binned.sizes)}
+    if r._graph is None and r.use_graph:
+        r.step()
+    if r._graph is not None:
+        out["replay_gpu_ms"] = timer.ms(lambda: wp.capture_launch(r._graph), repeat)
+        out["replay_wall_ms"] = timer.wall_ms(lambda: (wp.capture_launch(r._graph), wp.synchronize_device(dev)), repeat)
+    out["plain_gpu_ms"] = timer.ms(r._iteration_launches, repeat)
+    out["plain_wall_ms"] = timer.wall_ms(lambda: (r._iteration_launches(), wp.synchronize_device(dev)), repeat)
+    out["rebin_wall_ms"] = timer.wall_ms(lambda: (r.rebin(), wp.synchronize_device(dev)), max(repeat // 5, 5))
+    r._graph = None
+    out["losses_wall_ms"] = timer.wall_ms(r.losses, max(repeat // 5, 5))
+    return out
+
+
+def _kernels(r: Refiner, dev: str, replays: int = 20) -> dict:
+    """Every kernel of a plain iteration, from PyTorch's profiler: name -> (us per iteration, launches per iteration)."""
+    try:
+        import torch
+        from torch.profiler import ProfilerActivity, profile
+    except ImportError:
+        return {}
+    if not torch.cuda.is_available() or not warp().get_device(dev).is_cuda:
+        return {}
+    wp = warp()
+    wp.synchronize_device(dev)
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        for _ in range(replays):
+            r._iteration_launches()
+        wp.synchronize_device(dev)
+    per: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0])
+    for e in prof.events():
+        if e.device_type.name == "CUDA":
+            per[e.name[:90]][0] += float(getattr(e, "device_time", None) or getattr(e, "cuda_time", 0.0)) / replays
+            per[e.name[:90]][1] += 1.0 / replays
+    return {k: (round(v[0], 2), round(v[1], 2)) for k, v in sorted(per.items(), key=lambda kv: -kv[1][0])}
+
+
+if __name__ == "__main__":
+    main()
