@@ -84,6 +84,7 @@ def _pieces(r: Refiner, dev: str, repeat: int) -> dict:
         out["replay_gpu_ms"] = timer.ms(lambda: wp.capture_launch(r._graph), repeat)
         out["replay_wall_ms"] = timer.wall_ms(lambda: (wp.capture_launch(r._graph), wp.synchronize_device(dev)), repeat)
     out["plain_gpu_ms"] = timer.ms(r._iteration_launches, repeat)
+    out["pair_pass"] = r.pair_pass_stats()
     out["plain_wall_ms"] = timer.wall_ms(lambda: (r._iteration_launches(), wp.synchronize_device(dev)), repeat)
     out["rebin_wall_ms"] = timer.wall_ms(lambda: (r.rebin(), wp.synchronize_device(dev)), max(repeat // 5, 5))
     r._graph = None

@@ -21,6 +21,7 @@ MIN_CHUNK = 128  # candidate points per chunk of the backward pass at least
 # chunks of one primitive at most: its partials are summed by one thread, serially (H100, N 2,000
 # x 307,200 samples: about 600 chunks each took 1.6 ms to sum, a quarter of the pass)
 MAX_CHUNKS = 128
+CHUNKS_PER_POINT = 2  # chunks the backward pass may use beyond one per primitive, per point of the iteration
 PARTIAL_MAX_ENTRIES = 1 << 24  # (point, neighbour cell) partial sums of the split forward pass (192 MiB)
 # points an iteration at most for which the refiner picks the split forward pass by itself
 # (RefineConfig.split_cells None, CUDA). One H200, five volumes, N 20,000 and 200,000
@@ -74,8 +75,8 @@ def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bo
 
 def chunk_capacity(n_points: int) -> int:
     """Chunks the backward pass may use beyond one per primitive: enough for chunks of
-    :data:`MIN_CHUNK` at about 250 candidates per point, at most 2^21 (then chunks grow)."""
-    return max(1024, min(1 << 21, 2 * int(n_points)))
+    :data:`MIN_CHUNK` at about 125 :data:`CHUNKS_PER_POINT` candidates per point, at most 2^21 (then chunks grow)."""
+    return max(1024, min(1 << 21, int(CHUNKS_PER_POINT * int(n_points))))
 
 
 class PairPasses:
