@@ -24,6 +24,11 @@ from warpgauss.encoding.bench import Timer, result_header
 from warpgauss.encoding.refine import Refiner
 from warpgauss.readers.synthetic import generate
 
+try:
+    from profile_encode import _apply, _patches  # run as a script: benchmarks/speed is on the path
+except ImportError:  # imported as a module
+    from .profile_encode import _apply, _patches
+
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__)
@@ -31,17 +36,22 @@ def main(argv=None) -> dict:
     ap.add_argument("--ratios", default="1000,100")
     ap.add_argument("--device", default=None)
     ap.add_argument("--repeat", type=int, default=100)
+    ap.add_argument("--variants", default="default", help="default and --patch names, comma-separated")
+    ap.add_argument("--patch", action="append", default=[], help="as profile_encode.py's --patch")
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     wp = warp()
     dev = resolve_device(args.device)
     warpgauss.encode(generate("vortex", 32), ratio=10, device=dev)
+    patches = _patches(args.patch)
     res = {**result_header("one refinement iteration piece by piece", __file__, argv, dev), "rows": []}
     for vol in args.volumes.split(","):
         src = generate(vol.split("@")[0], int(vol.split("@")[1]), seed=0) if "@" in vol else vol
-        for ratio in (float(r) for r in args.ratios.split(",")):
+        for ratio, variant in ((float(r), x) for r in args.ratios.split(",") for x in args.variants.split(",")):
+            saved = _apply(patches.get(variant, {}))
             refiner, wall = _encode(src, ratio, dev)
-            row = {"volume": Path(vol).name, "ratio": ratio, "encode_s": wall, **_pieces(refiner, dev, args.repeat)}
+            row = {"volume": Path(vol).name, "ratio": ratio, "variant": variant, "encode_s": wall, **_pieces(refiner, dev, args.repeat)}
+            _apply(saved)
             row["kernels_per_replay"] = _kernels(refiner, dev)
             print(json.dumps({k: v for k, v in row.items() if k != "kernels_per_replay"}))
             for name, (us, count) in list(row["kernels_per_replay"].items())[:30]:
@@ -84,12 +94,24 @@ def _pieces(r: Refiner, dev: str, repeat: int) -> dict:
         out["replay_gpu_ms"] = timer.ms(lambda: wp.capture_launch(r._graph), repeat)
         out["replay_wall_ms"] = timer.wall_ms(lambda: (wp.capture_launch(r._graph), wp.synchronize_device(dev)), repeat)
     out["plain_gpu_ms"] = timer.ms(r._iteration_launches, repeat)
-    out["pair_pass"] = r.pair_pass_stats()
+    out["pair_pass"] = r.pair_pass_stats() | _chunk_tail(r)
     out["plain_wall_ms"] = timer.wall_ms(lambda: (r._iteration_launches(), wp.synchronize_device(dev)), repeat)
     out["rebin_wall_ms"] = timer.wall_ms(lambda: (r.rebin(), wp.synchronize_device(dev)), max(repeat // 5, 5))
     r._graph = None
     out["losses_wall_ms"] = timer.wall_ms(r.losses, max(repeat // 5, 5))
     return out
+
+
+def _chunk_tail(r: Refiner) -> dict:
+    """The largest chunk of the last backward pass (candidates one thread walks) and the largest
+    chunk count of one primitive."""
+    import numpy as np
+
+    b = r.passes.buffers()
+    work = b["work"].numpy().astype(np.int64)
+    chunks = np.maximum(b["chunks"].numpy().astype(np.int64), 1)
+    per = -(-work // chunks)
+    return {"max_chunk": int(per.max(initial=0)), "max_chunks": int(chunks.max(initial=0)), "max_work": int(work.max(initial=0))}
 
 
 def _kernels(r: Refiner, dev: str, replays: int = 20) -> dict:
