@@ -435,3 +435,54 @@ def row_box_counts(
     row_occupied[k, j] = occ
     row_eligible[k, j] = elig
     row_grad[k, j] = total
+
+
+@wp.kernel
+def loss_partials(
+    point_loss: wp.array(dtype=wp.vec3),  # [M] (value, density, smooth) loss terms of each sample
+    value: wp.array(dtype=float),  # [>= M] V~ at the samples
+    target: wp.array(dtype=float),  # [M]
+    weight: wp.array(dtype=float),  # [M] importance weight om (0: excluded)
+    reg_loss: wp.array(dtype=wp.vec3),  # [N] (anchor, aniso, cap) loss terms of each primitive
+    per: int,  # samples (and primitives) a thread sums
+    sample_slices: int,  # the first this many threads sum samples, the others primitives
+    out: wp.array2d(dtype=wp.float64),  # [slices, 6] out: partial sums of one slice
+):
+    """Float64 partial sums of one slice of the samples, in order: the three loss terms,
+    om (v - t)^2, om, om (clamp(v, 0, 1) - t)^2; or of one slice of the primitives: their three
+    regulariser terms (one thread per slice; the slices are summed on the host in order, so a loss
+    record is the same on every rerun)."""
+    s = wp.tid()
+    a0 = wp.float64(0.0)
+    a1 = wp.float64(0.0)
+    a2 = wp.float64(0.0)
+    a3 = wp.float64(0.0)
+    a4 = wp.float64(0.0)
+    a5 = wp.float64(0.0)
+    if s < sample_slices:
+        for i in range(s * per, wp.min(target.shape[0], (s + 1) * per)):
+            pl = point_loss[i]
+            om = wp.float64(weight[i])
+            t = wp.float64(target[i])
+            v = value[i]
+            e = wp.float64(v) - t
+            c = wp.float64(wp.clamp(v, 0.0, 1.0)) - t
+            a0 += wp.float64(pl[0])
+            a1 += wp.float64(pl[1])
+            a2 += wp.float64(pl[2])
+            a3 += om * e * e
+            a4 += om
+            a5 += om * c * c
+    else:
+        r = s - sample_slices
+        for i in range(r * per, wp.min(reg_loss.shape[0], (r + 1) * per)):
+            rl = reg_loss[i]
+            a0 += wp.float64(rl[0])
+            a1 += wp.float64(rl[1])
+            a2 += wp.float64(rl[2])
+    out[s, 0] = a0
+    out[s, 1] = a1
+    out[s, 2] = a2
+    out[s, 3] = a3
+    out[s, 4] = a4
+    out[s, 5] = a5

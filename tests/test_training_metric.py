@@ -42,6 +42,33 @@ def test_samples_at_voxel_centres_take_the_voxel_values(cpu):
     assert off.max() <= 0.5 and off.mean() > 0.1
 
 
+def test_a_loss_record_is_summed_on_the_device_as_numpy_sums_it(cpu):
+    """Refiner.losses takes its sums on the device (kernels.analysis.loss_partials, float64
+    slices of 64 added in order on the host): the same terms and PSNRs as float64 numpy sums of
+    the arrays it read back before (a sample count that is not a multiple of the slice, a
+    primitive count either), with one read; a rerun gives the same record bit for bit."""
+    f = _field()
+    r = Refiner(DeviceVolume(f, cpu), _toy_params(f, 301), RefineConfig(iterations=3, samples=1001, importance=True), 0, 0.3, 4.0)
+    r.run()
+    r.sample()
+    r.forward()
+    got = r.losses()
+    m = r.m
+    pl = r.point_loss.numpy().astype(np.float64).sum(0)
+    rl = r.state.reg_loss.numpy().astype(np.float64).sum(0)
+    v = r.value.numpy()[:m].astype(np.float64)
+    t = r.target.numpy().astype(np.float64)
+    om = r.weight.numpy().astype(np.float64)
+    assert m == 1001 and r.n == 301 and rl.sum() > 0 and pl[0] > 0
+    want = dict(zip(("value", "density", "smooth", "anchor", "aniso", "cap"), (*pl, *rl)))
+    for k, x in want.items():
+        assert got[k] == pytest.approx(x, rel=1e-12, abs=1e-18), k
+    mse = np.sum(om * (v - t) ** 2) / np.sum(om)
+    assert got["sample_psnr_db"] == pytest.approx(10 * np.log10(1 / mse), abs=1e-9)
+    assert got["grid_psnr_db"] == pytest.approx(10 * np.log10(1 / r.grid_mse_estimate(v, t, om)), abs=1e-9)
+    assert r.losses() == got
+
+
 @pytest.mark.parametrize("uniform_support", [False, True])
 def test_importance_weights_make_the_value_loss_the_full_grid_mse(cpu, uniform_support):
     """The weighted mean of any per-voxel quantity over the samples estimates its mean over the

@@ -107,6 +107,7 @@ class Sampler:
             unused = wp.zeros((1, 1, 1), dtype=int, device=dev)
             self.marks = None
             self._no_marks = (unused, wp.zeros(1, dtype=int, device=dev))
+        self._support_read: dict = {}  # supported voxels and unreached error, read once per support (index_support)
         self.m = self.m_err = 0
         self.samples_a_cell = 0.0
         self.error_pool = 1  # cells per block edge the quota scores (see ERROR_POOL)
@@ -310,6 +311,7 @@ class Sampler:
         nz, ny, nx = self.dv.values.shape
         self._wp.launch(ksup.support_counts, dim=marks.shape, inputs=[marks, everything, nz, ny, nx], outputs=[counts], device=self.device)
         self._wp.utils.array_scan(counts.flatten(), self.support, inclusive=True)
+        self._support_read = {}  # what was read back of the previous support
 
     def reach(self) -> int:
         """D of the importance weights (see :func:`warpgauss.kernels.sampling.sample_weight`): the
@@ -334,13 +336,16 @@ class Sampler:
             return None
         if self.supported_voxels() == 0:
             return 0.0  # the uniform stratum reaches every voxel
+        if "unreached" in self._support_read:  # the support has not changed since (nor has the volume)
+            return self._support_read["unreached"]
         wp, dv = self._wp, self.dv
         counts = self.support_marks[2]
         out = wp.empty(counts.shape, dtype=float, device=self.device)
         wp.launch(
             ksup.unreached_squares, dim=counts.shape, inputs=[dv.values, dv.mask, dv.has_mask, counts], outputs=[out], device=self.device
         )
-        return float(out.numpy().astype(np.float64).sum())  # per-brick partials summed in a fixed order
+        self._support_read["unreached"] = float(out.numpy().astype(np.float64).sum())  # per-brick partials summed in a fixed order
+        return self._support_read["unreached"]
 
     def support_share(self) -> float | None:
         """Share of the grid's voxels the uniform stratum is drawn from now (None: whole grid or
@@ -351,5 +356,9 @@ class Sampler:
 
     def supported_voxels(self) -> int:
         """Voxels of the support bricks the uniform stratum is drawn from now (0 without a
-        support; reads back from the device)."""
-        return int(self.support[-1:].numpy()[0]) if self.uniform_support else 0
+        support; reads back from the device once per support)."""
+        if not self.uniform_support:
+            return 0
+        if "voxels" not in self._support_read:
+            self._support_read["voxels"] = int(self.support[-1:].numpy()[0])
+        return self._support_read["voxels"]

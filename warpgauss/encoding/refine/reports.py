@@ -12,6 +12,8 @@ import numpy as np
 # of their RNG streams (apart from the training's, SAMPLER_SALT)
 END_DRAWS = 8
 END_SALT = 77_773
+# samples (and primitives) one thread of a loss record sums (kernels.analysis.loss_partials)
+LOSS_SLICE = 64
 
 
 class Reported:
@@ -38,47 +40,68 @@ class Reported:
     def losses(self) -> dict:
         """Loss terms of the last iteration, a running PSNR estimate over its samples and, with
         importance weights, their estimate of the decoded model's full-grid PSNR
-        (``grid_psnr_db``, see :meth:`grid_mse_estimate`; syncs)."""
+        (``grid_psnr_db``, see :meth:`grid_mse_estimate`; syncs once: the sums are taken on the
+        device, float64 partials added on the host in a fixed order)."""
         if self.state.clean:
             self.updater.finish_grads()  # per-primitive terms of the current parameters (pair buffers are zero)
-        pl = self.point_loss.numpy().astype(np.float64).sum(0)
-        rl = self.state.reg_loss.numpy().astype(np.float64).sum(0)
+        pl, rl = self._loss_sums(regularisers=True)
         terms = {"value": pl[0], "density": pl[1], "smooth": pl[2], "anchor": rl[0], "aniso": rl[1], "cap": rl[2]}
         terms = {k: float(x) for k, x in terms.items()}
         terms["total"] = float(sum(terms.values()))
-        return terms | self._psnr_terms(*self._drawn())
+        return terms | self._psnr_terms(pl[3], pl[4], pl[5], self.m)
 
-    def _drawn(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The current samples' model values, targets and weights (float64; syncs)."""
-        v = self.value.numpy()[: self.m].astype(np.float64)
-        return v, self.target.numpy().astype(np.float64), self.weight.numpy().astype(np.float64)
+    def _loss_sums(self, regularisers: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Sums over the current samples (value, density and smooth terms, om (v - t)^2, om,
+        om (clamp(v) - t)^2) and over the primitives (anchor, aniso, cap; zeros unless
+        ``regularisers``), float64 (one launch, one read)."""
+        from ...kernels import analysis as ka
 
-    def _psnr_terms(self, v: np.ndarray, t: np.ndarray, om: np.ndarray) -> dict:
-        """``sample_psnr_db`` (the weighted MSE over the samples) and, where it can be estimated,
-        ``grid_psnr_db`` (:meth:`grid_mse_estimate`) of these model values, targets and weights."""
-        mse = float(np.sum(om * (v - t) ** 2) / max(om.sum(), 1.0))
+        m, n = self.m, self.state.n if regularisers else 0
+        per = LOSS_SLICE
+        ms, ns = -(-m // per), -(-n // per)
+        out = self._wp.empty((ms + ns, 6), dtype=self._wp.float64, device=self.device)
+        self._wp.launch(
+            ka.loss_partials,
+            dim=ms + ns,
+            inputs=[self.point_loss, self.value, self.target, self.weight, self.state.reg_loss, per, ms],
+            outputs=[out],
+            device=self.device,
+        )
+        parts = out.numpy()
+        return parts[:ms].sum(0), parts[ms:, :3].sum(0)
+
+    def _psnr_terms(self, sq: float, om: float, sq_clamped: float, count: int) -> dict:
+        """``sample_psnr_db`` (the weighted MSE over the samples: ``sq`` = sum om (v - t)^2 over
+        ``om`` = sum om) and, where it can be estimated, ``grid_psnr_db`` (:meth:`grid_mse_estimate`
+        from ``sq_clamped`` = sum om (clamp(v) - t)^2 over ``count`` samples)."""
+        mse = float(sq) / max(float(om), 1.0)
         out = {"sample_psnr_db": float(10 * np.log10(1 / max(mse, 1e-20)))}
-        grid = self.grid_mse_estimate(v, t, om)
+        grid = self._grid_mse(float(sq_clamped), count)
         if grid is not None:
             out["grid_psnr_db"] = float(10 * np.log10(1 / max(grid, 1e-20)))
         return out
 
     def grid_mse_estimate(self, v: np.ndarray, t: np.ndarray, om: np.ndarray) -> float | None:
         """The full-grid MSE of the decoded model (values clamped as the decode clamps them)
-        estimated from this iteration's samples: with importance weights 1 / (D q(v)) the mean of
+        estimated from samples' model values ``v``, targets ``t`` and importance weights ``om``:
+        with importance weights 1 / (D q(v)) the mean of
         w e^2 times D estimates the squared error summed over the voxels the draw reaches; the
         voxels it cannot reach decode to 0 and add their V^2 (:meth:`.draw.Sampler.unreached_error`);
         over the grid's valid voxels. None without importance weights, or where the unreached
         voxels' model values are not known. ``sample_psnr_db`` is the MSE over the reach alone
         (the rate control's input, as calibrated)."""
+        e = np.clip(v, 0.0, 1.0) - t
+        return self._grid_mse(float(np.sum(om * e * e)), len(v))
+
+    def _grid_mse(self, sq_clamped: float, count: int) -> float | None:
+        """:meth:`grid_mse_estimate` from sum om (clamp(v) - t)^2 over ``count`` samples."""
         if not self.cfg.importance:
             return None
         unreached = self.sampler.unreached_error()
         if unreached is None:
             return None
-        e = np.clip(v, 0.0, 1.0) - t
         valid = int(getattr(self.dv.field, "n_valid", 0)) or int(self.dv.values.size)
-        reached = float(np.sum(om * e * e)) * self.sampler.reach() / max(len(v), 1)
+        reached = sq_clamped * self.sampler.reach() / max(count, 1)
         return (reached + unreached) / valid
 
     def end_estimate(self, draws: int = END_DRAWS) -> dict:
@@ -94,15 +117,14 @@ class Reported:
         from ..allocate import rng_stream
 
         stream = self._wp.zeros(1, dtype=int, device=self.device)
-        drawn = []
+        total = np.zeros(6)
         for j in range(draws):
             stream.assign(np.array([rng_stream(self.seed, j, salt=END_SALT)], np.int32))
             self.sampler.draw(stream)
             self.passes.points_changed()
             self.forward()
-            drawn.append(self._drawn())
-        v, t, om = (np.concatenate(parts) for parts in zip(*drawn))
-        return {"draws": draws, "samples": len(v)} | self._psnr_terms(v, t, om)
+            total += self._loss_sums(regularisers=False)[0]
+        return {"draws": draws, "samples": draws * self.m} | self._psnr_terms(total[3], total[4], total[5], draws * self.m)
 
     def skipped_steps(self) -> int:
         """Primitive updates skipped because their gradient or result was not finite, so far."""
