@@ -77,22 +77,32 @@ def brick_counts(
     has_mask: int,
     high: wp.array3d(dtype=int),  # [bz, by, bx] out: high-stratum voxels in each 4^3 brick
     mid: wp.array3d(dtype=int),  # [bz, by, bx] out: mid-stratum voxels
+    high_bits: wp.array3d(dtype=wp.uint64),  # [bz, by, bx] out: bit d set if the brick's d-th voxel is high
+    mid_bits: wp.array3d(dtype=wp.uint64),  # [bz, by, bx] out: the same for the mid stratum
 ):
-    """Per-brick stratum counts (one thread per brick). With their prefix sums they index the
-    strata without listing voxels: a 1024^3 grid needs 64 MiB per stratum instead of 4 GiB."""
+    """Per-brick stratum counts and membership bits (one thread per brick; voxel d of a brick is
+    :func:`brick_voxel`'s). With their prefix sums the counts index the strata without listing
+    voxels: a 1024^3 grid needs 64 MiB per stratum instead of 4 GiB, 192 MiB with the bits, which
+    spare a draw reading the brick's voxels (:func:`stratum_voxel`)."""
     bk, bj, bi = wp.tid()
     nh = int(0)
     nm = int(0)
+    bh = wp.uint64(0)
+    bm = wp.uint64(0)
     for d in range(BRICK * BRICK * BRICK):
         v = brick_voxel(bk, bj, bi, d)
         if in_grid(vol, v[0], v[1], v[2]):
             st = stratum_of(vol, mask, has_mask, v[0], v[1], v[2])
             if st == 0:
                 nh += 1
+                bh = bh | (wp.uint64(1) << wp.uint64(d))
             elif st == 1:
                 nm += 1
+                bm = bm | (wp.uint64(1) << wp.uint64(d))
     high[bk, bj, bi] = nh
     mid[bk, bj, bi] = nm
+    high_bits[bk, bj, bi] = bh
+    mid_bits[bk, bj, bi] = bm
 
 
 ERROR_FIXED = wp.constant(4294967296.0)  # 2^32: the fixed point of the per-brick error sums
@@ -294,28 +304,23 @@ def error_voxel(err_cum: wp.array(dtype=int), r: int, d: int, nz: int, ny: int, 
 
 @wp.func
 def stratum_voxel(
-    vol: wp.array3d(dtype=float),
-    mask: wp.array3d(dtype=wp.uint8),
-    has_mask: int,
+    bits: wp.array(dtype=wp.uint64),  # [B] the stratum's membership bits of each brick (brick_counts)
     cum: wp.array(dtype=int),  # [B] inclusive prefix sum of the stratum's brick counts
-    stratum: int,
+    ny: int,
+    nx: int,
     r: int,  # 0 <= r < cum[B - 1]: rank of the wanted voxel in brick-then-scan order
 ) -> int:
-    """Linear index of the r-th voxel of a stratum (bricks in order, voxels in z, y, x order)."""
+    """Linear index of the r-th voxel of a stratum (bricks in order, voxels in z, y, x order):
+    the brick by its prefix sums, then the r-th set bit of its membership bits (no voxel read)."""
     br = find_brick(cum, r)
     r = br[1]
-    o = brick_origin(br[0], vol.shape[1], vol.shape[2])
-    for dk in range(BRICK):
-        for dj in range(BRICK):
-            for di in range(BRICK):
-                k = o[2] + dk
-                j = o[1] + dj
-                i = o[0] + di
-                if k < vol.shape[0] and j < vol.shape[1] and i < vol.shape[2]:
-                    if stratum_of(vol, mask, has_mask, k, j, i) == stratum:
-                        if r == 0:
-                            return (k * vol.shape[1] + j) * vol.shape[2] + i
-                        r -= 1
+    b = bits[br[0]]
+    o = brick_origin(br[0], ny, nx)
+    for d in range(BRICK * BRICK * BRICK):
+        if ((b >> wp.uint64(d)) & wp.uint64(1)) != wp.uint64(0):
+            if r == 0:
+                return ((o[2] + d / (BRICK * BRICK)) * ny + o[1] + (d / BRICK) % BRICK) * nx + o[0] + d % BRICK
+            r -= 1
     return 0  # unreachable when r is in range
 
 
@@ -417,6 +422,8 @@ def draw_samples(
     has_mask: int,
     high: wp.array(dtype=int),  # [B] inclusive prefix sums of the high stratum's brick counts
     mid: wp.array(dtype=int),  # [B] the same for the mid stratum
+    high_bits: wp.array(dtype=wp.uint64),  # [B] membership bits of the high stratum (brick_counts)
+    mid_bits: wp.array(dtype=wp.uint64),  # [B] the same for the mid stratum
     n_high: int,  # voxels in the high stratum (>= 1)
     n_mid: int,
     m_high: int,  # samples drawn from the high stratum (the first m_high)
@@ -452,15 +459,15 @@ def draw_samples(
     if s >= m - m_err_now:  # the error stratum: a brick by its quota, then one of its voxels
         idx = error_voxel(err_cum, wp.randi(state, 0, q_tot), wp.randi(state, 0, BRICK * BRICK * BRICK), vol.shape[0], ny, nx)
     elif s < m_high:
-        idx = stratum_voxel(vol, mask, has_mask, high, 0, wp.randi(state, 0, n_high))
+        idx = stratum_voxel(high_bits, high, ny, nx, wp.randi(state, 0, n_high))
     elif s < m_high + m_mid:
-        idx = stratum_voxel(vol, mask, has_mask, mid, 1, wp.randi(state, 0, n_mid))
+        idx = stratum_voxel(mid_bits, mid, ny, nx, wp.randi(state, 0, n_mid))
     elif domain == UNIFORM_OCCUPIED:  # among the occupied voxels (empty samples carry no gradient)
         rank = wp.randi(state, 0, occ_total)
         if rank < occ_high:
-            idx = stratum_voxel(vol, mask, has_mask, high, 0, rank)
+            idx = stratum_voxel(high_bits, high, ny, nx, rank)
         else:
-            idx = stratum_voxel(vol, mask, has_mask, mid, 1, rank - occ_high)
+            idx = stratum_voxel(mid_bits, mid, ny, nx, rank - occ_high)
     elif domain == UNIFORM_SUPPORT:  # over the model's support
         idx = support_voxel(vol.shape[0], ny, nx, support, wp.randi(state, 0, support[support.shape[0] - 1]))
     else:

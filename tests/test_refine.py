@@ -411,23 +411,23 @@ def test_stratum_index_enumerates_each_stratum_exactly_once(device):
 
     @wp.kernel
     def enumerate_stratum(
-        vol: wp.array3d(dtype=float),
-        mask: wp.array3d(dtype=wp.uint8),
-        has_mask: int,
+        bits: wp.array(dtype=wp.uint64),
         cum: wp.array(dtype=int),
-        stratum: int,
+        ny: int,
+        nx: int,
         out: wp.array(dtype=int),
     ):
         t = wp.tid()
-        out[t] = ks.stratum_voxel(vol, mask, has_mask, cum, stratum, t)
+        out[t] = ks.stratum_voxel(bits, cum, ny, nx, t)
 
     v = f.values
     usable = f.mask if f.mask is not None else np.ones(v.shape, bool)
-    for stratum, cum, count in ((0, r.high, r.n_high), (1, r.mid, r.n_mid)):
+    smp = r.sampler
+    for stratum, cum, bits, count in ((0, r.high, smp.high_bits, r.n_high), (1, r.mid, smp.mid_bits, r.n_mid)):
         want = usable & ((v > 0.4) if stratum == 0 else ((v > 0.02) & (v <= 0.4)))
         assert count == int(want.sum()) > 0
         out = wp.zeros(count, dtype=int, device=device)
-        wp.launch(enumerate_stratum, dim=count, inputs=[r.dv.values, r.dv.mask, r.dv.has_mask, cum, stratum, out], device=device)
+        wp.launch(enumerate_stratum, dim=count, inputs=[bits, cum, v.shape[1], v.shape[2], out], device=device)
         got = np.sort(out.numpy())
         np.testing.assert_array_equal(got, np.flatnonzero(want.ravel()))
 

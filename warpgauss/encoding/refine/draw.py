@@ -122,7 +122,9 @@ class Sampler:
         b = ks.BRICK
         self.bricks = shape = (-(-nz // b), -(-ny // b), -(-nx // b))  # 4^3 bricks (the strata's and the support's)
         counts = [wp.empty(shape, dtype=int, device=dev) for _ in range(2)]
-        wp.launch(ks.brick_counts, dim=shape, inputs=[dv.values, dv.mask, dv.has_mask], outputs=counts, device=dev)
+        bits = [wp.empty(shape, dtype=wp.uint64, device=dev) for _ in range(2)]
+        wp.launch(ks.brick_counts, dim=shape, inputs=[dv.values, dv.mask, dv.has_mask], outputs=[*counts, *bits], device=dev)
+        self.high_bits, self.mid_bits = (b.flatten() for b in bits)
         self.high, self.mid = (wp.empty(int(np.prod(shape)), dtype=int, device=dev) for _ in range(2))
         for c, cum in zip(counts, (self.high, self.mid)):
             wp.utils.array_scan(c.flatten(), cum, inclusive=True)
@@ -258,6 +260,8 @@ class Sampler:
                 dv.has_mask,
                 self.high,
                 self.mid,
+                self.high_bits,
+                self.mid_bits,
                 max(self.n_high, 1),
                 max(self.n_mid, 1),
                 m_high,
