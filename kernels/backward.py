@@ -39,6 +39,11 @@ from .field import RHO0, BinnedPrimitives, conic_g, in_box, level_cell, neighbou
 
 wp.set_module_options({"enable_backward": False})
 
+# a primitive whose box spans at least this many point-cell rows per chunk gives each chunk whole
+# rows (row c, c + C, ...) instead of every C-th candidate of every row: a chunk then reads the
+# row table only for its own rows
+ROW_STRIDE_ROWS = wp.constant(2)
+
 
 @wp.kernel
 def point_grads(
@@ -309,6 +314,42 @@ def frame_grads(s_kd: wp.vec3, s_dd: vec6, R: wp.mat33, inv: wp.vec3):
     return d_mu, d_ls, -(Dr @ L)
 
 
+@wp.func
+def candidate_sums(
+    k: int,
+    pos: wp.array(dtype=wp.vec3),
+    state: wp.array(dtype=wp.vec4),
+    order: wp.array(dtype=int),
+    count_pairs: int,
+    pairs: wp.array(dtype=int),
+    mu: wp.vec3,
+    e: wp.vec3,
+    cq: vec6,
+    a: float,
+    w: float,
+    s_kd: wp.vec3,
+    s_dd: vec6,
+    s_aw: wp.vec2,
+):
+    """One candidate point k of a chunk: its pair's terms added to the chunk's sums (K, D,
+    (dL/da, dL/dw)) if the pair contributes."""
+    d = pos[k] - mu
+    if in_box(d, e):
+        g = conic_g(d, cq)
+        if g > 0.0:
+            if count_pairs != 0:
+                wp.atomic_add(pairs, order[k], 1)
+            st = state[k]
+            if st[0] != 0.0 or st[1] != 0.0:
+                gl = st[0] * (a - st[3]) / st[2] + st[1]  # dL/dG / w
+                kk = w * gl * g
+                kd = kk * d
+                s_kd += kd
+                s_dd += vec6(kd[0] * d[0], kd[1] * d[1], kd[2] * d[2], kd[0] * d[1], kd[0] * d[2], kd[1] * d[2])
+                s_aw += wp.vec2(st[0] * w * g / st[2], g * gl)
+    return s_kd, s_dd, s_aw
+
+
 def _pair_grad_chunks(
     owner: wp.array(dtype=int),  # [>=T] slot of each chunk
     chunks: wp.array(dtype=int),  # [N] chunks of each slot
@@ -327,10 +368,13 @@ def _pair_grad_chunks(
 ):
     """Partial gradients of one chunk of one primitive's candidate points (one thread per chunk).
 
-    A primitive with C chunks gives its i-th candidate (counting along its box rows) to chunk
-    i mod C: every chunk walks the rows with stride C, so neighbouring threads of one primitive
-    read neighbouring points, and every chunk has the same load within one point, however the
-    points fall in the rows. Each partial is stored and :func:`reduce_chunks` adds them in chunk
+    A primitive with C chunks whose box spans fewer than :data:`ROW_STRIDE_ROWS` C rows of point
+    cells gives its i-th candidate (counting along its box rows) to chunk i mod C: every chunk
+    walks the rows with stride C, so neighbouring threads of one primitive read neighbouring
+    points, and every chunk has the same load within one point, however the points fall in the
+    rows. A larger box gives chunk c its rows c, c + C, ... whole: each chunk reads the row table
+    for its own rows only (every chunk reading every row's bounds cost as much as the pairs at
+    CR 1000, where a box spans a hundred rows), and the loads even out over the rows. Each partial is stored and :func:`reduce_chunks` adds them in chunk
     order: no atomics, bit-identical reruns. Threads past the chunk count return at once.
     """
     t = wp.tid()
@@ -349,33 +393,26 @@ def _pair_grad_chunks(
     lo, hi = box_rows(mu, e, l, grid)
     s_kd = wp.vec3(0.0, 0.0, 0.0)
     s_dd = vec6(0.0)
-    s_a = float(0.0)
-    s_w = float(0.0)
-    acc = int(0)  # candidates in the rows before this one
-    for z in range(lo[2], hi[2] + 1):
-        for y in range(lo[1], hi[1] + 1):
-            r = row_range(grid, l, lo, hi, y, z)
-            first = ((c - acc) % nc + nc) % nc
-            for k in range(r[0] + first, r[1], nc):
-                d = pos[k] - mu
-                if in_box(d, e):
-                    g = conic_g(d, cq)
-                    if g > 0.0:
-                        if count_pairs != 0:
-                            wp.atomic_add(pairs, order[k], 1)
-                        st = state[k]
-                        if st[0] != 0.0 or st[1] != 0.0:
-                            gl = st[0] * (a - st[3]) / st[2] + st[1]  # dL/dG / w
-                            kk = w * gl * g
-                            kd = kk * d
-                            s_kd += kd
-                            s_dd += vec6(kd[0] * d[0], kd[1] * d[1], kd[2] * d[2], kd[0] * d[1], kd[0] * d[2], kd[1] * d[2])
-                            s_a += st[0] * w * g / st[2]
-                            s_w += g * gl
-            acc += r[1] - r[0]
+    s_aw = wp.vec2(0.0, 0.0)
+    ny = hi[1] - lo[1] + 1
+    rows = ny * (hi[2] - lo[2] + 1)
+    if rows >= ROW_STRIDE_ROWS * nc:  # whole rows per chunk: chunk c takes rows c, c + C, ...
+        for q in range(c, rows, nc):
+            r = row_range(grid, l, lo, hi, lo[1] + q % ny, lo[2] + q / ny)
+            for k in range(r[0], r[1]):
+                s_kd, s_dd, s_aw = candidate_sums(k, pos, state, order, count_pairs, pairs, mu, e, cq, a, w, s_kd, s_dd, s_aw)
+    else:  # every row shared: chunk c takes its i-th candidate where i = c mod C
+        acc = int(0)  # candidates in the rows before this one
+        for z in range(lo[2], hi[2] + 1):
+            for y in range(lo[1], hi[1] + 1):
+                r = row_range(grid, l, lo, hi, y, z)
+                first = ((c - acc) % nc + nc) % nc
+                for k in range(r[0] + first, r[1], nc):
+                    s_kd, s_dd, s_aw = candidate_sums(k, pos, state, order, count_pairs, pairs, mu, e, cq, a, w, s_kd, s_dd, s_aw)
+                acc += r[1] - r[0]
     part_kd[t] = s_kd
     part_dd[t] = s_dd
-    part_aw[t] = wp.vec2(s_a, s_w)
+    part_aw[t] = s_aw
 
 
 pair_grad_chunks = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks")

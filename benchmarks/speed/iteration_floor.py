@@ -53,7 +53,9 @@ def main(argv=None) -> dict:
             row = {"volume": Path(vol).name, "ratio": ratio, "variant": variant, "encode_s": wall, **_pieces(refiner, dev, args.repeat)}
             _apply(saved)
             row["kernels_per_replay"] = _kernels(refiner, dev)
-            print(json.dumps({k: v for k, v in row.items() if k != "kernels_per_replay"}))
+            row["kernels_per_rebin"] = _kernels(refiner, dev, 5, refiner.rebin)
+            print(json.dumps({k: v for k, v in row.items() if not k.startswith("kernels_per")}))
+            print("  rebin kernels us", round(sum(v[0] for v in row["kernels_per_rebin"].values()), 1))
             for name, (us, count) in list(row["kernels_per_replay"].items())[:30]:
                 print(f"    {us:9.1f} us {count:6.2f}x  {name}")
             res["rows"].append(row)
@@ -114,8 +116,9 @@ def _chunk_tail(r: Refiner) -> dict:
     return {"max_chunk": int(per.max(initial=0)), "max_chunks": int(chunks.max(initial=0)), "max_work": int(work.max(initial=0))}
 
 
-def _kernels(r: Refiner, dev: str, replays: int = 20) -> dict:
-    """Every kernel of a plain iteration, from PyTorch's profiler: name -> (us per iteration, launches per iteration)."""
+def _kernels(r: Refiner, dev: str, replays: int = 20, fn=None) -> dict:
+    """Every kernel of a plain iteration (or of ``fn``), from PyTorch's profiler: name -> (us per
+    call, launches per call)."""
     try:
         import torch
         from torch.profiler import ProfilerActivity, profile
@@ -127,7 +130,7 @@ def _kernels(r: Refiner, dev: str, replays: int = 20) -> dict:
     wp.synchronize_device(dev)
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
         for _ in range(replays):
-            r._iteration_launches()
+            (fn or r._iteration_launches)()
         wp.synchronize_device(dev)
     per: dict[str, list[float]] = defaultdict(lambda: [0.0, 0.0])
     for e in prof.events():
