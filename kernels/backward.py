@@ -39,11 +39,6 @@ from .field import RHO0, BinnedPrimitives, conic_g, in_box, level_cell, neighbou
 
 wp.set_module_options({"enable_backward": False})
 
-# a primitive whose box spans at least this many point-cell rows per chunk gives each chunk whole
-# rows (row c, c + C, ...) instead of every C-th candidate of every row: a chunk then reads the
-# row table only for its own rows
-ROW_STRIDE_ROWS = wp.constant(2)
-
 
 @wp.kernel
 def point_grads(
@@ -361,6 +356,8 @@ def _pair_grad_chunks(
     state: wp.array(dtype=wp.vec4),  # [K] sorted point states
     order: wp.array(dtype=int),  # [>=K] point index of each sorted entry (for the pair count)
     count_pairs: int,  # 1: add each contributing pair to pairs[point] (tests, self-test)
+    work: wp.array(dtype=wp.int64),  # [N] candidates of each slot (pair_work)
+    row_share: float,  # whole rows per chunk where candidates <= row_share x rows x chunks
     pairs: wp.array(dtype=int),  # [P] out (zeroed before when counting)
     part_kd: wp.array(dtype=wp.vec3),  # [>=T] out: partial sum of k d of each chunk
     part_dd: wp.array(dtype=vec6),  # [>=T] out: partial sum of k d d^T (xx, yy, zz, xy, xz, yz)
@@ -368,13 +365,14 @@ def _pair_grad_chunks(
 ):
     """Partial gradients of one chunk of one primitive's candidate points (one thread per chunk).
 
-    A primitive with C chunks whose box spans fewer than :data:`ROW_STRIDE_ROWS` C rows of point
-    cells gives its i-th candidate (counting along its box rows) to chunk i mod C: every chunk
+    A primitive with C chunks and W candidates over R rows of point cells, W > ``row_share`` R C
+    (several candidates of every row for every chunk), gives its i-th candidate (counting along its box rows) to chunk i mod C: every chunk
     walks the rows with stride C, so neighbouring threads of one primitive read neighbouring
     points, and every chunk has the same load within one point, however the points fall in the
-    rows. A larger box gives chunk c its rows c, c + C, ... whole: each chunk reads the row table
-    for its own rows only (every chunk reading every row's bounds cost as much as the pairs at
-    CR 1000, where a box spans a hundred rows), and the loads even out over the rows. Each partial is stored and :func:`reduce_chunks` adds them in chunk
+    rows. Otherwise (short rows, many chunks) chunk c takes rows c, c + C, ... whole: each chunk
+    reads the row table for its own rows only (every chunk reading every row's bounds costs as
+    much as the pairs where a box spans a hundred rows), and the loads even out over the rows.
+    Each partial is stored and :func:`reduce_chunks` adds them in chunk
     order: no atomics, bit-identical reruns. Threads past the chunk count return at once.
     """
     t = wp.tid()
@@ -396,7 +394,7 @@ def _pair_grad_chunks(
     s_aw = wp.vec2(0.0, 0.0)
     ny = hi[1] - lo[1] + 1
     rows = ny * (hi[2] - lo[2] + 1)
-    if rows >= ROW_STRIDE_ROWS * nc:  # whole rows per chunk: chunk c takes rows c, c + C, ...
+    if float(work[j]) <= row_share * float(rows) * float(nc):  # whole rows per chunk: rows c, c + C, ...
         for q in range(c, rows, nc):
             r = row_range(grid, l, lo, hi, lo[1] + q % ny, lo[2] + q / ny)
             for k in range(r[0], r[1]):

@@ -38,6 +38,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--repeat", type=int, default=100)
     ap.add_argument("--variants", default="default", help="default and --patch names, comma-separated")
     ap.add_argument("--patch", action="append", default=[], help="as profile_encode.py's --patch")
+    ap.add_argument(
+        "--sweep",
+        default="",
+        help="module.CONST:v1,v2,...: after each encode, every kernel of a plain iteration with the constant at each value (the same state)",
+    )
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     wp = warp()
@@ -54,8 +59,12 @@ def main(argv=None) -> dict:
             _apply(saved)
             row["kernels_per_replay"] = _kernels(refiner, dev)
             row["kernels_per_rebin"] = _kernels(refiner, dev, 5, refiner.rebin)
+            if args.sweep:
+                row["sweep"] = _sweep(refiner, dev, args.sweep)
             print(json.dumps({k: v for k, v in row.items() if not k.startswith("kernels_per")}))
             print("  rebin kernels us", round(sum(v[0] for v in row["kernels_per_rebin"].values()), 1))
+            for name, (us, count) in list(row["kernels_per_rebin"].items())[:8]:
+                print(f"    rebin {us:9.1f} us {count:6.2f}x  {name}")
             for name, (us, count) in list(row["kernels_per_replay"].items())[:30]:
                 print(f"    {us:9.1f} us {count:6.2f}x  {name}")
             res["rows"].append(row)
@@ -101,6 +110,20 @@ def _pieces(r: Refiner, dev: str, repeat: int) -> dict:
     out["rebin_wall_ms"] = timer.wall_ms(lambda: (r.rebin(), wp.synchronize_device(dev)), max(repeat // 5, 5))
     r._graph = None
     out["losses_wall_ms"] = timer.wall_ms(r.losses, max(repeat // 5, 5))
+    return out
+
+
+def _sweep(r: Refiner, dev: str, spec: str) -> dict:
+    """Kernel microseconds of a plain iteration with one module constant at each of several values."""
+    key, _, values = spec.partition(":")
+    out = {}
+    for v in values.split(","):
+        saved = _apply({key: float(v)})
+        r._graph = None
+        per = _kernels(r, dev)
+        _apply(saved)
+        out[v] = {"total_us": round(sum(x[0] for x in per.values()), 1), "top": dict(list(per.items())[:4])}
+        print(f"  {key}={v}: {out[v]['total_us']} us", {k[:30]: x[0] for k, x in out[v]["top"].items()})
     return out
 
 
