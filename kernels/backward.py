@@ -309,42 +309,6 @@ def frame_grads(s_kd: wp.vec3, s_dd: vec6, R: wp.mat33, inv: wp.vec3):
     return d_mu, d_ls, -(Dr @ L)
 
 
-@wp.func
-def candidate_sums(
-    k: int,
-    pos: wp.array(dtype=wp.vec3),
-    state: wp.array(dtype=wp.vec4),
-    order: wp.array(dtype=int),
-    count_pairs: int,
-    pairs: wp.array(dtype=int),
-    mu: wp.vec3,
-    e: wp.vec3,
-    cq: vec6,
-    a: float,
-    w: float,
-    s_kd: wp.vec3,
-    s_dd: vec6,
-    s_aw: wp.vec2,
-):
-    """One candidate point k of a chunk: its pair's terms added to the chunk's sums (K, D,
-    (dL/da, dL/dw)) if the pair contributes."""
-    d = pos[k] - mu
-    if in_box(d, e):
-        g = conic_g(d, cq)
-        if g > 0.0:
-            if count_pairs != 0:
-                wp.atomic_add(pairs, order[k], 1)
-            st = state[k]
-            if st[0] != 0.0 or st[1] != 0.0:
-                gl = st[0] * (a - st[3]) / st[2] + st[1]  # dL/dG / w
-                kk = w * gl * g
-                kd = kk * d
-                s_kd += kd
-                s_dd += vec6(kd[0] * d[0], kd[1] * d[1], kd[2] * d[2], kd[0] * d[1], kd[0] * d[2], kd[1] * d[2])
-                s_aw += wp.vec2(st[0] * w * g / st[2], g * gl)
-    return s_kd, s_dd, s_aw
-
-
 def _pair_grad_chunks(
     owner: wp.array(dtype=int),  # [>=T] slot of each chunk
     chunks: wp.array(dtype=int),  # [N] chunks of each slot
@@ -356,8 +320,6 @@ def _pair_grad_chunks(
     state: wp.array(dtype=wp.vec4),  # [K] sorted point states
     order: wp.array(dtype=int),  # [>=K] point index of each sorted entry (for the pair count)
     count_pairs: int,  # 1: add each contributing pair to pairs[point] (tests, self-test)
-    work: wp.array(dtype=wp.int64),  # [N] candidates of each slot (pair_work)
-    row_share: float,  # whole rows per chunk where candidates <= row_share x rows x chunks
     pairs: wp.array(dtype=int),  # [P] out (zeroed before when counting)
     part_kd: wp.array(dtype=wp.vec3),  # [>=T] out: partial sum of k d of each chunk
     part_dd: wp.array(dtype=vec6),  # [>=T] out: partial sum of k d d^T (xx, yy, zz, xy, xz, yz)
@@ -365,14 +327,10 @@ def _pair_grad_chunks(
 ):
     """Partial gradients of one chunk of one primitive's candidate points (one thread per chunk).
 
-    A primitive with C chunks and W candidates over R rows of point cells, W > ``row_share`` R C
-    (several candidates of every row for every chunk), gives its i-th candidate (counting along its box rows) to chunk i mod C: every chunk
-    walks the rows with stride C, so neighbouring threads of one primitive read neighbouring
-    points, and every chunk has the same load within one point, however the points fall in the
-    rows. Otherwise (short rows, many chunks) chunk c takes rows c, c + C, ... whole: each chunk
-    reads the row table for its own rows only (every chunk reading every row's bounds costs as
-    much as the pairs where a box spans a hundred rows), and the loads even out over the rows.
-    Each partial is stored and :func:`reduce_chunks` adds them in chunk
+    A primitive with C chunks gives its i-th candidate (counting along its box rows) to chunk
+    i mod C: every chunk walks the rows with stride C, so neighbouring threads of one primitive
+    read neighbouring points, and every chunk has the same load within one point, however the
+    points fall in the rows. Each partial is stored and :func:`reduce_chunks` adds them in chunk
     order: no atomics, bit-identical reruns. Threads past the chunk count return at once.
     """
     t = wp.tid()
@@ -391,26 +349,33 @@ def _pair_grad_chunks(
     lo, hi = box_rows(mu, e, l, grid)
     s_kd = wp.vec3(0.0, 0.0, 0.0)
     s_dd = vec6(0.0)
-    s_aw = wp.vec2(0.0, 0.0)
-    ny = hi[1] - lo[1] + 1
-    rows = ny * (hi[2] - lo[2] + 1)
-    if float(work[j]) <= row_share * float(rows) * float(nc):  # whole rows per chunk: rows c, c + C, ...
-        for q in range(c, rows, nc):
-            r = row_range(grid, l, lo, hi, lo[1] + q % ny, lo[2] + q / ny)
-            for k in range(r[0], r[1]):
-                s_kd, s_dd, s_aw = candidate_sums(k, pos, state, order, count_pairs, pairs, mu, e, cq, a, w, s_kd, s_dd, s_aw)
-    else:  # every row shared: chunk c takes its i-th candidate where i = c mod C
-        acc = int(0)  # candidates in the rows before this one
-        for z in range(lo[2], hi[2] + 1):
-            for y in range(lo[1], hi[1] + 1):
-                r = row_range(grid, l, lo, hi, y, z)
-                first = ((c - acc) % nc + nc) % nc
-                for k in range(r[0] + first, r[1], nc):
-                    s_kd, s_dd, s_aw = candidate_sums(k, pos, state, order, count_pairs, pairs, mu, e, cq, a, w, s_kd, s_dd, s_aw)
-                acc += r[1] - r[0]
+    s_a = float(0.0)
+    s_w = float(0.0)
+    acc = int(0)  # candidates in the rows before this one
+    for z in range(lo[2], hi[2] + 1):
+        for y in range(lo[1], hi[1] + 1):
+            r = row_range(grid, l, lo, hi, y, z)
+            first = ((c - acc) % nc + nc) % nc
+            for k in range(r[0] + first, r[1], nc):
+                d = pos[k] - mu
+                if in_box(d, e):
+                    g = conic_g(d, cq)
+                    if g > 0.0:
+                        if count_pairs != 0:
+                            wp.atomic_add(pairs, order[k], 1)
+                        st = state[k]
+                        if st[0] != 0.0 or st[1] != 0.0:
+                            gl = st[0] * (a - st[3]) / st[2] + st[1]  # dL/dG / w
+                            kk = w * gl * g
+                            kd = kk * d
+                            s_kd += kd
+                            s_dd += vec6(kd[0] * d[0], kd[1] * d[1], kd[2] * d[2], kd[0] * d[1], kd[0] * d[2], kd[1] * d[2])
+                            s_a += st[0] * w * g / st[2]
+                            s_w += g * gl
+            acc += r[1] - r[0]
     part_kd[t] = s_kd
     part_dd[t] = s_dd
-    part_aw[t] = s_aw
+    part_aw[t] = wp.vec2(s_a, s_w)
 
 
 pair_grad_chunks = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks")

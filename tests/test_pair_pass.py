@@ -49,25 +49,16 @@ def _pair_pass(r):
 
 
 @pytest.mark.parametrize(
-    "min_chunk,capacity,max_chunks,row_share",
-    [
-        (1, 1 << 20, 1 << 30, 1.0),
-        (5, 1 << 20, 1 << 30, 1.0),
-        (1, 7, 1 << 30, 1.0),
-        (1, 1 << 20, 3, 1.0),
-        (5, 1 << 20, 1 << 30, 1e9),
-        (1, 1 << 20, 3, 1e9),
-    ],
-    ids=["one-per-chunk", "five", "capacity-bound", "three-per-primitive", "five-whole-rows", "three-whole-rows"],
+    "min_chunk,capacity,max_chunks",
+    [(1, 1 << 20, 1 << 30), (5, 1 << 20, 1 << 30), (1, 7, 1 << 30), (1, 1 << 20, 3)],
+    ids=["one-per-chunk", "five", "capacity-bound", "three-per-primitive"],
 )
-def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkeypatch, min_chunk, capacity, max_chunks, row_share):
+def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkeypatch, min_chunk, capacity, max_chunks):
     """Chunks of 1 or 5 candidates, as many as a tiny capacity forces, or at most 3 per
-    primitive, each walking every row (every C-th candidate) or whole rows (row_share 1e9): the
-    same pairs, and the gradients of the point-major atomic scatter (another summation order:
-    rounding only)."""
+    primitive: the same pairs, and the gradients of the point-major atomic scatter (another
+    summation order: rounding only)."""
     from warpgauss.encoding.refine import passes
 
-    monkeypatch.setattr(passes, "ROW_SHARE", row_share)
     monkeypatch.setattr(passes, "MIN_CHUNK", min_chunk)
     monkeypatch.setattr(passes, "MAX_CHUNKS", max_chunks)
     monkeypatch.setattr(passes, "chunk_capacity", lambda n_points: capacity)

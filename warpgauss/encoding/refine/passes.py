@@ -61,10 +61,6 @@ FORWARD_UNROLL = 2
 # 29.18 ms at 20K x 65,536 / 20K x 1M / 1.4M x 65,536 / 1.4M x 1M against 1.13 / 11.52 / 4.31 /
 # 32.26 as compiled; 48 spilled (1.21 / 10.86 / 4.16 / 31.15)
 BACKWARD_REGISTERS = 64
-# a chunk of the backward pass walks whole rows of its primitive's box (rows c, c + C, ...) where the
-# primitive's candidates are at most this many per row and chunk (W <= share x R x C), else every
-# C-th candidate of every row (kernels.backward.pair_grad_chunks)
-ROW_SHARE = 1.0
 
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
@@ -400,8 +396,6 @@ class PairPasses:
                 b["state"],
                 b["order"],
                 int(count_pairs),
-                b["work"],
-                float(ROW_SHARE),
             ],
             outputs=[self.back_pairs, *b["parts"]],
             device=dev,
