@@ -146,6 +146,43 @@ def list_fill(
                 k += 1
 
 
+@wp.kernel
+def list_fill_entries(
+    slot_cell: wp.array(dtype=int),  # [N]
+    prims: BinnedPrimitives,
+    grid: PointGrid,
+    centre: wp.array(dtype=wp.vec3),  # [N]
+    half: wp.array(dtype=wp.vec3),  # [N]
+    counts_cum: wp.array(dtype=int),  # [N] inclusive scan of list_count's counts
+    keys: wp.array(dtype=int),  # [>= 2 entries] out: point cell of each entry (first entries)
+    values: wp.array(dtype=int),  # [>= 2 entries] out: slot of each entry
+):
+    """:func:`list_fill` with one thread per entry: its slot by a binary search of the counts'
+    prefix sums, its cell from its rank in the slot's box (x fastest), so the same entries in the
+    same places. A primitive listed in thousands of cells (a large one at a high ratio) no longer
+    holds one thread for all of them."""
+    e = wp.tid()
+    lo_ = int(0)
+    hi_ = counts_cum.shape[0] - 1
+    while lo_ < hi_:  # first slot whose inclusive count exceeds e
+        mid = (lo_ + hi_) / 2
+        if counts_cum[mid] > e:
+            hi_ = mid
+        else:
+            lo_ = mid + 1
+    j = lo_
+    l, lo, hi = listed_cells(j, slot_cell, prims, grid, centre, half)
+    wx = hi[0] - lo[0] + 1
+    wy = hi[1] - lo[1] + 1
+    r = e - (counts_cum[j] - wx * wy * (hi[2] - lo[2] + 1))
+    x = lo[0] + r % wx
+    y = lo[1] + (r / wx) % wy
+    z = lo[2] + r / (wx * wy)
+    dims = grid.dims[l]
+    keys[e] = grid.offset[l] + (z * dims[1] + y) * dims[0] + x
+    values[e] = j
+
+
 @wp.func
 def point_cell(p: wp.vec3, l: int, grid: PointGrid) -> int:
     """Id of the level-l point cell holding p (clamped at the grid's faces, as the backward bins it)."""

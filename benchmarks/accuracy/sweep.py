@@ -44,6 +44,7 @@ Variants (``--variants``, comma list):
     smooth     the smoothness term on, 0.01 annealed to 0.0001 (the default before issue #52)
     nosmooth-2x-it1000
                nosmooth-2x at 1,000 iterations
+    rebin20    the defaults with a re-bin every 20 iterations instead of 10 (half the re-bins)
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -108,6 +109,7 @@ VARIANTS: dict[str, tuple] = {
     "nosmooth-2x": ({"weights": LossWeights(smooth=0.0)}, (None, None)),
     "nosmooth-2x-it1000": ({"weights": LossWeights(smooth=0.0), "iterations": 1000}, (None, None)),
     "smooth": ({"weights": LossWeights(smooth=0.01, smooth_final=0.0001)}, (None, None)),
+    "rebin20": ({"rebin_every": 20}, (None, None)),
 }
 # variants that change a constant of warpgauss.encoding.refine.config for their encodes
 TWICE_THE_SAMPLES = {"GPU_VOXELS_PER_SAMPLE": 64, "GPU_MAX_SAMPLES": 262_144}
