@@ -64,6 +64,15 @@ def test_lift_and_unlift_are_inverse():
     assert np.median(np.abs(coded_keys.lift(smooth))) <= 2  # a smooth column leaves small residuals (but at coarse levels)
 
 
+def test_lifting_rows_is_lifting_columns_transposed():
+    """coded_keys.lift_rows (the encoder's, along the last axis) gives lift's residuals
+    transposed, at lengths that are and are not powers of two."""
+    rng = np.random.default_rng(2)
+    for n in (1, 2, 3, 5, 8, 33, 1000):
+        c = rng.integers(-(1 << 40), 1 << 40, (n, 9))
+        np.testing.assert_array_equal(coded_keys.lift_rows(np.ascontiguousarray(c.T)), coded_keys.lift(c).T)
+
+
 def test_a_column_smooth_along_the_curve_is_stored_as_residuals():
     p = _structured(4000, 8)
     payload, quant, _ = coded.encode_coded(p, {"mu": 3, "log_s": 5, "q": 6, "a": 12, "w": 6})
@@ -309,3 +318,23 @@ def test_mutated_frames_decode_or_are_refused_in_one_line():
             assert "\n" not in str(e)
             refused += 1
     assert refused > 50
+
+
+def test_bit_lengths_are_exact_across_float64s_precision():
+    """coded_keys._bit_length takes float64 exponents below 2^53 and halving above: equal to
+    Python's int.bit_length on every value, those at and around 2^53 and 2^64 - 1 included."""
+    rng = np.random.default_rng(3)
+    edges = [0, 1, 2, 3, 7, 8, (1 << 53) - 1, 1 << 53, (1 << 53) + 1, (1 << 63) - 1, 1 << 63, (1 << 64) - 1]
+    v = np.concatenate(
+        [np.array(edges, np.uint64), rng.integers(0, 1 << 63, 5000, dtype=np.uint64), rng.integers(0, 1 << 20, 5000).astype(np.uint64)]
+    )
+    np.testing.assert_array_equal(coded_keys._bit_length(v), [int(x).bit_length() for x in v.tolist()])
+
+
+def test_the_storage_orders_keys_are_the_stored_centres_keys():
+    """encode_coded reuses the Morton keys the storage order sorted by: in storage order they are
+    centre_keys of the stored centre codes (the offsets of a permutation are the same)."""
+    codes = coded.quantise(_structured(3000, seed=4))
+    order, key = coded._order_and_keys(codes)
+    np.testing.assert_array_equal(order, coded.coded_order(codes))
+    np.testing.assert_array_equal(key[order], coded_keys.centre_keys(codes[order, 0:3]))

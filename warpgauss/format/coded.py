@@ -46,7 +46,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..errors import WarpgaussError
-from .coded_keys import _MAX_CODE, CODED_COLUMNS, KEY_AXIS_BITS, _part1by2, centre_keys, check_keys, decode_keys, encode_keys
+from .coded_keys import _MAX_CODE, CODED_COLUMNS, KEY_AXIS_BITS, _part1by2, check_keys, decode_keys, encode_keys
 from .coded_keys import LAYOUT as LAYOUT_KEYS
 from .export import quat_to_matrix
 
@@ -367,8 +367,15 @@ def coded_order(codes: np.ndarray) -> np.ndarray:
     Equal to ``np.lexsort`` over (every code, then the key), computed as one sort of the key and
     a lexsort of the rows whose key is shared (a few, where centres share a grid cell).
     """
+    return _order_and_keys(codes)[0]
+
+
+def _order_and_keys(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`coded_order` and the rows' Morton keys (None where it falls back): in storage order
+    the keys are :func:`warpgauss.format.coded_keys.centre_keys` of the stored centres (the same
+    offsets: a permutation has the same minimum)."""
     if len(codes) == 0:
-        return np.zeros(0, np.intp)
+        return np.zeros(0, np.intp), np.zeros(0, np.uint64)
     mu = codes[:, 0:3] - codes[:, 0:3].min(0)
     if int(mu.max(initial=0)) < (1 << 21):
         key = _part1by2(mu[:, 0]) | (_part1by2(mu[:, 1]) << np.uint64(1)) | (_part1by2(mu[:, 2]) << np.uint64(2))
@@ -376,8 +383,10 @@ def coded_order(codes: np.ndarray) -> np.ndarray:
         key = None
     if key is None:
         keys = [codes[:, k] for k in range(11, 2, -1)]  # least significant first for lexsort
-        return np.lexsort([*keys, mu[:, 0], mu[:, 1], mu[:, 2]])
-    order = np.argsort(key, kind="stable")
+        return np.lexsort([*keys, mu[:, 0], mu[:, 1], mu[:, 2]]), None
+    # any sort of the keys: rows of a unique key land where a stable sort puts them, and the rows
+    # sharing a key are put in full-lexsort order below whatever order they came in
+    order = np.argsort(key)
     ks = key[order]
     tie = np.zeros(len(ks), bool)
     if len(ks) > 1:
@@ -391,7 +400,7 @@ def coded_order(codes: np.ndarray) -> np.ndarray:
         smu = mu[rows]
         sub_order = np.lexsort([*[sub[:, k] for k in range(11, 2, -1)], smu[:, 0], smu[:, 1], smu[:, 2], key[rows]])
         order[pos] = rows[sub_order]
-    return order
+    return order, key
 
 
 def _width(max_value: int) -> int:
@@ -413,10 +422,10 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None, layout:
     if layout not in (None, 1, LAYOUT_KEYS):
         raise WarpgaussError(f"unknown coded layout {layout!r}; this warpgauss writes layouts 1 and {LAYOUT_KEYS}")
     codes = quantise(params, b)
-    order = coded_order(codes)
+    order, key = _order_and_keys(codes)
     codes = codes[order]
     if layout != 1:
-        keys = centre_keys(codes[:, 0:3])
+        keys = None if key is None else key[order]  # centre_keys(codes[:, 0:3]), already computed
         if keys is not None:
             blocks, quant = encode_keys(codes, keys, b)
             return _compress_planes(blocks, sum(len(p) for p in blocks)), quant, order

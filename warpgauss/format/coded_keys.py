@@ -66,7 +66,17 @@ _LIFTABLE = sum(1 << k for k in range(3, 12))  # the columns that may be stored 
 
 
 def _bit_length(v: np.ndarray) -> np.ndarray:
-    """Bit lengths (int64) of uint64 values."""
+    """Bit lengths (int64) of uint64 values: the binary exponent of their float64 values, exact
+    below 2^53 (the rare larger values by shifts)."""
+    e = np.frexp(v.astype(np.float64))[1].astype(np.int64)
+    big = v >= np.uint64(1 << 53)
+    if big.any():
+        e[big] = _bit_length_shifts(v[big])
+    return e
+
+
+def _bit_length_shifts(v: np.ndarray) -> np.ndarray:
+    """Bit lengths (int64) of uint64 values, by halving (any value)."""
     e = np.zeros(len(v), np.int64)
     g = v.copy()
     for sh in (32, 16, 8, 4, 2, 1):
@@ -170,8 +180,9 @@ def _planes(v: np.ndarray, w: int) -> list[bytes]:
     nb = (w + 7) // 8
     if nb == 0:
         return []
-    aligned = v.astype(np.uint64) << np.uint64(8 * nb - w)
-    return [((aligned >> np.uint64(8 * (nb - 1 - j))) & np.uint64(0xFF)).astype(np.uint8).tobytes() for j in range(nb)]
+    aligned = (v.astype(np.uint64) << np.uint64(8 * nb - w)).astype(">u8")  # big-endian: the top byte first
+    rows = np.ascontiguousarray(aligned.view(np.uint8).reshape(-1, 8)[:, 8 - nb :].T)
+    return [r.tobytes() for r in rows]
 
 
 def _predicted(c: np.ndarray, s: int) -> np.ndarray:
@@ -193,6 +204,22 @@ def lift(c: np.ndarray) -> np.ndarray:
     s = 1
     while s < len(c):
         r[s :: 2 * s] = c[s :: 2 * s] - _predicted(c, s)
+        s *= 2
+    return r
+
+
+def lift_rows(c: np.ndarray) -> np.ndarray:
+    """:func:`lift` of each row of a (k, n) int64 array (its columns along the last axis): the
+    same residuals, transposed, without the strided rows of a (n, k) array."""
+    r = c.copy()
+    n = c.shape[1]
+    s = 1
+    while s < n:
+        left = c[:, 0 : n - s : 2 * s]
+        right = c[:, 2 * s :: 2 * s]
+        if right.shape[1] < left.shape[1]:
+            right = np.concatenate([right, left[:, right.shape[1] :]], axis=1)
+        r[:, s :: 2 * s] = c[:, s :: 2 * s] - ((left + right) >> 1)
         s *= 2
     return r
 
@@ -254,13 +281,16 @@ def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int]) -> tu
         columns.append([int(mu_min[k]), span.bit_length()])
     mask = 0
     col_planes: dict[int, list[bytes]] = {}
-    residuals = lift(codes[:, 3:12]) if n > 2 else None  # every attribute column at once
+    # every attribute column and its residuals contiguous (reductions over strided columns of the
+    # (n, 12) codes took most of a coding's column work)
+    attrs = np.ascontiguousarray(codes[:, 3:12].T)
+    residuals = lift_rows(attrs) if n > 2 else None  # every attribute column at once
     for k in range(3, 12):
-        col = _column(codes[:, k])
+        col = _column(attrs[k - 3])
         if col[1] and residuals is not None:  # a stored column: its residuals may code smaller;
             # they are kept where their planes' order-0 entropy is smaller and one Zstandard
             # compression each confirms it (the entropy alone misjudged a width crossing 8 bits)
-            lifted = _column(residuals[:, k - 3])
+            lifted = _column(residuals[k - 3])
             if abs(lifted[0]) <= 1 << 52 and lifted[1] <= 53 and _plane_bits(lifted[2]) < _plane_bits(col[2]):
                 if _zstd_size(lifted[2]) < _zstd_size(col[2]):
                     col = lifted
