@@ -19,6 +19,7 @@ import warp as wp
 from .backward import PointGrid, box_rows, slot_level
 from .field import BinnedPrimitives, add_pair, conic_g, in_box, level_cell, store_sums, vec6
 from .optim import BIG, cell_faces
+from .sampling import find_brick
 
 wp.set_module_options({"enable_backward": False})
 
@@ -162,19 +163,12 @@ def list_fill_entries(
     same places. A primitive listed in thousands of cells (a large one at a high ratio) no longer
     holds one thread for all of them."""
     e = wp.tid()
-    lo_ = int(0)
-    hi_ = counts_cum.shape[0] - 1
-    while lo_ < hi_:  # first slot whose inclusive count exceeds e
-        mid = (lo_ + hi_) / 2
-        if counts_cum[mid] > e:
-            hi_ = mid
-        else:
-            lo_ = mid + 1
-    j = lo_
+    jr = find_brick(counts_cum, e)  # (the slot whose inclusive count first exceeds e, e's rank in it)
+    j = jr[0]
+    r = jr[1]
     l, lo, hi = listed_cells(j, slot_cell, prims, grid, centre, half)
     wx = hi[0] - lo[0] + 1
     wy = hi[1] - lo[1] + 1
-    r = e - (counts_cum[j] - wx * wy * (hi[2] - lo[2] + 1))
     x = lo[0] + r % wx
     y = lo[1] + (r / wx) % wy
     z = lo[2] + r / (wx * wy)
