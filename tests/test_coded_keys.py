@@ -338,3 +338,24 @@ def test_the_storage_orders_keys_are_the_stored_centres_keys():
     order, key = coded._order_and_keys(codes)
     np.testing.assert_array_equal(order, coded.coded_order(codes))
     np.testing.assert_array_equal(key[order], coded_keys.centre_keys(codes[order, 0:3]))
+
+
+def test_a_fits_codings_keep_the_centres_order_and_write_the_same_bytes():
+    """Inside a fit (coded._FitCodes) the centres' sort and gap streams are kept by rows and centre
+    depth: codings that change other depths, rows (a pruned subset) or the centre depth give the
+    bytes they give outside a fit, ties included (duplicated centres)."""
+    p = _structured(2500, seed=6)
+    p[100:160] = p[40:100]  # shared centres: rows whose keys tie
+    p[100:160, 10] += 0.25  # resolved by their other codes
+    b = dict(coded.CODED_BITS)
+    trials = [b, {**b, "q": b["q"] + 1}, {**b, "a": b["a"] - 1}, {**b, "mu": b["mu"] + 1}, b]
+    want = [coded.encode_coded(p, t)[0] for t in trials]
+    with coded._FitCodes(coded.canonical(p).astype(np.float32)) as fit:
+        got = [coded.encode_coded(fit.base, t)[0] for t in trials]
+        assert len(fit.orders) == 2  # two centre depths, each sorted once
+        sub = fit.subset(np.arange(0, 2500, 3))
+        got_sub = [coded.encode_coded(sub, t)[0] for t in trials[:3]]
+    assert got == [coded.encode_coded(coded.canonical(p).astype(np.float32), t)[0] for t in trials]
+    assert [len(x) for x in got] == [len(x) for x in want]
+    rows = coded.canonical(p).astype(np.float32)[np.arange(0, 2500, 3)]
+    assert got_sub == [coded.encode_coded(rows, t)[0] for t in trials[:3]]

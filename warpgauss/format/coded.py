@@ -46,7 +46,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..errors import WarpgaussError
-from .coded_keys import _MAX_CODE, CODED_COLUMNS, KEY_AXIS_BITS, _part1by2, check_keys, decode_keys, encode_keys
+from .coded_keys import _MAX_CODE, CODED_COLUMNS, KEY_AXIS_BITS, _part1by2, check_keys, decode_keys, encode_keys, gap_streams
 from .coded_keys import LAYOUT as LAYOUT_KEYS
 from .export import quat_to_matrix
 
@@ -305,6 +305,7 @@ class _FitCodes:
         self.base, self.c64 = p, canonical(p)
         self.columns: dict[tuple[str, int], np.ndarray] = {}
         self.arrays: dict[int, tuple[np.ndarray, np.ndarray | None]] = {id(p): (p, None)}  # arrays kept alive: ids stay theirs
+        self.orders: dict[tuple[int, int], dict] = {}  # (array id, centre depth) -> _sorted_keys and gap streams
 
     def subset(self, rows: np.ndarray) -> np.ndarray:
         """The base's ``rows`` (a new array whose codes are known)."""
@@ -319,6 +320,14 @@ class _FitCodes:
         out = _codes(self.c64, b, self.columns)
         rows = entry[1]
         return out if rows is None else out[rows]
+
+    def order_entry(self, params, mu_bits: int) -> dict | None:
+        """The storage-order entry of one of this fit's arrays at a centre depth (None for any
+        other array), filled by :func:`_storage_order`."""
+        entry = self.arrays.get(id(params))
+        if entry is None or entry[0] is not params:
+            return None
+        return self.orders.setdefault((id(params), int(mu_bits)), {})
 
     def __enter__(self):
         self._outer = getattr(_FIT, "codes", None)
@@ -374,18 +383,21 @@ def _order_and_keys(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """:func:`coded_order` and the rows' Morton keys (None where it falls back): in storage order
     the keys are :func:`warpgauss.format.coded_keys.centre_keys` of the stored centres (the same
     offsets: a permutation has the same minimum)."""
+    sorted_keys = _sorted_keys(codes)
+    return _resolve_ties(codes, sorted_keys), sorted_keys["key"]
+
+
+def _sorted_keys(codes: np.ndarray) -> dict:
+    """What of the storage order depends on the centre codes alone: the Morton keys (None where an
+    axis spans 2^21 codes or more), the rows sorted by key and the positions whose key is shared."""
     if len(codes) == 0:
-        return np.zeros(0, np.intp), np.zeros(0, np.uint64)
+        return {"key": np.zeros(0, np.uint64), "order": np.zeros(0, np.intp), "ties": np.zeros(0, np.intp)}
     mu = codes[:, 0:3] - codes[:, 0:3].min(0)
-    if int(mu.max(initial=0)) < (1 << 21):
-        key = _part1by2(mu[:, 0]) | (_part1by2(mu[:, 1]) << np.uint64(1)) | (_part1by2(mu[:, 2]) << np.uint64(2))
-    else:
-        key = None
-    if key is None:
-        keys = [codes[:, k] for k in range(11, 2, -1)]  # least significant first for lexsort
-        return np.lexsort([*keys, mu[:, 0], mu[:, 1], mu[:, 2]]), None
+    if int(mu.max(initial=0)) >= (1 << 21):
+        return {"key": None}
+    key = _part1by2(mu[:, 0]) | (_part1by2(mu[:, 1]) << np.uint64(1)) | (_part1by2(mu[:, 2]) << np.uint64(2))
     # any sort of the keys: rows of a unique key land where a stable sort puts them, and the rows
-    # sharing a key are put in full-lexsort order below whatever order they came in
+    # sharing a key are put in full-lexsort order by _resolve_ties whatever order they came in
     order = np.argsort(key)
     ks = key[order]
     tie = np.zeros(len(ks), bool)
@@ -393,14 +405,44 @@ def _order_and_keys(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         same = ks[1:] == ks[:-1]
         tie[1:] |= same
         tie[:-1] |= same
-    if tie.any():  # rows sharing a key: their positions, filled in full-lexsort order
-        pos = np.flatnonzero(tie)
+    return {"key": key, "order": order, "ties": np.flatnonzero(tie)}
+
+
+def _resolve_ties(codes: np.ndarray, sorted_keys: dict) -> np.ndarray:
+    """The storage order from :func:`_sorted_keys` and every code: rows sharing a key in
+    full-lexsort order (every code, then the original order); without keys, z, y, x order."""
+    key = sorted_keys["key"]
+    mu = codes[:, 0:3] - codes[:, 0:3].min(0) if len(codes) else codes[:, 0:3]
+    if key is None:
+        keys = [codes[:, k] for k in range(11, 2, -1)]  # least significant first for lexsort
+        return np.lexsort([*keys, mu[:, 0], mu[:, 1], mu[:, 2]])
+    order = sorted_keys["order"].copy()
+    pos = sorted_keys["ties"]
+    if len(pos):  # rows sharing a key: their positions, filled in full-lexsort order
         rows = np.sort(order[pos])  # original order, so the lexsort's ties resolve as the full one's
         sub = codes[rows]
         smu = mu[rows]
         sub_order = np.lexsort([*[sub[:, k] for k in range(11, 2, -1)], smu[:, 0], smu[:, 1], smu[:, 2], key[rows]])
         order[pos] = rows[sub_order]
-    return order, key
+    return order
+
+
+def _storage_order(params: np.ndarray, codes: np.ndarray, b: dict[str, int]) -> tuple[np.ndarray, np.ndarray | None, tuple | None]:
+    """(storage order, Morton keys, their gap streams or None) of ``codes``: in a fit
+    (:class:`_FitCodes`) what depends on the centre codes alone is kept by rows and centre depth,
+    so a coding that changes other depths sorts and codes the centres once."""
+    fit = getattr(_FIT, "codes", None)
+    entry = None if fit is None else fit.order_entry(params, b["mu"])
+    if entry is None:
+        order, key = _order_and_keys(codes)
+        return order, key, None
+    if "key" not in entry:
+        entry.update(_sorted_keys(codes))
+    order = _resolve_ties(codes, entry)
+    key = entry["key"]
+    if key is not None and "gaps" not in entry:
+        entry["gaps"] = gap_streams(key[order])  # tied rows share a key: the same in any tie order
+    return order, key, entry.get("gaps")
 
 
 def _width(max_value: int) -> int:
@@ -422,12 +464,12 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None, layout:
     if layout not in (None, 1, LAYOUT_KEYS):
         raise WarpgaussError(f"unknown coded layout {layout!r}; this warpgauss writes layouts 1 and {LAYOUT_KEYS}")
     codes = quantise(params, b)
-    order, key = _order_and_keys(codes)
+    order, key, gaps = _storage_order(params, codes, b)
     codes = codes[order]
     if layout != 1:
         keys = None if key is None else key[order]  # centre_keys(codes[:, 0:3]), already computed
         if keys is not None:
-            blocks, quant = encode_keys(codes, keys, b)
+            blocks, quant = encode_keys(codes, keys, b, gaps)
             return _compress_planes(blocks, sum(len(p) for p in blocks)), quant, order
         if layout == LAYOUT_KEYS:
             raise WarpgaussError(

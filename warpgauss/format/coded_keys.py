@@ -125,7 +125,7 @@ def centre_keys(mu: np.ndarray) -> np.ndarray | None:
     return _part1by2(m[:, 0]) | (_part1by2(m[:, 1]) << np.uint64(1)) | (_part1by2(m[:, 2]) << np.uint64(2))
 
 
-def _gap_streams(keys: np.ndarray) -> tuple[bytes, bytes, int]:
+def gap_streams(keys: np.ndarray) -> tuple[bytes, bytes, int]:
     """(symbol plane, packed remainder bits, bit count) of ascending keys."""
     gap = np.diff(keys, prepend=np.uint64(0))
     e = _bit_length(gap)
@@ -269,11 +269,12 @@ def _plane_bits(planes: list[bytes]) -> float:
 GROUPS = ((3, 4, 5), (6,), (7, 8, 9), (10,), (11,))
 
 
-def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int]) -> tuple[list[bytes], dict]:
+def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int], gaps: tuple | None = None) -> tuple[list[bytes], dict]:
     """Layout-2 frame blocks (the frame's contents, each to end a Zstandard block) and description
-    of (n, 12) codes in storage order whose centre keys ``keys`` (:func:`centre_keys`) ascend."""
+    of (n, 12) codes in storage order whose centre keys ``keys`` (:func:`centre_keys`) ascend
+    (``gaps``: their :func:`gap_streams`, where the caller has them)."""
     n = len(codes)
-    sym, packed, nbits = _gap_streams(keys)
+    sym, packed, nbits = gap_streams(keys) if gaps is None else gaps
     columns: list[list[int]] = []
     mu_min = codes[:, 0:3].min(0) if n else np.zeros(3, np.int64)
     for k in range(3):
