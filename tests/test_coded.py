@@ -10,7 +10,7 @@ from reference.field_ref import covariances
 from test_wgs import _craft, _valid_header, make_header, realistic_params
 
 from warpgauss.errors import WarpgaussError
-from warpgauss.format import coded, ratefit
+from warpgauss.format import coded, coded_keys, ratefit
 from warpgauss.format.wgs import header_size, read_wgs, wgs_bytes, write_wgs
 
 
@@ -130,7 +130,9 @@ def test_storage_order_is_the_full_lexsort(spread):
     c = rng.integers(-spread, spread + 1, size=(2000, 12)).astype(np.int64)
     c[:, 6] = rng.integers(0, 4, len(c))
     mu = c[:, 0:3] - c[:, 0:3].min(0)
-    key = coded._part1by2(mu[:, 0]) | (coded._part1by2(mu[:, 1]) << np.uint64(1)) | (coded._part1by2(mu[:, 2]) << np.uint64(2))
+    key = (
+        coded_keys._part1by2(mu[:, 0]) | (coded_keys._part1by2(mu[:, 1]) << np.uint64(1)) | (coded_keys._part1by2(mu[:, 2]) << np.uint64(2))
+    )
     full = np.lexsort([*[c[:, k] for k in range(11, 2, -1)], mu[:, 0], mu[:, 1], mu[:, 2], key])
     np.testing.assert_array_equal(coded.coded_order(c), full)
 

@@ -46,7 +46,19 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..errors import WarpgaussError
-from .coded_keys import _MAX_CODE, CODED_COLUMNS, KEY_AXIS_BITS, _part1by2, check_keys, decode_keys, encode_keys, gap_streams
+from .coded_keys import (
+    _MAX_CODE,
+    CODED_COLUMNS,
+    KEY_AXIS_BITS,
+    _order_and_keys,
+    _resolve_ties,
+    _sorted_keys,
+    check_keys,
+    coded_order,
+    decode_keys,
+    encode_keys,
+    gap_streams,
+)
 from .coded_keys import LAYOUT as LAYOUT_KEYS
 from .export import quat_to_matrix
 
@@ -367,64 +379,6 @@ def as_stored(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndar
     """``params`` exactly as a coded file of them reads back: projected, in the file's order."""
     codes = quantise(params, bits)
     return dequantise(codes[coded_order(codes)], bits)
-
-
-def coded_order(codes: np.ndarray) -> np.ndarray:
-    """The storage order: by Morton code of the centre codes (offset to 0), ties by every code; a
-    centre range wider than 2^21 codes on an axis falls back to z, y, x order.
-
-    Equal to ``np.lexsort`` over (every code, then the key), computed as one sort of the key and
-    a lexsort of the rows whose key is shared (a few, where centres share a grid cell).
-    """
-    return _order_and_keys(codes)[0]
-
-
-def _order_and_keys(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """:func:`coded_order` and the rows' Morton keys (None where it falls back): in storage order
-    the keys are :func:`warpgauss.format.coded_keys.centre_keys` of the stored centres (the same
-    offsets: a permutation has the same minimum)."""
-    sorted_keys = _sorted_keys(codes)
-    return _resolve_ties(codes, sorted_keys), sorted_keys["key"]
-
-
-def _sorted_keys(codes: np.ndarray) -> dict:
-    """What of the storage order depends on the centre codes alone: the Morton keys (None where an
-    axis spans 2^21 codes or more), the rows sorted by key and the positions whose key is shared."""
-    if len(codes) == 0:
-        return {"key": np.zeros(0, np.uint64), "order": np.zeros(0, np.intp), "ties": np.zeros(0, np.intp)}
-    mu = codes[:, 0:3] - codes[:, 0:3].min(0)
-    if int(mu.max(initial=0)) >= (1 << 21):
-        return {"key": None}
-    key = _part1by2(mu[:, 0]) | (_part1by2(mu[:, 1]) << np.uint64(1)) | (_part1by2(mu[:, 2]) << np.uint64(2))
-    # any sort of the keys: rows of a unique key land where a stable sort puts them, and the rows
-    # sharing a key are put in full-lexsort order by _resolve_ties whatever order they came in
-    order = np.argsort(key)
-    ks = key[order]
-    tie = np.zeros(len(ks), bool)
-    if len(ks) > 1:
-        same = ks[1:] == ks[:-1]
-        tie[1:] |= same
-        tie[:-1] |= same
-    return {"key": key, "order": order, "ties": np.flatnonzero(tie)}
-
-
-def _resolve_ties(codes: np.ndarray, sorted_keys: dict) -> np.ndarray:
-    """The storage order from :func:`_sorted_keys` and every code: rows sharing a key in
-    full-lexsort order (every code, then the original order); without keys, z, y, x order."""
-    key = sorted_keys["key"]
-    mu = codes[:, 0:3] - codes[:, 0:3].min(0) if len(codes) else codes[:, 0:3]
-    if key is None:
-        keys = [codes[:, k] for k in range(11, 2, -1)]  # least significant first for lexsort
-        return np.lexsort([*keys, mu[:, 0], mu[:, 1], mu[:, 2]])
-    order = sorted_keys["order"].copy()
-    pos = sorted_keys["ties"]
-    if len(pos):  # rows sharing a key: their positions, filled in full-lexsort order
-        rows = np.sort(order[pos])  # original order, so the lexsort's ties resolve as the full one's
-        sub = codes[rows]
-        smu = mu[rows]
-        sub_order = np.lexsort([*[sub[:, k] for k in range(11, 2, -1)], smu[:, 0], smu[:, 1], smu[:, 2], key[rows]])
-        order[pos] = rows[sub_order]
-    return order
 
 
 def _storage_order(params: np.ndarray, codes: np.ndarray, b: dict[str, int]) -> tuple[np.ndarray, np.ndarray | None, tuple | None]:
