@@ -404,6 +404,7 @@ class EncodeRun(replan.Replan):
                 "skipped_nonfinite_updates": refiner.skipped_steps(),
                 "deferred_updates": refiner.deferred_steps(),
                 "rebins": refiner.rebins,
+                "relocated": sum(r["moved"] for r in refiner.relocations),
                 "forward_pass": refiner.forward_pass,
                 "error_stratum": refiner.sampler.error_report(),
                 "cuda_graph": refiner.use_graph,
