@@ -257,9 +257,9 @@ class Refiner(Checkpointed, Reported):
 
     # -- the stages --------------------------------------------------------------------------
 
-    def rebin(self, replan: bool = False) -> None:
+    def rebin(self, replan: bool = False, refresh: bool = True) -> None:
         """Sort the training state into cell order (re-planning the levels with ``replan``), then
-        re-mark the sampler's support."""
+        re-mark the sampler's support and (``refresh``) re-draw its error quota."""
         if self.binner.rebin(replan):
             self.passes.invalidate()  # point grids and chunk buffers follow the plan
             self._graph = None
@@ -268,7 +268,8 @@ class Refiner(Checkpointed, Reported):
         if not self.state.clean:
             self.state.zero_grads()
         self.sampler.mark_support(self.binner.prep[0], self.binner.prep[3])
-        self.sampler.refresh_errors()
+        if refresh:
+            self.sampler.refresh_errors()
 
     def sample(self) -> None:
         """Draw this iteration's samples (without advancing)."""
@@ -301,9 +302,12 @@ class Refiner(Checkpointed, Reported):
         """One iteration: (re-bin,) sample, forward, backward, fused chain rule + Adam + re-prepare."""
         wp, cfg, it = self._wp, self.cfg, self.iteration
         replan = it % max(cfg.replan_every, 1) == 0
-        moved = self.relocate(rebin=False) if self.relocating(it) else 0
-        if it > 0 and (replan or it % max(cfg.rebin_every, 1) == 0 or moved):
-            self.rebin(replan=replan)
+        relocating = self.relocating(it)
+        if relocating:  # from the error map as this iteration's re-bin draws it, folded here instead
+            self.sampler.refresh_errors()
+            self.relocate(rebin=False)
+        if it > 0 and (replan or it % max(cfg.rebin_every, 1) == 0 or relocating):
+            self.rebin(replan=replan, refresh=not relocating)
         if self.quantising(it) and not self.quant.on and not self._geometry_fixed:
             if cfg.quantise_mode == "refit":  # fix the geometry on its grids, refit a and w to it
                 self._fix_geometry()
@@ -336,7 +340,10 @@ class Refiner(Checkpointed, Reported):
 
     def relocating(self, it: int) -> bool:
         """Whether iteration ``it`` starts with a relocation (``relocate_every``, before
-        ``relocate_until`` of the iterations, never once the geometry is fixed on its grids)."""
+        ``relocate_until`` of the iterations, never once the geometry is fixed on its grids). Such
+        an iteration re-bins: at a re-bin iteration (``relocate_every`` a multiple of
+        ``rebin_every``) the error map is folded and its quota drawn as the re-bin would, before
+        the primitives move; elsewhere that adds a re-bin and a fold."""
         cfg = self.cfg
         every = cfg.relocate_every
         return every > 0 and it > 0 and it % every == 0 and it < cfg.relocate_until * cfg.iterations and not self._geometry_fixed
