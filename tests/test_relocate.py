@@ -179,3 +179,21 @@ def test_the_report_counts_the_relocated(cpu):
     on = warpgauss.encode(vol, refine=cfg, **kw)
     assert on.report["refinement"]["relocated"] > 0
     assert on.report["refinement"]["relocated"] <= 2 * math.ceil(0.05 * 150)
+
+
+def test_a_resumed_run_relocates_as_the_uninterrupted_one(cpu):
+    """A checkpoint between two relocations (its scalars through JSON, as the file stores them)
+    continues to the uninterrupted run's bytes and relocation record."""
+    import json
+
+    cfg = dict(relocate_every=10, relocate_until=1.0)
+    whole = _run(cpu, **cfg)
+    first = _refiner(cpu, **cfg)
+    for _ in range(15):
+        first.step()
+    arrays, scalars = first.state_arrays()
+    resumed = _refiner(cpu, **cfg)
+    resumed.restore(arrays, json.loads(json.dumps(scalars)))
+    resumed.run(log_every=40)
+    assert resumed.relocations == whole.relocations
+    assert resumed.model_params().tobytes() == whole.model_params().tobytes()
