@@ -45,6 +45,8 @@ Variants (``--variants``, comma list):
     nosmooth-2x-it1000
                nosmooth-2x at 1,000 iterations
     rebin20    the defaults with a re-bin every 20 iterations instead of 10 (half the re-bins)
+    relocate   the defaults with dead primitives (weight below 0.02) relocated to the error
+               every 100 iterations for the first half (``RefineConfig.relocate_every``, issue #53)
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -110,6 +112,7 @@ VARIANTS: dict[str, tuple] = {
     "nosmooth-2x-it1000": ({"weights": LossWeights(smooth=0.0), "iterations": 1000}, (None, None)),
     "smooth": ({"weights": LossWeights(smooth=0.01, smooth_final=0.0001)}, (None, None)),
     "rebin20": ({"rebin_every": 20}, (None, None)),
+    "relocate": ({"relocate_every": 100}, (None, None)),
 }
 # variants that change a constant of warpgauss.encoding.refine.config for their encodes
 TWICE_THE_SAMPLES = {"GPU_VOXELS_PER_SAMPLE": 64, "GPU_MAX_SAMPLES": 262_144}

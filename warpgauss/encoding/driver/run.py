@@ -401,9 +401,7 @@ class EncodeRun(replan.Replan):
                 "contacts_per_primitive": refiner.contacts,
                 "lr_touch_scale": refiner.touch_scale,
                 "ms_per_iteration": 1000 * total / max(refiner.iteration, 1),
-                "skipped_nonfinite_updates": refiner.skipped_steps(),
-                "deferred_updates": refiner.deferred_steps(),
-                "rebins": refiner.rebins,
+                **refiner.step_counts(),  # skipped_nonfinite_updates, deferred_updates, rebins, relocated
                 "forward_pass": refiner.forward_pass,
                 "error_stratum": refiner.sampler.error_report(),
                 "cuda_graph": refiner.use_graph,

@@ -40,6 +40,8 @@ AUTO_MAX_BATCHES = 16
 GPU_VOXELS_PER_SAMPLE = 64
 GPU_MIN_SAMPLES = 16_384
 GPU_MAX_SAMPLES = 262_144
+# RefineConfig's relocation settings (issue #53), left out of to_dict() while relocation is off
+RELOCATE_FIELDS = ("relocate_every", "relocate_until", "relocate_weight", "relocate_share")
 
 
 @dataclass
@@ -174,6 +176,15 @@ class RefineConfig:
             last fifth straight-through lost 0.93 / 0.72 dB against the float model where the
             single projection lost 0.38 / 0.11 dB, and projecting at every re-bin of the last
             fifth lost 0.44 dB on the first.
+        relocate_every: Iterations between relocations of dead primitives (0, the default: none;
+            issue #53): at every such iteration before ``relocate_until`` x ``iterations``, the
+            trainable primitives whose weight is below ``relocate_weight`` (the lowest first, at
+            most ``relocate_share`` of them) restart where the error stratum's quota is (see
+            :mod:`warpgauss.encoding.refine.relocate`), and the primitives are re-binned. Needs an
+            error stratum (``error_share`` > 0 and drawn); without one nothing moves. Not measured yet.
+        relocate_until: Share of the iterations after which no relocation happens.
+        relocate_weight: A primitive is dead when its weight is below this.
+        relocate_share: At most this share of the trainable primitives moves per relocation.
     """
 
     iterations: int = 1500
@@ -210,10 +221,21 @@ class RefineConfig:
     quantise: dict | None = None
     quantise_from: float = 1.0
     quantise_mode: str = "straight-through"
+    relocate_every: int = 0
+    relocate_until: float = 0.5
+    relocate_weight: float = 0.02
+    relocate_share: float = 0.05
     weights: LossWeights = field(default_factory=LossWeights)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The settings as a dict (the model header's ``encoding.refinement``, the checkpoint
+        fingerprint); without relocation (``relocate_every`` 0) its settings are left out, so that
+        headers, and the budgets their size enters, are the bytes they were before it existed."""
+        d = asdict(self)
+        if not self.relocate_every:
+            for name in RELOCATE_FIELDS:
+                del d[name]
+        return d
 
     def samples_rule(self, n: int, voxels: int | None = None, device: str | None = None) -> tuple[int, str]:
         """Samples per iteration for ``n`` primitives in a volume of ``voxels`` on ``device``, and why.
@@ -304,6 +326,14 @@ class RefineConfig:
             raise WarpgaussError(f"error_decay must be in [0, 1], got {self.error_decay}")
         if not (finite(self.jitter) and 0 <= self.jitter <= 1):
             raise WarpgaussError(f"jitter must be in [0, 1] voxels, got {self.jitter}")
+        if not (isinstance(self.relocate_every, int) and not isinstance(self.relocate_every, bool) and self.relocate_every >= 0):
+            raise WarpgaussError(f"relocate_every must be an integer >= 0 (0: no relocation), got {self.relocate_every}")
+        if not (finite(self.relocate_until) and 0 <= self.relocate_until <= 1):
+            raise WarpgaussError(f"relocate_until must be in [0, 1], got {self.relocate_until}")
+        if not (finite(self.relocate_weight) and 0 < self.relocate_weight < 1):
+            raise WarpgaussError(f"relocate_weight must be in (0, 1), got {self.relocate_weight}")
+        if not (finite(self.relocate_share) and 0 < self.relocate_share <= 1):
+            raise WarpgaussError(f"relocate_share must be in (0, 1], got {self.relocate_share}")
         lo, hi = self.partner_distance
         if not (finite(lo) and finite(hi) and 0 <= lo <= hi):
             raise WarpgaussError(f"partner_distance must be 0 <= min <= max, got {self.partner_distance}")

@@ -25,6 +25,7 @@ class Checkpointed:
     quant: Any
     quantising: Any
     rebins: Any
+    relocations: Any
     sampler: Any
     schedule: Any
     set_samples: Any
@@ -66,6 +67,7 @@ class Checkpointed:
             "touch_scale": self.touch_scale,
             "contacts": self.contacts,
             "rebins": self.rebins,
+            "relocations": list(self.relocations),
             "n_train": self.state.n_train,
             "silenced": self.silenced,
             "split": self.split,
@@ -142,6 +144,7 @@ class Checkpointed:
         self.schedule.touch.fill_(self.touch_scale)
         self.contacts = scalars["contacts"]
         self.binner.rebins = int(scalars["rebins"])
+        self.relocations = [dict(r) for r in scalars.get("relocations", [])]  # none before relocation existed
         self.state.n_train = int(scalars.get("n_train", self.state.n_train))  # after a silence()
         # a checkpoint holds no bricked run (no frozen neighbours): every frozen row was silenced
         self.silenced = int(scalars.get("silenced", self.state.n - self.state.n_train))

@@ -7,6 +7,7 @@
 | forward, backward | :class:`.passes.PairPasses` | ``passes.py`` |
 | update | :class:`.update.Update` | ``update.py`` |
 | re-bin | :class:`.bins.Binner` | ``bins.py`` |
+| relocate (off by default) | :class:`.relocate.Relocator` | ``relocate.py`` |
 
 The units share one :class:`.state.Primitives` (the training state in slot order); this module
 only sequences them, captures one iteration as a CUDA graph, and keeps checkpoints and reports.
@@ -33,6 +34,7 @@ from .config import RefineConfig
 from .draw import Sampler
 from .passes import PARTIAL_MAX_ENTRIES, PairPasses, picks_split
 from .persist import Checkpointed
+from .relocate import Relocator
 from .reports import Reported
 from .schedule import MAX_BUDGET_ITERATIONS, BudgetPlan, Schedule, smooth_weight
 from .state import Primitives
@@ -134,6 +136,8 @@ class Refiner(Checkpointed, Reported):
         self.passes = PairPasses(self.state, self.sampler, dv.field.shape_xyz, bool(config.split_cells), config.weights.smooth > 0)
         self.passes.lists = bool(config.cell_lists)
         self.updater = Update(self.state, dv, config, self.quant)
+        self.relocator = Relocator(self.state, self.sampler, dv, seed, config.relocate_weight, config.relocate_share)
+        self.relocations: list[dict] = []  # {"iteration", "moved"} of every relocation that ran
         self.schedule = Schedule(dev, seed)
         self.stops = StopRule(dev)
         self._graph = None
@@ -253,9 +257,9 @@ class Refiner(Checkpointed, Reported):
 
     # -- the stages --------------------------------------------------------------------------
 
-    def rebin(self, replan: bool = False) -> None:
+    def rebin(self, replan: bool = False, refresh: bool = True) -> None:
         """Sort the training state into cell order (re-planning the levels with ``replan``), then
-        re-mark the sampler's support."""
+        re-mark the sampler's support and (``refresh``) re-draw its error quota."""
         if self.binner.rebin(replan):
             self.passes.invalidate()  # point grids and chunk buffers follow the plan
             self._graph = None
@@ -264,7 +268,8 @@ class Refiner(Checkpointed, Reported):
         if not self.state.clean:
             self.state.zero_grads()
         self.sampler.mark_support(self.binner.prep[0], self.binner.prep[3])
-        self.sampler.refresh_errors()
+        if refresh:
+            self.sampler.refresh_errors()
 
     def sample(self) -> None:
         """Draw this iteration's samples (without advancing)."""
@@ -297,8 +302,12 @@ class Refiner(Checkpointed, Reported):
         """One iteration: (re-bin,) sample, forward, backward, fused chain rule + Adam + re-prepare."""
         wp, cfg, it = self._wp, self.cfg, self.iteration
         replan = it % max(cfg.replan_every, 1) == 0
-        if it > 0 and (replan or it % max(cfg.rebin_every, 1) == 0):
-            self.rebin(replan=replan)
+        relocating = self.relocating(it)
+        if relocating:  # from the error map as this iteration's re-bin draws it, folded here instead
+            self.sampler.refresh_errors()
+            self.relocate(rebin=False)
+        if it > 0 and (replan or it % max(cfg.rebin_every, 1) == 0 or relocating):
+            self.rebin(replan=replan, refresh=not relocating)
         if self.quantising(it) and not self.quant.on and not self._geometry_fixed:
             if cfg.quantise_mode == "refit":  # fix the geometry on its grids, refit a and w to it
                 self._fix_geometry()
@@ -328,6 +337,29 @@ class Refiner(Checkpointed, Reported):
             self.touch_scale = min(1.0, math.sqrt(self.contacts / cfg.touch_ref))
             self.schedule.touch.fill_(self.touch_scale)
         self.iteration += 1
+
+    def relocating(self, it: int) -> bool:
+        """Whether iteration ``it`` starts with a relocation (``relocate_every``, before
+        ``relocate_until`` of the iterations, never once the geometry is fixed on its grids). Such
+        an iteration re-bins: at a re-bin iteration (``relocate_every`` a multiple of
+        ``rebin_every``) the error map is folded and its quota drawn as the re-bin would, before
+        the primitives move; elsewhere that adds a re-bin and a fold."""
+        cfg = self.cfg
+        every = cfg.relocate_every
+        return every > 0 and it > 0 and it % every == 0 and it < cfg.relocate_until * cfg.iterations and not self._geometry_fixed
+
+    def relocate(self, rebin: bool = True) -> int:
+        """Move the dead primitives to where the error is now (:class:`.relocate.Relocator`),
+        recorded in :attr:`relocations` as at the current iteration, then re-bin (``rebin``; the
+        caller re-bins otherwise, before the next evaluation); the number moved (0 where the
+        error stratum has no quota yet, which is not recorded)."""
+        moved = self.relocator.move(self.iteration)
+        if moved is None:
+            return 0
+        self.relocations.append({"iteration": self.iteration, "moved": moved})
+        if moved and rebin:
+            self.rebin()
+        return moved
 
     def quantising(self, it: int | None = None) -> bool:
         """Whether iteration ``it`` (default: the next) refines on the coded grids."""

@@ -1,6 +1,6 @@
 """What a refiner reports (:class:`Reported`, a part of :class:`.refiner.Refiner`): the loss
 terms, the sample and estimated full-grid PSNRs, the end-of-training estimate, skipped and
-deferred steps."""
+deferred steps, re-bins and relocations."""
 
 from __future__ import annotations
 
@@ -29,6 +29,8 @@ class Reported:
     m: Any
     passes: Any
     point_loss: Any
+    rebins: Any
+    relocations: Any
     sampler: Any
     seed: Any
     state: Any
@@ -133,3 +135,13 @@ class Reported:
     def deferred_steps(self) -> int:
         """Primitive updates deferred to the next re-bin (they would have left their cell's reach)."""
         return int(self.state.counts.numpy()[1])
+
+    def step_counts(self) -> dict:
+        """The report's counts of the run's steps (syncs): primitive updates skipped as not
+        finite and deferred to a re-bin, the re-bins, and the primitives relocations moved."""
+        return {
+            "skipped_nonfinite_updates": self.skipped_steps(),
+            "deferred_updates": self.deferred_steps(),
+            "rebins": self.rebins,
+            "relocated": sum(r["moved"] for r in self.relocations),
+        }
