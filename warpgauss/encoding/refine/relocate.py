@@ -21,6 +21,7 @@ import math
 import numpy as np
 
 from ...field.analysis import DeviceVolume
+from ...field.device import DeviceValues
 from ..allocate import rng_stream
 from .draw import Sampler
 from .state import Primitives
@@ -43,7 +44,6 @@ class Relocator:
     def __init__(self, state: Primitives, sampler: Sampler, dv: DeviceVolume, seed: int, weight: float, share: float):
         self.state, self.sampler, self.dv, self.seed = state, sampler, dv, int(seed)
         self.weight, self.share = float(weight), float(share)
-        self._values: np.ndarray | None = None  # the volume's values on the host, read at the first relocation
 
     def quota(self) -> np.ndarray | None:
         """Inclusive prefix sums of the error stratum's per-brick quota (host copy), or None where
@@ -96,8 +96,6 @@ class Relocator:
             return 0
         rng = np.random.default_rng(rng_stream(self.seed, iteration, salt=RELOCATE_SALT))
         mu, voxel = self.centres(cum, slots.size, rng)
-        if self._values is None:
-            self._values = np.nan_to_num(self.dv.values.numpy())  # masked voxels hold 0 already
         # isotropic scale: the median smallest-axis log-sigma of the live primitives (the detail
         # the model resolves now), or scale_min without any; kept within the cap term's range
         log_s = float(np.median(raw[alive, 3:6].min(axis=1))) if alive.size else s.log_min
@@ -106,7 +104,9 @@ class Relocator:
         new[:, 0:3] = mu
         new[:, 3:6] = log_s
         new[:, 9] = 1.0  # identity rotation: the quaternion is stored (x, y, z, w)
-        new[:, 10] = self._values[voxel[:, 2], voxel[:, 1], voxel[:, 0]]
+        nz, ny, nx = self.dv.values.shape
+        linear = (voxel[:, 2].astype(np.int64) * ny + voxel[:, 1]) * nx + voxel[:, 0]
+        new[:, 10] = np.nan_to_num(DeviceValues(self.dv.values).take_flat(linear))  # gathered on the device, not the volume copied
         new[:, 11] = 0.0  # weight 0.5
         raw[slots] = new
         s.raw.assign(raw)
