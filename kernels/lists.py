@@ -8,8 +8,9 @@ bins points on) that its box, widened by a margin, reaches. A point then reads o
 the candidates are the primitives whose boxes reach its cell, the transpose of what the backward
 pass visits (2-4 candidates a pair).
 
-Lists are built at every re-bin (:func:`list_count`, a scan, :func:`list_fill`, a stable sort by
-cell, so a cell lists its primitives in slot order and sums run in a fixed order) and stay exact
+Lists are built at every re-bin (:func:`list_count`, a scan, :func:`list_fill_entries` (one thread
+an entry; :func:`list_fill`, one a slot, writes the same), a stable sort by cell, so a cell lists
+its primitives in slot order and sums run in a fixed order) and stay exact
 between re-bins because a step that would carry a primitive's box out of its listed cells is
 deferred (:func:`warpgauss.kernels.optim.fits_list`), as steps out of reach of a bin cell are.
 """
