@@ -319,7 +319,8 @@ def stratum_voxel(
     for d in range(BRICK * BRICK * BRICK):
         if ((b >> wp.uint64(d)) & wp.uint64(1)) != wp.uint64(0):
             if r == 0:
-                return ((o[2] + d / (BRICK * BRICK)) * ny + o[1] + (d / BRICK) % BRICK) * nx + o[0] + d % BRICK
+                v = brick_voxel(o[2] / BRICK, o[1] / BRICK, o[0] / BRICK, d)  # brick_counts' bit d
+                return (v[0] * ny + v[1]) * nx + v[2]
             r -= 1
     return 0  # unreachable when r is in range
 

@@ -133,23 +133,27 @@ def test_listed_runs_repeat_bit_for_bit(device):
     np.testing.assert_array_equal(*runs)
 
 
-def test_lists_filled_one_thread_an_entry_are_the_slot_walks_lists(device, monkeypatch):
-    """kernels.lists.list_fill_entries (one thread per entry, its slot by a binary search) writes
-    the entries of list_fill (one thread per slot) in the same places: the same keys and slots,
-    hence the same sorted lists; with primitives of very different list lengths (a large ratio
-    and a fine one on one grid)."""
-    from warpgauss.encoding.refine import passes
+def test_lists_filled_one_thread_an_entry_are_the_slot_walks_lists(device):
+    """kernels.lists.list_fill_entries (one thread per entry, its slot by a binary search; the one
+    the re-bin runs) writes the entries of list_fill (one thread per slot) in the same places:
+    the same keys and slots before the sort, with primitives of very different list lengths."""
+    from warpgauss.core.warp import warp
+    from warpgauss.kernels import lists as kl
 
+    wp = warp()
     r = _refiner(device, n=120)
     for _ in range(12):  # a re-bin at 10
         r.step()
-    got = []
-    for by_entry in (False, True):
-        monkeypatch.setattr(passes, "LIST_FILL_BY_ENTRY", by_entry)
-        r.passes.relist()
-        total = r.passes.list_entries
-        got.append([r.passes._list_keys.numpy()[:total].copy(), r.passes._list_values.numpy()[:total].copy()])
-    counts = r.passes._list_counts.numpy()
+    ps, st = r.passes, r.state
+    total = ps.list_entries
+    counts = ps._list_counts.numpy()
     assert total > 3 * r.n and counts.max() > 4 * max(counts.min(), 1)  # some slots list many more cells
+    args = [st.slot_cell, st.prims, ps.buffers()["grid"], ps.list_centre, ps.list_half, ps._list_cum]
+    got = []
+    for kernel, dim in ((kl.list_fill, r.n), (kl.list_fill_entries, total)):
+        out = [wp.full(total, -1, dtype=int, device=r.device) for _ in range(2)]
+        wp.launch(kernel, dim=dim, inputs=args, outputs=out, device=r.device)
+        got.append([a.numpy() for a in out])
     for a, b in zip(*got):
+        assert (a >= 0).all()
         np.testing.assert_array_equal(a, b)

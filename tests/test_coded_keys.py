@@ -64,13 +64,16 @@ def test_lift_and_unlift_are_inverse():
     assert np.median(np.abs(coded_keys.lift(smooth))) <= 2  # a smooth column leaves small residuals (but at coarse levels)
 
 
-def test_lifting_rows_is_lifting_columns_transposed():
-    """coded_keys.lift_rows (the encoder's, along the last axis) gives lift's residuals
-    transposed, at lengths that are and are not powers of two."""
+def test_lifting_rows_at_once_is_lifting_each_row():
+    """coded_keys.lift of a (k, n) array (the encoder lifts every attribute column at once, one a
+    row) gives each row's own residuals, and unlift inverts it, at lengths that are and are not
+    powers of two."""
     rng = np.random.default_rng(2)
     for n in (1, 2, 3, 5, 8, 33, 1000):
-        c = rng.integers(-(1 << 40), 1 << 40, (n, 9))
-        np.testing.assert_array_equal(coded_keys.lift_rows(np.ascontiguousarray(c.T)), coded_keys.lift(c).T)
+        c = rng.integers(-(1 << 40), 1 << 40, (9, n))
+        r = coded_keys.lift(c)
+        np.testing.assert_array_equal(r, np.stack([coded_keys.lift(row) for row in c]))
+        np.testing.assert_array_equal(coded_keys.unlift(r), c)
 
 
 def test_a_column_smooth_along_the_curve_is_stored_as_residuals():

@@ -146,12 +146,9 @@ def _order_and_keys(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
 def _sorted_keys(codes: np.ndarray) -> dict:
     """What of the storage order depends on the centre codes alone: the Morton keys (None where an
     axis spans 2^21 codes or more), the rows sorted by key and the positions whose key is shared."""
-    if len(codes) == 0:
-        return {"key": np.zeros(0, np.uint64), "order": np.zeros(0, np.intp), "ties": np.zeros(0, np.intp)}
-    mu = codes[:, 0:3] - codes[:, 0:3].min(0)
-    if int(mu.max(initial=0)) >= (1 << 21):
+    key = centre_keys(codes[:, 0:3])
+    if key is None:
         return {"key": None}
-    key = _part1by2(mu[:, 0]) | (_part1by2(mu[:, 1]) << np.uint64(1)) | (_part1by2(mu[:, 2]) << np.uint64(2))
     # any sort of the keys: rows of a unique key land where a stable sort puts them, and the rows
     # sharing a key are put in full-lexsort order by _resolve_ties whatever order they came in
     order = np.argsort(key)
@@ -244,40 +241,26 @@ def _planes(v: np.ndarray, w: int) -> list[bytes]:
 
 
 def _predicted(c: np.ndarray, s: int) -> np.ndarray:
-    """The predictions of positions s, 3s, 5s, ... of ``c`` (along axis 0) from positions i - s
-    and i + s: their mean, rounded down (i - s alone where i + s is past the end)."""
-    left = c[0 : len(c) - s : 2 * s]
-    right = c[2 * s :: 2 * s]
-    if len(right) < len(left):
-        right = np.concatenate([right, left[len(right) :]])
+    """The predictions of positions s, 3s, 5s, ... of ``c`` (along the last axis) from positions
+    i - s and i + s: their mean, rounded down (i - s alone where i + s is past the end)."""
+    n = c.shape[-1]
+    left = c[..., 0 : n - s : 2 * s]
+    right = c[..., 2 * s :: 2 * s]
+    if right.shape[-1] < left.shape[-1]:
+        right = np.concatenate([right, left[..., right.shape[-1] :]], axis=-1)
     return (left + right) >> 1
 
 
 def lift(c: np.ndarray) -> np.ndarray:
-    """Residuals of int64 values ``c`` (storage order, along axis 0) after predicting each from
-    the two nearest of a coarser level: position i, an odd multiple of s = 2^L, from the mean
-    (rounded down) of positions i - s and i + s (i - s alone past the end); position 0 is its own
-    residual. Each level is one vectorised step."""
+    """Residuals of int64 values ``c`` (storage order, along the last axis: a column, or one
+    column a row of a (k, n) array) after predicting each from the two nearest of a coarser
+    level: position i, an odd multiple of s = 2^L, from the mean (rounded down) of positions
+    i - s and i + s (i - s alone past the end); position 0 is its own residual. Each level is one
+    vectorised step."""
     r = c.copy()
     s = 1
-    while s < len(c):
-        r[s :: 2 * s] = c[s :: 2 * s] - _predicted(c, s)
-        s *= 2
-    return r
-
-
-def lift_rows(c: np.ndarray) -> np.ndarray:
-    """:func:`lift` of each row of a (k, n) int64 array (its columns along the last axis): the
-    same residuals, transposed, without the strided rows of a (n, k) array."""
-    r = c.copy()
-    n = c.shape[1]
-    s = 1
-    while s < n:
-        left = c[:, 0 : n - s : 2 * s]
-        right = c[:, 2 * s :: 2 * s]
-        if right.shape[1] < left.shape[1]:
-            right = np.concatenate([right, left[:, right.shape[1] :]], axis=1)
-        r[:, s :: 2 * s] = c[:, s :: 2 * s] - ((left + right) >> 1)
+    while s < c.shape[-1]:
+        r[..., s :: 2 * s] = c[..., s :: 2 * s] - _predicted(c, s)
         s *= 2
     return r
 
@@ -285,11 +268,12 @@ def lift_rows(c: np.ndarray) -> np.ndarray:
 def unlift(r: np.ndarray) -> np.ndarray:
     """The values whose :func:`lift` residuals are ``r`` (the coarsest level first)."""
     c = r.copy()
+    n = r.shape[-1]
     s = 1
-    while 2 * s < len(r):
+    while 2 * s < n:
         s *= 2
-    while s >= 1 and len(r) > 1:
-        c[s :: 2 * s] = r[s :: 2 * s] + _predicted(c, s)
+    while s >= 1 and n > 1:
+        c[..., s :: 2 * s] = r[..., s :: 2 * s] + _predicted(c, s)
         s //= 2
     return c
 
@@ -343,7 +327,7 @@ def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int], gaps:
     # every attribute column and its residuals contiguous (reductions over strided columns of the
     # (n, 12) codes took most of a coding's column work)
     attrs = np.ascontiguousarray(codes[:, 3:12].T)
-    residuals = lift_rows(attrs) if n > 2 else None  # every attribute column at once
+    residuals = lift(attrs) if n > 2 else None  # every attribute column at once
     for k in range(3, 12):
         col = _column(attrs[k - 3])
         if col[1] and residuals is not None:  # a stored column: its residuals may code smaller;

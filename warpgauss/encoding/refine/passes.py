@@ -48,10 +48,6 @@ SPLIT_DENSE_PRIMITIVES = 50_000
 LIST_PAD_SHARE = 0.1  # one H200, three MRIs at CR 10 / 100 / 1000: 0.1 took 49.1 s against 53.1 at 0.25 (with ROW_COST 64: 44.9), profile_knobs2_h200.json
 LIST_PAD_VOXELS = 1.0
 LIST_MAX_ENTRIES = 1 << 26  # (cell, primitive) entries at most (4 int32 arrays: 1 GiB); beyond, no lists
-# list entries written one thread per entry (kernels.lists.list_fill_entries) instead of one per
-# slot: the same entries; at CR 1000 one slot's thread wrote thousands (list_fill 0.5 ms of a
-# 0.7 ms re-bin on one H200, inia19; results/speed/iteration_floor_rowshare_h200.json)
-LIST_FILL_BY_ENTRY = True
 LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (fewer re-captures)
 # list entries the forward pass loads at a time (1 or 2: the same sums bit for bit, see
 # kernels.lists.listed_sums_2). One H200, default encodes of the three MRIs at CR 100 and 10
@@ -78,8 +74,9 @@ def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bo
 
 
 def chunk_capacity(n_points: int) -> int:
-    """Chunks the backward pass may use beyond one per primitive: enough for chunks of
-    :data:`MIN_CHUNK` at about 125 :data:`CHUNKS_PER_POINT` candidates per point, at most 2^21 (then chunks grow)."""
+    """Chunks the backward pass may use beyond one per primitive: :data:`CHUNKS_PER_POINT` a point,
+    enough for chunks of :data:`MIN_CHUNK` at :data:`MIN_CHUNK` x :data:`CHUNKS_PER_POINT`
+    candidates per point, at most 2^21 (then chunks grow)."""
     return max(1024, min(1 << 21, int(CHUNKS_PER_POINT * int(n_points))))
 
 
@@ -256,8 +253,10 @@ class PairPasses:
             b["list_start"] = None
         if b.get("list_start") is None:
             b["list_start"] = wp.zeros(b["grid_plan"].total_cells + 1, dtype=int, device=dev)
-        fill, dim = (kl.list_fill_entries, total) if LIST_FILL_BY_ENTRY else (kl.list_fill, n)
-        wp.launch(fill, dim=dim, inputs=[*args, self._list_cum], outputs=[self._list_keys, self._list_values], device=dev)
+        # one thread an entry (list_fill, one a slot, writes the same: at CR 1000 one slot's thread
+        # wrote thousands, 0.5 ms of a 0.7 ms re-bin on one H200, inia19;
+        # results/speed/iteration_floor_rowshare_h200.json)
+        wp.launch(kl.list_fill_entries, dim=total, inputs=[*args, self._list_cum], outputs=[self._list_keys, self._list_values], device=dev)
         cells = b["grid_plan"].total_cells
         wp.utils.radix_sort_pairs(self._list_keys, self._list_values, total, 0, max(1, (cells - 1).bit_length()))
         cell_starts(self._list_keys, total, b["cell_counts"], b["list_start"], dev)
