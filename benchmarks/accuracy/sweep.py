@@ -47,6 +47,8 @@ Variants (``--variants``, comma list):
     rebin20    the defaults with a re-bin every 20 iterations instead of 10 (half the re-bins)
     relocate   the defaults with dead primitives (weight below 0.02) relocated to the error
                every 100 iterations for the first half (``RefineConfig.relocate_every``, issue #53)
+    relocate-w10, relocate-w20
+               relocate with the weight below which a primitive counts as dead at 0.10 / 0.20
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -113,6 +115,8 @@ VARIANTS: dict[str, tuple] = {
     "smooth": ({"weights": LossWeights(smooth=0.01, smooth_final=0.0001)}, (None, None)),
     "rebin20": ({"rebin_every": 20}, (None, None)),
     "relocate": ({"relocate_every": 100}, (None, None)),
+    "relocate-w10": ({"relocate_every": 100, "relocate_weight": 0.1}, (None, None)),
+    "relocate-w20": ({"relocate_every": 100, "relocate_weight": 0.2}, (None, None)),
 }
 # variants that change a constant of warpgauss.encoding.refine.config for their encodes
 TWICE_THE_SAMPLES = {"GPU_VOXELS_PER_SAMPLE": 64, "GPU_MAX_SAMPLES": 262_144}
