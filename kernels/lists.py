@@ -3,7 +3,7 @@
 The forward pass of refinement used to visit, for every point, the 3^3 neighbour cells of every
 primitive level (cells at least a radius wide): 27 L cell lookups and some 10-40 candidate
 primitives for each pair that contributes. Here every primitive is listed once per cell of its
-level's point grid (:class:`warpgauss.kernels.backward.PointGrid`, the grid the backward pass
+level's point grid (:class:`warpgauss.kernels.chunked.PointGrid`, the grid the backward pass
 bins points on) that its box, widened by a margin, reaches. A point then reads one list a level:
 the candidates are the primitives whose boxes reach its cell, the transpose of what the backward
 pass visits (2-4 candidates a pair).
@@ -17,7 +17,7 @@ deferred (:func:`warpgauss.kernels.optim.fits_list`), as steps out of reach of a
 
 import warp as wp
 
-from .backward import PointGrid, box_rows, slot_level
+from .chunked import PointGrid, box_rows, slot_level
 from .field import BinnedPrimitives, add_pair, conic_g, in_box, level_cell, store_sums, vec6
 from .optim import BIG, cell_faces
 from .sampling import find_brick

@@ -40,8 +40,10 @@ def main(argv=None) -> dict:
     ap.add_argument("--patch", action="append", default=[], help="as profile_encode.py's --patch")
     ap.add_argument(
         "--sweep",
-        default="",
-        help="module.CONST:v1,v2,...: after each encode, every kernel of a plain iteration with the constant at each value (the same state)",
+        action="append",
+        default=[],
+        help="module.CONST:v1,v2,...: after each encode, every kernel of a plain iteration with the constant at each value (the same "
+        "state); set:module.A=v;module.B=w: with several constants set at once; repeat for more",
     )
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
@@ -60,7 +62,7 @@ def main(argv=None) -> dict:
             row["kernels_per_replay"] = _kernels(refiner, dev)
             row["kernels_per_rebin"] = _kernels(refiner, dev, 5, refiner.rebin)
             if args.sweep:
-                row["sweep"] = _sweep(refiner, dev, args.sweep)
+                row["sweep"] = {spec: _sweep(refiner, dev, spec) for spec in args.sweep}
             print(json.dumps({k: v for k, v in row.items() if not k.startswith("kernels_per")}))
             print("  rebin kernels us", round(sum(v[0] for v in row["kernels_per_rebin"].values()), 1))
             for name, (us, count) in list(row["kernels_per_rebin"].items())[:8]:
@@ -116,9 +118,11 @@ def _pieces(r: Refiner, dev: str, repeat: int) -> dict:
 def _sweep(r: Refiner, dev: str, spec: str) -> dict:
     """Kernel microseconds of a plain iteration with one module constant at each of several values."""
     key, _, values = spec.partition(":")
+    settings = {values: {k: float(x) for k, _, x in (a.partition("=") for a in values.split(";"))}} if key == "set" else {}
+    settings = settings or {v: {key: float(v)} for v in values.split(",")}
     out = {}
-    for v in values.split(","):
-        saved = _apply({key: float(v)})
+    for v, setting in settings.items():
+        saved = _apply(setting)
         r._graph = None
         per = _kernels(r, dev)
         _apply(saved)

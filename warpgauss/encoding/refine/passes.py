@@ -18,9 +18,13 @@ from .draw import Sampler
 from .state import Primitives
 
 MIN_CHUNK = 128  # candidate points per chunk of the backward pass at least
-# chunks of one primitive at most: its partials are summed by one thread, serially (H100, N 2,000
-# x 307,200 samples: about 600 chunks each took 1.6 ms to sum, a quarter of the pass)
-MAX_CHUNKS = 128
+# chunks of one primitive at most (a multiple of LANES): its groups' partials are summed by one
+# thread, serially
+MAX_CHUNKS = 512
+# chunks of the backward pass that share a primitive's box rows (a power of two): a primitive
+# with more chunks splits its rows between groups of this many (kernels.chunked.pair_grad_chunks)
+LANES = 32
+BACKWARD_BLOCK = 256  # threads a block of the chunked backward pass on CUDA
 CHUNKS_PER_POINT = 2  # chunks the backward pass may use beyond one per primitive, per point of the iteration
 PARTIAL_MAX_ENTRIES = 1 << 24  # (point, neighbour cell) partial sums of the split forward pass (192 MiB)
 # points an iteration at most for which the refiner picks the split forward pass by itself
@@ -146,18 +150,18 @@ class PairPasses:
         reserved for the largest sort this pass runs)."""
         if self._buf is None:
             from ...field.gaussians import plan_arrays, plan_point_grids
-            from ...kernels import backward as kb
+            from ...kernels import chunked as kc
             from ...kernels import field as kf
 
             wp, dev, n, plan = self._wp, self.device, self.state.n, self.state.binned
             levels, p2 = len(plan.sizes), self.n_points
             k = levels * p2
             gp = plan_point_grids(plan, p2, self.shape_xyz, self.sampler.n_high + self.sampler.n_mid)
-            grid = kb.PointGrid()
+            grid = kc.PointGrid()
             grid.size, grid.dims, grid.offset = plan_arrays(gp, dev)
             grid.start = wp.zeros(gp.total_cells + 1, dtype=int, device=dev)
             cap = chunk_capacity(p2)
-            slots = n + cap  # chunks at most (kernels.backward.pair_chunks)
+            slots = n + cap  # chunks at most (kernels.chunked.pair_chunks)
             b = {
                 "grid_plan": gp,
                 "grid": grid,
@@ -356,7 +360,7 @@ class PairPasses:
         summed per primitive in chunk order. The cost follows the candidates, not the largest
         primitive's point count.
         """
-        from ...kernels import backward as kb
+        from ...kernels import chunked as kc
 
         wp, dev, b, st = self._wp, self.device, self.buffers(), self.state
         n = st.n
@@ -366,7 +370,7 @@ class PairPasses:
         self._sorted = None
         k = len(st.binned.sizes) * count
         wp.launch(
-            kb.gather_point_state,
+            kc.gather_point_state,
             dim=k,
             inputs=[b["order"], self.sampler.points, self.value, self.density, self.g_value, self.g_density],
             outputs=[b["pos"], b["state"]],
@@ -375,24 +379,25 @@ class PairPasses:
         if count_pairs:
             self.back_pairs.zero_()
         grid, cap = b["grid"], b["capacity"]
-        wp.launch(kb.pair_work, dim=n, inputs=[st.slot_cell, st.prims, grid], outputs=[b["work"]], device=dev)
+        wp.launch(kc.pair_work, dim=n, inputs=[st.slot_cell, st.prims, grid], outputs=[b["work"]], device=dev)
         wp.utils.array_scan(b["work"], b["work_cum"], inclusive=True)
         wp.launch(
-            kb.pair_chunks,
+            kc.pair_chunks,
             dim=n,
-            inputs=[b["work"], b["work_cum"], cap, MIN_CHUNK, MAX_CHUNKS],
+            inputs=[b["work"], b["work_cum"], cap, MIN_CHUNK, MAX_CHUNKS, LANES],
             outputs=[b["chunks"], b["chunk_size"]],
             device=dev,
         )
         wp.utils.array_scan(b["chunks"], b["chunk_cum"], inclusive=True)
-        wp.launch(kb.chunk_owner, dim=n, inputs=[b["chunks"], b["chunk_cum"]], outputs=[b["owner"]], device=dev)
+        wp.launch(kc.chunk_owner, dim=n, inputs=[b["chunks"], b["chunk_cum"]], outputs=[b["owner"]], device=dev)
         wp.launch(
-            kb.pair_grad_chunks_r64 if BACKWARD_REGISTERS == 64 else kb.pair_grad_chunks,
+            kc.pair_grad_chunks_r64 if BACKWARD_REGISTERS == 64 else kc.pair_grad_chunks,
             dim=b["slots"],
             inputs=[
                 b["owner"],
                 b["chunks"],
                 b["chunk_cum"],
+                LANES,
                 st.slot_cell,
                 st.prims,
                 grid,
@@ -403,9 +408,15 @@ class PairPasses:
             ],
             outputs=[self.back_pairs, *b["parts"]],
             device=dev,
+            block_dim=BACKWARD_BLOCK,
         )
+        wp.launch(kc.reduce_lanes, dim=b["slots"], inputs=[b["owner"], b["chunks"], b["chunk_cum"], LANES, *b["parts"]], device=dev)
         wp.launch(
-            kb.reduce_chunks, dim=n, inputs=[b["chunks"], b["chunk_cum"], st.prims, *b["parts"]], outputs=list(st.pair_grads), device=dev
+            kc.reduce_chunks,
+            dim=n,
+            inputs=[b["chunks"], b["chunk_cum"], LANES, st.prims, *b["parts"]],
+            outputs=list(st.pair_grads),
+            device=dev,
         )
         st.clean = False
 
