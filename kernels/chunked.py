@@ -100,8 +100,9 @@ def pair_work(
     prims: BinnedPrimitives,
     grid: PointGrid,
     work: wp.array(dtype=wp.int64),  # [N] out: candidate points of each slot (entries in its box rows)
+    rows: wp.array(dtype=int),  # [N] out: rows of its box
 ):
-    """Count the candidate points of each primitive: the entries of its box's rows (one thread each)."""
+    """Count the candidate points and the rows of each primitive's box (one thread each)."""
     j = wp.tid()
     l = slot_level(slot_cell[j], prims.level_offset)
     lo, hi = box_rows(prims.mu[j], prims.ext[j], l, grid)
@@ -111,47 +112,37 @@ def pair_work(
             r = row_range(grid, l, lo, hi, y, z)
             w += wp.int64(r[1] - r[0])
     work[j] = w
+    rows[j] = (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1)
 
 
 @wp.kernel
 def pair_chunks(
     work: wp.array(dtype=wp.int64),  # [N] from pair_work
     work_cum: wp.array(dtype=wp.int64),  # [N] inclusive scan of work
+    rows: wp.array(dtype=int),  # [N] from pair_work
     capacity: int,  # chunks the partial buffers hold beyond one per primitive
     min_chunk: int,  # candidates per chunk at least
     max_chunks: int,  # chunks of one primitive at most
-    lanes: int,  # chunks of a group (a power of two; see pair_grad_chunks)
+    lanes: int,  # chunks a group at least, where a primitive has several groups
     chunks: wp.array(dtype=int),  # [N] out: chunks of each primitive
+    groups: wp.array(dtype=int),  # [N] out: groups its chunks form (1 at least; divides chunks)
     chunk_size: wp.array(dtype=int),  # [1] out: candidates per chunk this iteration
 ):
     """Split each primitive's candidates into chunks of K = max(min_chunk, total / capacity), so
     that sum(chunks) <= N + capacity whatever the load, and at most ``max_chunks`` per primitive
-    (larger chunks then; one thread per primitive). The count is then rounded down to a multiple
-    of ``lanes`` when it has that many, else to a power of two, so that a primitive's chunks
-    form groups of the same power-of-two size (:func:`chunk_shape`)."""
+    (larger chunks then; one thread per primitive). The chunks form groups of ``lanes`` or more,
+    no more groups than the box has rows (:func:`pair_grad_chunks` gives each group its own
+    rows); the count is rounded down to a multiple of the groups."""
     j = wp.tid()
     total = work_cum[work_cum.shape[0] - 1]
     cap = wp.int64(capacity)
     k = wp.max(wp.int64(min_chunk), (total + cap - wp.int64(1)) / cap)
     c = int(wp.min((work[j] + k - wp.int64(1)) / k, wp.int64(max_chunks)))
-    if c >= lanes:
-        c = (c / lanes) * lanes
-    else:
-        p = int(1)
-        while p * 2 <= c:
-            p = p * 2
-        c = wp.min(c, p)
-    chunks[j] = c
+    g = wp.max(1, wp.min(c / lanes, rows[j]))
+    chunks[j] = (c / g) * g
+    groups[j] = g
     if j == 0:
         chunk_size[0] = int(k)
-
-
-@wp.func
-def chunk_shape(nc: int, lanes: int) -> wp.vec2i:
-    """(chunks a group, groups) of a primitive with ``nc`` chunks: groups of ``lanes`` chunks when
-    it has that many, else one group of all ``nc`` (pair_chunks makes either a power of two)."""
-    nl = wp.max(wp.min(nc, lanes), 1)
-    return wp.vec2i(nl, nc / nl)
 
 
 @wp.kernel
@@ -187,7 +178,7 @@ def _pair_grad_chunks(
     owner: wp.array(dtype=int),  # [>=T] slot of each chunk
     chunks: wp.array(dtype=int),  # [N] chunks of each slot
     chunk_cum: wp.array(dtype=int),  # [N] inclusive scan of chunks (T = chunk_cum[N - 1])
-    lanes: int,  # chunks a group at most (pair_chunks)
+    groups: wp.array(dtype=int),  # [N] groups of each slot's chunks (pair_chunks)
     slot_cell: wp.array(dtype=int),  # [N]
     prims: BinnedPrimitives,
     grid: PointGrid,
@@ -202,8 +193,7 @@ def _pair_grad_chunks(
 ):
     """Partial gradients of one chunk of one primitive's candidate points (one thread per chunk).
 
-    A primitive's C chunks form G groups of L (:func:`chunk_shape`, L a power of two): group g
-    takes the box rows whose number (y fastest, then z) is g modulo G, and its i-th candidate
+    A primitive's C chunks form G groups of L = C / G (:func:`pair_chunks`): group g takes the box rows whose number (y fastest, then z) is g modulo G, and its i-th candidate
     (counting along its rows) goes to the group's chunk i mod L. A thread thus reads the cell
     starts of 1/G of the rows, neighbouring threads of a group read neighbouring points, and the
     chunks of a group have the same load within one point. Each partial is stored;
@@ -217,12 +207,10 @@ def _pair_grad_chunks(
     j = owner[t]
     nc = chunks[j]
     c = t - (chunk_cum[j] - nc)
-    shape = chunk_shape(nc, lanes)
-    nl = shape[0]
-    ng = shape[1]
+    ng = groups[j]
+    nl = nc / ng
     grp = c / nl
     lane = c - grp * nl
-    mask = nl - 1
     l = slot_level(slot_cell[j], prims.level_offset)
     mu = prims.mu[j]
     cq = prims.conic[j]
@@ -234,13 +222,16 @@ def _pair_grad_chunks(
     s_dd = vec6(0.0)
     s_a = float(0.0)
     s_w = float(0.0)
-    acc = int(0)  # candidates in the group's rows before this one
+    acc = int(0)  # candidates in the group's rows before this one, modulo nl
     rq = int(0)  # the row's number modulo ng
     for z in range(lo[2], hi[2] + 1):
         for y in range(lo[1], hi[1] + 1):
             if rq == grp:
                 r = row_range(grid, l, lo, hi, y, z)
-                for k in range(r[0] + ((lane - acc) & mask), r[1], nl):
+                first = lane - acc
+                if first < 0:
+                    first += nl
+                for k in range(r[0] + first, r[1], nl):
                     d = pos[k] - mu
                     if in_box(d, e):
                         g = conic_g(d, cq)
@@ -256,7 +247,7 @@ def _pair_grad_chunks(
                                 s_dd += vec6(kd[0] * d[0], kd[1] * d[1], kd[2] * d[2], kd[0] * d[1], kd[0] * d[2], kd[1] * d[2])
                                 s_a += st[0] * w * g / st[2]
                                 s_w += g * gl
-                acc += r[1] - r[0]
+                acc = (acc + r[1] - r[0]) % nl
             rq += 1
             if rq == ng:
                 rq = 0
@@ -275,7 +266,7 @@ def reduce_lanes(
     owner: wp.array(dtype=int),  # [>=T] slot of each chunk
     chunks: wp.array(dtype=int),  # [N]
     chunk_cum: wp.array(dtype=int),  # [N]
-    lanes: int,  # as given to pair_grad_chunks
+    groups: wp.array(dtype=int),  # [N] (pair_chunks)
     part_kd: wp.array(dtype=wp.vec3),  # [>=T] in: chunk partials; out: group partials at each group's first chunk
     part_dd: wp.array(dtype=vec6),
     part_aw: wp.array(dtype=wp.vec2),
@@ -289,7 +280,7 @@ def reduce_lanes(
     j = owner[t]
     nc = chunks[j]
     c = t - (chunk_cum[j] - nc)
-    nl = chunk_shape(nc, lanes)[0]
+    nl = nc / groups[j]
     if c % nl != 0 or nl == 1:
         return
     s_kd = part_kd[t]
@@ -308,7 +299,7 @@ def reduce_lanes(
 def reduce_chunks(
     chunks: wp.array(dtype=int),  # [N]
     chunk_cum: wp.array(dtype=int),  # [N]
-    lanes: int,  # as given to pair_grad_chunks
+    groups: wp.array(dtype=int),  # [N] (pair_chunks)
     prims: BinnedPrimitives,
     part_kd: wp.array(dtype=wp.vec3),  # [>=T] group partials (reduce_lanes)
     part_dd: wp.array(dtype=vec6),
@@ -324,7 +315,7 @@ def reduce_chunks(
     j = wp.tid()
     nc = chunks[j]
     base = chunk_cum[j] - nc
-    nl = chunk_shape(nc, lanes)[0]
+    nl = wp.max(nc / groups[j], 1)
     s_kd = wp.vec3(0.0, 0.0, 0.0)
     s_dd = vec6(0.0)
     s_aw = wp.vec2(0.0, 0.0)

@@ -50,12 +50,12 @@ def _pair_pass(r):
 
 @pytest.mark.parametrize(
     "min_chunk,capacity,max_chunks,lanes",
-    [(1, 1 << 20, 1 << 30, 32), (5, 1 << 20, 1 << 30, 4), (1, 7, 1 << 30, 32), (1, 1 << 20, 4, 2), (2, 1 << 20, 64, 1)],
-    ids=["one-per-chunk", "five-in-groups-of-four", "capacity-bound", "two-groups-of-two", "groups-of-one"],
+    [(1, 1 << 20, 1 << 30, 32), (5, 1 << 20, 1 << 30, 3), (1, 7, 1 << 30, 32), (1, 1 << 20, 4, 2), (2, 1 << 20, 64, 1)],
+    ids=["one-per-chunk", "five-in-groups-of-three", "capacity-bound", "two-groups-of-two", "groups-of-one"],
 )
 def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkeypatch, min_chunk, capacity, max_chunks, lanes):
     """Chunks of 1, 2 or 5 candidates, as many as a tiny capacity forces, or at most 4 per
-    primitive; groups of 32, 4, 2 or 1 chunks sharing a primitive's rows: the same pairs, and the
+    primitive; groups of at least 32, 3, 2 or 1 chunks sharing a primitive's rows: the same pairs, and the
     gradients of the point-major atomic scatter (another summation order: rounding only)."""
     from warpgauss.encoding.refine import passes
 
@@ -68,16 +68,17 @@ def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkey
     np.testing.assert_array_equal(pairs, r.pairs.numpy())
     assert pairs.sum() > 10 * r.m
     assert stats["chunks"] <= min(r.n + capacity, r.n * max_chunks)
-    chunks = r.passes.buffers()["chunks"].numpy()[: r.n]
-    many = chunks >= lanes
-    assert np.all(chunks[many] % lanes == 0)  # whole groups
-    assert np.all((chunks[~many] & (chunks[~many] - 1)) == 0)  # one group of a power of two
+    b = r.passes.buffers()
+    chunks, groups, rows = (b[k].numpy()[: r.n] for k in ("chunks", "groups", "rows"))
+    assert np.all(chunks % groups == 0) and np.all(groups >= 1)  # whole groups
+    assert np.all(groups <= np.maximum(rows, 1))  # at most one a row
+    assert np.all(chunks[groups > 1] // groups[groups > 1] >= lanes)  # of LANES chunks or more
     if max_chunks < 100:
         assert np.mean(chunks == max_chunks) > 0.5  # most primitives use them all: two groups of two, 64 of one
     elif capacity > 1000:
         assert stats["chunk_size"] == min_chunk
         assert 2 * stats["chunks"] >= stats["candidates"] // min_chunk > 5 * r.n  # really split
-        assert np.sum(chunks > lanes) > 0.1 * r.n  # several groups
+        assert np.sum(groups > 1) > 0.1 * r.n  # several groups
     else:
         assert stats["chunk_size"] >= stats["candidates"] / capacity
     assert stats["candidates"] >= pairs.sum()

@@ -17,14 +17,17 @@ from ...core.warp import warp
 from .draw import Sampler
 from .state import Primitives
 
-MIN_CHUNK = 128  # candidate points per chunk of the backward pass at least
-# chunks of one primitive at most (a multiple of LANES): its groups' partials are summed by one
-# thread, serially
-MAX_CHUNKS = 512
-# chunks of the backward pass that share a primitive's box rows (a power of two): a primitive
-# with more chunks splits its rows between groups of this many (kernels.chunked.pair_grad_chunks)
+# The chunked backward pass (kernels/chunked.py). One H200, one state each after default encodes
+# of mni_icbm152 (CR 1000 / 100) and mean_reg2mean (CR 1000), pair_grad_chunks: with groups of 32
+# and at most 512 chunks 298 / 536 / 380 us against 430 / 546 / 433 us of one group a primitive
+# at most 128 chunks, and 183 / 444 / 344 us with MIN_CHUNK 64 instead of 128
+# (results/speed/iteration_floor_groups_h200.json)
+MIN_CHUNK = 64  # candidate points per chunk at least
+MAX_CHUNKS = 512  # chunks of one primitive at most
+# chunks that share box rows: a primitive with more chunks splits its rows between groups of at
+# least this many (at most one group a row)
 LANES = 32
-BACKWARD_BLOCK = 256  # threads a block of the chunked backward pass on CUDA
+BACKWARD_BLOCK = 256  # threads a block on CUDA (64 and 128 were no faster)
 CHUNKS_PER_POINT = 2  # chunks the backward pass may use beyond one per primitive, per point of the iteration
 PARTIAL_MAX_ENTRIES = 1 << 24  # (point, neighbour cell) partial sums of the split forward pass (192 MiB)
 # points an iteration at most for which the refiner picks the split forward pass by itself
@@ -176,7 +179,9 @@ class PairPasses:
                 "capacity": cap,
                 "work": wp.empty(n, dtype=wp.int64, device=dev),
                 "work_cum": wp.empty(n, dtype=wp.int64, device=dev),
+                "rows": wp.empty(n, dtype=int, device=dev),
                 "chunks": wp.empty(n, dtype=int, device=dev),
+                "groups": wp.empty(n, dtype=int, device=dev),
                 "chunk_cum": wp.empty(n, dtype=int, device=dev),
                 "chunk_size": wp.zeros(1, dtype=int, device=dev),
                 "owner": wp.empty(slots, dtype=int, device=dev),
@@ -379,13 +384,13 @@ class PairPasses:
         if count_pairs:
             self.back_pairs.zero_()
         grid, cap = b["grid"], b["capacity"]
-        wp.launch(kc.pair_work, dim=n, inputs=[st.slot_cell, st.prims, grid], outputs=[b["work"]], device=dev)
+        wp.launch(kc.pair_work, dim=n, inputs=[st.slot_cell, st.prims, grid], outputs=[b["work"], b["rows"]], device=dev)
         wp.utils.array_scan(b["work"], b["work_cum"], inclusive=True)
         wp.launch(
             kc.pair_chunks,
             dim=n,
-            inputs=[b["work"], b["work_cum"], cap, MIN_CHUNK, MAX_CHUNKS, LANES],
-            outputs=[b["chunks"], b["chunk_size"]],
+            inputs=[b["work"], b["work_cum"], b["rows"], cap, MIN_CHUNK, MAX_CHUNKS, LANES],
+            outputs=[b["chunks"], b["groups"], b["chunk_size"]],
             device=dev,
         )
         wp.utils.array_scan(b["chunks"], b["chunk_cum"], inclusive=True)
@@ -397,7 +402,7 @@ class PairPasses:
                 b["owner"],
                 b["chunks"],
                 b["chunk_cum"],
-                LANES,
+                b["groups"],
                 st.slot_cell,
                 st.prims,
                 grid,
@@ -410,11 +415,11 @@ class PairPasses:
             device=dev,
             block_dim=BACKWARD_BLOCK,
         )
-        wp.launch(kc.reduce_lanes, dim=b["slots"], inputs=[b["owner"], b["chunks"], b["chunk_cum"], LANES, *b["parts"]], device=dev)
+        wp.launch(kc.reduce_lanes, dim=b["slots"], inputs=[b["owner"], b["chunks"], b["chunk_cum"], b["groups"], *b["parts"]], device=dev)
         wp.launch(
             kc.reduce_chunks,
             dim=n,
-            inputs=[b["chunks"], b["chunk_cum"], LANES, st.prims, *b["parts"]],
+            inputs=[b["chunks"], b["chunk_cum"], b["groups"], st.prims, *b["parts"]],
             outputs=list(st.pair_grads),
             device=dev,
         )
