@@ -6,8 +6,8 @@ candidate points are the entries of the grid rows its 5-sigma box reaches: :func
 counts them, :func:`pair_chunks` and :func:`chunk_owner` split them into chunks, in groups that
 share the box's rows; :func:`pair_grad_chunks` sums one chunk per thread in the grid's frame
 (K = sum k d and the six entries of D = sum k d d^T, with k = dL/dG G: 11 sums a thread, no
-rotation a pair); :func:`reduce_lanes` adds each group's chunks and :func:`reduce_chunks` a
-primitive's groups in order, and turns K and D into the gradients (:func:`frame_grads`): no
+rotation a pair); :func:`reduce_lanes` adds blocks of a group's chunks and :func:`reduce_chunks` a
+primitive's blocks in order, and turns K and D into the gradients (:func:`frame_grads`): no
 float atomics, bit-identical reruns. :func:`warpgauss.kernels.backward.accumulate_pairs` (one
 thread per point scattering through atomics) is its reference.
 """
@@ -193,8 +193,9 @@ def _pair_grad_chunks(
 ):
     """Partial gradients of one chunk of one primitive's candidate points (one thread per chunk).
 
-    A primitive's C chunks form G groups of L = C / G (:func:`pair_chunks`): group g takes the box rows whose number (y fastest, then z) is g modulo G, and its i-th candidate
-    (counting along its rows) goes to the group's chunk i mod L. A thread thus reads the cell
+    A primitive's C chunks form G groups of L = C / G (:func:`pair_chunks`): group g takes the
+    box rows whose number (y fastest, then z) is g modulo G, and its i-th candidate (counting
+    along its rows) goes to the group's chunk i mod L. A thread thus reads the cell
     starts of 1/G of the rows, neighbouring threads of a group read neighbouring points, and the
     chunks of a group have the same load within one point. Each partial is stored;
     :func:`reduce_lanes` and :func:`reduce_chunks` add them in chunk order: no atomics,
@@ -223,34 +224,36 @@ def _pair_grad_chunks(
     s_a = float(0.0)
     s_w = float(0.0)
     acc = int(0)  # candidates in the group's rows before this one, modulo nl
-    rq = int(0)  # the row's number modulo ng
-    for z in range(lo[2], hi[2] + 1):
-        for y in range(lo[1], hi[1] + 1):
-            if rq == grp:
-                r = row_range(grid, l, lo, hi, y, z)
-                first = lane - acc
-                if first < 0:
-                    first += nl
-                for k in range(r[0] + first, r[1], nl):
-                    d = pos[k] - mu
-                    if in_box(d, e):
-                        g = conic_g(d, cq)
-                        if g > 0.0:
-                            if count_pairs != 0:
-                                wp.atomic_add(pairs, order[k], 1)
-                            st = state[k]
-                            if st[0] != 0.0 or st[1] != 0.0:
-                                gl = st[0] * (a - st[3]) / st[2] + st[1]  # dL/dG / w
-                                kk = w * gl * g
-                                kd = kk * d
-                                s_kd += kd
-                                s_dd += vec6(kd[0] * d[0], kd[1] * d[1], kd[2] * d[2], kd[0] * d[1], kd[0] * d[2], kd[1] * d[2])
-                                s_a += st[0] * w * g / st[2]
-                                s_w += g * gl
-                acc = (acc + r[1] - r[0]) % nl
-            rq += 1
-            if rq == ng:
-                rq = 0
+    ny = hi[1] - lo[1] + 1
+    z = lo[2] + grp / ny  # row grp, then every ng-th
+    y = lo[1] + grp - (grp / ny) * ny
+    for _q in range(grp, ny * (hi[2] - lo[2] + 1), ng):
+        r = row_range(grid, l, lo, hi, y, z)
+        first = lane - acc
+        if first < 0:
+            first += nl
+        for k in range(r[0] + first, r[1], nl):
+            d = pos[k] - mu
+            if in_box(d, e):
+                g = conic_g(d, cq)
+                if g > 0.0:
+                    if count_pairs != 0:
+                        wp.atomic_add(pairs, order[k], 1)
+                    st = state[k]
+                    if st[0] != 0.0 or st[1] != 0.0:
+                        gl = st[0] * (a - st[3]) / st[2] + st[1]  # dL/dG / w
+                        kk = w * gl * g
+                        kd = kk * d
+                        s_kd += kd
+                        s_dd += vec6(kd[0] * d[0], kd[1] * d[1], kd[2] * d[2], kd[0] * d[1], kd[0] * d[2], kd[1] * d[2])
+                        s_a += st[0] * w * g / st[2]
+                        s_w += g * gl
+        acc = (acc + r[1] - r[0]) % nl
+        y += ng
+        if y > hi[1]:
+            dz = (y - lo[1]) / ny
+            z += dz
+            y -= dz * ny
     part_kd[t] = s_kd
     part_dd[t] = s_dd
     part_aw[t] = wp.vec2(s_a, s_w)
@@ -261,18 +264,22 @@ pair_grad_chunks = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks")
 pair_grad_chunks_r64 = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks_r64", cuda_max_registers=64)
 
 
+REDUCE_BLOCK = wp.constant(32)  # chunks reduce_lanes adds in one thread at most
+
+
 @wp.kernel
 def reduce_lanes(
     owner: wp.array(dtype=int),  # [>=T] slot of each chunk
     chunks: wp.array(dtype=int),  # [N]
     chunk_cum: wp.array(dtype=int),  # [N]
     groups: wp.array(dtype=int),  # [N] (pair_chunks)
-    part_kd: wp.array(dtype=wp.vec3),  # [>=T] in: chunk partials; out: group partials at each group's first chunk
+    part_kd: wp.array(dtype=wp.vec3),  # [>=T] in: chunk partials; out: block partials at each block's first chunk
     part_dd: wp.array(dtype=vec6),
     part_aw: wp.array(dtype=wp.vec2),
 ):
-    """Add the chunks of each group in chunk order into the group's first chunk (one thread per
-    chunk; the first of each group works)."""
+    """Add each block of REDUCE_BLOCK consecutive chunks of a group (the last block of a group
+    may be shorter) in chunk order into the block's first chunk (one thread per chunk; the first
+    of each block works)."""
     t = wp.tid()
     n = chunk_cum.shape[0]
     if t >= chunk_cum[n - 1]:
@@ -281,12 +288,13 @@ def reduce_lanes(
     nc = chunks[j]
     c = t - (chunk_cum[j] - nc)
     nl = nc / groups[j]
-    if c % nl != 0 or nl == 1:
+    p = c % nl  # place in the group
+    if p % REDUCE_BLOCK != 0 or nl - p == 1:
         return
     s_kd = part_kd[t]
     s_dd = part_dd[t]
     s_aw = part_aw[t]
-    for u in range(t + 1, t + nl):
+    for u in range(t + 1, t + wp.min(REDUCE_BLOCK, nl - p)):
         s_kd += part_kd[u]
         s_dd += part_dd[u]
         s_aw += part_aw[u]
@@ -301,7 +309,7 @@ def reduce_chunks(
     chunk_cum: wp.array(dtype=int),  # [N]
     groups: wp.array(dtype=int),  # [N] (pair_chunks)
     prims: BinnedPrimitives,
-    part_kd: wp.array(dtype=wp.vec3),  # [>=T] group partials (reduce_lanes)
+    part_kd: wp.array(dtype=wp.vec3),  # [>=T] block partials (reduce_lanes)
     part_dd: wp.array(dtype=vec6),
     part_aw: wp.array(dtype=wp.vec2),
     d_mu: wp.array(dtype=wp.vec3),  # [N] out (cell order, overwritten): dL/dmu
@@ -310,8 +318,8 @@ def reduce_chunks(
     d_a: wp.array(dtype=float),  # [N] out: dL/da
     d_w: wp.array(dtype=float),  # [N] out: dL/dw (activated weight)
 ):
-    """Sum each primitive's group partials in group order (one thread per primitive; a primitive
-    with no candidate point gets zeros)."""
+    """Sum each primitive's block partials, group by group, in chunk order (one thread per
+    primitive; a primitive with no candidate point gets zeros)."""
     j = wp.tid()
     nc = chunks[j]
     base = chunk_cum[j] - nc
@@ -319,10 +327,11 @@ def reduce_chunks(
     s_kd = wp.vec3(0.0, 0.0, 0.0)
     s_dd = vec6(0.0)
     s_aw = wp.vec2(0.0, 0.0)
-    for t in range(base, base + nc, nl):
-        s_kd += part_kd[t]
-        s_dd += part_dd[t]
-        s_aw += part_aw[t]
+    for g0 in range(base, base + nc, nl):
+        for t in range(g0, g0 + nl, REDUCE_BLOCK):
+            s_kd += part_kd[t]
+            s_dd += part_dd[t]
+            s_aw += part_aw[t]
     g_mu, g_ls, g_rot = frame_grads(s_kd, s_dd, prims.rot[j], prims.inv_s2[j])
     d_mu[j] = g_mu
     d_ls[j] = g_ls

@@ -79,6 +79,7 @@ def test_chunked_pass_equals_the_atomic_scatter_however_it_splits(device, monkey
         assert stats["chunk_size"] == min_chunk
         assert 2 * stats["chunks"] >= stats["candidates"] // min_chunk > 5 * r.n  # really split
         assert np.sum(groups > 1) > 0.1 * r.n  # several groups
+        assert np.any(chunks // groups > 32)  # groups reduced in several blocks
     else:
         assert stats["chunk_size"] >= stats["candidates"] / capacity
     assert stats["candidates"] >= pairs.sum()
