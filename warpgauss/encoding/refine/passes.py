@@ -17,11 +17,13 @@ from ...core.warp import warp
 from .draw import Sampler
 from .state import Primitives
 
-# The chunked backward pass (kernels/chunked.py). One H200, one state each after default encodes
-# of mni_icbm152 (CR 1000 / 100) and mean_reg2mean (CR 1000), pair_grad_chunks: with groups of 32
-# and at most 512 chunks 298 / 536 / 380 us against 430 / 546 / 433 us of one group a primitive
-# at most 128 chunks, and 183 / 444 / 344 us with MIN_CHUNK 64 instead of 128
-# (results/speed/iteration_floor_groups_h200.json)
+# The chunked backward pass (kernels/chunked.py). One H200, one state after each default encode of
+# mni_icbm152 / mean_reg2mean / inia19, pair_grad_chunks at CR 1000 / 100 / 10 against one group a
+# primitive, at most 128 chunks of 128 or more (0cbaf1a, the same run): 431 / 542 / 1057 ->
+# 156 / 381 / 1036 us, 435 / 851 / 1274 -> 292 / 855 / 1288, 441 / 517 / 1213 -> 217 / 551 / 1179
+# (results/speed/iteration_floor_groups_*_h200.json). MIN_CHUNK 32 or 128, MAX_CHUNKS 256 or 1024,
+# LANES 16 or 64 and registers as compiled (BACKWARD_REGISTERS 0) were within a few % of these on every state, better on
+# some and worse on others (iteration_floor_groups_trial2_*_h200.json)
 MIN_CHUNK = 64  # candidate points per chunk at least
 MAX_CHUNKS = 512  # chunks of one primitive at most
 # chunks that share box rows: a primitive with more chunks splits its rows between groups of at
