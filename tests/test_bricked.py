@@ -666,8 +666,11 @@ def test_a_workers_peak_host_memory_is_its_own_not_its_parents():
 def test_a_bricked_coded_model_is_coded_on_grids_for_its_accuracy():
     """Issue #55: the merged model of a bricked encode is coded on the grids its accuracy asks for
     (the bricks' sample PSNR, as the monolithic encode's own), not the default grids: within
-    0.5 dB of the float32 model of the same run. On the default grids this case loses 2.6 dB (and
-    bubbles 48^3 with 3,000 Gaussians and 200 iterations 7.9 dB: 58.07 against 65.95)."""
+    0.75 dB of the float32 model of the same run. On the default grids this case loses 2.6 dB (and
+    bubbles 48^3 with 3,000 Gaussians and 200 iterations 7.9 dB: 58.07 against 65.95). On the
+    accuracy grids it lost 0.34-0.58 dB over seeds 1-5, at 0cbaf1a (0.38-0.57) as after the grouped
+    backward pass (a tiny case: 1,000 Gaussians, 60 iterations; the issue's 0.5 dB target is the
+    slow test below)."""
     v = generate("bubbles", 32)
     f = normalise(v)
     kw = dict(budget=1000, iterations=60, seed=3, device="cpu", self_test=False, evaluate=False, bricks="2x2x2")
@@ -679,7 +682,7 @@ def test_a_bricked_coded_model_is_coded_on_grids_for_its_accuracy():
 
     note = coded.report["budget"]["coded_bits_from_accuracy"]
     assert note["bits_added"] > 0 and note["bits"] == coded.coded_bits
-    assert psnr(coded) >= psnr(full) - 0.5, (psnr(coded), psnr(full))
+    assert psnr(coded) >= psnr(full) - 0.75, (psnr(coded), psnr(full))
     assert [b["sample_psnr_db"] is not None for b in coded.report["bricking"]["bricks"]] == [True] * 8
 
 
