@@ -174,6 +174,24 @@ def frame_grads(s_kd: wp.vec3, s_dd: vec6, R: wp.mat33, inv: wp.vec3):
     return d_mu, d_ls, -(Dr @ L)
 
 
+@wp.func
+def chunk_place(
+    t: int,
+    owner: wp.array(dtype=int),
+    chunks: wp.array(dtype=int),
+    chunk_cum: wp.array(dtype=int),
+    groups: wp.array(dtype=int),
+) -> wp.vec4i:
+    """(slot, its chunk number, chunks a group, groups) of chunk ``t``; slot -1 past the chunk
+    count (pair_chunks laid them out)."""
+    if t >= chunk_cum[chunk_cum.shape[0] - 1]:
+        return wp.vec4i(-1, 0, 1, 1)
+    j = owner[t]
+    nc = chunks[j]
+    ng = groups[j]
+    return wp.vec4i(j, t - (chunk_cum[j] - nc), nc / ng, ng)
+
+
 def _pair_grad_chunks(
     owner: wp.array(dtype=int),  # [>=T] slot of each chunk
     chunks: wp.array(dtype=int),  # [N] chunks of each slot
@@ -202,14 +220,13 @@ def _pair_grad_chunks(
     bit-identical reruns. Threads past the chunk count return at once.
     """
     t = wp.tid()
-    n = chunk_cum.shape[0]
-    if t >= chunk_cum[n - 1]:
+    at = chunk_place(t, owner, chunks, chunk_cum, groups)
+    j = at[0]
+    if j < 0:
         return
-    j = owner[t]
-    nc = chunks[j]
-    c = t - (chunk_cum[j] - nc)
-    ng = groups[j]
-    nl = nc / ng
+    c = at[1]
+    nl = at[2]
+    ng = at[3]
     grp = c / nl
     lane = c - grp * nl
     l = slot_level(slot_cell[j], prims.level_offset)
@@ -281,14 +298,11 @@ def reduce_lanes(
     may be shorter) in chunk order into the block's first chunk (one thread per chunk; the first
     of each block works)."""
     t = wp.tid()
-    n = chunk_cum.shape[0]
-    if t >= chunk_cum[n - 1]:
+    at = chunk_place(t, owner, chunks, chunk_cum, groups)
+    if at[0] < 0:
         return
-    j = owner[t]
-    nc = chunks[j]
-    c = t - (chunk_cum[j] - nc)
-    nl = nc / groups[j]
-    p = c % nl  # place in the group
+    nl = at[2]
+    p = at[1] % nl  # place in the group
     if p % REDUCE_BLOCK != 0 or nl - p == 1:
         return
     s_kd = part_kd[t]
