@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
 from warpgauss.cli.main import app
+from warpgauss.encoding.bench import source_commit
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_bench_kernels_writes_rows_for_every_n_and_sample_count(tmp_path, cpu):
@@ -17,6 +21,7 @@ def test_bench_kernels_writes_rows_for_every_n_and_sample_count(tmp_path, cpu):
     assert res.exit_code == 0, res.output
     r = json.loads(out.read_text())
     assert r["device"] == "cpu" and r["warp_version"] and r["date"]
+    assert r["commit"] == source_commit(ROOT) and r["warpgauss_version"]  # the run's commit ($WARPGAUSS_COMMIT or git)
     assert [(x["n"], x["samples"]) for x in r["rows"]] == [(40, 64), (40, 256), (120, 64), (120, 256)]
     for row in r["rows"]:
         assert row["pairs_per_point"] > 1.0  # the synthetic primitives overlap every sample

@@ -132,15 +132,21 @@ def _sweep(r: Refiner, dev: str, spec: str) -> dict:
 
 
 def _chunk_tail(r: Refiner) -> dict:
-    """The largest chunk of the last backward pass (candidates one thread walks) and the largest
-    chunk count of one primitive."""
+    """The last backward pass's largest mean chunk (a primitive's candidates over its chunks: what
+    one thread walks where its group's rows hold as many candidates as the others'), the largest
+    chunk count and group count of one primitive, and the most candidates of one."""
     import numpy as np
 
     b = r.passes.buffers()
     work = b["work"].numpy().astype(np.int64)
     chunks = np.maximum(b["chunks"].numpy().astype(np.int64), 1)
     per = -(-work // chunks)
-    return {"max_chunk": int(per.max(initial=0)), "max_chunks": int(chunks.max(initial=0)), "max_work": int(work.max(initial=0))}
+    return {
+        "max_chunk": int(per.max(initial=0)),
+        "max_chunks": int(chunks.max(initial=0)),
+        "max_groups": int(b["groups"].numpy().max(initial=0)),
+        "max_work": int(work.max(initial=0)),
+    }
 
 
 def _kernels(r: Refiner, dev: str, replays: int = 20, fn=None) -> dict:

@@ -18,10 +18,12 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .._version import __version__
 from ..core.warp import device_name, resolve_device, warp
 from ..errors import WarpgaussError
 from ..field.analysis import DeviceVolume, normalise
@@ -67,11 +69,7 @@ def result_header(benchmark: str, script: str, argv, device: str) -> dict:
     """The fields every benchmark's JSON starts with: what it measures, the command that produced it
     (``script``: the benchmark's ``__file__``; ``argv``: its arguments, None: ``sys.argv[1:]``), the
     warpgauss version and commit, the device, its name, the Warp version and the date (UTC)."""
-    import datetime as dt
     import sys
-    from pathlib import Path
-
-    from .._version import __version__
 
     parts = Path(script).resolve().parts
     rel = "/".join(parts[parts.index("benchmarks") :]) if "benchmarks" in parts else Path(script).name
@@ -329,6 +327,8 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
         del r
     return {
         "benchmark": "kernel microbenchmarks (warpgauss bench kernels)",
+        "warpgauss_version": __version__,
+        "commit": source_commit(Path(__file__).resolve().parent),
         "device": dev,
         "device_name": device_name(dev),
         "warp_version": wp.config.version,
