@@ -277,7 +277,8 @@ def _pair_grad_chunks(
 
 
 pair_grad_chunks = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks")
-# capped at 64 registers a thread on CUDA (as compiled 95: 2 blocks of 256 an SM, 25 % occupancy)
+# capped at 64 registers a thread on CUDA (passes.BACKWARD_REGISTERS; the pass before the groups
+# compiled to 95: 2 blocks of 256 an SM, 25 % occupancy)
 pair_grad_chunks_r64 = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks_r64", cuda_max_registers=64)
 
 

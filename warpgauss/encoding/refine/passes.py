@@ -22,8 +22,8 @@ from .state import Primitives
 # primitive, at most 128 chunks of 128 or more (0cbaf1a, the same run): 431 / 542 / 1057 ->
 # 156 / 381 / 1036 us, 435 / 851 / 1274 -> 292 / 855 / 1288, 441 / 517 / 1213 -> 217 / 551 / 1179
 # (results/speed/iteration_floor_groups_*_h200.json). MIN_CHUNK 32 or 128, MAX_CHUNKS 256 or 1024,
-# LANES 16 or 64 and registers as compiled (BACKWARD_REGISTERS 0) were within a few % of these on every state, better on
-# some and worse on others (iteration_floor_groups_trial2_*_h200.json)
+# LANES 16 or 64 and registers as compiled (BACKWARD_REGISTERS 0) were within a few % of these on
+# every state, better on some and worse on others (iteration_floor_groups_trial2_*_h200.json)
 MIN_CHUNK = 64  # candidate points per chunk at least
 MAX_CHUNKS = 512  # chunks of one primitive at most
 # chunks that share box rows: a primitive with more chunks splits its rows between groups of at
