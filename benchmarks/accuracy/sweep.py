@@ -49,6 +49,10 @@ Variants (``--variants``, comma list):
                every 100 iterations for the first half (``RefineConfig.relocate_every``, issue #53)
     relocate-w10, relocate-w20
                relocate with the weight below which a primitive counts as dead at 0.10 / 0.20
+    rc16, rc32 the point grids planned with ROW_COST 16 / 32 (finer cells) instead of 64
+    pad0, pad05
+               the cell lists' boxes padded by 0 / 0.5 voxels (and the 10 % share) instead of 1
+    rc16-pad0  both
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -58,6 +62,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib
 import json
 import os
 import sys
@@ -117,6 +122,11 @@ VARIANTS: dict[str, tuple] = {
     "relocate": ({"relocate_every": 100}, (None, None)),
     "relocate-w10": ({"relocate_every": 100, "relocate_weight": 0.1}, (None, None)),
     "relocate-w20": ({"relocate_every": 100, "relocate_weight": 0.2}, (None, None)),
+    "rc16": ({}, (None, None)),
+    "rc32": ({}, (None, None)),
+    "pad0": ({}, (None, None)),
+    "pad05": ({}, (None, None)),
+    "rc16-pad0": ({}, (None, None)),
 }
 # variants that change a constant of warpgauss.encoding.refine.config for their encodes
 TWICE_THE_SAMPLES = {"GPU_VOXELS_PER_SAMPLE": 64, "GPU_MAX_SAMPLES": 262_144}
@@ -129,6 +139,28 @@ CODED_CONSTANTS: dict[str, dict[str, float]] = {
     "bits34": {"BITS_REFERENCE_DB": 34.0},
     "bits43": {"BITS_REFERENCE_DB": 43.0},
 }
+# variants that set any module constant ("module.CONST") for their encodes: the point grids' row cost
+# (finer cells: fewer candidate pairs, more rows and list entries) and the cell lists' padding
+ROW_COST = "warpgauss.field.gaussians.ROW_COST"
+PAD_VOXELS = "warpgauss.encoding.refine.passes.LIST_PAD_VOXELS"
+MODULE_CONSTANTS: dict[str, dict[str, object]] = {
+    "rc16": {ROW_COST: 16.0},
+    "rc32": {ROW_COST: 32.0},
+    "pad0": {PAD_VOXELS: 0.0},
+    "pad05": {PAD_VOXELS: 0.5},
+    "rc16-pad0": {ROW_COST: 16.0, PAD_VOXELS: 0.0},
+}
+
+
+def _set_constants(values: dict[str, object]) -> dict[str, object]:
+    """Set "module.CONST" constants; returns the values they had."""
+    old = {}
+    for key, value in values.items():
+        mod, const = key.rsplit(".", 1)
+        m = importlib.import_module(mod)
+        old[key] = getattr(m, const)
+        setattr(m, const, value)
+    return old
 
 
 def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
@@ -140,6 +172,7 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
     for m, table in constants:
         for k, v in table.get(variant, {}).items():
             setattr(m, k, v)
+    saved_module = _set_constants(MODULE_CONSTANTS.get(variant, {}))
     if prune is not None:
         ratefit.PRUNE_SHARE = prune
     if refit is not None:
@@ -158,6 +191,7 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
         for m, old in saved_constants:
             for k, v in old.items():
                 setattr(m, k, v)
+        _set_constants(saved_module)
     return model, seconds
 
 
