@@ -13,6 +13,8 @@ order. No float atomics: reruns are bit-identical.
 
 from __future__ import annotations
 
+import numpy as np
+
 from ...core.warp import warp
 from .draw import Sampler
 from .state import Primitives
@@ -70,6 +72,10 @@ FORWARD_UNROLL = 2
 # 29.18 ms at 20K x 65,536 / 20K x 1M / 1.4M x 65,536 / 1.4M x 1M against 1.13 / 11.52 / 4.31 /
 # 32.26 as compiled; 48 spilled (1.21 / 10.86 / 4.16 / 31.15)
 BACKWARD_REGISTERS = 64
+# point cells are this many times finer along x than along y and z (rows run along x, so finer x
+# cells narrow each row to what a primitive reaches there, kernels.chunked.row_span, and shorten
+# the cell lists a point reads, without more rows to walk)
+POINT_X_DIV = 4
 
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
@@ -161,9 +167,10 @@ class PairPasses:
             wp, dev, n, plan = self._wp, self.device, self.state.n, self.state.binned
             levels, p2 = len(plan.sizes), self.n_points
             k = levels * p2
-            gp = plan_point_grids(plan, p2, self.shape_xyz, self.sampler.n_high + self.sampler.n_mid)
+            gp, xsize = plan_point_grids(plan, p2, self.shape_xyz, self.sampler.n_high + self.sampler.n_mid, POINT_X_DIV)
             grid = kc.PointGrid()
             grid.size, grid.dims, grid.offset = plan_arrays(gp, dev)
+            grid.xsize = wp.array(np.asarray(xsize, np.float32), dtype=float, device=dev)
             grid.start = wp.zeros(gp.total_cells + 1, dtype=int, device=dev)
             cap = chunk_capacity(p2)
             slots = n + cap  # chunks at most (kernels.chunked.pair_chunks)
@@ -283,18 +290,12 @@ class PairPasses:
         (stable: the order within a cell is the point index, so the pair pass sums in a fixed
         order), with the dense cell start table."""
         from ...field.gaussians import cell_starts
-        from ...kernels import field as kf
+        from ...kernels import chunked as kc
 
         wp, dev, b = self._wp, self.device, self.buffers()
         grid, cells = b["grid"], b["grid_plan"].total_cells
         k = len(self.state.binned.sizes) * count
-        wp.launch(
-            kf.point_keys,
-            dim=k,
-            inputs=[self.sampler.points, count, grid.size, grid.dims, grid.offset],
-            outputs=[b["keys"], b["order"]],
-            device=dev,
-        )
+        wp.launch(kc.grid_keys, dim=k, inputs=[self.sampler.points, count, grid], outputs=[b["keys"], b["order"]], device=dev)
         wp.utils.radix_sort_pairs(b["keys"], b["order"], k, 0, max(1, (cells - 1).bit_length()))
         cell_starts(b["keys"], k, b["cell_counts"], grid.start, dev)
 
