@@ -15,7 +15,7 @@ thread per point scattering through atomics) is its reference.
 import warp as wp
 
 from .backward import point_state
-from .field import TRUNC_M2, BinnedPrimitives, conic_g, in_box, level_cell, vec6
+from .field import BinnedPrimitives, conic_g, in_box, level_cell, vec6
 
 wp.set_module_options({"enable_backward": False})
 
@@ -48,8 +48,7 @@ class PointGrid:
     sorted entries: ``[start[first cell], start[last cell + 1])``.
     """
 
-    size: wp.array(dtype=float)  # [L] cell edge of each level's point grid along y and z (voxels)
-    xsize: wp.array(dtype=float)  # [L] cell edge along x (the size over passes.POINT_X_DIV: rows are along x)
+    size: wp.array(dtype=float)  # [L] cell edge of each level's point grid (voxels)
     dims: wp.array(dtype=wp.vec3i)  # [L] cells per axis
     offset: wp.array(dtype=int)  # [L] first cell id of each level
     start: wp.array(dtype=int)  # [C + 1] first sorted entry of each cell; start[C] = entries
@@ -66,40 +65,13 @@ def slot_level(cid: int, level_offset: wp.array(dtype=int)) -> int:
 
 
 @wp.func
-def grid_cell(x: wp.vec3, l: int, grid: PointGrid) -> wp.vec3i:
-    """Clamped cell coordinates of x on level ``l``'s point grid (cells start at -0.5, the voxel
-    edge, and are ``xsize`` long along x, ``size`` along y and z)."""
-    dims = grid.dims[l]
-    c = level_cell(x, grid.size[l], dims)
-    c[0] = wp.clamp(int(wp.floor((x[0] + 0.5) / grid.xsize[l])), 0, dims[0] - 1)
-    return c
-
-
-@wp.kernel
-def grid_keys(
-    points: wp.array(dtype=wp.vec3),  # [>=count]
-    count: int,  # points to bin; the launch has L * count threads
-    grid: PointGrid,
-    keys: wp.array(dtype=int),  # [2 L count] out: point cell id of (level, point) in the first L count entries
-    values: wp.array(dtype=int),  # [2 L count] out: point index
-):
-    """Bin every point on every level's point grid."""
-    k = wp.tid()
-    l = k / count
-    i = k - l * count
-    dims = grid.dims[l]
-    c = grid_cell(points[i], l, grid)
-    keys[k] = grid.offset[l] + (c[2] * dims[1] + c[1]) * dims[0] + c[0]
-    values[k] = i
-
-
-@wp.func
 def box_rows(mu: wp.vec3, e: wp.vec3, l: int, grid: PointGrid):
     """The cells of level ``l``'s point grid that a primitive's 5-sigma box reaches: (first cell,
     last cell) per axis. Every point the primitive contributes to lies in the box, so in one of
     these cells (lookups clamp at the grid's faces, on both sides alike). The box is widened by a
     relative 1e-6 so that float rounding of mu +- e never drops a point on its face.
     """
+    size = grid.size[l]
     dims = grid.dims[l]
     lo = wp.vec3i(0, 0, 0)
     hi = wp.vec3i(dims[0] - 1, dims[1] - 1, dims[2] - 1)
@@ -109,88 +81,17 @@ def box_rows(mu: wp.vec3, e: wp.vec3, l: int, grid: PointGrid):
             1.0e-6 * (wp.abs(mu[1]) + e[1]) + 1.0e-6,
             1.0e-6 * (wp.abs(mu[2]) + e[2]) + 1.0e-6,
         )
-        lo = grid_cell(mu - e - pad, l, grid)
-        hi = grid_cell(mu + e + pad, l, grid)
+        lo = level_cell(mu - e - pad, size, dims)
+        hi = level_cell(mu + e + pad, size, dims)
     return lo, hi
 
 
 @wp.func
-def slab(k: int, n: int, size: float, m: float, e: float, tol: float) -> wp.vec2:
-    """Offsets from a centre at m of cell k's slab (of n cells of edge ``size`` from -0.5) clipped
-    to the box half-width e and widened by tol; an edge cell reaches outwards to the box's face
-    (lookups clamp there)."""
-    a = -e
-    b = e
-    if k > 0:
-        a = wp.max(float(k) * size - 0.5 - m, -e)
-    if k < n - 1:
-        b = wp.min(float(k + 1) * size - 0.5 - m, e)
-    return wp.vec2(a - tol, b + tol)
-
-
-@wp.func
-def row_span(grid: PointGrid, l: int, lo: wp.vec3i, hi: wp.vec3i, y: int, z: int, mu: wp.vec3, e: wp.vec3, c: vec6) -> wp.vec2i:
-    """[start, end) of the sorted entries of row (y, z) on level l that a primitive's 5-sigma
-    ellipsoid (centre mu, Sigma^-1 entries c, box half-extents e) can reach: the cells lo.x..hi.x
-    narrowed to the x-range of the ellipsoid over the row's y-z rectangle, or an empty range
-    where the ellipsoid misses the rectangle.
-
-    With S the Schur complement of Sigma^-1 on (y, z) (the inverse of Sigma's y-z block), the
-    ellipsoid's slice at (dy, dz) spans dx = -(c_xy dy + c_xz dz) / c_xx +- sqrt((25 - M) / c_xx),
-    M = [dy dz] S [dy dz]^T, and its projection at dz spans dy = -S_yz dz / S_yy +-
-    sqrt((25 - s dz^2) / S_yy), s = S_zz - S_yz^2 / S_yy: both centres are linear, so their
-    extremes over a rectangle lie on its corners. M and s are >= 0 in exact arithmetic; in
-    float32 an extreme shape can round them below, so the half-widths take what they could be
-    below (S's smallest eigenvalue and s less their rounding) over the rectangle, and 25 grows by
-    what rounding can move the pair passes' own m = d^T Sigma^-1 d. Where c_xx or S_yy is not
-    positive the whole box row is taken.
-    """
+def row_range(grid: PointGrid, l: int, lo: wp.vec3i, hi: wp.vec3i, y: int, z: int) -> wp.vec2i:
+    """[start, end) of the sorted entries in cells lo.x..hi.x of row (y, z) on level l."""
     dims = grid.dims[l]
     first = grid.offset[l] + (z * dims[1] + y) * dims[0]
-    x0 = lo[0]
-    x1 = hi[0]
-    cxx = c[0]
-    if cxx > 0.0:
-        qy = c[3] * c[3] / cxx
-        qz = c[4] * c[4] / cxx
-        syy = c[1] - qy
-        szz = c[2] - qz
-        syz = c[5] - c[3] * c[4] / cxx
-        if syy > 0.0 and wp.isfinite(syy + szz + syz + mu[0] + mu[1] + mu[2]):
-            size = grid.size[l]
-            tol = 1.0e-4 * (size + wp.abs(mu[0]) + wp.abs(mu[1]) + wp.abs(mu[2])) + 1.0e-4
-            zs = slab(z, dims[2], size, mu[2], e[2], tol)
-            ys = slab(y, dims[1], size, mu[1], e[1], tol)
-            rim = TRUNC_M2 + 1.0e-5 * (cxx * e[0] * e[0] + c[1] * e[1] * e[1] + c[2] * e[2] * e[2])  # m's rounding
-            err = 1.0e-5 * (c[1] + c[2] + wp.abs(c[5]) + qy + qz)  # S's rounding
-            dz2 = wp.max(zs[0] * zs[0], zs[1] * zs[1])
-            s1 = szz - syz * syz / syy
-            ky = -syz / syy
-            hy = wp.sqrt((rim + wp.max(err - s1, 0.0) * dz2) / syy) * 1.001 + tol
-            ya = wp.min(ky * zs[0], ky * zs[1]) - hy
-            yb = wp.max(ky * zs[0], ky * zs[1]) + hy
-            if ya > ys[1] or yb < ys[0]:
-                return wp.vec2i(0, 0)
-            y0 = wp.max(ys[0], ya)
-            y1 = wp.min(ys[1], yb)
-            half = 0.5 * (syy + szz)
-            low = half - wp.sqrt(wp.max(half * half - (syy * szz - syz * syz), 0.0))  # S's smallest eigenvalue
-            r2 = wp.max(y0 * y0, y1 * y1) + dz2
-            hx = wp.sqrt((rim + wp.max(err - low, 0.0) * r2) / cxx) * 1.001 + tol
-            k1 = -c[3] / cxx
-            k2 = -c[4] / cxx
-            p0 = k1 * y0 + k2 * zs[0]
-            p1 = k1 * y0 + k2 * zs[1]
-            p2 = k1 * y1 + k2 * zs[0]
-            p3 = k1 * y1 + k2 * zs[1]
-            xa = mu[0] + wp.max(wp.min(wp.min(p0, p1), wp.min(p2, p3)) - hx, -e[0] - tol)
-            xb = mu[0] + wp.min(wp.max(wp.max(p0, p1), wp.max(p2, p3)) + hx, e[0] + tol)
-            inv = 1.0 / grid.xsize[l]
-            x0 = wp.max(x0, wp.clamp(int(wp.floor((xa + 0.5) * inv)), 0, dims[0] - 1))
-            x1 = wp.min(x1, wp.clamp(int(wp.floor((xb + 0.5) * inv)), 0, dims[0] - 1))
-            if x1 < x0:
-                return wp.vec2i(0, 0)
-    return wp.vec2i(grid.start[first + x0], grid.start[first + x1 + 1])
+    return wp.vec2i(grid.start[first + lo[0]], grid.start[first + hi[0] + 1])
 
 
 @wp.kernel
@@ -198,21 +99,17 @@ def pair_work(
     slot_cell: wp.array(dtype=int),  # [N] cell id each sorted slot is binned in
     prims: BinnedPrimitives,
     grid: PointGrid,
-    work: wp.array(dtype=wp.int64),  # [N] out: candidate points of each slot (entries of its rows' spans)
+    work: wp.array(dtype=wp.int64),  # [N] out: candidate points of each slot (entries in its box rows)
     rows: wp.array(dtype=int),  # [N] out: rows of its box
 ):
-    """Count the candidate points (:func:`row_span` of every row) and the rows of each
-    primitive's box (one thread each)."""
+    """Count the candidate points and the rows of each primitive's box (one thread each)."""
     j = wp.tid()
     l = slot_level(slot_cell[j], prims.level_offset)
-    mu = prims.mu[j]
-    e = prims.ext[j]
-    c = prims.conic[j]
-    lo, hi = box_rows(mu, e, l, grid)
+    lo, hi = box_rows(prims.mu[j], prims.ext[j], l, grid)
     w = wp.int64(0)
     for z in range(lo[2], hi[2] + 1):
         for y in range(lo[1], hi[1] + 1):
-            r = row_span(grid, l, lo, hi, y, z, mu, e, c)
+            r = row_range(grid, l, lo, hi, y, z)
             w += wp.int64(r[1] - r[0])
     work[j] = w
     rows[j] = (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1)
@@ -348,7 +245,7 @@ def _pair_grad_chunks(
     z = lo[2] + grp / ny  # row grp, then every ng-th
     y = lo[1] + grp - (grp / ny) * ny
     for _q in range(grp, ny * (hi[2] - lo[2] + 1), ng):
-        r = row_span(grid, l, lo, hi, y, z, mu, e, cq)
+        r = row_range(grid, l, lo, hi, y, z)
         first = lane - acc
         if first < 0:
             first += nl

@@ -17,8 +17,8 @@ deferred (:func:`warpgauss.kernels.optim.fits_list`), as steps out of reach of a
 
 import warp as wp
 
-from .chunked import PointGrid, box_rows, grid_cell, slot_level
-from .field import BinnedPrimitives, add_pair, conic_g, in_box, store_sums, vec6
+from .chunked import PointGrid, box_rows, slot_level
+from .field import BinnedPrimitives, add_pair, conic_g, in_box, level_cell, store_sums, vec6
 from .optim import BIG, cell_faces
 from .sampling import find_brick
 
@@ -110,9 +110,8 @@ def list_region(
     j = wp.tid()
     l, lo, hi = listed_cells(j, slot_cell, prims, grid, centre, half)
     a, b = cell_faces(lo, hi, grid.size[l], grid.dims[l])
-    ax, bx = cell_faces(lo, hi, grid.xsize[l], grid.dims[l])  # x cells are xsize long
-    box_lo[j] = wp.vec3(ax[0], a[1], a[2])
-    box_hi[j] = wp.vec3(bx[0], b[1], b[2])
+    box_lo[j] = a
+    box_hi[j] = b
 
 
 @wp.kernel
@@ -183,7 +182,7 @@ def list_fill_entries(
 def point_cell(p: wp.vec3, l: int, grid: PointGrid) -> int:
     """Id of the level-l point cell holding p (clamped at the grid's faces, as the backward bins it)."""
     dims = grid.dims[l]
-    c = grid_cell(p, l, grid)
+    c = level_cell(p, grid.size[l], dims)
     return grid.offset[l] + (c[2] * dims[1] + c[1]) * dims[0] + c[0]
 
 

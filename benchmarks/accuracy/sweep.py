@@ -53,9 +53,6 @@ Variants (``--variants``, comma list):
     pad0, pad05
                the cell lists' boxes padded by 0 / 0.5 voxels (and the 10 % share) instead of 1
     rc16-pad0  both
-    xdiv1, xdiv2, x4pad0
-               point cells 1 / 2 times finer along x than along y and z instead of 4; 4 with the
-               lists unpadded
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -130,9 +127,6 @@ VARIANTS: dict[str, tuple] = {
     "pad0": ({}, (None, None)),
     "pad05": ({}, (None, None)),
     "rc16-pad0": ({}, (None, None)),
-    "xdiv1": ({}, (None, None)),
-    "xdiv2": ({}, (None, None)),
-    "x4pad0": ({}, (None, None)),
 }
 # variants that change a constant of warpgauss.encoding.refine.config for their encodes
 TWICE_THE_SAMPLES = {"GPU_VOXELS_PER_SAMPLE": 64, "GPU_MAX_SAMPLES": 262_144}
@@ -149,16 +143,12 @@ CODED_CONSTANTS: dict[str, dict[str, float]] = {
 # (finer cells: fewer candidate pairs, more rows and list entries) and the cell lists' padding
 ROW_COST = "warpgauss.field.gaussians.ROW_COST"
 PAD_VOXELS = "warpgauss.encoding.refine.passes.LIST_PAD_VOXELS"
-X_DIV = "warpgauss.encoding.refine.passes.POINT_X_DIV"
 MODULE_CONSTANTS: dict[str, dict[str, object]] = {
     "rc16": {ROW_COST: 16.0},
     "rc32": {ROW_COST: 32.0},
     "pad0": {PAD_VOXELS: 0.0},
     "pad05": {PAD_VOXELS: 0.5},
     "rc16-pad0": {ROW_COST: 16.0, PAD_VOXELS: 0.0},
-    "xdiv1": {X_DIV: 1},
-    "xdiv2": {X_DIV: 2},
-    "x4pad0": {X_DIV: 4, PAD_VOXELS: 0.0},
 }
 
 

@@ -131,12 +131,9 @@ MAX_POINT_CELLS = 1 << 22  # cells of one level's point grid (16 MiB of int32 st
 ROW_COST = 64.0  # cost of visiting one row of point cells, in candidate-point tests (one H200, the forward pass through cell lists on these grids: 64 with LIST_PAD_SHARE 0.1 took the three MRIs at CR 10 / 100 / 1000 in 44.9 s against 53.1 at 16 and 0.25, every row within -0.13..+0.04 dB, results/speed/profile_knobs2_h200.json; H100 before the lists: 16 beat 1 and 4 by 3-6 % and 64 by 24 %, results/kernels/row_cost_h100.json)
 
 
-def plan_point_grids(
-    plan: BinPlan, n_points: int, shape_xyz: tuple[int, ...], occupied_voxels: int, xdiv: int = 1
-) -> tuple[BinPlan, tuple[float, ...]]:
+def plan_point_grids(plan: BinPlan, n_points: int, shape_xyz: tuple[int, ...], occupied_voxels: int) -> BinPlan:
     """Choose, per primitive level, the cell grid the backward pass bins points on (a
-    :class:`BinPlan` of the same levels: the last is one global cell), and each level's cell edge
-    along x.
+    :class:`BinPlan` of the same levels: the last is one global cell).
 
     A primitive of level ``l`` (half-extent e <= cell edge S) visits the rows of point cells its
     5-sigma box reaches. Cells of S / d cost (2e / F + 1)^2 rows and about rho (2e + F)^3
@@ -144,22 +141,17 @@ def plan_point_grids(
     fewer candidates, coarse cells fewer rows. This picks the d of
     :data:`POINT_GRID_DIVS` with the least ``ROW_COST`` x rows + candidates, taking e = 0.75 S
     (the middle of a level's radius class). The choice changes the speed, never the pairs.
-    Cells are then ``xdiv`` times finer along x (rows run along x: finer x cells narrow a row to
-    what a primitive reaches there without more rows; the cost above is kept as it was measured,
-    on cubes), less where that would exceed :data:`MAX_POINT_CELLS`.
 
     Args:
         plan: The primitives' levels.
         n_points: Points evaluated per iteration (samples and partners).
         shape_xyz: Grid size in voxels.
         occupied_voxels: Voxels above the occupancy threshold, where 75 % of the samples fall.
-        xdiv: Cells per cell edge along x (1, 2, 4, ...).
     """
     shape = np.asarray(shape_xyz, dtype=np.float64)
     volume = float(np.prod(shape))
     rho = 0.75 * n_points / max(float(occupied_voxels), 1.0) + 0.25 * n_points / volume
     sizes: list[float] = []
-    xsizes: list[float] = []
     dims: list[tuple[int, ...]] = []
     for s in plan.sizes[:-1]:  # the global level gets one cell below
         e = 0.75 * s
@@ -175,17 +167,11 @@ def plan_point_grids(
             span = np.minimum(2 * e + f, shape)
             cost = ROW_COST * float(reach[1] * reach[2]) + rho * float(np.prod(span))
             if best is None or cost < best[0]:
-                best = (cost, f, n)
+                best = (cost, f, tuple(int(v) for v in n))
         assert best is not None  # the first division (1) always counts
-        f, n = best[1], best[2]
-        k = max(int(xdiv), 1)
-        while k > 1 and np.ceil(shape[0] * k / f) * n[1] * n[2] > MAX_POINT_CELLS:
-            k //= 2
-        sizes.append(float(f))
-        xsizes.append(float(f) / k)
-        dims.append((int(max(np.ceil(shape[0] * k / f), 1)), int(n[1]), int(n[2])))
-    grid = _with_global_level(sizes, dims)
-    return grid, (*xsizes, grid.sizes[-1])
+        sizes.append(float(best[1]))
+        dims.append(best[2])
+    return _with_global_level(sizes, dims)
 
 
 def set_plan(prims, plan: BinPlan, device: str, cell_start=None, cell_end=None) -> None:

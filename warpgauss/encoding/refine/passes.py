@@ -13,8 +13,6 @@ order. No float atomics: reruns are bit-identical.
 
 from __future__ import annotations
 
-import numpy as np
-
 from ...core.warp import warp
 from .draw import Sampler
 from .state import Primitives
@@ -57,7 +55,9 @@ SPLIT_DENSE_PRIMITIVES = 50_000
 # voxels, so that the steps of the iterations up to the next re-bin rarely leave its listed cells
 # (a step that would is deferred to the re-bin, as one that leaves its bin cell's reach is)
 LIST_PAD_SHARE = 0.1  # one H200, three MRIs at CR 10 / 100 / 1000: 0.1 took 49.1 s against 53.1 at 0.25 (with ROW_COST 64: 44.9), profile_knobs2_h200.json
-LIST_PAD_VOXELS = 1.0
+LIST_PAD_VOXELS = (
+    1.0  # 0 and 0.5: the same dB (-0.02..+0.07), encodes 0.92-1.03x, within the runs' spread (accuracy/sweep_rc_pad_mri_h200.json)
+)
 LIST_MAX_ENTRIES = 1 << 26  # (cell, primitive) entries at most (4 int32 arrays: 1 GiB); beyond, no lists
 LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (fewer re-captures)
 # list entries the forward pass loads at a time (1 or 2: the same sums bit for bit, see
@@ -67,15 +67,18 @@ LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (
 # four at a time gained at CR 100 (0.41, 0.55 s) and lost at CR 10 (mean_reg2mean 2.40 -> 2.51 s),
 # and the backward pass two candidates at a time lost 6-18 % (more registers than its 95): dropped
 FORWARD_UNROLL = 2
+# Tried and dropped (one H200, three MRIs at CR 10 / 100 / 1000, results/accuracy/sweep_xdiv_*_h200.json,
+# results/speed/iteration_floor_spans_h200.json, commit 213440b): each backward row narrowed to the
+# ellipsoid's x-range over the row (per-row Schur-complement bounds) and point cells 4x finer along x
+# cut the candidates by a third (backward) and 8-25 % (forward) on saved models
+# (results/speed/pair_counts_xdiv_cpu.json), but refinement took 1.15-1.64x as long: pair_grad_chunks
+# 156 -> 375 us at mni CR 1000, pair_work 36 -> 141 us (the per-row arithmetic), and the listed
+# forward 1360 -> 1478 us at mni CR 10 (a warp's points spread over more cells)
 # registers a thread of the chunked backward may use on CUDA (0: as compiled, 95). One H200, `bench
 # kernels` rows (results/speed/bench_backward_registers_h200.json): 64 took 1.13 / 10.18 / 3.89 /
 # 29.18 ms at 20K x 65,536 / 20K x 1M / 1.4M x 65,536 / 1.4M x 1M against 1.13 / 11.52 / 4.31 /
 # 32.26 as compiled; 48 spilled (1.21 / 10.86 / 4.16 / 31.15)
 BACKWARD_REGISTERS = 64
-# point cells are this many times finer along x than along y and z (rows run along x, so finer x
-# cells narrow each row to what a primitive reaches there, kernels.chunked.row_span, and shorten
-# the cell lists a point reads, without more rows to walk)
-POINT_X_DIV = 4
 
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
@@ -167,10 +170,9 @@ class PairPasses:
             wp, dev, n, plan = self._wp, self.device, self.state.n, self.state.binned
             levels, p2 = len(plan.sizes), self.n_points
             k = levels * p2
-            gp, xsize = plan_point_grids(plan, p2, self.shape_xyz, self.sampler.n_high + self.sampler.n_mid, POINT_X_DIV)
+            gp = plan_point_grids(plan, p2, self.shape_xyz, self.sampler.n_high + self.sampler.n_mid)
             grid = kc.PointGrid()
             grid.size, grid.dims, grid.offset = plan_arrays(gp, dev)
-            grid.xsize = wp.array(np.asarray(xsize, np.float32), dtype=float, device=dev)
             grid.start = wp.zeros(gp.total_cells + 1, dtype=int, device=dev)
             cap = chunk_capacity(p2)
             slots = n + cap  # chunks at most (kernels.chunked.pair_chunks)
@@ -290,12 +292,18 @@ class PairPasses:
         (stable: the order within a cell is the point index, so the pair pass sums in a fixed
         order), with the dense cell start table."""
         from ...field.gaussians import cell_starts
-        from ...kernels import chunked as kc
+        from ...kernels import field as kf
 
         wp, dev, b = self._wp, self.device, self.buffers()
         grid, cells = b["grid"], b["grid_plan"].total_cells
         k = len(self.state.binned.sizes) * count
-        wp.launch(kc.grid_keys, dim=k, inputs=[self.sampler.points, count, grid], outputs=[b["keys"], b["order"]], device=dev)
+        wp.launch(
+            kf.point_keys,
+            dim=k,
+            inputs=[self.sampler.points, count, grid.size, grid.dims, grid.offset],
+            outputs=[b["keys"], b["order"]],
+            device=dev,
+        )
         wp.utils.radix_sort_pairs(b["keys"], b["order"], k, 0, max(1, (cells - 1).bit_length()))
         cell_starts(b["keys"], k, b["cell_counts"], grid.start, dev)
 
