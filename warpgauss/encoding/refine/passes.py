@@ -55,9 +55,9 @@ SPLIT_DENSE_PRIMITIVES = 50_000
 # voxels, so that the steps of the iterations up to the next re-bin rarely leave its listed cells
 # (a step that would is deferred to the re-bin, as one that leaves its bin cell's reach is)
 LIST_PAD_SHARE = 0.1  # one H200, three MRIs at CR 10 / 100 / 1000: 0.1 took 49.1 s against 53.1 at 0.25 (with ROW_COST 64: 44.9), profile_knobs2_h200.json
-LIST_PAD_VOXELS = (
-    1.0  # 0 and 0.5: the same dB (-0.02..+0.07), encodes 0.92-1.03x, within the runs' spread (accuracy/sweep_rc_pad_mri_h200.json)
-)
+# LIST_PAD_VOXELS 0: the same dB (-0.02..+0.07) and encodes 0.92-1.03x, within the runs' spread
+# (one H200, three MRIs at CR 10 / 100 / 1000, results/accuracy/sweep_rc_pad_mri_h200.json)
+LIST_PAD_VOXELS = 1.0
 LIST_MAX_ENTRIES = 1 << 26  # (cell, primitive) entries at most (4 int32 arrays: 1 GiB); beyond, no lists
 LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (fewer re-captures)
 # list entries the forward pass loads at a time (1 or 2: the same sums bit for bit, see
