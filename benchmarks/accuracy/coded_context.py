@@ -44,27 +44,34 @@ def entropy_bits(x: np.ndarray) -> float:
     return float(-(counts * np.log2(p)).sum())
 
 
+def seen_before(key: np.ndarray) -> np.ndarray:
+    """For each position, how often its key occurred earlier in the sequence."""
+    n = len(key)
+    if n and int(key.min()) >= 0 and int(key.max()) < 1 << 16:
+        key = key.astype(np.uint16)  # a stable sort of 16-bit keys is a radix sort
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    start = np.r_[0, np.flatnonzero(ks[1:] != ks[:-1]) + 1]
+    first = np.repeat(start, np.diff(np.r_[start, n]))
+    out = np.empty(n, np.int64)
+    out[order] = np.arange(n) - first
+    return out
+
+
 def adaptive_bits(sym: np.ndarray, ctx: np.ndarray | None = None, alpha: float = 0.5) -> float:
     """Total code length (bits) of ``sym`` under an adaptive count model per context (each symbol
-    coded with (count so far + alpha) / (context count so far + alpha K), K the alphabet seen)."""
+    coded with (count so far + alpha) / (context count so far + alpha K), K the alphabet seen: the
+    symbols the column takes, the alphabet a header would declare)."""
     sym = np.asarray(sym, np.int64)
     n = len(sym)
     if n == 0:
         return 0.0
-    _, s = np.unique(sym, return_inverse=True)
+    s = np.unique(sym, return_inverse=True)[1].reshape(-1)
     k = int(s.max()) + 1
-    _, c = np.unique(np.zeros(n, np.int64) if ctx is None else ctx, return_inverse=True)
-
-    def before(key: np.ndarray) -> np.ndarray:  # occurrences of each key earlier in the sequence
-        order = np.argsort(key, kind="stable")
-        ks = key[order]
-        start = np.r_[0, np.flatnonzero(ks[1:] != ks[:-1]) + 1]
-        first = np.repeat(start, np.diff(np.r_[start, n]))
-        out = np.empty(n, np.int64)
-        out[order] = np.arange(n) - first
-        return out
-
-    return float(np.sum(np.log2((before(c) + alpha * k) / (before(c * k + s) + alpha))))
+    if k == 1:
+        return 0.0
+    c = np.zeros(n, np.int64) if ctx is None else np.unique(np.asarray(ctx, np.int64), return_inverse=True)[1].reshape(-1)
+    return float(np.sum(np.log2((seen_before(c) + alpha * k) / (seen_before(c * k + s) + alpha))))
 
 
 def hilbert_keys(m: np.ndarray, b: int) -> np.ndarray:

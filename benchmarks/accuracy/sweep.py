@@ -62,7 +62,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib
 import json
 import os
 import sys
@@ -70,8 +69,10 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "rate_distortion"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "speed"))
 
 import bench_rd  # noqa: E402  (the volumes and the full-grid PSNR every RD figure uses)
+from profile_encode import _apply as set_constants  # noqa: E402  ("module.CONST" -> value; returns the old values)
 
 from warpgauss.core.profiling import StageRecorder  # noqa: E402
 from warpgauss.encoding.allocate import AllocationConfig  # noqa: E402
@@ -143,24 +144,13 @@ CODED_CONSTANTS: dict[str, dict[str, float]] = {
 # (finer cells: fewer candidate pairs, more rows and list entries) and the cell lists' padding
 ROW_COST = "warpgauss.field.gaussians.ROW_COST"
 PAD_VOXELS = "warpgauss.encoding.refine.passes.LIST_PAD_VOXELS"
-MODULE_CONSTANTS: dict[str, dict[str, object]] = {
+MODULE_CONSTANTS: dict[str, dict[str, float]] = {
     "rc16": {ROW_COST: 16.0},
     "rc32": {ROW_COST: 32.0},
     "pad0": {PAD_VOXELS: 0.0},
     "pad05": {PAD_VOXELS: 0.5},
     "rc16-pad0": {ROW_COST: 16.0, PAD_VOXELS: 0.0},
 }
-
-
-def _set_constants(values: dict[str, object]) -> dict[str, object]:
-    """Set "module.CONST" constants; returns the values they had."""
-    old = {}
-    for key, value in values.items():
-        mod, const = key.rsplit(".", 1)
-        m = importlib.import_module(mod)
-        old[key] = getattr(m, const)
-        setattr(m, const, value)
-    return old
 
 
 def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
@@ -172,7 +162,7 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
     for m, table in constants:
         for k, v in table.get(variant, {}).items():
             setattr(m, k, v)
-    saved_module = _set_constants(MODULE_CONSTANTS.get(variant, {}))
+    saved_module = set_constants(MODULE_CONSTANTS.get(variant, {}))
     if prune is not None:
         ratefit.PRUNE_SHARE = prune
     if refit is not None:
@@ -191,7 +181,7 @@ def encode(f, info, ratio, variant, dev, budget=None, fmt=None):
         for m, old in saved_constants:
             for k, v in old.items():
                 setattr(m, k, v)
-        _set_constants(saved_module)
+        set_constants(saved_module)
     return model, seconds
 
 

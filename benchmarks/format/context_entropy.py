@@ -57,6 +57,9 @@ from warpgauss.format import coded, coded_keys
 from warpgauss.format.coded_keys import CODED_COLUMNS
 from warpgauss.format.wgs import read_wgs
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "accuracy"))
+from coded_context import adaptive_bits  # noqa: E402  (the adaptive count model, one copy)
+
 MRI = ("inia19", "mean_reg2mean", "mni_icbm152")
 ATTRS = tuple(range(3, 12))  # log_sx .. w
 OVERHEAD = 0.04  # a practical arithmetic/rANS coder over the entropy (3-5 %: table or model precision)
@@ -83,36 +86,6 @@ def entropy_bits(x: np.ndarray, ctx: np.ndarray | None = None) -> float:
     c = np.unique(np.asarray(ctx, np.int64), return_inverse=True)[1].reshape(-1)
     xs = np.unique(x, return_inverse=True)[1].reshape(-1)
     return h(c * (int(xs.max()) + 1) + xs) - h(c)
-
-
-def _seen_before(key: np.ndarray) -> np.ndarray:
-    """For each position, how often its key occurred earlier in the sequence."""
-    n = len(key)
-    if n and int(key.min()) >= 0 and int(key.max()) < 1 << 16:
-        key = key.astype(np.uint16)  # a stable sort of 16-bit keys is a radix sort
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    start = np.r_[0, np.flatnonzero(ks[1:] != ks[:-1]) + 1]
-    first = np.repeat(start, np.diff(np.r_[start, n]))
-    out = np.empty(n, np.int64)
-    out[order] = np.arange(n) - first
-    return out
-
-
-def adaptive_bits(sym: np.ndarray, ctx: np.ndarray | None = None, alpha: float = 0.5) -> float:
-    """Code length (bits) of ``sym`` in sequence under an adaptive count model per context: each
-    symbol at probability (its count so far + alpha) / (the context's count so far + alpha K), K the
-    symbols the column takes (the alphabet a header would declare)."""
-    sym = np.asarray(sym, np.int64)
-    n = len(sym)
-    if n == 0:
-        return 0.0
-    s = np.unique(sym, return_inverse=True)[1].reshape(-1)
-    k = int(s.max()) + 1
-    if k == 1:
-        return 0.0
-    c = np.zeros(n, np.int64) if ctx is None else np.unique(np.asarray(ctx, np.int64), return_inverse=True)[1].reshape(-1)
-    return float(np.sum(np.log2((_seen_before(c) + alpha * k) / (_seen_before(c * k + s) + alpha))))
 
 
 def binned_bits(res: np.ndarray, ctx: np.ndarray | None = None) -> float:
