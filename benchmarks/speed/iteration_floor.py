@@ -115,13 +115,20 @@ def _pieces(r: Refiner, dev: str, repeat: int) -> dict:
     return out
 
 
+def settings_of(spec: str) -> dict[str, dict[str, float]]:
+    """``module.CONST:v1,v2``: value -> {"module.CONST": value}; ``set:module.A=v;module.B=w``: the
+    whole text -> {"module.A": v, "module.B": w} (several constants at once)."""
+    key, _, values = spec.partition(":")
+    if key == "set":
+        return {values: {k: float(x) for k, _, x in (a.partition("=") for a in values.split(";"))}}
+    return {v: {key: float(v)} for v in values.split(",")}
+
+
 def _sweep(r: Refiner, dev: str, spec: str) -> dict:
     """Kernel microseconds of a plain iteration with one module constant at each of several values."""
-    key, _, values = spec.partition(":")
-    settings = {values: {k: float(x) for k, _, x in (a.partition("=") for a in values.split(";"))}} if key == "set" else {}
-    settings = settings or {v: {key: float(v)} for v in values.split(",")}
+    key = spec.partition(":")[0]
     out = {}
-    for v, setting in settings.items():
+    for v, setting in settings_of(spec).items():
         saved = _apply(setting)
         r._graph = None
         per = _kernels(r, dev)

@@ -24,8 +24,10 @@ from warpgauss.core.warp import resolve_device, warp
 from warpgauss.encoding.bench import result_header
 
 try:
-    from profile_encode import _apply  # run as a script: benchmarks/speed is on the path
+    from iteration_floor import settings_of  # run as a script: benchmarks/speed is on the path
+    from profile_encode import _apply
 except ImportError:  # imported as a module
+    from .iteration_floor import settings_of
     from .profile_encode import _apply
 
 
@@ -53,7 +55,9 @@ def main(argv=None) -> dict:
         row = {"volume": Path(vol).name, "model": Path(model).name, "n": r.n, "points": r.passes.n_points, "settings": {}}
         row["settings"]["default"] = _counts(r)
         for spec in args.set:
-            for label, setting in _settings(spec).items():
+            name = "" if spec.startswith("set:") else spec.partition(":")[0].rsplit(".", 1)[-1] + "="
+            for value, setting in settings_of(spec).items():
+                label = name + value
                 saved = _apply(setting)
                 try:
                     row["settings"][label] = _counts(r)
@@ -64,13 +68,6 @@ def main(argv=None) -> dict:
         res["rows"].append(row)
     Path(args.out).write_text(json.dumps(res, indent=1))
     return res
-
-
-def _settings(spec: str) -> dict[str, dict[str, float]]:
-    key, _, values = spec.partition(":")
-    if key == "set":
-        return {values: {k: float(x) for k, _, x in (a.partition("=") for a in values.split(";"))}}
-    return {f"{key.rsplit('.', 1)[-1]}={v}": {key: float(v)} for v in values.split(",")}
 
 
 def _refiner(vol: str, model: str, samples: int, seed: int, dev: str):
