@@ -273,6 +273,36 @@ def eval_points_listed_2(
     store_sums(i, listed_sums_2(points[i], prims, grid, lists), value, density, pairs)
 
 
+@wp.func
+def spread_bits(v: int) -> int:
+    """The low 10 bits of v moved to every third bit (one axis of a Morton code)."""
+    v = v & 0x3FF
+    v = (v | (v << 16)) & 0x030000FF
+    v = (v | (v << 8)) & 0x0300F00F
+    v = (v | (v << 4)) & 0x030C30C3
+    v = (v | (v << 2)) & 0x09249249
+    return v
+
+
+@wp.kernel
+def morton_keys(
+    points: wp.array(dtype=wp.vec3),  # [>= P]
+    inv_cell: float,  # 1 / the edge of the cells the code counts in (voxels; 1,024 cells an axis at most)
+    keys: wp.array(dtype=int),  # [>= 2 P] out: Morton code (x lowest) of each point's cell, clamped to 0..1023 an axis
+    values: wp.array(dtype=int),  # [>= 2 P] out: point index
+):
+    """Morton keys of the points (one thread per point): sorted by them, the threads of a warp
+    hold points of a compact block, so they share their cells, and lists, on every level (sorted
+    by one level's cell ids, row-major, a warp's points spread along x over tens of cells)."""
+    i = wp.tid()
+    p = points[i]
+    qx = wp.clamp(int(wp.floor((p[0] + 0.5) * inv_cell)), 0, 1023)
+    qy = wp.clamp(int(wp.floor((p[1] + 0.5) * inv_cell)), 0, 1023)
+    qz = wp.clamp(int(wp.floor((p[2] + 0.5) * inv_cell)), 0, 1023)
+    keys[i] = spread_bits(qx) | (spread_bits(qy) << 1) | (spread_bits(qz) << 2)
+    values[i] = i
+
+
 @wp.kernel
 def gather_reach(perm: wp.array(dtype=int), reach: wp.array(dtype=float), out: wp.array(dtype=float)):
     """out[i] = reach[perm[i]]: a deferred step's reach, old slot order into the new (re-bin)."""

@@ -57,14 +57,15 @@ def test_listed_forward_is_the_bin_walk_bit_for_bit_and_the_dense_pairs(device, 
         np.testing.assert_array_equal(a, b)
     from warpgauss.encoding.refine import passes
 
-    kept = passes.FORWARD_UNROLL
-    try:  # one or two entries loaded at a time: the same sums bit for bit
+    kept = passes.FORWARD_UNROLL, passes.FORWARD_MORTON
+    try:  # one or two entries loaded at a time, points in Morton or cell order: the same sums bit for bit
         for unroll in (1, 2):
-            passes.FORWARD_UNROLL = unroll
-            for a, b in zip(lists, _forward(r, True)):
-                np.testing.assert_array_equal(a, b)
+            for morton in (0, 1):
+                passes.FORWARD_UNROLL, passes.FORWARD_MORTON = unroll, morton
+                for a, b in zip(lists, _forward(r, True)):
+                    np.testing.assert_array_equal(a, b)
     finally:
-        passes.FORWARD_UNROLL = kept
+        passes.FORWARD_UNROLL, passes.FORWARD_MORTON = kept
     dense = _dense(r)
     np.testing.assert_array_equal(lists[2], dense[2])
     np.testing.assert_allclose(lists[0], dense[0], rtol=2e-5, atol=2e-6)
@@ -157,3 +158,27 @@ def test_lists_filled_one_thread_an_entry_are_the_slot_walks_lists(device):
     for a, b in zip(*got):
         assert (a >= 0).all()
         np.testing.assert_array_equal(a, b)
+
+
+def test_morton_order_is_numpys_interleave_stably_sorted(device):
+    """The forward's point order: the Morton code of each point's voxel (x in the lowest bit,
+    clamped to 0..1023 an axis) from bit interleaving in numpy, sorted stably (ties by point)."""
+    from warpgauss.core.warp import warp
+    from warpgauss.kernels import lists as kl
+
+    wp = warp()
+    rng = np.random.default_rng(3)
+    pts = np.concatenate([rng.uniform(-0.5, 40.5, (500, 3)), [[-3.0, 2.0, 2.0], [2000.0, 1.0, 5.0]], rng.uniform(0, 3, (60, 3))])
+    pts = pts.astype(np.float32)
+    n = len(pts)
+    keys = wp.empty(2 * n, dtype=int, device=device)
+    order = wp.empty(2 * n, dtype=int, device=device)
+    wp.launch(kl.morton_keys, dim=n, inputs=[wp.array(pts, dtype=wp.vec3, device=device), 0.5], outputs=[keys, order], device=device)
+    q = np.clip(np.floor((pts.astype(np.float64) + 0.5) * 0.5), 0, 1023).astype(np.int64)
+    ref = np.zeros(n, np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            ref |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
+    np.testing.assert_array_equal(keys.numpy()[:n], ref)
+    wp.utils.radix_sort_pairs(keys, order, n, 0, 30)
+    np.testing.assert_array_equal(order.numpy()[:n], np.argsort(ref, kind="stable"))

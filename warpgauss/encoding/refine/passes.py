@@ -67,6 +67,11 @@ LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (
 # four at a time gained at CR 100 (0.41, 0.55 s) and lost at CR 10 (mean_reg2mean 2.40 -> 2.51 s),
 # and the backward pass two candidates at a time lost 6-18 % (more registers than its 95): dropped
 FORWARD_UNROLL = 2
+# the listed forward visits the points in the Morton order of their voxels (1) or by their level-0
+# point cell (0, the backward pass's sort): the same sums bit for bit, a point's own sums do not
+# depend on the order. ncu at mni_icbm152 CR 10 by cell (results/speed/ncu_eval_points_listed_mni10_h200.txt):
+# 16.6 of 32 lanes active an instruction, a warp's points spread over tens of cells a level
+FORWARD_MORTON = 1
 # Tried and dropped (one H200, three MRIs at CR 10 / 100 / 1000, results/accuracy/sweep_xdiv_*_h200.json,
 # results/speed/iteration_floor_spans_h200.json, commit 213440b): each backward row narrowed to the
 # ellipsoid's x-range over the row (per-row Schur-complement bounds) and point cells 4x finer along x
@@ -323,6 +328,17 @@ class PairPasses:
         )
         wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, max(1, (self.state.binned.total_cells - 1).bit_length()))
 
+    def morton_order(self, count: int) -> None:
+        """Sort the first ``count`` points by the Morton code of their voxel (cells of a voxel,
+        coarser past 1,024 voxels an axis; stable, so ties keep the point order) into the
+        buffers' ``forder``."""
+        from ...kernels import lists as kl
+
+        wp, dev, b = self._wp, self.device, self.buffers()
+        cell = max(1.0, max(self.shape_xyz) / 1024.0)
+        wp.launch(kl.morton_keys, dim=count, inputs=[self.sampler.points, 1.0 / cell], outputs=[b["fkeys"], b["forder"]], device=dev)
+        wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, 30)
+
     def forward(self, value_empty: float, density_weight: float, now) -> None:
         """Order the points by cell, evaluate V~ and rho at them, and the per-point loss gradients
         (``now``: the device's per-iteration scalars, see :class:`.schedule.Schedule`)."""
@@ -337,10 +353,14 @@ class PairPasses:
 
             self.sort_points(m2)  # the backward pass reads the same sort
             self._sorted = m2
+            order = b["order"]  # by level-0 point cell
+            if FORWARD_MORTON:
+                self.morton_order(m2)
+                order = b["forder"]
             wp.launch(
                 kl.eval_points_listed_2 if FORWARD_UNROLL == 2 else kl.eval_points_listed,
                 dim=m2,
-                inputs=[s.points, b["order"], prims, b["grid"], b["lists"]],
+                inputs=[s.points, order, prims, b["grid"], b["lists"]],
                 outputs=[self.value, self.density, self.pairs],
                 device=dev,
             )
