@@ -13,6 +13,8 @@ order. No float atomics: reruns are bit-identical.
 
 from __future__ import annotations
 
+import math
+
 from ...core.warp import warp
 from .draw import Sampler
 from .state import Primitives
@@ -72,6 +74,7 @@ FORWARD_UNROLL = 2
 # depend on the order. ncu at mni_icbm152 CR 10 by cell (results/speed/ncu_eval_points_listed_mni10_h200.txt):
 # 16.6 of 32 lanes active an instruction, a warp's points spread over tens of cells a level
 FORWARD_MORTON = 1
+MORTON_MIN_ENTRIES = 0.0  # list entries a point at least for the Morton order (its sort costs ~50 us)
 # Tried and dropped (one H200, three MRIs at CR 10 / 100 / 1000, results/accuracy/sweep_xdiv_*_h200.json,
 # results/speed/iteration_floor_spans_h200.json, commit 213440b): each backward row narrowed to the
 # ellipsoid's x-range over the row (per-row Schur-complement bounds) and point cells 4x finer along x
@@ -336,8 +339,9 @@ class PairPasses:
 
         wp, dev, b = self._wp, self.device, self.buffers()
         cell = max(1.0, max(self.shape_xyz) / 1024.0)
+        bits = max(1, math.ceil(math.log2(math.ceil(max(self.shape_xyz) / cell))))  # an axis: the key's bits above are 0
         wp.launch(kl.morton_keys, dim=count, inputs=[self.sampler.points, 1.0 / cell], outputs=[b["fkeys"], b["forder"]], device=dev)
-        wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, 30)
+        wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, 3 * bits)
 
     def forward(self, value_empty: float, density_weight: float, now) -> None:
         """Order the points by cell, evaluate V~ and rho at them, and the per-point loss gradients
@@ -354,7 +358,7 @@ class PairPasses:
             self.sort_points(m2)  # the backward pass reads the same sort
             self._sorted = m2
             order = b["order"]  # by level-0 point cell
-            if FORWARD_MORTON:
+            if FORWARD_MORTON and self.list_entries >= MORTON_MIN_ENTRIES * m2:
                 self.morton_order(m2)
                 order = b["forder"]
             wp.launch(
@@ -478,4 +482,5 @@ class PairPasses:
             "chunk_size": int(b["chunk_size"].numpy()[0]),
             "chunk_capacity": b["slots"],
             "point_cells": list(b["grid_plan"].sizes[:-1]),
+            "list_entries": self.list_entries,
         }
