@@ -57,15 +57,16 @@ def test_listed_forward_is_the_bin_walk_bit_for_bit_and_the_dense_pairs(device, 
         np.testing.assert_array_equal(a, b)
     from warpgauss.encoding.refine import passes
 
-    kept = passes.FORWARD_UNROLL, passes.FORWARD_MORTON
+    kept = passes.FORWARD_UNROLL, passes.FORWARD_MORTON, passes.MORTON_MIN_ENTRIES
     try:  # one or two entries loaded at a time, points in Morton or cell order: the same sums bit for bit
         for unroll in (1, 2):
-            for morton in (0, 1):
-                passes.FORWARD_UNROLL, passes.FORWARD_MORTON = unroll, morton
+            for morton, least in ((0, 0.0), (1, 0.0), (1, 1e9)):
+                passes.FORWARD_UNROLL, passes.FORWARD_MORTON, passes.MORTON_MIN_ENTRIES = unroll, morton, least
+                assert r.passes.morton() == (morton == 1 and least == 0.0)
                 for a, b in zip(lists, _forward(r, True)):
                     np.testing.assert_array_equal(a, b)
     finally:
-        passes.FORWARD_UNROLL, passes.FORWARD_MORTON = kept
+        passes.FORWARD_UNROLL, passes.FORWARD_MORTON, passes.MORTON_MIN_ENTRIES = kept
     dense = _dense(r)
     np.testing.assert_array_equal(lists[2], dense[2])
     np.testing.assert_allclose(lists[0], dense[0], rtol=2e-5, atol=2e-6)

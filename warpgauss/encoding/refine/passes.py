@@ -70,11 +70,17 @@ LIST_HEADROOM = 1.25  # list arrays are allocated this much larger than needed (
 # and the backward pass two candidates at a time lost 6-18 % (more registers than its 95): dropped
 FORWARD_UNROLL = 2
 # the listed forward visits the points in the Morton order of their voxels (1) or by their level-0
-# point cell (0, the backward pass's sort): the same sums bit for bit, a point's own sums do not
-# depend on the order. ncu at mni_icbm152 CR 10 by cell (results/speed/ncu_eval_points_listed_mni10_h200.txt):
-# 16.6 of 32 lanes active an instruction, a warp's points spread over tens of cells a level
+# point cell (0, the backward pass's sort) where the lists hold at least MORTON_MIN_ENTRIES entries
+# a point: the same sums bit for bit (a point's sums do not depend on the order). By cell, ncu at
+# mni_icbm152 CR 10 found 16.6 of 32 lanes active an instruction (a warp's points spread over tens
+# of cells a level; results/speed/ncu_eval_points_listed_mni10_h200.txt). One H200, one state after
+# each default encode of the three MRIs (results/speed/iteration_floor_morton2_h200.json), kernels
+# of an iteration by cell -> Morton, us, at list entries a point: CR 10 mni 2,638 -> 2,146 (39),
+# mean_reg2mean 3,594 -> 2,845 (95), inia19 2,895 -> 2,512 (101), the forward 1,296 -> 758,
+# 1,844 -> 1,045, 1,395 -> 966; CR 100 950 -> 976 (13), 1,842 -> 1,783 (16), 1,199 -> 1,199 (28);
+# CR 1000 +46..+59 (4-14): the sort costs some 45 us, the short lists gain nothing
 FORWARD_MORTON = 1
-MORTON_MIN_ENTRIES = 0.0  # list entries a point at least for the Morton order (its sort costs ~50 us)
+MORTON_MIN_ENTRIES = 32.0
 # Tried and dropped (one H200, three MRIs at CR 10 / 100 / 1000, results/accuracy/sweep_xdiv_*_h200.json,
 # results/speed/iteration_floor_spans_h200.json, commit 213440b): each backward row narrowed to the
 # ellipsoid's x-range over the row (per-row Schur-complement bounds) and point cells 4x finer along x
@@ -259,7 +265,7 @@ class PairPasses:
 
         wp, dev, st, b = self._wp, self.device, self.state, self._buf
         assert b is not None
-        was = (self.listed, self._list_keys)
+        was = (self.listed, self._list_keys, self.morton())
         grid = b["grid"]
         args = [st.slot_cell, st.prims, grid, self.list_centre, self.list_half]
         n = st.n
@@ -272,7 +278,7 @@ class PairPasses:
         if not self.lists or total > LIST_MAX_ENTRIES:
             wp.launch(kl.unlisted_region, dim=n, inputs=[st.bounds.box_lo, st.bounds.box_hi], device=dev)
             self.listed = False
-            return was[0] != self.listed
+            return was[0] != self.listed or was[2] != self.morton()
         if self._list_keys is None or self._list_keys.shape[0] < 2 * max(total, 1):
             cap = max(1024, int(LIST_HEADROOM * total))
             self._list_keys = wp.empty(2 * cap, dtype=int, device=dev)
@@ -293,7 +299,7 @@ class PairPasses:
         cl.start, cl.prim = b["list_start"], self._list_values
         b["lists"] = cl
         self.listed = True
-        return was[0] != self.listed or was[1] is not self._list_keys
+        return was[0] != self.listed or was[1] is not self._list_keys or was[2] != self.morton()
 
     def sort_points(self, count: int) -> None:
         """Bin the first ``count`` points on every level's point grid and sort them by cell
@@ -331,6 +337,10 @@ class PairPasses:
         )
         wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, max(1, (self.state.binned.total_cells - 1).bit_length()))
 
+    def morton(self) -> bool:
+        """Whether the listed forward visits the points in Morton order (long lists only)."""
+        return bool(FORWARD_MORTON) and self.list_entries >= MORTON_MIN_ENTRIES * self.n_points
+
     def morton_order(self, count: int) -> None:
         """Sort the first ``count`` points by the Morton code of their voxel (cells of a voxel,
         coarser past 1,024 voxels an axis; stable, so ties keep the point order) into the
@@ -358,7 +368,7 @@ class PairPasses:
             self.sort_points(m2)  # the backward pass reads the same sort
             self._sorted = m2
             order = b["order"]  # by level-0 point cell
-            if FORWARD_MORTON and self.list_entries >= MORTON_MIN_ENTRIES * m2:
+            if self.morton():
                 self.morton_order(m2)
                 order = b["forder"]
             wp.launch(
