@@ -282,6 +282,87 @@ pair_grad_chunks = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks")
 pair_grad_chunks_r64 = wp.kernel(_pair_grad_chunks, name="pair_grad_chunks_r64", cuda_max_registers=64)
 
 
+@wp.kernel
+def pair_grad_tiles(
+    slot_cell: wp.array(dtype=int),  # [N]
+    prims: BinnedPrimitives,
+    grid: PointGrid,
+    pos: wp.array(dtype=wp.vec3),  # [K] sorted point positions (gather_point_state)
+    state: wp.array(dtype=wp.vec4),  # [K] sorted point states
+    order: wp.array(dtype=int),  # [>=K] point index of each sorted entry (for the pair count)
+    count_pairs: int,  # 1: add each contributing pair to pairs[point] (tests, self-test)
+    pairs: wp.array(dtype=int),  # [P] out (zeroed before when counting)
+    d_mu: wp.array(dtype=wp.vec3),  # [N] out (cell order, overwritten): dL/dmu
+    d_ls: wp.array(dtype=wp.vec3),  # [N] out: dL/dlog-sigma
+    d_rot: wp.array(dtype=wp.mat33),  # [N] out: dL/dR
+    d_a: wp.array(dtype=float),  # [N] out: dL/da
+    d_w: wp.array(dtype=float),  # [N] out: dL/dw (activated weight)
+):
+    """One primitive's gradients by one block (``wp.launch_tiled``; its lanes, ``wp.block_dim()``:
+    32 on CUDA, 1 on the CPU): the lanes walk the box's rows together, lane i taking every
+    lanes-th candidate counted along the rows (neighbouring lanes read neighbouring points of one
+    row), and the lanes' sums are added by tile reductions (a fixed order: reruns bit-identical)
+    before lane 0 writes the gradients. For primitives with a few hundred candidates (high N), where
+    :func:`pair_grad_chunks` gives a warp's lanes several primitives' rows to walk apart."""
+    j, lane = wp.tid()
+    lanes = wp.block_dim()
+    l = slot_level(slot_cell[j], prims.level_offset)
+    mu = prims.mu[j]
+    cq = prims.conic[j]
+    e = prims.ext[j]
+    a = prims.a[j]
+    w = prims.w[j]
+    lo, hi = box_rows(mu, e, l, grid)
+    s_kd = wp.vec3(0.0, 0.0, 0.0)
+    s_dd = vec6(0.0)
+    s_a = float(0.0)
+    s_w = float(0.0)
+    acc = int(0)  # candidates in the rows before this one, modulo lanes
+    for z in range(lo[2], hi[2] + 1):
+        for y in range(lo[1], hi[1] + 1):
+            r = row_range(grid, l, lo, hi, y, z)
+            first = lane - acc
+            if first < 0:
+                first += lanes
+            for k in range(r[0] + first, r[1], lanes):
+                d = pos[k] - mu
+                if in_box(d, e):
+                    g = conic_g(d, cq)
+                    if g > 0.0:
+                        if count_pairs != 0:
+                            wp.atomic_add(pairs, order[k], 1)
+                        st = state[k]
+                        if st[0] != 0.0 or st[1] != 0.0:
+                            gl = st[0] * (a - st[3]) / st[2] + st[1]  # dL/dG / w
+                            kk = w * gl * g
+                            kd = kk * d
+                            s_kd += kd
+                            s_dd += vec6(kd[0] * d[0], kd[1] * d[1], kd[2] * d[2], kd[0] * d[1], kd[0] * d[2], kd[1] * d[2])
+                            s_a += st[0] * w * g / st[2]
+                            s_w += g * gl
+            acc = (acc + r[1] - r[0]) % lanes
+    t0 = wp.tile_sum(wp.tile(s_kd[0]))
+    t1 = wp.tile_sum(wp.tile(s_kd[1]))
+    t2 = wp.tile_sum(wp.tile(s_kd[2]))
+    u0 = wp.tile_sum(wp.tile(s_dd[0]))
+    u1 = wp.tile_sum(wp.tile(s_dd[1]))
+    u2 = wp.tile_sum(wp.tile(s_dd[2]))
+    u3 = wp.tile_sum(wp.tile(s_dd[3]))
+    u4 = wp.tile_sum(wp.tile(s_dd[4]))
+    u5 = wp.tile_sum(wp.tile(s_dd[5]))
+    ta = wp.tile_sum(wp.tile(s_a))
+    tw = wp.tile_sum(wp.tile(s_w))
+    if lane == 0:
+        kd_sum = wp.vec3(t0[0], t1[0], t2[0])
+        dd_sum = vec6(u0[0], u1[0], u2[0], u3[0], u4[0], u5[0])
+        g_mu, g_ls, g_rot = frame_grads(kd_sum, dd_sum, prims.rot[j], prims.inv_s2[j])
+        d_mu[j] = g_mu
+        d_ls[j] = g_ls
+        d_rot[j] = g_rot
+        d_a[j] = ta[0]
+        d_w[j] = tw[0]
+
+
 REDUCE_BLOCK = wp.constant(32)  # chunks reduce_lanes adds in one thread at most
 
 

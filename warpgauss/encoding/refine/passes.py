@@ -93,6 +93,10 @@ MORTON_MIN_ENTRIES = 32.0
 # 29.18 ms at 20K x 65,536 / 20K x 1M / 1.4M x 65,536 / 1.4M x 1M against 1.13 / 11.52 / 4.31 /
 # 32.26 as compiled; 48 spilled (1.21 / 10.86 / 4.16 / 31.15)
 BACKWARD_REGISTERS = 64
+# the backward pass runs one block of TILE_LANES lanes a primitive (kernels.chunked.pair_grad_tiles,
+# tile reductions, no partials) where the primitives number at least TILES_MIN_PRIMITIVES a point
+TILE_LANES = 32
+TILES_MIN_PRIMITIVES = 0.5
 
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
@@ -337,6 +341,11 @@ class PairPasses:
         )
         wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, max(1, (self.state.binned.total_cells - 1).bit_length()))
 
+    def tiles(self) -> bool:
+        """Whether the backward pass gives each primitive a block of its own (many primitives for
+        the points: a few hundred candidates each) rather than chunks."""
+        return self.state.n >= TILES_MIN_PRIMITIVES * self.n_points
+
     def morton(self) -> bool:
         """Whether the listed forward visits the points in Morton order (long lists only)."""
         return bool(FORWARD_MORTON) and self.list_entries >= MORTON_MIN_ENTRIES * self.n_points
@@ -428,6 +437,17 @@ class PairPasses:
         )
         if count_pairs:
             self.back_pairs.zero_()
+        if self.tiles():
+            wp.launch_tiled(
+                kc.pair_grad_tiles,
+                dim=[n],
+                inputs=[st.slot_cell, st.prims, b["grid"], b["pos"], b["state"], b["order"], int(count_pairs)],
+                outputs=[self.back_pairs, *st.pair_grads],
+                device=dev,
+                block_dim=TILE_LANES,
+            )
+            st.clean = False
+            return
         grid, cap = b["grid"], b["capacity"]
         wp.launch(kc.pair_work, dim=n, inputs=[st.slot_cell, st.prims, grid], outputs=[b["work"], b["rows"]], device=dev)
         wp.utils.array_scan(b["work"], b["work_cum"], inclusive=True)
