@@ -115,14 +115,13 @@ def test_register_capped_backward_is_the_same_kernel(device, monkeypatch):
             np.testing.assert_array_equal(x, y)
 
 
-def test_chunked_pass_keeps_every_pair_of_needle_and_disc_shapes(device, monkeypatch):
+def test_chunked_pass_keeps_every_pair_of_needle_and_disc_shapes(device):
     """Rotated primitives up to 40:1 (needles and discs), centres past the grid, partner points:
-    the chunked pass, the tiled pass, the forward pass, the dense all-pairs reference and the
-    atomic scatter count the same pairs, and the gradients agree."""
+    the chunked pass, the forward pass, the dense all-pairs reference and the atomic scatter count
+    the same pairs, and the gradients agree."""
     from conftest import random_params
     from test_cell_lists import _dense
 
-    from warpgauss.encoding.refine import passes
     from warpgauss.readers.synthetic import generate
 
     f = normalise(generate("vortex", 32, seed=1))
@@ -133,32 +132,6 @@ def test_chunked_pass_keeps_every_pair_of_needle_and_disc_shapes(device, monkeyp
     np.testing.assert_array_equal(pairs, r.pairs.numpy())
     np.testing.assert_array_equal(pairs, _dense(r)[2])
     assert r.n_points < pairs.sum() <= stats["candidates"]
-    assert_matches_atomic_scatter(r, mine, pairs)
-    monkeypatch.setattr(passes, "TILES_MIN_PRIMITIVES", 0.0)  # one block a primitive: the same
-    tiled, tiled_pairs, _ = _pair_pass(r)
-    np.testing.assert_array_equal(tiled_pairs, pairs)
-    assert_matches_atomic_scatter(r, tiled, tiled_pairs)
-
-
-def test_tiled_pass_equals_the_atomic_scatter_and_reruns_bit_identically(device, monkeypatch):
-    """One block a primitive (many primitives for the points): the same pairs as the forward pass
-    and the atomic scatter, the same gradients to rounding, reruns bit for bit; the rule picks it
-    by primitives a point."""
-    from warpgauss.encoding.refine import passes
-
-    r = _refiner(device)
-    assert not r.passes.tiles()  # 300 primitives for 2,048 points: chunks
-    monkeypatch.setattr(passes, "TILES_MIN_PRIMITIVES", 0.1)
-    assert r.passes.tiles()
-    runs = []
-    for _ in range(2):
-        r = _refiner(device)
-        mine, pairs, _ = _pair_pass(r)
-        np.testing.assert_array_equal(pairs, r.pairs.numpy())
-        assert pairs.sum() > 10 * r.m
-        runs.append(mine)
-    for x, y in zip(*runs):
-        np.testing.assert_array_equal(x, y)
     assert_matches_atomic_scatter(r, mine, pairs)
 
 

@@ -54,7 +54,6 @@ Variants (``--variants``, comma list):
                the cell lists' boxes padded by 0 / 0.5 voxels (and the 10 % share) instead of 1
     rc16-pad0  both
     cellorder  the listed forward visits the points by level-0 point cell (before the Morton order)
-    chunks     the chunked backward pass at every N (no block a primitive)
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -131,7 +130,6 @@ VARIANTS: dict[str, tuple] = {
     "pad05": ({}, (None, None)),
     "rc16-pad0": ({}, (None, None)),
     "cellorder": ({}, (None, None)),
-    "chunks": ({}, (None, None)),
 }
 # variants that change a constant of warpgauss.encoding.refine.config for their encodes
 TWICE_THE_SAMPLES = {"GPU_VOXELS_PER_SAMPLE": 64, "GPU_MAX_SAMPLES": 262_144}
@@ -155,7 +153,6 @@ MODULE_CONSTANTS: dict[str, dict[str, float]] = {
     "pad05": {PAD_VOXELS: 0.5},
     "rc16-pad0": {ROW_COST: 16.0, PAD_VOXELS: 0.0},
     "cellorder": {"warpgauss.encoding.refine.passes.FORWARD_MORTON": 0},
-    "chunks": {"warpgauss.encoding.refine.passes.TILES_MIN_PRIMITIVES": 1e9},
 }
 
 

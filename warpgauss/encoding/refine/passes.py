@@ -88,15 +88,15 @@ MORTON_MIN_ENTRIES = 32.0
 # (results/speed/pair_counts_xdiv_cpu.json), but refinement took 1.15-1.64x as long: pair_grad_chunks
 # 156 -> 375 us at mni CR 1000, pair_work 36 -> 141 us (the per-row arithmetic), and the listed
 # forward 1360 -> 1478 us at mni CR 10 (a warp's points spread over more cells)
+# Tried and dropped: one block of 32 lanes a primitive where N >= half the points (tile reductions
+# of the 11 sums, no partials; c18b74f). One H200, default encodes at CR 10, same run against the
+# chunks (results/accuracy/sweep_tiles_mri_h200.json): refinement 6.74 / 3.97 / 6.38 s against
+# 5.62 / 3.88 / 5.58 (mean_reg2mean, mni_icbm152, inia19), PSNR within 0.04 dB
 # registers a thread of the chunked backward may use on CUDA (0: as compiled, 95). One H200, `bench
 # kernels` rows (results/speed/bench_backward_registers_h200.json): 64 took 1.13 / 10.18 / 3.89 /
 # 29.18 ms at 20K x 65,536 / 20K x 1M / 1.4M x 65,536 / 1.4M x 1M against 1.13 / 11.52 / 4.31 /
 # 32.26 as compiled; 48 spilled (1.21 / 10.86 / 4.16 / 31.15)
 BACKWARD_REGISTERS = 64
-# the backward pass runs one block of TILE_LANES lanes a primitive (kernels.chunked.pair_grad_tiles,
-# tile reductions, no partials) where the primitives number at least TILES_MIN_PRIMITIVES a point
-TILE_LANES = 32
-TILES_MIN_PRIMITIVES = 0.5
 
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
@@ -341,11 +341,6 @@ class PairPasses:
         )
         wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, max(1, (self.state.binned.total_cells - 1).bit_length()))
 
-    def tiles(self) -> bool:
-        """Whether the backward pass gives each primitive a block of its own (many primitives for
-        the points: a few hundred candidates each) rather than chunks."""
-        return self.state.n >= TILES_MIN_PRIMITIVES * self.n_points
-
     def morton(self) -> bool:
         """Whether the listed forward visits the points in Morton order (long lists only)."""
         return bool(FORWARD_MORTON) and self.list_entries >= MORTON_MIN_ENTRIES * self.n_points
@@ -437,17 +432,6 @@ class PairPasses:
         )
         if count_pairs:
             self.back_pairs.zero_()
-        if self.tiles():
-            wp.launch_tiled(
-                kc.pair_grad_tiles,
-                dim=[n],
-                inputs=[st.slot_cell, st.prims, b["grid"], b["pos"], b["state"], b["order"], int(count_pairs)],
-                outputs=[self.back_pairs, *st.pair_grads],
-                device=dev,
-                block_dim=TILE_LANES,
-            )
-            st.clean = False
-            return
         grid, cap = b["grid"], b["capacity"]
         wp.launch(kc.pair_work, dim=n, inputs=[st.slot_cell, st.prims, grid], outputs=[b["work"], b["rows"]], device=dev)
         wp.utils.array_scan(b["work"], b["work_cum"], inclusive=True)
