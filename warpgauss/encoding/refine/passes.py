@@ -353,7 +353,9 @@ class PairPasses:
 
         wp, dev, b = self._wp, self.device, self.buffers()
         cell = max(1.0, max(self.shape_xyz) / 1024.0)
-        bits = max(1, math.ceil(math.log2(math.ceil(max(self.shape_xyz) / cell))))  # an axis: the key's bits above are 0
+        # bits an axis for the cells in the grid (a point past the grid may set a higher bit, which
+        # the sort ignores: it lands out of place, which costs only speed)
+        bits = max(1, math.ceil(math.log2(math.ceil(max(self.shape_xyz) / cell))))
         wp.launch(kl.morton_keys, dim=count, inputs=[self.sampler.points, 1.0 / cell], outputs=[b["fkeys"], b["forder"]], device=dev)
         wp.utils.radix_sort_pairs(b["fkeys"], b["forder"], count, 0, 3 * bits)
 
