@@ -236,7 +236,7 @@ def test_fit_bytes_prunes_within_its_share_and_reports_the_rows_kept():
     assert any(s.endswith("-1") for s in info["steps"])
 
 
-def test_fit_bytes_with_a_score_keeps_the_fit_that_scores_best():
+def test_fit_bytes_with_a_score_keeps_the_fit_that_scores_best(monkeypatch):
     """Where the first fit drops bits, a scored fit also tries the larger prune shares and keeps
     the best-scoring one, every candidate within the budget and reported."""
     from test_wgs import realistic_params
@@ -258,6 +258,15 @@ def test_fit_bytes_with_a_score_keeps_the_fit_that_scores_best():
 
     kept_rows = ratefit.fit_bytes(p, budget, score=rows)
     kept_bits = ratefit.fit_bytes(p, budget, score=depth)
+    # the first fit on a thread beside the alternatives (CHOICE_CONCURRENT) or before them: the same fits
+    for score in (rows, depth):
+        monkeypatch.setattr(ratefit, "CHOICE_CONCURRENT", False)
+        serial = ratefit.fit_bytes(p, budget, score=score)
+        monkeypatch.setattr(ratefit, "CHOICE_CONCURRENT", True)
+        together = ratefit.fit_bytes(p, budget, score=score)
+        np.testing.assert_array_equal(serial[0], together[0])
+        np.testing.assert_array_equal(serial[2].pop("kept"), together[2].pop("kept"))
+        assert serial[1:] == together[1:]
     for _, _, info in (kept_rows, kept_bits):
         assert info["bytes"] <= budget and len(info["choice"]) >= 2
         assert [c["prune_share"] for c in info["choice"]] == list(ratefit.CHOICE_SHARES[: len(info["choice"])])
@@ -471,6 +480,31 @@ def test_a_re_plan_holds_bits_back_rather_than_take_out_too_many(tmp_path, cpu, 
     assert held["n_after"] >= free["n_after"]
     assert "planned for" in bud["coded_choice"]
     assert (tmp_path / "held.wgs").stat().st_size <= bud["requested_bytes"]
+
+
+def test_the_re_plans_codings_at_once_decide_as_one_after_the_other(cpu, monkeypatch):
+    """replan.REPLAN_WORKERS: the re-plan's fewer-bit codings on threads, several at a time, pick
+    the same depths and take out the same Gaussians as one coding after the other (the same model
+    bit for bit), where the first depths are enough, where none but the default's is, and where
+    the walk stops between them."""
+    import warpgauss
+    from warpgauss.encoding.driver import replan
+    from warpgauss.readers.synthetic import generate
+
+    vol = generate("vortex", 24, seed=0)
+    kw = dict(ratio=8, iterations=120, samples=1024, device=cpu, self_test=False, seed=3)
+    seen = set()
+    for cut in (replan.REPLAN_MAX_CUT, 0.0, 0.2):
+        monkeypatch.setattr(replan, "REPLAN_MAX_CUT", cut)
+        models = []
+        for workers in (1, 3):
+            monkeypatch.setattr(replan, "REPLAN_WORKERS", workers)
+            models.append(warpgauss.encode(vol, **kw))
+        one, three = (m.report["budget"]["coded_replan"] for m in models)
+        assert one == three
+        np.testing.assert_array_equal(np.asarray(models[0].params), np.asarray(models[1].params))
+        seen.add(one["bits_added"])
+    assert len(seen) >= 2  # the cases differ in the depths they stop at
 
 
 def _error_field_refiner(cpu, **cfg):

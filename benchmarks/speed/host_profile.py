@@ -3,6 +3,7 @@ included (a ``numpy()`` that waits for the device shows as time in it), plus CUD
 of the CUB sorts and scans an iteration runs (Warp's activity timing does not see them).
 
     python benchmarks/speed/host_profile.py VOLUME.npy RATIO OUT.json
+    python benchmarks/speed/host_profile.py interface@512 100 OUT.json   # an example field, NAME@SIZE
 """
 
 from __future__ import annotations
@@ -26,10 +27,17 @@ dev = resolve_device(None)
 vol, ratio, out = sys.argv[1], float(sys.argv[2]), sys.argv[3]
 warpgauss.encode(generate("vortex", 32), ratio=10, device=dev)
 res = {**result_header("host profile of one default encode", __file__, None, dev), "volume": vol, "ratio": ratio}
+if "@" in vol and not vol.endswith(".npy"):
+    name, size = vol.split("@")
+    source = generate(name, int(size))
+else:
+    source = vol
 pr = cProfile.Profile()
 t = time.perf_counter()
 pr.enable()
-m = warpgauss.encode(vol, ratio=ratio, device=dev)
+m = warpgauss.encode(source, ratio=ratio, device=dev)
+res["report"] = {k: m.report.get(k) for k in ("stages", "budget", "skipped")}
+res["report"]["refinement"] = {k: v for k, v in m.report["refinement"].items() if k != "loss_history"}
 pr.disable()
 res["wall_s"] = time.perf_counter() - t
 s = io.StringIO()

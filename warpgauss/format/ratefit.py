@@ -143,6 +143,11 @@ CHOICE_SHARES = (PRUNE_SHARE, 0.0, 0.15, 1.0)
 # prune-search codings of an alternative before it is scored (a winner is fitted again in full):
 # the choice cost 1.5-5.3 s of coding on 200,000-570,000-Gaussian models with the whole search
 CHOICE_SEARCH_CODINGS = 1
+# the first fit on a thread beside the alternatives (once the size at the starting depths says it
+# will drop bits), not before them: the same fits, chosen alike, in the time of the longest. On
+# one H200 host (16 cores) the interface field at 512^3, CR 100, spent 20.4 s in the rate control,
+# the alternatives waiting on the first fit (benchmarks/results/speed/host_profile_interface512_h200.json)
+CHOICE_CONCURRENT = True
 
 
 def fit_bytes(
@@ -166,29 +171,47 @@ def fit_bytes(
     facts = {}
     if worth is not None:
         facts = {"bit_worth": {k: {"gain": g, "loss": v} for k, (g, v) in worth.items()}, "bit_worth_seconds": time.perf_counter() - t0}
-    first = fit_at_share(params, budget, bits, size_of, prune_share, worth=worth)
-    if score is None or prune_share is not None or not drops_bits(first):
-        return first[0], first[1], {**first[2], **facts}
-    tried = [first]
+    if score is None or prune_share is not None:
+        only = fit_at_share(params, budget, bits, size_of, prune_share, worth=worth)
+        return only[0], only[1], {**only[2], **facts}
+    # the size at the starting depths says whether the first fit will drop bits (and so whether
+    # the alternatives are tried): coded once here, every fit starts from it
+    start = check_bits(dict(CODED_BITS if bits is None else bits))
+    base = canonical(params).astype(np.float32)  # what fit_at_share codes (turned once)
+    at_start = (size_of or (lambda q, c: len(encode_coded(q, c)[0])))(base, start)
+    drops = at_start > budget * (1.0 + PRUNE_SHARE) and any(start[k] > _MIN_BITS[k] for k in SHRINK_ORDER)
+    first: tuple | None = None
+    if not drops or not CHOICE_CONCURRENT:
+        first = fit_at_share(params, budget, bits, size_of, None, worth=worth, at_start=at_start)
     # the alternatives with a short prune search (a little less full), each on a thread of its own
-    # (the codings are numpy and Zstandard work, which release the GIL); kept up to the first that
-    # fits by pruning alone, since a larger share fits the same way: what a serial search keeps
-    alternatives = CHOICE_SHARES[1:]
-    with ThreadPoolExecutor(max_workers=len(alternatives)) as ex:
-        futures = [ex.submit(fit_at_share, params, budget, bits, size_of, share, CHOICE_SEARCH_CODINGS, worth) for share in alternatives]
-        for fut in futures:
-            tried.append(fut.result())
-            if not drops_bits(tried[-1]):
-                break
+    # (the codings are numpy and Zstandard work, which release the GIL), the first fit beside them
+    # where CHOICE_CONCURRENT; kept up to the first that fits by pruning alone, since a larger
+    # share fits the same way: what a serial search keeps
+    alternatives = CHOICE_SHARES[1:] if drops else ()
+    tried = []
+    with ThreadPoolExecutor(max_workers=len(CHOICE_SHARES)) as ex:
+        if first is None:
+            first_future = ex.submit(fit_at_share, params, budget, bits, size_of, None, SEARCH_CODINGS, worth, at_start)
+        futures = [
+            ex.submit(fit_at_share, params, budget, bits, size_of, share, CHOICE_SEARCH_CODINGS, worth, at_start) for share in alternatives
+        ]
+        tried.append(first if first is not None else first_future.result())
+        if drops_bits(tried[0]):  # as the start size said (else what the serial search returns)
+            for fut in futures:
+                tried.append(fut.result())
+                if not drops_bits(tried[-1]):
+                    break
+    if len(tried) == 1:
+        return tried[0][0], tried[0][1], {**tried[0][2], **facts, "codings": tried[0][2]["codings"] + 1}
     scores = [float(score(stored, b)) for stored, b, _ in tried]
     best = int(np.argmax(scores))
-    codings = sum(t[2]["codings"] for t in tried)
+    codings = 1 + sum(t[2]["codings"] for t in tried)  # the start size's coding and each fit's
     choice = [
         {"prune_share": t[2]["prune_share"], "steps": t[2]["steps"], "pruned": t[2]["pruned"], "psnr_db": sc}
         for t, sc in zip(tried, scores)
     ]
     if best > 0:  # the winner fitted again with the whole search, to fill the budget
-        tried[best] = fit_at_share(params, budget, bits, size_of, tried[best][2]["prune_share"], worth=worth)
+        tried[best] = fit_at_share(params, budget, bits, size_of, tried[best][2]["prune_share"], worth=worth, at_start=at_start)
         codings += tried[best][2]["codings"]
     stored, b, info = tried[best]
     return stored, b, {**info, **facts, "codings": codings, "choice": choice, "chosen": best}
@@ -202,6 +225,7 @@ def fit_at_share(
     prune_share: float | None = None,
     search: int = SEARCH_CODINGS,
     worth: BitWorth | None = None,
+    at_start: int | None = None,
 ) -> tuple[np.ndarray, dict, dict]:
     """The coded model that fits ``budget`` bytes, as closely as bit depths and primitives allow.
 
@@ -228,6 +252,8 @@ def fit_at_share(
         search: Codings the prune search may spend after the first fit.
         worth: :func:`bit_worth` of the model at ``bits``: bits are then dropped where they lose
             least and added where they gain most per byte, rather than in the fixed orders.
+        at_start: ``size_of`` the (turned) parameters at ``bits``, where the caller coded them
+            already (not coded again, nor counted in ``codings``).
 
     Returns:
         ``(stored, bits, info)``: the parameters as the file will hold them (projected, Morton
@@ -236,10 +262,10 @@ def fit_at_share(
         their order, for a refit of the pruned model).
     """
     with _FitCodes(canonical(params).astype(np.float32)) as fit:  # turned once: every coding finds the turns at once
-        return _fit_at_share(fit, params, budget, bits, size_of, prune_share, search, worth)
+        return _fit_at_share(fit, params, budget, bits, size_of, prune_share, search, worth, at_start)
 
 
-def _fit_at_share(fit: _FitCodes, params, budget, bits, size_of, prune_share, search, worth) -> tuple[np.ndarray, dict, dict]:
+def _fit_at_share(fit: _FitCodes, params, budget, bits, size_of, prune_share, search, worth, at_start) -> tuple[np.ndarray, dict, dict]:
     """:func:`fit_at_share`'s search, its codings' columns kept in ``fit``."""
     b = check_bits(dict(CODED_BITS if bits is None else bits))
     p = fit.base
@@ -253,7 +279,7 @@ def _fit_at_share(fit: _FitCodes, params, budget, bits, size_of, prune_share, se
         return (size_of or (lambda q, c: len(encode_coded(q, c)[0])))(pp, bb)
 
     steps: list[str] = []
-    cur = first = size(p, b)
+    cur = first = size(p, b) if at_start is None else int(at_start)
     turn = 0
     pred: float  # the predicted size: less a bit's (fractional) bytes at each drop
     start = dict(b)

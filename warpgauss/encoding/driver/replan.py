@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -43,6 +45,11 @@ REPLAN_REST_GAIN_DB = 2.0
 REPLAN_EXTRAPOLATE = 1.25
 REPLAN_MAX_GAIN_DB = 30.0
 REPLAN_GROWTH = 1.05
+# the re-plan's codings at fewer bits run this many at a time (0: a quarter of the host's cores,
+# each coding's Zstandard levels on threads of their own; 1: one after the other). The interface
+# field at 512^3, CR 100, coded its 1.1M Gaussians four times there, 12.8 s on one H200 host
+# (benchmarks/results/speed/host_profile_interface512_h200.json)
+REPLAN_WORKERS = 0
 REPLAN_TOLERANCE = 0.01
 REPLAN_MIN_ITERATIONS = 100
 # the re-plan takes out at most this share of the primitives while it can code fewer bits instead
@@ -72,6 +79,13 @@ REFINED_BITS = "accuracy"
 REFIT_MIN_ITERATIONS = 30
 REFIT_LR = 0.3
 REFIT_MIN_PRUNED = 0.01
+
+
+def replan_workers() -> int:
+    """How many of the re-plan's codings run at once (:data:`REPLAN_WORKERS`)."""
+    if REPLAN_WORKERS > 0:
+        return int(REPLAN_WORKERS)
+    return max(1, (os.cpu_count() or 1) // 4)
 
 
 class Replan:
@@ -151,21 +165,39 @@ class Replan:
         from ...format.wgs import payload_size, wgs_bytes
 
         assert self.budget_bytes is not None
+        budget = self.budget_bytes
         n = refiner.n_live
         params = refiner.model_params()[:n]
-        planned = expected
-        while True:  # the depths of the expected accuracy, fewer while they would cut too many
+
+        def plan(planned: float) -> dict[str, Any]:  # the model coded at the depths of ``planned``
             bits, extra = bits_for_psnr(planned)
             data = wgs_bytes(params, self.header, encoding="coded", bits=bits)
-            payload = payload_size(data)
-            head = len(data) - payload
+            size, payload = len(data), payload_size(data)
+            head = size - payload
             predicted = head + payload * REPLAN_GROWTH
             keep = n
-            if predicted > self.budget_bytes * (1.0 + REPLAN_TOLERANCE):
-                keep = max(1, int(n * (self.budget_bytes - head) / (payload * REPLAN_GROWTH)))
-            if keep >= (1.0 - REPLAN_MAX_CUT) * n or extra == 0:
-                break
-            planned = BITS_REFERENCE_DB + (extra - 1) * DB_PER_BIT  # one bit fewer on every attribute
+            if predicted > budget * (1.0 + REPLAN_TOLERANCE):
+                keep = max(1, int(n * (budget - head) / (payload * REPLAN_GROWTH)))
+            return {"planned": planned, "bits": bits, "extra": extra, "size": size, "predicted": predicted, "keep": keep}
+
+        def enough(r: dict) -> bool:  # few enough taken out, or no bit left to drop
+            return r["keep"] >= (1.0 - REPLAN_MAX_CUT) * n or r["extra"] == 0
+
+        # the depths of the expected accuracy, one bit fewer on every attribute while they would
+        # cut too many: after the first, the fewer-bit codings run REPLAN_WORKERS at a time (the
+        # same decision: the first of them, in order, that is enough)
+        r = plan(expected)
+        rest = [BITS_REFERENCE_DB + e * DB_PER_BIT for e in range(r["extra"] - 1, -1, -1)]
+        workers = max(1, min(len(rest), replan_workers()))
+        while not enough(r) and rest:
+            wave, rest = rest[:workers], rest[workers:]
+            if len(wave) == 1:
+                results = [plan(wave[0])]
+            else:
+                with ThreadPoolExecutor(max_workers=len(wave)) as ex:
+                    results = list(ex.map(plan, wave))
+            r = next((x for x in results if enough(x)), results[-1])
+        planned, bits, extra, keep, predicted = r["planned"], r["bits"], r["extra"], r["keep"], r["predicted"]
         if keep < n:
             order = np.argsort(importance(params), kind="stable")  # least important first
             refiner.silence(order[: n - keep])
@@ -174,7 +206,7 @@ class Replan:
             "planned_psnr_db": planned,  # below expected where REPLAN_MAX_CUT held the bits back
             "bits": bits,
             "bits_added": extra,
-            "coded_bytes_now": len(data),
+            "coded_bytes_now": r["size"],
             "predicted_bytes": predicted,
             "n_before": n,
             "n_after": keep,
