@@ -137,6 +137,31 @@ def test_coding_is_deterministic_and_independent_of_input_order():
     assert coded.encode_coded(p[np.random.default_rng(0).permutation(len(p))])[0] == a
 
 
+def test_a_coding_on_threads_writes_the_bytes_of_one_thread(monkeypatch):
+    """coded_keys.CODING_THREADS: quantising (canonical turns, every attribute's grid, the
+    rotations' edge fix), lifting and each column's form run by rows and columns on threads
+    from PARALLEL_MIN_ROWS primitives; the payload, description and order are those of one
+    thread (here from 64 rows, so that a small model takes the threaded path, with turns near
+    the canonical edges and a value column that lifts)."""
+    p = _structured(5000, 3)
+    rng = np.random.default_rng(5)
+    p[::7, 6:10] = rng.normal(size=(len(p[::7]), 4))  # any turn: many are turned to canonical
+    monkeypatch.setattr(coded_keys, "PARALLEL_MIN_ROWS", 64)
+    chunks = coded_keys.row_chunks(len(p))
+    assert len(chunks) == coded_keys.CODING_THREADS and chunks[-1].stop == len(p)
+    assert [c.start for c in chunks[1:]] == [c.stop for c in chunks[:-1]]
+    for bits in (None, {"mu": 4, "log_s": 6, "q": 9, "a": 10, "w": 7}):
+        monkeypatch.setattr(coded_keys, "CODING_THREADS", 1)
+        one = coded.encode_coded(p, bits)
+        np.testing.assert_array_equal(coded.canonical(p), coded._canonical(p))
+        monkeypatch.setattr(coded_keys, "CODING_THREADS", 8)
+        many = coded.encode_coded(p, bits)
+        assert one[0] == many[0] and one[1] == many[1]
+        np.testing.assert_array_equal(one[2], many[2])
+        assert one[1]["columns"] and any(c[1] for c in one[1]["columns"][3:])
+        np.testing.assert_array_equal(coded.canonical(p), coded._canonical(p))
+
+
 def test_old_layout_files_still_read_and_new_files_are_version_3(tmp_path):
     p = _structured(2000, 4)
     old, new = tmp_path / "old.wgs", tmp_path / "new.wgs"

@@ -53,6 +53,7 @@ from .coded_keys import (
     _order_and_keys,
     _resolve_ties,
     _sorted_keys,
+    by_rows,
     check_keys,
     coded_order,
     decode_keys,
@@ -171,7 +172,12 @@ def _hamilton(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def canonical(params: np.ndarray) -> np.ndarray:
     """(N, 12) float64 parameters of the same Gaussians, each turned by the axis rotation (of
     :data:`OCTAHEDRAL_Q`) that brings its unit quaternion nearest the identity, ``w`` >= 0, its
-    log-scales moved with its axes (the first such rotation where several tie)."""
+    log-scales moved with its axes (the first such rotation where several tie). Row by row (on
+    threads for a large model)."""
+    return by_rows(_canonical, np.asarray(params))
+
+
+def _canonical(params: np.ndarray) -> np.ndarray:
     p = np.array(params, np.float64)
     q = p[:, 6:10]
     norm = np.sqrt(np.einsum("ij,ij->i", q, q))[:, None]
@@ -289,7 +295,7 @@ def _codes(p: np.ndarray, b: dict[str, int], columns: dict | None = None) -> np.
         key = (name, b[name])
         col = None if columns is None else columns.get(key)
         if col is None:
-            col = make(p[:, cols], b[name])
+            col = by_rows(make, p[:, cols], b[name])  # row by row: on threads for a large model
             if columns is not None:
                 columns[key] = col
         codes[:, cols] = col

@@ -53,6 +53,8 @@ spans, and rejects codes outside their ranges; no pickle.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from ..errors import WarpgaussError
@@ -311,6 +313,40 @@ def _plane_bits(planes: list[bytes]) -> float:
 GROUPS = ((3, 4, 5), (6,), (7, 8, 9), (10,), (11,))
 
 
+# a coding's column work (quantising, lifting, choosing each column's form) runs on up to this many
+# threads where a model has at least PARALLEL_MIN_ROWS primitives: numpy releases the GIL in its
+# loops, and every step is row by row or column by column, so the bytes are those of one thread.
+# Measured on one H200 host (16 cores): a coding of 1.1M Gaussians took 2-3 s on one thread
+# (benchmarks/results/speed/host_profile_interface512_h200.json)
+CODING_THREADS = 8
+PARALLEL_MIN_ROWS = 1 << 16
+
+
+def coding_map(fn, items: list, rows: int) -> list:
+    """``[fn(x) for x in items]``, on threads (at most :data:`CODING_THREADS`) where ``rows`` is
+    at least :data:`PARALLEL_MIN_ROWS`; exceptions raised as the loop would raise them."""
+    if rows < PARALLEL_MIN_ROWS or len(items) < 2 or CODING_THREADS < 2:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(max_workers=min(CODING_THREADS, len(items))) as ex:
+        return list(ex.map(fn, items))
+
+
+def row_chunks(n: int) -> list[slice]:
+    """Row ranges of ``n`` rows for :func:`coding_map`: one a thread, each of at least
+    :data:`PARALLEL_MIN_ROWS` / 2 rows (one range below :data:`PARALLEL_MIN_ROWS`)."""
+    k = max(1, min(CODING_THREADS, 2 * n // PARALLEL_MIN_ROWS)) if n >= PARALLEL_MIN_ROWS else 1
+    return [slice(i * n // k, (i + 1) * n // k) for i in range(k)]
+
+
+def by_rows(fn, x: np.ndarray, *args) -> np.ndarray:
+    """``fn(x, *args)`` for a row-by-row ``fn`` (each output row depends on its input row alone),
+    computed by chunks of rows on threads and stacked."""
+    chunks = row_chunks(len(x))
+    if len(chunks) == 1:
+        return fn(x, *args)
+    return np.concatenate(coding_map(lambda s: fn(x[s], *args), chunks, len(x)))
+
+
 def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int], gaps: tuple | None = None) -> tuple[list[bytes], dict]:
     """Layout-2 frame blocks (the frame's contents, each to end a Zstandard block) and description
     of (n, 12) codes in storage order whose centre keys ``keys`` (:func:`centre_keys`) ascend
@@ -327,8 +363,16 @@ def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int], gaps:
     # every attribute column and its residuals contiguous (reductions over strided columns of the
     # (n, 12) codes took most of a coding's column work)
     attrs = np.ascontiguousarray(codes[:, 3:12].T)
-    residuals = lift(attrs) if n > 2 else None  # every attribute column at once
-    for k in range(3, 12):
+    residuals = None
+    if n > 2:  # every attribute column's residuals, column by column
+        residuals = np.empty_like(attrs)
+
+        def lift_into(k: int) -> None:
+            residuals[k] = lift(attrs[k])
+
+        coding_map(lift_into, list(range(len(attrs))), n)
+
+    def form(k: int) -> tuple[tuple[int, int, list[bytes]], bool]:
         col = _column(attrs[k - 3])
         if col[1] and residuals is not None:  # a stored column: its residuals may code smaller;
             # they are kept where their planes' order-0 entropy is smaller and one Zstandard
@@ -336,8 +380,12 @@ def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int], gaps:
             lifted = _column(residuals[k - 3])
             if abs(lifted[0]) <= 1 << 52 and lifted[1] <= 53 and _plane_bits(lifted[2]) < _plane_bits(col[2]):
                 if _zstd_size(lifted[2]) < _zstd_size(col[2]):
-                    col = lifted
-                    mask |= 1 << k
+                    return lifted, True
+        return col, False
+
+    for k, (col, is_lifted) in zip(range(3, 12), coding_map(form, list(range(3, 12)), n)):
+        if is_lifted:
+            mask |= 1 << k
         columns.append([col[0], col[1]])
         col_planes[k] = col[2]
     blocks = [mask.to_bytes(2, "little") + sym, packed]
