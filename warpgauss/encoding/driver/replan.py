@@ -76,9 +76,27 @@ REPLAN_LATE_EXTRAPOLATE = 1.0
 # the bit depths a refined model is coded at: "accuracy" (bits_for_psnr of its sample PSNR) or
 # "sizing" (those N was sized for; more only where the budget leaves room)
 REFINED_BITS = "accuracy"
+# where the re-plan held bits back (REPLAN_MAX_CUT: its planned accuracy below the expected), the
+# fit to the byte budget starts from the re-plan's depths where they are below the accuracy's
+# (adding bits while they fit) rather than from the accuracy's (dropping bits, then trying the
+# prune shares against it): the model was cut to fit at those depths
+REFINED_HELD_START = False
 REFIT_MIN_ITERATIONS = 30
 REFIT_LR = 0.3
 REFIT_MIN_PRUNED = 0.01
+
+
+def held_start(note: dict, plan: dict | None) -> dict[str, int]:
+    """The depths a refined model's fit starts from: ``note``'s (``accuracy_bits``), or each the
+    lower of those and the re-plan's where :data:`REFINED_HELD_START` and the re-plan held bits
+    back (``note`` then says so under ``held_by_replan``)."""
+    bits = dict(note["bits"])
+    if not REFINED_HELD_START or plan is None or plan["planned_psnr_db"] >= plan["expected_psnr_db"]:
+        return bits
+    held = {k: min(v, plan["bits"][k]) for k, v in bits.items()}
+    if held != bits:
+        note["held_by_replan"] = held
+    return held
 
 
 def replan_workers() -> int:

@@ -379,7 +379,7 @@ class EncodeRun(replan.Replan):
                 from ...format.ratefit import accuracy_bits  # finer grids for a more accurate model
 
                 self.coded_bits_note = accuracy_bits(history[-1].get("sample_psnr_db"))
-                refined.coded_bits = self.coded_bits_note["bits"]
+                refined.coded_bits = replan.held_start(self.coded_bits_note, self.replan)
             self.model, self.refined_fit = self.stored(refined)
             if self.refined_fit is not None and not refiner.interrupted:
                 self.refit_pruned(refined, cap, deadline)

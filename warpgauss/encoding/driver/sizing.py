@@ -188,6 +188,8 @@ def coded_choice(sizing: dict | None, fit: dict | None, note: dict | None, repla
             )
     if note is not None and note["bits_added"]:
         parts.append(f"{note['bits_added']} bit(s) more on every attribute for a {note['sample_psnr_db']:.1f} dB model")
+        if note.get("held_by_replan"):
+            parts.append("the fit started from the re-plan's depths, which held bits back, and added bits while they fit")
     if fit is not None:
         did = ", ".join(fit["steps"]) or "no depth changed"
         pruned = f"{fit['pruned']:,} least important Gaussians pruned"
