@@ -90,6 +90,30 @@ def test_fit_bytes_shrinks_prunes_and_grows():
     np.testing.assert_array_equal(big, coded.project_coded(p, bits)[coded.encode_coded(p, bits)[2]])
 
 
+def test_bit_trials_coded_at_once_add_the_bits_one_at_a_time_would(monkeypatch):
+    """ratefit.GROW_WAVE: the fill's bit trials coded several at a time on threads (here from 64
+    primitives, so that a small model takes that path) take the same bits in the same order as
+    one trial after the other: the same stored model, depths and steps, with and without the
+    measured bit worth (whose order changes after each bit added)."""
+    from test_wgs import realistic_params
+
+    from warpgauss.format import coded, coded_keys, ratefit
+
+    p = realistic_params(np.random.default_rng(4), 2000)
+    full = len(coded.encode_coded(p)[0])
+    monkeypatch.setattr(coded_keys, "PARALLEL_MIN_ROWS", 64)
+    worth = ratefit.bit_worth(p, dict(coded.CODED_BITS), lambda stored, b: -float(np.abs(stored - p).sum()))
+    for share, w in ((1.6, None), (1.25, None), (0.9, None), (1.6, worth)):
+        fits = []
+        for wave in (1, 2, 5):
+            monkeypatch.setattr(ratefit, "GROW_WAVE", wave)
+            fits.append(ratefit.fit_at_share(p, int(full * share), worth=w))
+        for stored, bits, info in fits[1:]:
+            np.testing.assert_array_equal(stored, fits[0][0])
+            assert bits == fits[0][1] and info["steps"] == fits[0][2]["steps"] and info["bytes"] == fits[0][2]["bytes"]
+        assert sum(s.endswith("+1") for s in fits[0][2]["steps"]) >= (2 if share > 1 else 0)
+
+
 @pytest.mark.parametrize("measure_bits", [False, True])
 def test_a_model_fitted_with_a_score_keeps_the_best_scoring_fit(cpu, monkeypatch, measure_bits):
     """Model.fit_bytes(score=...) (what the encode passes: the PSNR on sampled voxels): where the

@@ -479,6 +479,13 @@ def test_a_re_plan_holds_bits_back_rather_than_take_out_too_many(tmp_path, cpu, 
     assert held["bits_added"] == 0 and held["planned_psnr_db"] < held["expected_psnr_db"] == free["expected_psnr_db"]
     assert held["n_after"] >= free["n_after"]
     assert "planned for" in bud["coded_choice"]
+    # replan.REFINED_HELD_START: the fit started from the re-plan's depths where the accuracy's are higher
+    note = bud["coded_bits_from_accuracy"]
+    start = {k: min(v, held["bits"][k]) for k, v in note["bits"].items()}
+    assert note.get("held_by_replan", note["bits"]) == start
+    if start != note["bits"]:
+        assert "started from the re-plan's depths" in bud["coded_choice"]
+        assert not any(s.endswith("-1") for s in bud["coded_fit"]["steps"][:1]) or bud["coded_fit"]["first_bytes"] > bud["requested_bytes"]
     assert (tmp_path / "held.wgs").stat().st_size <= bud["requested_bytes"]
 
 

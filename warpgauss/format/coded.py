@@ -355,6 +355,20 @@ class _FitCodes:
     def __exit__(self, *exc):
         _FIT.codes = self._outer
 
+    def in_thread(self, fn):
+        """``fn`` wrapped to run with this fit active in whatever thread calls it (a fit's trial
+        codings on threads: the same caches, the same bytes)."""
+
+        def run(*args):
+            outer = getattr(_FIT, "codes", None)
+            _FIT.codes = self
+            try:
+                return fn(*args)
+            finally:
+                _FIT.codes = outer
+
+        return run
+
 
 def _cached_codes(params, b: dict[str, int]) -> np.ndarray | None:
     fit = getattr(_FIT, "codes", None)

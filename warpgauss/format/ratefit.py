@@ -148,6 +148,10 @@ CHOICE_SEARCH_CODINGS = 1
 # one H200 host (16 cores) the interface field at 512^3, CR 100, spent 20.4 s in the rate control,
 # the alternatives waiting on the first fit (benchmarks/results/speed/host_profile_interface512_h200.json)
 CHOICE_CONCURRENT = True
+# bit trials of the fill (a bit more where it still fits) coded at once, on threads, for models of
+# warpgauss.format.coded_keys.PARALLEL_MIN_ROWS primitives or more: the fill takes the first in
+# order that fits, as one trial after the other would (the extra trials coded for nothing)
+GROW_WAVE = 3
 
 
 def fit_bytes(
@@ -330,20 +334,48 @@ def _fit_at_share(fit: _FitCodes, params, budget, bits, size_of, prune_share, se
                 lo, lo_size = mid, s
         p, pruned, cur = kept(hi), hi, hi_size
         keep = np.sort(rank[: len(rank) - hi])
+    # add bits while they fit: from each state, the attributes in order whose bit is predicted to
+    # fit are coded GROW_WAVE at a time (on threads) and the first that fits is taken, then the
+    # rest of the order from the new state: the steps of trying them one at a time
+    wave = grow_wave(len(p))
+    trial_size = fit.in_thread(lambda bb: (size_of or (lambda q, c: len(encode_coded(q, c)[0])))(p, bb))
     grown = True
     while grown:
         grown = False
-        for k in _grow_order(b, start, worth):
-            if b[k] < _MAX_BITS[k] and cur + _bit_bytes(len(p), k) * GROW_MARGIN <= budget:
-                trial = {**b, k: b[k] + 1}
-                t = size(p, trial)
-                if t <= budget:
-                    b, cur, grown = trial, t, True
-                    steps.append(f"{k}+1")
-                    if worth is not None:
-                        break  # the order changes with each bit added
+        order = _grow_order(b, start, worth)
+        at = 0
+        while at < len(order):
+            cands = [k for k in order[at:] if b[k] < _MAX_BITS[k] and cur + _bit_bytes(len(p), k) * GROW_MARGIN <= budget]
+            hit = None
+            for i in range(0, len(cands), wave):
+                trials = [{**b, k: b[k] + 1} for k in cands[i : i + wave]]
+                codings += len(trials)
+                if len(trials) == 1:
+                    sizes = [trial_size(trials[0])]
+                else:
+                    with ThreadPoolExecutor(max_workers=len(trials)) as ex:
+                        sizes = list(ex.map(trial_size, trials))
+                hit = next(((k, t, tb) for k, t, tb in zip(cands[i : i + wave], sizes, trials) if t <= budget), None)
+                if hit is not None:
+                    break
+            if hit is None:
+                break
+            k, cur, b = hit[0], hit[1], hit[2]
+            grown = True
+            steps.append(f"{k}+1")
+            if worth is not None:
+                break  # the order changes with each bit added
+            at = order.index(k) + 1
     info = {"steps": steps, "pruned": pruned, "bytes": cur, "first_bytes": first, "codings": codings, "prune_share": share, "kept": keep}
     return as_stored(p, b), b, info
+
+
+def grow_wave(n: int) -> int:
+    """Bit trials a fit of ``n`` primitives codes at once (:data:`GROW_WAVE`; one below
+    :data:`warpgauss.format.coded_keys.PARALLEL_MIN_ROWS`, where a coding is cheap)."""
+    from .coded_keys import PARALLEL_MIN_ROWS
+
+    return max(1, int(GROW_WAVE)) if n >= PARALLEL_MIN_ROWS else 1
 
 
 def bits_for_psnr(psnr_db: float | None) -> tuple[dict[str, int], int]:
