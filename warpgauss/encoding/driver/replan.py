@@ -149,7 +149,9 @@ class Replan:
         t_total, k = self.opts.refine.iterations, refiner.iteration
         rest = max(REPLAN_REST_GAIN_DB, (at - half) * REPLAN_EXTRAPOLATE * math.log2(t_total / k))
         expected = at + min(rest, REPLAN_MAX_GAIN_DB)
-        self.replan = {"iteration": k, "sample_psnr_db": at, "sample_psnr_db_at_half": half, **self._cut_to(refiner, expected)}
+        t = time.perf_counter()
+        cut = self._cut_to(refiner, expected)
+        self.replan = {"iteration": k, "sample_psnr_db": at, "sample_psnr_db_at_half": half, **cut, "seconds": time.perf_counter() - t}
 
     def replan_late_iteration(self, first: int) -> int | None:
         """The iteration of the late re-plan (see :data:`REPLAN_LATE`): half-way from the re-plan

@@ -127,13 +127,16 @@ class EncodeRun(replan.Replan):
     def stored(self, m: Model) -> tuple[Model, dict | None]:
         """The model as the file will hold it (coded: fitted to the byte budget)."""
         if self.enc == "coded" and self.budget_bytes is not None:
+            t = time.perf_counter()
             if self.opts.time_budget is not None or self.opts.deadline is not None:
                 # on a time budget the first fit is the result: the choice below costs up to 4x
                 # its codings and an evaluation each (mni_icbm152 CR 10 on one H200: 25 codings, 2.9 s)
                 self.skip("coded fit choice", "a time budget: the first fit that meets the bytes is kept, pruning is not tried against it")
-                return m.fit_bytes(self.budget_bytes)
-            # where bits would be dropped, pruning instead is tried too and the better PSNR kept
-            return m.fit_bytes(self.budget_bytes, score=lambda fitted: float(self._evaluate(fitted, full=False)["psnr_db"]))
+                fitted, info = m.fit_bytes(self.budget_bytes)
+            else:
+                # where bits would be dropped, pruning instead is tried too and the better PSNR kept
+                fitted, info = m.fit_bytes(self.budget_bytes, score=lambda fitted: float(self._evaluate(fitted, full=False)["psnr_db"]))
+            return fitted, {**info, "seconds": time.perf_counter() - t}
         m = m.stored(self.enc)
         m.format = self.enc
         return m, None
