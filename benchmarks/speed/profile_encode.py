@@ -33,7 +33,8 @@ def main(argv=None) -> dict:
         "--variants",
         default="default",
         help="default, nolists (RefineConfig(cell_lists=False)), fast (--preset fast), it300 (the default's "
-        "sampling at 300 iterations), nograph (the refiner's CUDA graph off), comma-separated",
+        "sampling at 300 iterations), nograph (the refiner's CUDA graph off), comma-separated; NAME+field=value+... "
+        "sets RefineConfig fields on variant NAME (e.g. it300+lr=0.016)",
     )
     ap.add_argument(
         "--patch",
@@ -63,6 +64,11 @@ def main(argv=None) -> dict:
     }
     patches = _patches(args.patch)
     variants.update({name: RefineConfig() for name in patches})
+    for name in args.variants.split(","):  # NAME+field=value+...: RefineConfig fields on a listed variant
+        if "+" in name and name not in variants:
+            base, *sets = name.split("+")
+            fields = {k: float(v) if "." in v or "e" in v else int(v) for k, v in (x.split("=") for x in sets)}
+            variants[name] = dataclasses.replace(variants[base] or RefineConfig(), **fields)
     examples: dict[str, object] = {}
 
     def source(vol: str):
