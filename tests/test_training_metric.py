@@ -177,7 +177,7 @@ def test_presets_keep_the_papers_sampling():
     assert mine.weights.density == 0.5 and mine.weights.smooth == 0.01  # the preset sets only the smoothness
     fast, default = resolve_refine(None, "fast", None, None), RefineConfig()
     assert fast.iterations == 300 and default.iterations == 1500
-    assert fast == dataclasses.replace(default, iterations=300)
+    assert fast == dataclasses.replace(default, iterations=300, lr_decay=0.3)  # a short run decays its rate less
     assert (default.jitter, default.importance) == (0.0, True)
     with pytest.raises(Exception, match="jitter must be in"):
         RefineConfig(jitter=2.0).validate()
