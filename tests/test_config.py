@@ -49,6 +49,7 @@ SAMPLE = {
     "max_device_memory": "24GiB",
     "max_host_memory": "8GiB",
     "read_by_bricks": True,
+    "volume_on_host": True,
     "max_error": 0.5,
     "max_error_rel": 0.01,
     "residual_psnr": 60.0,

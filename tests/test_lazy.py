@@ -290,3 +290,44 @@ def test_brick_statistics_run_within_the_host_limit():
         seen.clear()
         assert map_bricks(fn, bricks, host_limit=2 * STATS_BYTES_PER_VOXEL * box) == [b.index for b in bricks]
         assert all(kw.get("threads", 0) >= 1 for kw in seen) and len(seen) == 4
+
+
+def test_a_volume_kept_on_the_host_encodes_one_model(tmp_path, monkeypatch):
+    """--volume-on-host (issue #55 part 1): the volume stays in (pinned) host memory, the model
+    whole on the device, so a file whose encode does not fit --max-device-memory but whose model
+    does is one model with no seams. On the CPU device the volume is there anyway: the same model
+    bit for bit as the default encode, the report saying where the volume was and why. Asked for
+    with bricks, or where the model alone would not fit the limit, it is refused before any work;
+    chosen by the limits only with entry.HOST_VOLUME_AUTO (off until measured on a GPU)."""
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+    from warpgauss.core.limits import host_volume_device_bytes
+    from warpgauss.encoding import entry
+
+    v = generate("vortex", 24)
+    raw, _, _ = _files(tmp_path, v)
+    whole = warpgauss.encode(str(raw), budget=150, **FAST)
+    host = warpgauss.encode(str(raw), budget=150, volume_on_host=True, **FAST)
+    np.testing.assert_array_equal(np.asarray(host.params), np.asarray(whole.params))
+    assert host.report["volume_memory"] == {"where": "host memory (the CPU device)", "why": "asked (--volume-on-host)"}
+    assert "volume_memory" not in whole.report and "bricking" not in host.report
+    with pytest.raises(WarpgaussError, match="give it or --bricks, not both"):
+        warpgauss.encode(str(raw), budget=150, volume_on_host=True, bricks="2x1x1", **FAST)
+    small = host_volume_device_bytes(24**3, 150) - 1
+    with pytest.raises(WarpgaussError, match="the model alone needs about"):
+        warpgauss.encode(str(raw), budget=150, volume_on_host=True, max_device_memory=small, **FAST)
+    # the limits: the whole grid does not fit, its model does -> bricks, or the host with the rule on
+    limit = brick_device_bytes(24 * 24 * 24, 150) - 1
+    assert host_volume_device_bytes(24**3, 150) <= limit
+    assert "bricking" in warpgauss.encode(str(raw), budget=150, max_device_memory=limit, halo=2, **FAST).report
+    monkeypatch.setattr(entry, "HOST_VOLUME_AUTO", True)
+    auto = warpgauss.encode(str(raw), budget=150, max_device_memory=limit, halo=2, **FAST)
+    assert "bricking" not in auto.report and "does not fit the device limit" in auto.report["volume_memory"]["why"]
+    np.testing.assert_array_equal(np.asarray(auto.params), np.asarray(whole.params))
+    base = ["encode", str(raw), "--budget", "150", "--iterations", "5", "--device", "cpu", "--no-self-test", "--format", "full"]
+    r = CliRunner().invoke(app, [*base, "--volume-on-host", "--bricks", "2x1x1", "-o", str(tmp_path / "c.wgs")])
+    assert r.exit_code == 2 and "not both" in r.output and "Traceback" not in r.output and not (tmp_path / "c.wgs").exists()
+    r = CliRunner().invoke(app, [*base, "--volume-on-host", "-o", str(tmp_path / "d.wgs")])
+    assert r.exit_code == 0, r.output
+    assert warpgauss.Model.load(tmp_path / "d.wgs").n == 150

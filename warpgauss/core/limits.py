@@ -19,6 +19,10 @@ DEVICE_BYTES_PER_VOXEL = 5.0
 DEVICE_BYTES_PER_PRIMITIVE = 1024.0
 DEVICE_FIXED_BYTES = 256 * 2**20
 DEVICE_MARGIN = 0.9  # the default limit: this share of the free memory
+# with the volume in pinned host memory (--volume-on-host) the device holds what is kept per 4^3
+# block of voxels (the sampler's strata and support, the error stratum: about 1 B a voxel, by the
+# arrays' sizes, not measured) beside the model and its fixed part
+HOST_VOLUME_DEVICE_BYTES_PER_VOXEL = 1.0
 # Peak host memory of one brick's encode per box voxel: the source's copy and the float32 values,
 # the interior/halo/validity masks and their uint8 uploads, the counting passes' temporaries on
 # every thread. Measured (H100 host, 16 threads, results/bricked/out_of_core1536_rss_h100.json): boxes
@@ -50,6 +54,11 @@ def parse_memory(text, option: str = "--max-device-memory", floor: int = DEVICE_
 def brick_device_bytes(box_voxels: int, primitives: float) -> int:
     """Estimated peak device memory of a brick's encode (see :data:`DEVICE_BYTES_PER_VOXEL`)."""
     return int(DEVICE_FIXED_BYTES + DEVICE_BYTES_PER_VOXEL * box_voxels + DEVICE_BYTES_PER_PRIMITIVE * primitives)
+
+
+def host_volume_device_bytes(voxels: int, primitives: float) -> int:
+    """Estimated peak device memory of a whole encode whose volume stays in host memory."""
+    return int(DEVICE_FIXED_BYTES + HOST_VOLUME_DEVICE_BYTES_PER_VOXEL * voxels + DEVICE_BYTES_PER_PRIMITIVE * primitives)
 
 
 def default_device_limit(device: str) -> int | None:

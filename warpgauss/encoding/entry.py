@@ -95,6 +95,7 @@ def encode(
     max_device_memory: int | str | None = None,
     max_host_memory: int | str | None = None,
     read_by_bricks: bool | None = None,
+    volume_on_host: bool | None = None,
     warm_start=None,
     motion: bool = True,
     max_error: float | None = None,
@@ -147,6 +148,7 @@ def encode(
         max_device_memory: Bytes (or ``"24GiB"``) one encode may use on the device; a larger one is bricked.
         max_host_memory: The same for this machine's memory.
         read_by_bricks: With ``bricks``, read a file brick by brick (True) or whole (False); None: whole where it fits.
+        volume_on_host: Keep the volume in pinned host memory (read by the GPU over the bus), the model whole on the device.
         warm_start: A :class:`Model` (or its (N, 12) parameters) of the previous timestep to refine from.
         motion: With ``warm_start``, first move the primitives with the field's motion.
         max_error: A point-wise bound in source units, kept by a residual stored after the Gaussians.
@@ -240,7 +242,11 @@ def encode_with(
             read_why=path.why,
         )
     else:
-        model = encode_whole(f, info, source, cfg, opts, device, timer, on_stats=on_stats, on_progress=on_progress)
+        model = encode_whole(
+            f, info, source, cfg, opts, device, timer, on_stats=on_stats, on_progress=on_progress, volume_on_host=path.volume_on_host
+        )
+        if path.volume_on_host:
+            model.run_report["volume_memory"]["why"] = path.why
     return finish(model, cfg, opts, timer)
 
 
@@ -288,7 +294,17 @@ def checked_request(source, cfg: EncodeConfig, session) -> tuple[object, str | N
 
 
 def encode_whole(
-    f, info: dict, source, cfg: EncodeConfig, opts: EncodeOptions, device, timer: StageRecorder, *, on_stats, on_progress
+    f,
+    info: dict,
+    source,
+    cfg: EncodeConfig,
+    opts: EncodeOptions,
+    device,
+    timer: StageRecorder,
+    *,
+    on_stats,
+    on_progress,
+    volume_on_host: bool = False,
 ) -> Model:
     """The whole-volume path: the staged run of :func:`.driver.run.encode_field` (S1-S2, EV) and,
     with an error bound, the residual (S4)."""
@@ -311,6 +327,7 @@ def encode_whole(
         on_progress=on_progress,
         analytic_output=run.analytic_output,
         force=run.force or run.resume,
+        volume_on_host=volume_on_host,
     )
     if bound.given:
         with timer.stage("S4", "bounded residual"):
@@ -380,7 +397,8 @@ class EncodePath:
     lazy: bool
     device_limit: int | None
     chosen: bool
-    why: str = ""  # why a bricked file is read brick by brick or whole
+    why: str = ""  # why a bricked file is read brick by brick or whole, or why the volume stays on the host
+    volume_on_host: bool = False  # the whole volume in pinned host memory, the model whole on the device
 
 
 def choose_path(source, cfg: EncodeConfig, device, workers: int = 0) -> EncodePath:
@@ -398,6 +416,8 @@ def choose_path(source, cfg: EncodeConfig, device, workers: int = 0) -> EncodePa
     limit = None if b.max_device_memory is None else parse_memory(b.max_device_memory, "--max-device-memory")
     host = host_limit(b.max_host_memory)
     is_file = read_on_demand(source, cfg.reading.example)
+    if b.volume_on_host:
+        return host_volume_path(source, cfg, bricks, limit, "asked (--volume-on-host)")
     if bricks is not None and is_file:
         gpu_cluster = workers > 0 and resolve_device(device).startswith("cuda")
         lazy, why = read_by_bricks_rule(header_shape(source, cfg.reading.read), host, b.read_by_bricks, gpu_cluster)
@@ -419,9 +439,44 @@ def choose_path(source, cfg: EncodeConfig, device, workers: int = 0) -> EncodePa
     counts = choose_bricks(shape_xyz, int(budget or 0), limit, int(halo), host, workers)
     if counts == (1, 1, 1):
         return EncodePath(None, False, limit, False)
+    if HOST_VOLUME_AUTO and b.volume_on_host is None and workers == 0 and limit is not None:
+        from ..core.limits import host_volume_device_bytes
+
+        n_guess = int(budget) if budget else max(1, voxels // 300)
+        fits_host = host is None or HOST_BYTES_PER_VOXEL_WHOLE * voxels <= host
+        if host_volume_device_bytes(voxels, n_guess) <= limit and fits_host:
+            return host_volume_path(source, cfg, None, limit, "the volume's encode does not fit the device limit, the model does")
     if b.read_by_bricks is False:
         return EncodePath(counts, False, limit, True, "asked (read_by_bricks False)")
     return EncodePath(counts, True, limit, True, "the bricks were chosen because the whole encode does not fit a memory limit")
+
+
+# where a file's whole encode does not fit the device limit but its model does (the volume in
+# pinned host memory, read by the kernels over the bus), choose_path keeps the volume whole on the
+# host rather than bricking it. Off until measured on a GPU (issue #55: the 1024^3 vortex out of
+# core against in core): the sampler's random reads then cross the bus every iteration
+HOST_VOLUME_AUTO = False
+# host memory of a whole encode with the volume on the host, per voxel: the float32 values read
+# and normalised, their pinned copy, the validity mask (an estimate by the arrays' sizes)
+HOST_BYTES_PER_VOXEL_WHOLE = 10.0
+
+
+def host_volume_path(source, cfg: EncodeConfig, bricks, limit: int | None, why: str) -> EncodePath:
+    """The whole-volume path with the volume in pinned host memory: refused with bricks, or where
+    the model alone would not fit ``limit``."""
+    from ..core.limits import host_volume_device_bytes
+
+    if bricks is not None:
+        raise WarpgaussError("--volume-on-host keeps the model whole: give it or --bricks, not both")
+    if limit is not None and cfg.budget.n:
+        shape = header_shape(source, cfg.reading.read) if read_on_demand(source, cfg.reading.example) else np.shape(source)
+        need = host_volume_device_bytes(int(np.prod([int(v) for v in shape], dtype=np.int64)), int(cfg.budget.n))
+        if need > limit:
+            raise WarpgaussError(
+                f"with the volume on the host the model alone needs about {need / 2**30:.1f} GiB of device memory, "
+                f"--max-device-memory allows {limit / 2**30:.1f} GiB; give a smaller budget or leave the volume to bricks"
+            )
+    return EncodePath(None, False, limit, False, why, volume_on_host=True)
 
 
 def read_by_bricks_rule(shape_xyz, host: int | None, asked: bool | None, gpu_cluster: bool = False) -> tuple[bool, str]:

@@ -451,9 +451,11 @@ def check_budget(f: Field, n: int, header_bytes: int, bytes_per_primitive: int =
 class DeviceVolume:
     """The normalised field and its validity mask resident on a Warp device."""
 
-    def __init__(self, f: Field, device: str, same_values: DeviceVolume | None = None):
+    def __init__(self, f: Field, device: str, same_values: DeviceVolume | None = None, on_host: bool = False):
         """``same_values``: a volume on ``device`` whose field holds the very same values array
-        (another mask over one box): its device values are shared, not copied again."""
+        (another mask over one box): its device values are shared, not copied again. ``on_host``:
+        on a CUDA device, the values and mask in pinned host memory, which its kernels read over
+        the bus (``on_host`` then True; on the CPU device it changes nothing)."""
         from ..core.warp import warp
 
         wp = warp()
@@ -461,29 +463,33 @@ class DeviceVolume:
         self.device = device
         self.values: Any
         self.mask: Any
+        host = bool(on_host) and wp.get_device(device).is_cuda and not hasattr(f.values, "array")
+        self.on_host = host
+        where, pinned = ("cpu", True) if host else (device, False)
         if same_values is not None and same_values.field.values is f.values and str(same_values.device) == str(device):
             self.values = same_values.values
         elif hasattr(f.values, "array"):  # normalised on a device (warpgauss.field.device): used where it is
             self.values = _on(f.values.array, device)
         else:
-            self.values = wp.array(f.values, dtype=float, device=device)
+            self.values = wp.array(f.values, dtype=float, device=where, pinned=pinned)
         if f.mask is not None:
             m = f.mask
-            self.mask = _on(m.array, device) if hasattr(m, "array") else mask_to_device(m, device)  # hasattr: on a device already
+            # hasattr: on a device already
+            self.mask = _on(m.array, device) if hasattr(m, "array") else mask_to_device(m, where, pinned)
             self.has_mask = 1
         else:
             self.mask = wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)
             self.has_mask = 0
 
 
-def mask_to_device(mask: np.ndarray, device: str):
-    """A host validity mask as a Warp uint8 array on ``device``: booleans are bytes already, so
-    they are viewed as uint8, not converted (a copy on the host)."""
+def mask_to_device(mask: np.ndarray, device: str, pinned: bool = False):
+    """A host validity mask as a Warp uint8 array on ``device`` (``pinned``: page-locked host
+    memory): booleans are bytes already, so they are viewed as uint8, not converted (a copy on the host)."""
     from ..core.warp import warp
 
     wp = warp()
     host = np.ascontiguousarray(mask).view(np.uint8) if mask.dtype == np.bool_ else mask.astype(np.uint8)
-    return wp.array(host, dtype=wp.uint8, device=device)
+    return wp.array(host, dtype=wp.uint8, device=device, pinned=pinned)
 
 
 def _on(arr, device: str):

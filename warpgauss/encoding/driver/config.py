@@ -105,6 +105,7 @@ class Bricking:
     max_device_memory: int | str | None = None
     max_host_memory: int | str | None = None
     read_by_bricks: bool | None = None  # a file's boxes read one by one (None: where it does not fit the host limit)
+    volume_on_host: bool | None = None  # the volume in pinned host memory, the model whole on the device (None: see entry.choose_path)
 
 
 @dataclass(frozen=True)
@@ -240,6 +241,7 @@ FIELDS: dict[str, tuple[str | None, str]] = {
     "max_device_memory": ("bricking", "max_device_memory"),
     "max_host_memory": ("bricking", "max_host_memory"),
     "read_by_bricks": ("bricking", "read_by_bricks"),
+    "volume_on_host": ("bricking", "volume_on_host"),
     "max_error": ("bound", "max_error"),
     "max_error_rel": ("bound", "max_error_rel"),
     "residual_psnr": ("bound", "psnr"),
@@ -394,6 +396,12 @@ OPTIONS: dict[str, Option] = {
         "A bricked file read brick by brick, one box in memory at a time (--read-by-bricks), or whole (--read-whole); default: whole where it fits --max-host-memory (then the seams are refit over the whole grid), else by bricks",
         bool | None,
         flags=("--read-by-bricks/--read-whole",),
+    ),
+    "volume_on_host": Option(
+        "Bricks and cluster",
+        "Keep the volume in pinned host memory, read by the GPU's kernels over the bus, and the model whole on the device (--volume-on-host), or the volume on the device (--volume-on-device); default: on the device, a volume whose encode does not fit --max-device-memory bricked",
+        bool | None,
+        flags=("--volume-on-host/--volume-on-device",),
     ),
     "checkpoint": Option("Run control", "Refinement checkpoint file; default OUTPUT.ckpt (deleted when the run ends)", Path | None),
     "checkpoint_every": Option("Run control", "Seconds between checkpoints (Ctrl-C also writes one)", float),

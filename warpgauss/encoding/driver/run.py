@@ -43,6 +43,7 @@ def encode_field(
     analytic_output=None,
     force: bool = False,
     cache: dict | None = None,
+    volume_on_host: bool = False,
 ) -> Model:
     """Stages S1a-S1e, S1x, S2 and EV on a normalised field; returns the model with its report.
 
@@ -64,8 +65,11 @@ def encode_field(
         force: Overwrite ``analytic_output`` if it exists.
         cache: A dict shared by encodes of the same field on the same device (a budget ladder):
             the device volume and structure statistics of the first are reused (S1a skipped).
+        volume_on_host: Keep the volume in pinned host memory, read by a GPU's kernels over the
+            bus (the model whole on the device); the report's ``volume_memory`` says where it was.
     """
     run = EncodeRun(f, opts, device, timer, evaluate, full_eval, analytic_output)
+    run.volume_on_host = volume_on_host
     run.analyse(cache, on_stats)  # S1a   occupancy, gradients, structure statistics
     run.size_coded()  # S1p   coded size pilot (a coded byte budget only)
     run.allocate()  # S1b-e seeds, shapes, values and weights
@@ -120,6 +124,7 @@ class EncodeRun(replan.Replan):
         # result: no refinement, an --analytic-output file, or a refined model that scores below it
         self.fit_later = self.enc == "coded" and self.budget_bytes is not None and opts.refine.iterations > 0 and analytic_output is None
         self.analytic_output = analytic_output
+        self.volume_on_host = False  # encode_field's volume_on_host
 
     def skip(self, what: str, why: str, **facts) -> None:
         self.skipped.append({"what": what, "why": why, **facts})
@@ -200,7 +205,7 @@ class EncodeRun(replan.Replan):
             # a warm start allocates nothing, and an Encoder call on a time budget spends nothing on
             # figures only the report would show: the statistics are skipped
             with self.timer.stage("S1a", "the field on the device"):
-                self.dv = DeviceVolume(f, dev)
+                self.dv = DeviceVolume(f, dev, on_host=self.volume_on_host)
             self.stats = None
             why = (
                 "warm start: no allocation needs them"
@@ -212,7 +217,7 @@ class EncodeRun(replan.Replan):
         else:
             t0 = time.perf_counter()
             with self.timer.stage("S1a", "occupancy, gradients, structure statistics"):
-                self.dv = DeviceVolume(f, dev)
+                self.dv = DeviceVolume(f, dev, on_host=self.volume_on_host)
                 self.stats = structure_stats(self.dv)
             if cache is not None:
                 cache.update({"device": dev, "field": f, "dv": self.dv, "stats": self.stats, "seconds": time.perf_counter() - t0})
@@ -552,4 +557,7 @@ class EncodeRun(replan.Replan):
         }
         if self.start_choice is not None:
             model.report["start_choice"] = self.start_choice
+        if self.volume_on_host:
+            where = "pinned host memory, read by the device's kernels over the bus" if self.dv.on_host else "host memory (the CPU device)"
+            model.report["volume_memory"] = {"where": where}
         return model
