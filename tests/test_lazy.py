@@ -331,3 +331,25 @@ def test_a_volume_kept_on_the_host_encodes_one_model(tmp_path, monkeypatch):
     r = CliRunner().invoke(app, [*base, "--volume-on-host", "-o", str(tmp_path / "d.wgs")])
     assert r.exit_code == 0, r.output
     assert warpgauss.Model.load(tmp_path / "d.wgs").n == 150
+
+
+def test_the_host_volume_benchmark_compares_the_two_paths(tmp_path):
+    """benchmarks/bricked/volume_on_host.py on a tiny CPU case: both rows, the same model, and the
+    issue's keys written into a summary that keeps its other keys."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "bricked" / "volume_on_host.py"
+    spec = importlib.util.spec_from_file_location("_bench_volume_on_host", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    summary = tmp_path / "round3.json"
+    summary.write_text(json.dumps({"cpu48_mono_db": 1.0}))
+    out = tmp_path / "voh.json"
+    res = module.main(["--size", "24", "--ratio", "8", "--iterations", "5", "--device", "cpu", "--out", str(out), "--summary", str(summary)])
+    assert [r["path"] for r in res["rows"]] == ["in core", "volume on host"] and res["host_equals_in_core"]
+    assert res["rows"][1]["volume_memory"]["where"] == "host memory (the CPU device)"
+    s = json.loads(summary.read_text())
+    assert s["cpu48_mono_db"] == 1.0 and s["ooc1024_db"] == s["incore1024_db"] == res["rows"][0]["psnr_db"]
+    assert s["ooc1024_time_ratio"] == res["host_time_ratio"] > 0 and json.loads(out.read_text())["device"] == "cpu"

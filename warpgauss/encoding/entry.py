@@ -164,15 +164,9 @@ def encode(
     if on_progress is None and (progress if progress is not None else watched()):
         on_progress = line = ProgressLine()
     try:
+        cfg = config_of(locals())
         return encode_with(
-            source,
-            config_of(locals()),
-            on_stage=on_stage,
-            on_stats=on_stats,
-            on_progress=on_progress,
-            on_bricks=on_bricks,
-            client=client,
-            session=session,
+            source, cfg, on_stage=on_stage, on_stats=on_stats, on_progress=on_progress, on_bricks=on_bricks, client=client, session=session
         )
     finally:
         if line is not None:

@@ -1,0 +1,92 @@
+"""One model with the volume in host memory (issue #55 part 1): the same example field encoded in
+core (the volume on the device) and with ``volume_on_host=True`` (the volume in pinned host memory,
+read by the kernels over the bus, the model whole on the device); the bricked out-of-core path is
+``out_of_core.py``'s (a file: an array in memory is never bricked by a limit). Same seed and settings; a table of
+seconds (the whole ``warpgauss.encode`` after a warm-up), PSNR (every voxel with ``--full-eval``,
+else 500,000 sampled), N, and whether the host-volume model equals the in-core one bit for bit.
+
+    python benchmarks/bricked/volume_on_host.py --field vortex --size 1024 --ratio 100 --max-device-memory 8GiB \\
+        --out $OUT/volume_on_host1024_h200.json --summary benchmarks/results/scale/round3.json
+
+``--summary`` sets the issue's keys ``ooc1024_db``, ``incore1024_db`` and ``ooc1024_time_ratio``
+(host volume against in core) in that JSON, the other keys kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+import warpgauss
+from warpgauss.core.warp import resolve_device, warp
+from warpgauss.encoding.bench import result_header
+from warpgauss.readers.synthetic import generate
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--field", default="vortex")
+    ap.add_argument("--size", type=int, default=1024)
+    ap.add_argument("--ratio", type=float, default=100.0)
+    ap.add_argument("--iterations", type=int, default=None, help="refinement iterations (default: the encode's)")
+    ap.add_argument("--max-device-memory", default=None, help="the host-volume run's device limit (the volume beyond it, the model within)")
+    ap.add_argument("--full-eval", action="store_true", help="PSNR over every voxel")
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--summary", default=None, help="a JSON whose issue #55 keys this run sets")
+    args = ap.parse_args(argv)
+    dev = resolve_device(args.device)
+    wp = warp()
+    warpgauss.encode(generate("vortex", 16), ratio=10, device=dev, iterations=20, progress=False)  # compile outside the clock
+    vol = generate(args.field, args.size, seed=0)
+    kw: dict = dict(ratio=args.ratio, device=dev, full_eval=args.full_eval, seed=0, progress=False)
+    if args.iterations is not None:
+        kw["iterations"] = args.iterations
+    runs = [("in core", {}), ("volume on host", {"volume_on_host": True, "max_device_memory": args.max_device_memory})]
+    res = {**result_header("one model with the volume in host memory", __file__, argv, dev), "rows": []}
+    models = {}
+    print(f"{'path':24s} {'s':>8s} {'PSNR':>8s} {'N':>10s}")
+    for name, extra in runs:
+        wp.synchronize()
+        t = time.perf_counter()
+        m = warpgauss.encode(vol, **kw, **extra)
+        wall = time.perf_counter() - t
+        models[name] = np.asarray(m.params)
+        rep = m.report
+        row = {
+            "path": name,
+            "seconds": wall,
+            "psnr_db": rep["evaluation"]["final"]["psnr_db"],
+            "n": m.n,
+            "stages": {s["stage"]: round(s["seconds"], 3) for s in rep["stages"]},
+            "peak_device_bytes": rep.get("peak_device_bytes"),
+            "volume_memory": rep.get("volume_memory"),
+            "bricks_xyz": (rep.get("bricking") or {}).get("bricks_xyz"),
+            "ms_per_iteration": (rep.get("refinement") or {}).get("ms_per_iteration"),
+        }
+        res["rows"].append(row)
+        print(f"{name:24s} {wall:8.2f} {row['psnr_db']:8.2f} {m.n:10d}")
+    base, host = res["rows"][0], res["rows"][1]
+    res["host_equals_in_core"] = bool(np.array_equal(models["in core"], models["volume on host"]))
+    res["host_time_ratio"] = host["seconds"] / base["seconds"]
+    print(f"host / in core: {res['host_time_ratio']:.2f}x, the same model: {res['host_equals_in_core']}")
+    Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
+    if args.summary:
+        p = Path(args.summary)
+        summary = json.loads(p.read_text()) if p.is_file() else {}
+        summary.update(
+            ooc1024_db=host["psnr_db"],
+            incore1024_db=base["psnr_db"],
+            ooc1024_time_ratio=res["host_time_ratio"],
+            ooc1024_source=f"{Path(args.out).name}: --volume-on-host against in core, {args.field} {args.size}^3, ratio {args.ratio:g}",
+        )
+        p.write_text(json.dumps(summary, indent=1) + "\n")
+    return res
+
+
+if __name__ == "__main__":
+    main()
