@@ -147,7 +147,8 @@ def encode(
 
 def _refuse_combinations(cfg, ladder: str | None) -> None:
     """What the command line refuses before it reads anything: a bound with a ladder, bricks or a
-    stride; a ladder with any other budget, a resume, a time budget or an analytic model."""
+    stride; a ladder with any other budget, a resume, a time budget, an analytic model or the
+    volume on the host."""
 
     if cfg.bound.given:
         cfg.bound.check()
@@ -159,6 +160,8 @@ def _refuse_combinations(cfg, ladder: str | None) -> None:
         cfg.budget.given or cfg.run.resume or cfg.refinement.time_budget is not None or cfg.run.analytic_output is not None
     ):
         fail("--ladder gives the budgets: it does not combine with --budget, --ratio, --bytes, --time-budget, --resume or --save-analytic")
+    if ladder is not None and cfg.bricking.volume_on_host:
+        fail("--volume-on-host is one encode's: it does not combine with --ladder (the rungs share one device volume)")
 
 
 def _check_writable(out: Path, rep_path: Path, cfg) -> None:

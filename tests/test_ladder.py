@@ -124,6 +124,7 @@ NOT_FOR_LADDERS = {
     "max_device_memory": "a ladder encodes the whole volume",
     "max_host_memory": "a ladder encodes the whole volume",
     "read_by_bricks": "a ladder encodes the whole volume",
+    "volume_on_host": "a ladder's rungs share one device volume (not kept on the host yet)",
     "on_bricks": "a ladder encodes the whole volume",
     "on_stats": "the statistics are shared by the ladder",
     "warm_start": "warm starts belong to series",

@@ -328,6 +328,9 @@ def test_a_volume_kept_on_the_host_encodes_one_model(tmp_path, monkeypatch):
     base = ["encode", str(raw), "--budget", "150", "--iterations", "5", "--device", "cpu", "--no-self-test", "--format", "full"]
     r = CliRunner().invoke(app, [*base, "--volume-on-host", "--bricks", "2x1x1", "-o", str(tmp_path / "c.wgs")])
     assert r.exit_code == 2 and "not both" in r.output and "Traceback" not in r.output and not (tmp_path / "c.wgs").exists()
+    ladder = ["encode", str(raw), "--ladder", "60,120", "--iterations", "5", "--device", "cpu", "--volume-on-host"]
+    r = CliRunner().invoke(app, [*ladder, "-o", str(tmp_path / "l_{n}.wgs")])
+    assert r.exit_code == 2 and "--ladder" in r.output and "Traceback" not in r.output
     r = CliRunner().invoke(app, [*base, "--volume-on-host", "-o", str(tmp_path / "d.wgs")])
     assert r.exit_code == 0, r.output
     assert warpgauss.Model.load(tmp_path / "d.wgs").n == 150
@@ -347,7 +350,9 @@ def test_the_host_volume_benchmark_compares_the_two_paths(tmp_path):
     summary = tmp_path / "round3.json"
     summary.write_text(json.dumps({"cpu48_mono_db": 1.0}))
     out = tmp_path / "voh.json"
-    res = module.main(["--size", "24", "--ratio", "8", "--iterations", "5", "--device", "cpu", "--out", str(out), "--summary", str(summary)])
+    res = module.main(
+        ["--size", "24", "--ratio", "8", "--iterations", "5", "--device", "cpu", "--out", str(out), "--summary", str(summary)]
+    )
     assert [r["path"] for r in res["rows"]] == ["in core", "volume on host"] and res["host_equals_in_core"]
     assert res["rows"][1]["volume_memory"]["where"] == "host memory (the CPU device)"
     s = json.loads(summary.read_text())

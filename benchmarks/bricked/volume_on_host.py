@@ -41,7 +41,7 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
     dev = resolve_device(args.device)
     wp = warp()
-    warpgauss.encode(generate("vortex", 16), ratio=10, device=dev, iterations=20, progress=False)  # compile outside the clock
+    warpgauss.encode(generate("vortex", 32), ratio=10, device=dev, iterations=20, progress=False)  # compile outside the clock
     vol = generate(args.field, args.size, seed=0)
     kw: dict = dict(ratio=args.ratio, device=dev, full_eval=args.full_eval, seed=0, progress=False)
     if args.iterations is not None:
