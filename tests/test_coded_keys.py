@@ -387,3 +387,33 @@ def test_a_fits_codings_keep_the_centres_order_and_write_the_same_bytes():
     assert [len(x) for x in got] == [len(x) for x in want]
     rows = coded.canonical(p).astype(np.float32)[np.arange(0, 2500, 3)]
     assert got_sub == [coded.encode_coded(rows, t)[0] for t in trials[:3]]
+
+
+def test_a_fits_codings_work_out_only_the_columns_whose_depth_changed(monkeypatch):
+    """Inside a fit each attribute column's stored form is kept while the storage order stays the
+    same: a coding that changes one attribute's depth works out that attribute's columns alone,
+    and writes the bytes it writes outside a fit; where a depth reorders rows whose centres tie
+    (ordered by every code) the kept forms are dropped and every column worked out again."""
+    p = _structured(3000, seed=8)
+    p[200:260] = p[40:100]  # shared centres, resolved by their values
+    p[200:260, 10] -= 0.003  # first by a fine value grid; a coarse one ties them: the original order
+    base = coded.canonical(p).astype(np.float32)
+    b = {"mu": 3, "log_s": 5, "q": 7, "a": 10, "w": 6}
+    trials = [b, {**b, "w": 7}, {**b, "a": 11}, {**b, "q": 8, "a": 11}, b, {**b, "a": 3}]
+    want = [coded.encode_coded(base, t)[0] for t in trials]
+    calls = []
+    real = coded_keys._column
+    monkeypatch.setattr(coded_keys, "_column", lambda c: calls.append(1) or real(c))
+    got, worked = [], []
+    with coded._FitCodes(base) as fit:
+        for t in trials:
+            calls.clear()
+            got.append(coded.encode_coded(fit.base, t)[0])
+            worked.append(len(calls))
+    assert got == want
+    columns = {"log_s": 3, "q": 4, "a": 1, "w": 1}
+    assert worked[0] >= 9  # every column (and the residuals of those stored)
+    # the columns whose depth differs from the coding before (a form kept for the latest depth only)
+    assert worked[1] <= 2 * columns["w"] and worked[2] <= 2 * (columns["a"] + columns["w"])
+    assert worked[3] <= 2 * columns["q"] and worked[4] <= 2 * (columns["q"] + columns["a"])
+    assert worked[5] >= 9  # a value grid too coarse to tell the tied rows apart: a new order, every column

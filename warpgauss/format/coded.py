@@ -401,22 +401,28 @@ def as_stored(params: np.ndarray, bits: dict[str, int] | None = None) -> np.ndar
     return dequantise(codes[coded_order(codes)], bits)
 
 
-def _storage_order(params: np.ndarray, codes: np.ndarray, b: dict[str, int]) -> tuple[np.ndarray, np.ndarray | None, tuple | None]:
-    """(storage order, Morton keys, their gap streams or None) of ``codes``: in a fit
-    (:class:`_FitCodes`) what depends on the centre codes alone is kept by rows and centre depth,
-    so a coding that changes other depths sorts and codes the centres once."""
+def _storage_order(
+    params: np.ndarray, codes: np.ndarray, b: dict[str, int]
+) -> tuple[np.ndarray, np.ndarray | None, tuple | None, dict | None]:
+    """(storage order, Morton keys, their gap streams or None, the attribute columns' forms or
+    None) of ``codes``: in a fit (:class:`_FitCodes`) what depends on the centre codes alone is
+    kept by rows and centre depth, so a coding that changes other depths sorts and codes the
+    centres once, and each attribute column's stored form is kept while the order stays the
+    same (rows sharing a key are ordered by every code: a depth may change their order)."""
     fit = getattr(_FIT, "codes", None)
     entry = None if fit is None else fit.order_entry(params, b["mu"])
     if entry is None:
         order, key = _order_and_keys(codes)
-        return order, key, None
+        return order, key, None, None
     if "key" not in entry:
         entry.update(_sorted_keys(codes))
     order = _resolve_ties(codes, entry)
     key = entry["key"]
     if key is not None and "gaps" not in entry:
         entry["gaps"] = gap_streams(key[order])  # tied rows share a key: the same in any tie order
-    return order, key, entry.get("gaps")
+    if "forms_order" not in entry or not np.array_equal(entry["forms_order"], order):
+        entry["forms_order"], entry["forms"] = order, {}
+    return order, key, entry.get("gaps"), entry["forms"]
 
 
 def _width(max_value: int) -> int:
@@ -438,12 +444,12 @@ def encode_coded(params: np.ndarray, bits: dict[str, int] | None = None, layout:
     if layout not in (None, 1, LAYOUT_KEYS):
         raise WarpgaussError(f"unknown coded layout {layout!r}; this warpgauss writes layouts 1 and {LAYOUT_KEYS}")
     codes = quantise(params, b)
-    order, key, gaps = _storage_order(params, codes, b)
+    order, key, gaps, forms = _storage_order(params, codes, b)
     codes = codes[order]
     if layout != 1:
         keys = None if key is None else key[order]  # centre_keys(codes[:, 0:3]), already computed
         if keys is not None:
-            blocks, quant = encode_keys(codes, keys, b, gaps)
+            blocks, quant = encode_keys(codes, keys, b, gaps, forms)
             return _compress_planes(blocks, sum(len(p) for p in blocks)), quant, order
         if layout == LAYOUT_KEYS:
             raise WarpgaussError(

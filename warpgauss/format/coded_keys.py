@@ -347,10 +347,17 @@ def by_rows(fn, x: np.ndarray, *args) -> np.ndarray:
     return np.concatenate(coding_map(lambda s: fn(x[s], *args), chunks, len(x)))
 
 
-def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int], gaps: tuple | None = None) -> tuple[list[bytes], dict]:
+_ATTRIBUTE_OF = {3: "log_s", 4: "log_s", 5: "log_s", 6: "q", 7: "q", 8: "q", 9: "q", 10: "a", 11: "w"}
+
+
+def encode_keys(
+    codes: np.ndarray, keys: np.ndarray, bits: dict[str, int], gaps: tuple | None = None, forms: dict | None = None
+) -> tuple[list[bytes], dict]:
     """Layout-2 frame blocks (the frame's contents, each to end a Zstandard block) and description
     of (n, 12) codes in storage order whose centre keys ``keys`` (:func:`centre_keys`) ascend
-    (``gaps``: their :func:`gap_streams`, where the caller has them)."""
+    (``gaps``: their :func:`gap_streams`, where the caller has them; ``forms``: each attribute
+    column's stored form by column, kept by a fit for the codings of one storage order, so that a
+    coding that changes one attribute's depth works out that attribute's columns alone)."""
     n = len(codes)
     sym, packed, nbits = gap_streams(keys) if gaps is None else gaps
     columns: list[list[int]] = []
@@ -360,30 +367,29 @@ def encode_keys(codes: np.ndarray, keys: np.ndarray, bits: dict[str, int], gaps:
         columns.append([int(mu_min[k]), span.bit_length()])
     mask = 0
     col_planes: dict[int, list[bytes]] = {}
-    # every attribute column and its residuals contiguous (reductions over strided columns of the
-    # (n, 12) codes took most of a coding's column work)
-    attrs = np.ascontiguousarray(codes[:, 3:12].T)
-    residuals = None
-    if n > 2:  # every attribute column's residuals, column by column
-        residuals = np.empty_like(attrs)
-
-        def lift_into(k: int) -> None:
-            residuals[k] = lift(attrs[k])
-
-        coding_map(lift_into, list(range(len(attrs))), n)
 
     def form(k: int) -> tuple[tuple[int, int, list[bytes]], bool]:
-        col = _column(attrs[k - 3])
-        if col[1] and residuals is not None:  # a stored column: its residuals may code smaller;
+        # the column contiguous (reductions over strided columns of the (n, 12) codes took most
+        # of a coding's column work), and its residuals after lift
+        values = np.ascontiguousarray(codes[:, k])
+        col = _column(values)
+        if col[1] and n > 2:  # a stored column: its residuals may code smaller;
             # they are kept where their planes' order-0 entropy is smaller and one Zstandard
             # compression each confirms it (the entropy alone misjudged a width crossing 8 bits)
-            lifted = _column(residuals[k - 3])
+            lifted = _column(lift(values))
             if abs(lifted[0]) <= 1 << 52 and lifted[1] <= 53 and _plane_bits(lifted[2]) < _plane_bits(col[2]):
                 if _zstd_size(lifted[2]) < _zstd_size(col[2]):
                     return lifted, True
         return col, False
 
-    for k, (col, is_lifted) in zip(range(3, 12), coding_map(form, list(range(3, 12)), n)):
+    # a copy first (one C call under the GIL): a fit's trials on threads share ``forms``
+    known = {} if forms is None else {k: f[1] for k, f in dict(forms).items() if f[0] == bits[_ATTRIBUTE_OF[k]]}
+    todo = [k for k in range(3, 12) if k not in known]
+    known.update(zip(todo, coding_map(form, todo, n)))
+    if forms is not None:
+        forms.update({k: (bits[_ATTRIBUTE_OF[k]], known[k]) for k in todo})
+    for k in range(3, 12):
+        col, is_lifted = known[k]
         if is_lifted:
             mask |= 1 << k
         columns.append([col[0], col[1]])
