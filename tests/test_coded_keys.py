@@ -147,6 +147,7 @@ def test_a_coding_on_threads_writes_the_bytes_of_one_thread(monkeypatch):
     rng = np.random.default_rng(5)
     p[::7, 6:10] = rng.normal(size=(len(p[::7]), 4))  # any turn: many are turned to canonical
     monkeypatch.setattr(coded_keys, "PARALLEL_MIN_ROWS", 64)
+    monkeypatch.setattr(coded_keys, "CODING_THREADS", 8)
     chunks = coded_keys.row_chunks(len(p))
     assert len(chunks) == coded_keys.CODING_THREADS and chunks[-1].stop == len(p)
     assert [c.start for c in chunks[1:]] == [c.stop for c in chunks[:-1]]

@@ -53,6 +53,7 @@ spans, and rejects codes outside their ranges; no pickle.
 
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -318,23 +319,29 @@ GROUPS = ((3, 4, 5), (6,), (7, 8, 9), (10,), (11,))
 # loops, and every step is row by row or column by column, so the bytes are those of one thread.
 # Measured on one H200 host (16 cores): a coding of 1.1M Gaussians took 2-3 s on one thread
 # (benchmarks/results/speed/host_profile_interface512_h200.json)
-CODING_THREADS = 8
+CODING_THREADS = 0  # 0: the host's cores, at most 8
 PARALLEL_MIN_ROWS = 1 << 16
 
 
+def coding_threads() -> int:
+    """Threads a coding's column work may use (:data:`CODING_THREADS`)."""
+    return int(CODING_THREADS) if CODING_THREADS > 0 else min(8, os.cpu_count() or 1)
+
+
 def coding_map(fn, items: list, rows: int) -> list:
-    """``[fn(x) for x in items]``, on threads (at most :data:`CODING_THREADS`) where ``rows`` is
+    """``[fn(x) for x in items]``, on threads (at most :func:`coding_threads`) where ``rows`` is
     at least :data:`PARALLEL_MIN_ROWS`; exceptions raised as the loop would raise them."""
-    if rows < PARALLEL_MIN_ROWS or len(items) < 2 or CODING_THREADS < 2:
+    threads = coding_threads()
+    if rows < PARALLEL_MIN_ROWS or len(items) < 2 or threads < 2:
         return [fn(x) for x in items]
-    with ThreadPoolExecutor(max_workers=min(CODING_THREADS, len(items))) as ex:
+    with ThreadPoolExecutor(max_workers=min(threads, len(items))) as ex:
         return list(ex.map(fn, items))
 
 
 def row_chunks(n: int) -> list[slice]:
     """Row ranges of ``n`` rows for :func:`coding_map`: one a thread, each of at least
     :data:`PARALLEL_MIN_ROWS` / 2 rows (one range below :data:`PARALLEL_MIN_ROWS`)."""
-    k = max(1, min(CODING_THREADS, 2 * n // PARALLEL_MIN_ROWS)) if n >= PARALLEL_MIN_ROWS else 1
+    k = max(1, min(coding_threads(), 2 * n // PARALLEL_MIN_ROWS)) if n >= PARALLEL_MIN_ROWS else 1
     return [slice(i * n // k, (i + 1) * n // k) for i in range(k)]
 
 
