@@ -347,25 +347,20 @@ class _FitCodes:
             return None
         return self.orders.setdefault((id(params), int(mu_bits)), {})
 
-    def __enter__(self):
-        self._outer = getattr(_FIT, "codes", None)
+    def __enter__(self):  # the fit outside it kept by thread: several threads may enter one fit
+        _FIT.outer = [*getattr(_FIT, "outer", []), getattr(_FIT, "codes", None)]
         _FIT.codes = self
         return self
 
     def __exit__(self, *exc):
-        _FIT.codes = self._outer
+        _FIT.codes = _FIT.outer.pop()
 
     def in_thread(self, fn):
-        """``fn`` wrapped to run with this fit active in whatever thread calls it (a fit's trial
-        codings on threads: the same caches, the same bytes)."""
+        """``fn`` run with this fit active in the thread that calls it (trials on threads)."""
 
         def run(*args):
-            outer = getattr(_FIT, "codes", None)
-            _FIT.codes = self
-            try:
+            with self:
                 return fn(*args)
-            finally:
-                _FIT.codes = outer
 
         return run
 
