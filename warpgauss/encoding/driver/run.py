@@ -559,5 +559,7 @@ class EncodeRun(replan.Replan):
             model.report["start_choice"] = self.start_choice
         if self.volume_on_host:
             where = "pinned host memory, read by the device's kernels over the bus" if self.dv.on_host else "host memory (the CPU device)"
+            if not self.dv.on_host and str(dev).startswith("cuda"):
+                where = "the device: the source was a device array already"
             model.report["volume_memory"] = {"where": where}
         return model
