@@ -8,6 +8,7 @@ and pruning, every trial a coding; the least of ``--repeat``), with the bytes of
 write the same files. Host only: no device.
 
     python benchmarks/speed/coding_time.py --models a.wgs,b.wgs --out OUT.json
+    python benchmarks/speed/coding_time.py --models a.wgs --extra-bits 2 --share 0.8 --scored --repeat 2 --out OUT.json
 """
 
 from __future__ import annotations
@@ -30,6 +31,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--models", required=True, help="stored models (.wgs), comma-separated")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--share", type=float, default=0.97, help="the fit's budget as a share of the model's file size")
+    ap.add_argument(
+        "--extra-bits", type=int, default=0, help="start the fit this many bits above the model's depths (and its budget from that size)"
+    )
+    ap.add_argument(
+        "--scored", action="store_true", help="a scored fit (the choice of prune shares, as the encode runs it; score: the weights' sum)"
+    )
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
     res = {**result_header("the rate control's codings on the host", __file__, argv, "cpu"), "rows": []}
@@ -43,10 +50,14 @@ def main(argv=None) -> dict:
             payload, _, _ = encode_coded(p)
             times.append(time.perf_counter() - t)
         budget = int(args.share * Path(path).stat().st_size)
+        if args.extra_bits:
+            m.coded_bits = {k: v + args.extra_bits for k, v in m.coded_bits.items()}
+            budget = int(args.share * m.fit_bytes(10**12)[1]["first_bytes"])
+        score = (lambda fitted: float(np.asarray(fitted.params)[:, 11].sum())) if args.scored else None
         fits = []
         for _ in range(args.repeat):
             t = time.perf_counter()
-            fitted, info = m.fit_bytes(budget)
+            fitted, info = m.fit_bytes(budget, score=score)
             fits.append(time.perf_counter() - t)
         stored, bits = np.asarray(fitted.params), info["bits"]
         fit_s = min(fits)
@@ -59,6 +70,7 @@ def main(argv=None) -> dict:
             "fit_budget": budget,
             "fit_s": fit_s,
             "fit_codings": info.get("codings"),
+            "fit_chosen": info.get("chosen"),
             "fit_bits": bits,
             "fit_n": int(len(stored)),
             "fit_sha256": hashlib.sha256(np.ascontiguousarray(stored).tobytes()).hexdigest(),
