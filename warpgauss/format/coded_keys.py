@@ -354,7 +354,8 @@ def by_rows(fn, x: np.ndarray, *args) -> np.ndarray:
     return np.concatenate(coding_map(lambda s: fn(x[s], *args), chunks, len(x)))
 
 
-_ATTRIBUTE_OF = {3: "log_s", 4: "log_s", 5: "log_s", 6: "q", 7: "q", 8: "q", 9: "q", 10: "a", 11: "w"}
+# the attribute (its bit depth's name) of each stored column after the centres, from the one column table
+_ATTRIBUTE_OF = {k: next(a for a in ("log_s", "q", "a", "w") if name.startswith(a)) for k, name in enumerate(CODED_COLUMNS) if k >= 3}
 
 
 def encode_keys(
