@@ -105,16 +105,17 @@ def main(argv=None) -> dict:
                 "analytic_psnr_db": rep["evaluation"].get("analytic", {}).get("psnr_db"),
                 "stages": {s["stage"]: round(s["seconds"], 4) for s in rep["stages"]},
                 "refinement": {k: v for k, v in (rep.get("refinement") or {}).items() if isinstance(v, (int, float, str))},
-                "coded_fit": {
-                    k: v
-                    for k, v in (rep.get("coded_fit") or rep.get("budget", {}).get("coded_fit") or {}).items()
-                    if isinstance(v, (int, float, str))
+                **{
+                    key: {
+                        k: v for k, v in (rep.get(key) or rep.get("budget", {}).get(key) or {}).items() if isinstance(v, (int, float, str))
+                    }
+                    for key in ("coded_fit", "coded_replan")
                 },
             }
             print(
                 f"{row['volume']} CR {ratio} {variant}: {wall:.2f} s, N {m.n}, {row['psnr_db']:.2f} dB, {row['refinement'].get('forward_pass')}, deferred {row['refinement'].get('deferred_updates')}"
             )
-            print("  stages", row["stages"])
+            print("  stages", row["stages"], "fit", row["coded_fit"].get("seconds"), "replan", row["coded_replan"].get("seconds"))
             if args.kernels and rc is not None:
                 cfg = dataclasses.replace(rc, graph=False)
                 wp.synchronize()
