@@ -36,6 +36,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--max-device-memory", default=None, help="the host-volume run's device limit (the volume beyond it, the model within)")
     ap.add_argument("--full-eval", action="store_true", help="PSNR over every voxel")
     ap.add_argument("--device", default=None)
+    ap.add_argument("--host-first", action="store_true", help="run the host-volume encode first (a run cut short still has its row)")
+    ap.add_argument("--progress", action="store_true", help="a line as each stage of an encode starts")
     ap.add_argument("--out", required=True)
     ap.add_argument("--summary", default=None, help="a JSON whose issue #55 keys this run sets")
     args = ap.parse_args(argv)
@@ -44,9 +46,14 @@ def main(argv=None) -> dict:
     warpgauss.encode(generate("vortex", 32), ratio=10, device=dev, iterations=20, progress=False)  # compile outside the clock
     vol = generate(args.field, args.size, seed=0)
     kw: dict = dict(ratio=args.ratio, device=dev, full_eval=args.full_eval, seed=0, progress=False)
+    if args.progress:
+        t0 = time.perf_counter()
+        kw["on_stage"] = lambda name, title: print(f"  {time.perf_counter() - t0:8.1f} s  {name}: {title}", flush=True)
     if args.iterations is not None:
         kw["iterations"] = args.iterations
     runs = [("in core", {}), ("volume on host", {"volume_on_host": True, "max_device_memory": args.max_device_memory})]
+    if args.host_first:
+        runs.reverse()
     res = {**result_header("one model with the volume in host memory", __file__, argv, dev), "rows": []}
     models = {}
     print(f"{'path':24s} {'s':>8s} {'PSNR':>8s} {'N':>10s}")
@@ -69,8 +76,9 @@ def main(argv=None) -> dict:
             "ms_per_iteration": (rep.get("refinement") or {}).get("ms_per_iteration"),
         }
         res["rows"].append(row)
-        print(f"{name:24s} {wall:8.2f} {row['psnr_db']:8.2f} {m.n:10d}")
-    base, host = res["rows"][0], res["rows"][1]
+        print(f"{name:24s} {wall:8.2f} {row['psnr_db']:8.2f} {m.n:10d}  {row['stages']}", flush=True)
+        Path(args.out).write_text(json.dumps(res, indent=1) + "\n")  # each row as it comes (a long run may be cut)
+    base, host = sorted(res["rows"], key=lambda r: r["path"] != "in core")
     res["host_equals_in_core"] = bool(np.array_equal(models["in core"], models["volume on host"]))
     res["host_time_ratio"] = host["seconds"] / base["seconds"]
     print(f"host / in core: {res['host_time_ratio']:.2f}x, the same model: {res['host_equals_in_core']}")
