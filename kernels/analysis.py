@@ -203,36 +203,59 @@ def sort3(d: wp.vec3) -> wp.vec3i:
     return wp.vec3i(a, b, c)
 
 
-@wp.kernel
-def seed_frames(
-    vol: wp.array3d(dtype=float),
-    mask: wp.array3d(dtype=wp.uint8),
+@wp.func
+def trilinear_slab(vol: wp.array3d(dtype=float), p: wp.vec3, kz0: int, nz: int):
+    """:func:`trilinear` at p, in the coordinates of a volume of ``nz`` slices of which ``vol``
+    holds the slices from ``kz0`` on (the clamp and weights are the whole volume's, so a slab that
+    holds every slice read gives the same value bit for bit)."""
+    i0, i1, tx = trilinear_axis(p[0], vol.shape[2])
+    j0, j1, ty = trilinear_axis(p[1], vol.shape[1])
+    k0, k1, tz = trilinear_axis(p[2], nz)
+    k0 -= kz0
+    k1 -= kz0
+    c00 = wp.lerp(vol[k0, j0, i0], vol[k0, j0, i1], tx)
+    c01 = wp.lerp(vol[k0, j1, i0], vol[k0, j1, i1], tx)
+    c10 = wp.lerp(vol[k1, j0, i0], vol[k1, j0, i1], tx)
+    c11 = wp.lerp(vol[k1, j1, i0], vol[k1, j1, i1], tx)
+    return wp.lerp(wp.lerp(c00, c01, ty), wp.lerp(c10, c11, ty), tz)
+
+
+SEED_FRAME_REACH = wp.constant(ST_RADIUS + 2)  # slices a seed's frame reads beyond its own (window, gradient, trilinear)
+
+
+@wp.func
+def seed_frame(
+    vol: wp.array3d(dtype=float),  # the volume, or a slab of it from slice kz0 on
+    mask: wp.array3d(dtype=wp.uint8),  # the same slices of the mask (has_mask only)
     has_mask: int,
-    voxel: wp.array(dtype=int),  # [S] linear voxel index of each seed
-    stream: int,  # RNG stream for the half-voxel jitter
-    mu: wp.array(dtype=wp.vec3),  # [S] out: jittered centre
-    quat: wp.array(dtype=wp.quat),  # [S] out: local axes (tangent, middle, normal) as a rotation
-    shape_info: wp.array(dtype=wp.vec3),  # [S] out: (|grad V| at the seed, planarity, value at mu)
+    kz0: int,
+    nz: int,  # slices of the whole volume
+    s: int,  # the seed's index (its jitter's random stream)
+    idx: int,  # its linear voxel index in the whole volume
+    stream: int,
+    mu: wp.array(dtype=wp.vec3),
+    quat: wp.array(dtype=wp.quat),
+    shape_info: wp.array(dtype=wp.vec3),
 ):
-    """S1c + S1e at each seed: 7^3 structure tensor, tangent frame, gradient, value (one thread per seed).
+    """S1c + S1e at one seed: 7^3 structure tensor, tangent frame, gradient, value.
 
     The principal (first) axis is the eigenvector of the smallest eigenvalue of the structure tensor
     (the local tangent); the third axis is the dominant gradient direction (the normal). Planarity
-    (l_max - l_mid) / l_max is 1 on a plane (both tangents free) and 0 on a tube.
+    (l_max - l_mid) / l_max is 1 on a plane (both tangents free) and 0 on a tube. A slab must hold
+    every slice within :data:`SEED_FRAME_REACH` of the seed's (or reach the volume's end there).
     """
-    s = wp.tid()
-    idx = voxel[s]
     nx = vol.shape[2]
     ny = vol.shape[1]
     i = idx % nx
     j = (idx / nx) % ny
     k = idx / (nx * ny)
+    kl = k - kz0
     T = wp.mat33(0.0)
     for dz in range(-ST_RADIUS, ST_RADIUS + 1):
         for dy in range(-ST_RADIUS, ST_RADIUS + 1):
             for dx in range(-ST_RADIUS, ST_RADIUS + 1):
-                if usable(vol, mask, has_mask, k + dz, j + dy, i + dx):
-                    g4 = gradient_at(vol, mask, has_mask, k + dz, j + dy, i + dx)
+                if usable(vol, mask, has_mask, kl + dz, j + dy, i + dx):
+                    g4 = gradient_at(vol, mask, has_mask, kl + dz, j + dy, i + dx)
                     g = wp.vec3(g4[0], g4[1], g4[2])
                     T += wp.outer(g, g)
     Q, d = wp.eig3(T)
@@ -248,10 +271,46 @@ def seed_frames(
     state = wp.rand_init(stream, s)
     jit = wp.vec3(wp.randf(state) - 0.5, wp.randf(state) - 0.5, wp.randf(state) - 0.5)
     p = wp.vec3(float(i), float(j), float(k)) + jit
-    g0 = gradient_at(vol, mask, has_mask, k, j, i)
+    g0 = gradient_at(vol, mask, has_mask, kl, j, i)
     mu[s] = p
     quat[s] = wp.quat_from_matrix(R)
-    shape_info[s] = wp.vec3(wp.length(wp.vec3(g0[0], g0[1], g0[2])), planarity, trilinear(vol, p))
+    shape_info[s] = wp.vec3(wp.length(wp.vec3(g0[0], g0[1], g0[2])), planarity, trilinear_slab(vol, p, kz0, nz))
+
+
+@wp.kernel
+def seed_frames(
+    vol: wp.array3d(dtype=float),
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    voxel: wp.array(dtype=int),  # [S] linear voxel index of each seed
+    stream: int,  # RNG stream for the half-voxel jitter
+    mu: wp.array(dtype=wp.vec3),  # [S] out: jittered centre
+    quat: wp.array(dtype=wp.quat),  # [S] out: local axes (tangent, middle, normal) as a rotation
+    shape_info: wp.array(dtype=wp.vec3),  # [S] out: (|grad V| at the seed, planarity, value at mu)
+):
+    """S1c + S1e at each seed (:func:`seed_frame`; one thread per seed)."""
+    s = wp.tid()
+    seed_frame(vol, mask, has_mask, 0, vol.shape[0], s, voxel[s], stream, mu, quat, shape_info)
+
+
+@wp.kernel
+def seed_frames_slab(
+    vol: wp.array3d(dtype=float),  # slices kz0.. of the volume (see seed_frame)
+    mask: wp.array3d(dtype=wp.uint8),
+    has_mask: int,
+    kz0: int,
+    nz: int,
+    voxel: wp.array(dtype=int),  # [S] linear voxel index of each seed
+    which: wp.array(dtype=int),  # [T] the seeds whose voxels lie in this slab's own slices
+    stream: int,
+    mu: wp.array(dtype=wp.vec3),  # [S] out, as seed_frames'
+    quat: wp.array(dtype=wp.quat),
+    shape_info: wp.array(dtype=wp.vec3),
+):
+    """:func:`seed_frames` for the seeds of one slab (a volume in host memory, a slab at a time on
+    the device): the same outputs bit for bit."""
+    s = which[wp.tid()]
+    seed_frame(vol, mask, has_mask, kz0, nz, s, voxel[s], stream, mu, quat, shape_info)
 
 
 @wp.kernel

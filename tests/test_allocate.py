@@ -246,3 +246,41 @@ def test_every_feasible_budget_yields_exactly_n(device):
         assert params.shape == (n, 12) and np.all(np.isfinite(params))
     with pytest.raises(WarpgaussError, match="N_max"):
         check_budget(f, n_max + 1, 4096)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_seed_frames_by_slabs_equal_the_whole_volume(device, masked, monkeypatch):
+    """A volume in host memory has its seeds' frames worked out a slab of slices at a time on the
+    device (warpgauss.field.slabs): with slabs of a few slices each, the model is the same bit for
+    bit as with the whole volume on the device (the CPU device stands in for the bus here)."""
+    from warpgauss.field import slabs
+
+    v = _blobs(24, seed=7, plateau=False)
+    if masked:
+        v[:3] = -999.0  # the first slices are "land": a mask whose edge a slab boundary crosses
+    f = normalise(v, fill_value=-999.0 if masked else None)
+    whole = DeviceVolume(f, device)
+    a, _ = allocate(whole, 400, seed=3, config=AllocationConfig(), timer=StageRecorder())
+    host = DeviceVolume(f, device)
+    host.on_host = True  # the slab path (on a CUDA device: pinned memory read a slab at a time)
+    ranges = slabs.slab_ranges(v.shape, 5, 24 * 24 * 4 * 13)
+    assert len(ranges) == 8 and ranges[-1][1] == 24  # 3 slices of their own each, 5 either side
+    monkeypatch.setattr(slabs, "SLAB_BYTES", 24 * 24 * 4 * 13)
+    b, _ = allocate(host, 400, seed=3, config=AllocationConfig(), timer=StageRecorder())
+    assert a.tobytes() == b.tobytes()
+    monkeypatch.setattr(slabs, "SLAB_BYTES", 1)  # one slice of its own a slab
+    c, _ = allocate(host, 400, seed=3, config=AllocationConfig(), timer=StageRecorder())
+    assert a.tobytes() == c.tobytes()
+
+
+def test_slab_groups_cover_every_index_once():
+    from warpgauss.field.slabs import by_slab, slab_ranges
+
+    rng = np.random.default_rng(0)
+    z = rng.integers(0, 40, 500)
+    ranges = slab_ranges((40, 8, 8), 2, 8 * 8 * 4 * 9)
+    assert ranges[0] == (0, 5) and ranges[-1] == (35, 40)
+    groups = by_slab(z, ranges)
+    assert np.array_equal(np.sort(np.concatenate(groups)), np.arange(500))
+    for (lo, hi), g in zip(ranges, groups):
+        assert np.all((z[g] >= lo) & (z[g] < hi)) and np.all(np.diff(g) > 0)

@@ -119,6 +119,29 @@ def group_spacing(mu, n_occupied: int) -> float:
     return float(np.median(out.numpy()))
 
 
+def seed_frames(dv: DeviceVolume, vox, stream: int, out: tuple) -> None:
+    """The seeds' frames (S1c, ``kernels.analysis.seed_frames``) into ``out`` = (mu, quat, info);
+    a volume in host memory by slabs on the device (the same outputs bit for bit)."""
+    from ..core.warp import warp
+    from ..field.slabs import by_slab, slab_ranges, z_slabs
+    from ..kernels import analysis as ka
+
+    wp = warp()
+    dev = dv.device
+    if not dv.on_host:
+        wp.launch(ka.seed_frames, dim=vox.shape[0], inputs=[dv.values, dv.mask, dv.has_mask, vox, stream], outputs=[*out], device=dev)
+        return
+    nz, ny, nx = dv.values.shape
+    reach = int(ka.SEED_FRAME_REACH)
+    groups = by_slab(vox.numpy() // (ny * nx), slab_ranges((nz, ny, nx), reach))
+    for (_, _, kz0, vals, mask), which in zip(z_slabs(dv, reach), groups):
+        if which.size:
+            sel = wp.array(which.astype(np.int32), dtype=int, device=dev)
+            wp.launch(
+                ka.seed_frames_slab, dim=which.size, inputs=[vals, mask, dv.has_mask, kz0, nz, vox, sel, stream], outputs=[*out], device=dev
+            )
+
+
 def allocate(dv: DeviceVolume, n: int, seed: int, config: AllocationConfig, timer) -> tuple[np.ndarray, dict]:
     """Place all n primitives analytically (S1b-S1e).
 
@@ -151,13 +174,7 @@ def allocate(dv: DeviceVolume, n: int, seed: int, config: AllocationConfig, time
             quat = wp.empty(k, dtype=wp.quat, device=dev)
             info = wp.empty(k, dtype=wp.vec3, device=dev)
             if k:
-                wp.launch(
-                    ka.seed_frames,
-                    dim=k,
-                    inputs=[dv.values, dv.mask, dv.has_mask, vox, rng_stream(seed, 10 + mode)],
-                    outputs=[mu, quat, info],
-                    device=dev,
-                )
+                seed_frames(dv, vox, rng_stream(seed, 10 + mode), (mu, quat, info))
             frames.append((mu, quat, info))
         wp.synchronize_device(dev)
     facts: dict = {"detail_seeds": nd, "coverage_seeds": nc, "scale_cap": cap}
