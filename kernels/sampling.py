@@ -28,7 +28,7 @@ estimate of the full-grid MSE while more samples fall where the model is wrong.
 
 import warp as wp
 
-from .analysis import OCCUPIED, in_grid, trilinear, usable
+from .analysis import OCCUPIED, in_grid, trilinear_axis, usable
 
 wp.set_module_options({"enable_backward": False})
 
@@ -46,6 +46,68 @@ def stratum_of(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), h
     if v > OCCUPIED:
         return 1
     return -1
+
+
+@wp.func
+def stratum_at(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int, v: float) -> int:
+    """:func:`stratum_of` of voxel (k, j, i) whose value ``v`` the caller has read already."""
+    if not usable(vol, mask, has_mask, k, j, i):
+        return -1
+    if v > HIGH_VALUE:
+        return 0
+    if v > OCCUPIED:
+        return 1
+    return -1
+
+
+@wp.func
+def row_pair(vol: wp.array3d(dtype=float), flat4: wp.array(dtype=wp.vec4), wide: int, k: int, j: int, i0: int, i1: int) -> wp.vec2:
+    """(V[k, j, i0], V[k, j, i1]) for i1 = i0 or i0 + 1. ``wide``: ``flat4`` views the volume as
+    aligned groups of four values and both are read in one 16-byte load where they lie in one group
+    (a volume in host memory: each load over the bus is a transaction of its own); else, as
+    without ``wide``, two loads."""
+    nx = vol.shape[2]
+    ll = (k * vol.shape[1] + j) * nx + i0
+    q = ll / 4
+    r = ll - 4 * q
+    if wide == 0 or q >= flat4.shape[0] or (i1 != i0 and r == 3):
+        return wp.vec2(vol[k, j, i0], vol[k, j, i1])
+    a = flat4[q]
+    if i1 == i0:
+        return wp.vec2(a[r], a[r])
+    return wp.vec2(a[r], a[r + 1])
+
+
+@wp.func
+def trilinear_rows(vol: wp.array3d(dtype=float), flat4: wp.array(dtype=wp.vec4), wide: int, p: wp.vec3, k: int, j: int, i: int) -> wp.vec2:
+    """(:func:`trilinear` at p bit for bit, V at voxel (k, j, i)): the corners read a row pair at
+    a time (:func:`row_pair`), the voxel's own value taken from them where it is a corner (p within
+    half a voxel of it), else read."""
+    i0, i1, tx = trilinear_axis(p[0], vol.shape[2])
+    j0, j1, ty = trilinear_axis(p[1], vol.shape[1])
+    k0, k1, tz = trilinear_axis(p[2], vol.shape[0])
+    r00 = row_pair(vol, flat4, wide, k0, j0, i0, i1)
+    r01 = row_pair(vol, flat4, wide, k0, j1, i0, i1)
+    r10 = row_pair(vol, flat4, wide, k1, j0, i0, i1)
+    r11 = row_pair(vol, flat4, wide, k1, j1, i0, i1)
+    c00 = wp.lerp(r00[0], r00[1], tx)
+    c01 = wp.lerp(r01[0], r01[1], tx)
+    c10 = wp.lerp(r10[0], r10[1], tx)
+    c11 = wp.lerp(r11[0], r11[1], tx)
+    value = wp.lerp(wp.lerp(c00, c01, ty), wp.lerp(c10, c11, ty), tz)
+    own = float(0.0)
+    if (i == i0 or i == i1) and (j == j0 or j == j1) and (k == k0 or k == k1):
+        rr = r11
+        if k == k0 and j == j0:
+            rr = r00
+        elif k == k0:
+            rr = r01
+        elif j == j0:
+            rr = r10
+        own = wp.where(i == i0, rr[0], rr[1])
+    else:
+        own = vol[k, j, i]
+    return wp.vec2(value, own)
 
 
 BRICK = wp.constant(4)  # stratum index granularity: voxels per brick edge
@@ -366,8 +428,7 @@ def uniform_domain(occ_total: int, use_support: int, support: wp.array(dtype=int
 @wp.func
 def sample_weight(
     vol: wp.array3d(dtype=float),
-    mask: wp.array3d(dtype=wp.uint8),
-    has_mask: int,
+    st: int,  # the voxel's stratum (stratum_of)
     k: int,
     j: int,
     i: int,
@@ -389,7 +450,6 @@ def sample_weight(
     it, D about the number of voxels it can pick (the larger of the uniform domain and the two
     strata together), so that the mean weight is about 1. ``m_err`` samples follow the error
     (quota prefix sums ``err_cum``, total ``q_tot``); 0: none."""
-    st = stratum_of(vol, mask, has_mask, k, j, i)
     n_occ = float(n_high + n_mid)
     q = float(0.0)
     if st == 0:
@@ -421,6 +481,8 @@ def draw_samples(
     vol: wp.array3d(dtype=float),
     mask: wp.array3d(dtype=wp.uint8),
     has_mask: int,
+    wide: int,  # 1: flat4 views vol as groups of four (row_pair; a volume in host memory)
+    flat4: wp.array(dtype=wp.vec4),
     high: wp.array(dtype=int),  # [B] inclusive prefix sums of the high stratum's brick counts
     mid: wp.array(dtype=int),  # [B] the same for the mid stratum
     high_bits: wp.array(dtype=wp.uint64),  # [B] membership bits of the high stratum (brick_counts)
@@ -488,12 +550,16 @@ def draw_samples(
         dl = 1.0
     r = partner_min + (partner_max - partner_min) * wp.randf(state)
     t = float(0.0)
+    own = float(0.0)
     ok = float(1.0)
     if jitter > 0.0:
-        t = trilinear(vol, p)
+        tv = trilinear_rows(vol, flat4, wide, p, k, j, i)
+        t = tv[0]
+        own = tv[1]
         ok = corners_usable(vol, mask, has_mask, p)
     else:  # the voxel itself: no neighbour is read
         t = vol[k, j, i]
+        own = t
     points[s] = p
     points[m + s] = p + d * (r / dl)
     target[s] = t
@@ -502,8 +568,7 @@ def draw_samples(
     if importance != 0 and ok > 0.0:
         ok = ok * sample_weight(
             vol,
-            mask,
-            has_mask,
+            stratum_at(vol, mask, has_mask, k, j, i, own),
             k,
             j,
             i,

@@ -107,6 +107,7 @@ class Sampler:
             unused = wp.zeros((1, 1, 1), dtype=int, device=dev)
             self.marks = None
             self._no_marks = (unused, wp.zeros(1, dtype=int, device=dev))
+        self._flat4: tuple | None = None  # (wide, the volume as groups of four): _wide
         self._support_read: dict = {}  # supported voxels and unreached error, read once per support (index_support)
         self.m = self.m_err = 0
         self.samples_a_cell = 0.0
@@ -243,6 +244,19 @@ class Sampler:
             )
         wp.utils.array_scan(self.err_quota.flatten(), self.err_cum, inclusive=True)
 
+    def _wide(self) -> tuple:
+        """(wide, flat4) for draw_samples: a volume in host memory viewed as groups of four values
+        (a row's two corners in one load over the bus), else (0, a placeholder)."""
+        if self._flat4 is None:
+            wp, v = self._wp, self.dv.values
+            on_host = getattr(self.dv, "on_host", False) and v.size >= 4
+            self._flat4 = (
+                (1, wp.array(ptr=v.ptr, dtype=wp.vec4, shape=(v.size // 4,), device=v.device, pinned=v.pinned))
+                if on_host
+                else (0, wp.zeros(1, dtype=wp.vec4, device=self.device))
+            )
+        return self._flat4
+
     def draw(self, stream) -> None:
         """Draw this iteration's samples from the RNG stream id in ``stream`` (a device int)."""
         from ...kernels import sampling as ks
@@ -258,6 +272,7 @@ class Sampler:
                 dv.values,
                 dv.mask,
                 dv.has_mask,
+                *self._wide(),
                 self.high,
                 self.mid,
                 self.high_bits,
