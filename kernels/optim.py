@@ -219,13 +219,14 @@ def begin_iteration(
     streams: wp.array(dtype=int),  # [T] sampler RNG stream of each iteration
     touch: wp.array(dtype=float),  # [1] learning-rate factor from the contact density
     now: wp.array(dtype=wp.vec4),  # [1] out: this iteration's (lr factor x touch, smoothness, bc1, bc2)
-    stream: wp.array(dtype=int),  # [1] out: this iteration's stream
+    stream: wp.array(dtype=int),  # [2] out: this iteration's stream, then the next one's
 ):
     """Pick this iteration's schedule values on the device, so that a captured graph can replay."""
     t = wp.min(counter[0], schedule.shape[0] - 1)
     s = schedule[t]
     now[0] = wp.vec4(s[0] * touch[0], s[1], s[2], s[3])
     stream[0] = streams[t]
+    stream[1] = streams[wp.min(counter[0] + 1, schedule.shape[0] - 1)]
 
 
 @wp.kernel

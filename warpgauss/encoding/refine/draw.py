@@ -36,6 +36,11 @@ ERROR_MIN_SAMPLES_A_CELL = 0.1
 # the 4^3 cells at 0.15, the smooth field within -0.12 .. +0.22; from about 5 the 4^3 cells were
 # best. Off (False): on a GPU it changes encodes from 1024^3 up and is not measured there
 ERROR_POOL = False
+# A volume in host memory (DeviceVolume.on_host): each iteration's samples are drawn during the
+# iteration before, on a second stream (Sampler.enable_ahead; the same samples). Measured before it
+# (H200, vortex 1024^3 CR 100, bricked/volume_on_host1024_h200.json): 51 ms an iteration with the
+# draw over the bus against 22 ms with the volume on the device
+DRAW_AHEAD = True
 ERROR_POOL_SAMPLES_A_CELL = 1.0
 ERROR_MAX_POOL = 8
 
@@ -108,8 +113,17 @@ class Sampler:
             self.marks = None
             self._no_marks = (unused, wp.zeros(1, dtype=int, device=dev))
         self._flat4: tuple | None = None  # (wide, the volume as groups of four): _wide
+        # drawing one iteration ahead (enable_ahead): what the draw reads besides the volume and
+        # its stream changes only where version is bumped; a staged draw is taken only unchanged
+        self.version = 0
+        self.ahead = False
+        self.staged: int | None = None  # the version the staging buffers were drawn at
+        self._stage: tuple | None = None
+        self._side = None
         self._support_read: dict = {}  # supported voxels and unreached error, read once per support (index_support)
         self.m = self.m_err = 0
+        if getattr(dv, "on_host", False) and DRAW_AHEAD:  # the draw reads over the bus: beside the passes
+            self.enable_ahead()
         self.samples_a_cell = 0.0
         self.error_pool = 1  # cells per block edge the quota scores (see ERROR_POOL)
         self.err_pooled = None
@@ -150,6 +164,8 @@ class Sampler:
         self.m = m
         self.points = wp.zeros(2 * m, dtype=wp.vec3, device=dev)
         self.target, self.weight, self.occupied = (wp.zeros(m, dtype=float, device=dev) for _ in range(3))
+        self.version += 1
+        self._alloc_stage()
         memory = self.rebin_every / (1.0 - self.error_decay) if self.error_decay < 1 else float("inf")
         self.samples_a_cell = d = memory * m / int(np.prod(self.bricks))
         f = 1
@@ -214,6 +230,7 @@ class Sampler:
             return
         wp, dev = self._wp, self.device
         nz, ny, nx = self.dv.values.shape
+        self.version += 1
         self.err_top.zero_()
         wp.launch(
             ks.update_errors,
@@ -257,8 +274,9 @@ class Sampler:
             )
         return self._flat4
 
-    def draw(self, stream) -> None:
-        """Draw this iteration's samples from the RNG stream id in ``stream`` (a device int)."""
+    def draw(self, stream, into: tuple | None = None) -> None:
+        """Draw this iteration's samples from the RNG stream id in ``stream`` (a device int) into
+        the sample buffers (``into``: other buffers of the same shapes)."""
         from ...kernels import sampling as ks
 
         wp, dv = self._wp, self.dv
@@ -295,9 +313,56 @@ class Sampler:
                 self.m_err,
                 self.err_cum,
             ],
-            outputs=[self.points, self.target, self.weight, self.occupied],
+            outputs=list(into or (self.points, self.target, self.weight, self.occupied)),
             device=self.device,
         )
+
+    # -- one iteration ahead ----------------------------------------------------------------
+    # A volume in host memory makes the draw the slowest kernel of an iteration (each target's
+    # corners are read over the bus). Drawn one iteration ahead into staging buffers, on a second
+    # stream, it runs beside the iteration's pair passes; the next iteration copies it in. The
+    # draw reads nothing those passes write, and whatever it does read from the model (support
+    # marks, error quota, the sizes) bumps ``version`` when it changes: a staged draw of another
+    # version is dropped and drawn again, so the samples, and the model, stay the same bit for bit.
+
+    def enable_ahead(self) -> None:
+        """Draw each iteration's samples during the one before (:meth:`stage`, :meth:`take`)."""
+        wp = self._wp
+        self.ahead = True
+        self._side = wp.Stream(self.device) if wp.get_device(self.device).is_cuda else None
+        self._alloc_stage()
+
+    def _alloc_stage(self) -> None:
+        if self.ahead and self.m:
+            wp, m, dev = self._wp, self.m, self.device
+            self._stage = (wp.zeros(2 * m, dtype=wp.vec3, device=dev), *(wp.zeros(m, dtype=float, device=dev) for _ in range(3)))
+
+    def stage(self, stream_next) -> None:
+        """Draw the next iteration's samples (its RNG stream id in ``stream_next``) into the
+        staging buffers, on the second stream where there is one (:meth:`join` waits for it)."""
+        assert self._stage is not None
+        if self._side is None:
+            self.draw(stream_next, into=self._stage)
+            return
+        wp = self._wp
+        self._side.wait_stream(wp.get_stream(self.device))
+        with wp.ScopedStream(self._side):
+            self.draw(stream_next, into=self._stage)
+
+    def join(self) -> None:
+        """The device's stream waits for the staging draw."""
+        if self._side is not None:
+            self._wp.get_stream(self.device).wait_stream(self._side)
+
+    def can_take(self) -> bool:
+        """Whether the staging buffers hold this iteration's samples as a draw now would."""
+        return self.ahead and self.staged == self.version
+
+    def take(self) -> None:
+        """Copy the staged samples into the sample buffers."""
+        assert self._stage is not None
+        for dst, src in zip((self.points, self.target, self.weight, self.occupied), self._stage):
+            self._wp.copy(dst, src)
 
     def mark_support(self, mu, ext) -> None:
         """Re-mark the support bricks from prepared centres and half-extents (any order)."""
@@ -306,6 +371,7 @@ class Sampler:
         if not self.uniform_support:
             return
         wp, dev = self._wp, self.device
+        self.version += 1
         marks, everything, _ = self.support_marks
         marks.zero_()
         everything.zero_()

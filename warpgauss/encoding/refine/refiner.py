@@ -110,6 +110,8 @@ class Refiner(Checkpointed, Reported):
     ):
         wp = self._wp = warp()
         load_kernels(dv.device)
+        self._graphs: dict = {}  # captured iterations: one that takes a staged draw, one that draws (_take)
+        self._take = False
         self.dv, self.cfg, self.seed = dv, config, seed
         dev = self.device = dv.device
         if config.samples < 1 or config.iterations < 0:
@@ -271,10 +273,14 @@ class Refiner(Checkpointed, Reported):
         if refresh:
             self.sampler.refresh_errors()
 
-    def sample(self) -> None:
-        """Draw this iteration's samples (without advancing)."""
+    def sample(self, take: bool = False) -> None:
+        """Draw this iteration's samples (without advancing); ``take``: copy in those drawn during
+        the iteration before (Sampler.enable_ahead)."""
         self.schedule.begin()
-        self.sampler.draw(self.schedule.stream)
+        if take:
+            self.sampler.take()
+        else:
+            self.sampler.draw(self.schedule.stream)
         self.passes.points_changed()
 
     def forward(self) -> None:
@@ -290,13 +296,29 @@ class Refiner(Checkpointed, Reported):
         """Chain rule, regularisers and one Adam step."""
         self.updater.step(self.schedule.now)
 
+    @property
+    def _graph(self):
+        return self._graphs.get(self._take)
+
+    @_graph.setter
+    def _graph(self, graph) -> None:
+        if graph is None:  # every captured iteration dropped, and a staged draw with them
+            self._graphs, self.sampler.staged = {}, None
+        else:
+            self._graphs[self._take] = graph
+
     def _iteration_launches(self) -> None:
-        self.sample()
+        sampler = self.sampler
+        self.sample(take=self._take)
+        if sampler.ahead:
+            sampler.stage(self.schedule.stream_next)
         self.forward()
-        self.sampler.record_errors(self.passes.point_loss)
+        sampler.record_errors(self.passes.point_loss)
         self.backward()
         self.update()
         self.schedule.end()
+        if sampler.ahead:
+            sampler.join()
 
     def step(self) -> None:
         """One iteration: (re-bin,) sample, forward, backward, fused chain rule + Adam + re-prepare."""
@@ -317,6 +339,7 @@ class Refiner(Checkpointed, Reported):
                 self.rebin()
         if not self.state.clean:
             self.state.zero_grads()
+        self._take = self.sampler.can_take()
         if self.use_graph and self._graph is None:
             self.passes.buffers()  # allocations and sort scratch before the capture
             try:
@@ -331,6 +354,7 @@ class Refiner(Checkpointed, Reported):
             wp.capture_launch(self._graph)
         else:
             self._iteration_launches()
+        self.sampler.staged = self.sampler.version if self.sampler.ahead else None
         self.state.clean = True  # refine_update zeroed every slot it read
         if replan and cfg.touch_ref > 0:  # re-estimate the contact density with the bins
             self.contacts = float(self.pairs.numpy()[: self.m].astype(np.float64).sum()) / self.n

@@ -40,6 +40,7 @@ class Schedule:
     Attributes:
         now: [1] vec4 (lr factor x touch scale, smoothness weight, bc1, bc2) of the current iteration.
         stream: [1] the current iteration's RNG stream id.
+        stream_next: [1] the next iteration's (a draw made one iteration ahead).
         touch: [1] learning-rate factor from the contact density (see ``RefineConfig.touch_ref``).
     """
 
@@ -49,7 +50,8 @@ class Schedule:
         self.counter = wp.zeros(1, dtype=int, device=device)
         self.touch = wp.array([1.0], dtype=float, device=device)
         self.now = wp.zeros(1, dtype=wp.vec4, device=device)
-        self.stream = wp.zeros(1, dtype=int, device=device)
+        self._streams_now = wp.zeros(2, dtype=int, device=device)  # begin(): this iteration's, the next one's
+        self.stream, self.stream_next = self._streams_now[0:1], self._streams_now[1:2]
         # Warp arrays of the rows (vec4 factors, int streams), allocated by write()
         self.table: Any = None
         self.streams: Any = None
@@ -88,7 +90,7 @@ class Schedule:
             ko.begin_iteration,
             dim=1,
             inputs=[self.counter, self.table, self.streams, self.touch],
-            outputs=[self.now, self.stream],
+            outputs=[self.now, self._streams_now],
             device=self.device,
         )
 
