@@ -298,7 +298,7 @@ def test_a_volume_kept_on_the_host_encodes_one_model(tmp_path, monkeypatch):
     does is one model with no seams. On the CPU device the volume is there anyway: the same model
     bit for bit as the default encode, the report saying where the volume was and why. Asked for
     with bricks, or where the model alone would not fit the limit, it is refused before any work;
-    chosen by the limits only with entry.HOST_VOLUME_AUTO (off until measured on a GPU)."""
+    chosen by the limits on a CUDA device (entry.host_volume_auto; here made to say so)."""
     from typer.testing import CliRunner
 
     from warpgauss.cli.main import app
@@ -321,7 +321,8 @@ def test_a_volume_kept_on_the_host_encodes_one_model(tmp_path, monkeypatch):
     limit = brick_device_bytes(24 * 24 * 24, 150) - 1
     assert host_volume_device_bytes(24**3, 150) <= limit
     assert "bricking" in warpgauss.encode(str(raw), budget=150, max_device_memory=limit, halo=2, **FAST).report
-    monkeypatch.setattr(entry, "HOST_VOLUME_AUTO", True)
+    assert not entry.host_volume_auto("cpu")  # the CPU device: bricks, as above
+    monkeypatch.setattr(entry, "host_volume_auto", lambda device: True)  # as on a CUDA device
     auto = warpgauss.encode(str(raw), budget=150, max_device_memory=limit, halo=2, **FAST)
     assert "bricking" not in auto.report and "does not fit the device limit" in auto.report["volume_memory"]["why"]
     np.testing.assert_array_equal(np.asarray(auto.params), np.asarray(whole.params))

@@ -155,6 +155,7 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
         max_host_memory=args.max_host_memory,
         halo=args.halo,
         bricks=args.bricks,
+        volume_on_host=False,  # the bricked path (a model that fits would otherwise keep the volume on the host)
         iterations=args.iterations,
         client=client,
         on_bricks=lambda d, t: (done.append(d), print(f"brick {d}/{t} at {time.perf_counter() - t0:.1f} s", flush=True)),

@@ -399,7 +399,7 @@ OPTIONS: dict[str, Option] = {
     ),
     "volume_on_host": Option(
         "Bricks and cluster",
-        "Keep the volume in pinned host memory, read by the GPU's kernels over the bus, and the model whole on the device (--volume-on-host), or the volume on the device (--volume-on-device); default: on the device, a volume whose encode does not fit --max-device-memory bricked",
+        "Keep the volume in pinned host memory, read by the GPU's kernels over the bus, and the model whole on the device (--volume-on-host), or the volume on the device (--volume-on-device); default: on the device, a file whose encode does not fit a GPU's --max-device-memory on the host where its model fits, else bricked",
         bool | None,
         flags=("--volume-on-host/--volume-on-device",),
     ),
