@@ -318,6 +318,11 @@ def test_a_volume_kept_on_the_host_encodes_one_model(tmp_path, monkeypatch):
     with pytest.raises(WarpgaussError, match="the model alone needs about"):
         warpgauss.encode(str(raw), budget=150, volume_on_host=True, max_device_memory=small, **FAST)
     # the limits: the whole grid does not fit, its model does -> bricks, or the host with the rule on
+    # (a grid this small fits nowhere between the two estimates' fixed parts: the host path's is
+    # made the bricks' here)
+    from warpgauss.core import limits
+
+    monkeypatch.setattr(limits, "HOST_VOLUME_FIXED_BYTES", DEVICE_FIXED_BYTES)
     limit = brick_device_bytes(24 * 24 * 24, 150) - 1
     assert host_volume_device_bytes(24**3, 150) <= limit
     assert "bricking" in warpgauss.encode(str(raw), budget=150, max_device_memory=limit, halo=2, **FAST).report

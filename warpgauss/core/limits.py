@@ -21,8 +21,14 @@ DEVICE_FIXED_BYTES = 256 * 2**20
 DEVICE_MARGIN = 0.9  # the default limit: this share of the free memory
 # with the volume in pinned host memory (--volume-on-host) the device holds what is kept per 4^3
 # block of voxels (the sampler's strata and support, the error stratum: about 1 B a voxel, by the
-# arrays' sizes, not measured) beside the model and its fixed part
+# arrays' sizes) beside the model and a fixed part. Measured peaks (H200, the vortex at CR 100,
+# bricked/volume_on_host{512,1024}_h200.json): 1.42 GB at 512^3 with 428,872 Gaussians, 5.88 GB at
+# 1024^3 with 3,459,050; the brick model's fixed part and 1 KB a primitive would say 0.80 and
+# 4.88 GB, so the host path has its own, above both: 1 GiB fixed and 1,280 B a primitive
+# (1.75 and 6.57 GB there)
 HOST_VOLUME_DEVICE_BYTES_PER_VOXEL = 1.0
+HOST_VOLUME_FIXED_BYTES = 2**30
+HOST_VOLUME_DEVICE_BYTES_PER_PRIMITIVE = 1280.0
 # Peak host memory of one brick's encode per box voxel: the source's copy and the float32 values,
 # the interior/halo/validity masks and their uint8 uploads, the counting passes' temporaries on
 # every thread. Measured (H100 host, 16 threads, results/bricked/out_of_core1536_rss_h100.json): boxes
@@ -58,7 +64,7 @@ def brick_device_bytes(box_voxels: int, primitives: float) -> int:
 
 def host_volume_device_bytes(voxels: int, primitives: float) -> int:
     """Estimated peak device memory of a whole encode whose volume stays in host memory."""
-    return int(DEVICE_FIXED_BYTES + HOST_VOLUME_DEVICE_BYTES_PER_VOXEL * voxels + DEVICE_BYTES_PER_PRIMITIVE * primitives)
+    return int(HOST_VOLUME_FIXED_BYTES + HOST_VOLUME_DEVICE_BYTES_PER_VOXEL * voxels + HOST_VOLUME_DEVICE_BYTES_PER_PRIMITIVE * primitives)
 
 
 def default_device_limit(device: str) -> int | None:
