@@ -356,11 +356,19 @@ def test_the_host_volume_benchmark_compares_the_two_paths(tmp_path):
     summary = tmp_path / "round3.json"
     summary.write_text(json.dumps({"cpu48_mono_db": 1.0}))
     out = tmp_path / "voh.json"
-    res = module.main(
-        ["--size", "24", "--ratio", "8", "--iterations", "5", "--device", "cpu", "--out", str(out), "--summary", str(summary)]
-    )
+    args = ["--size", "24", "--ratio", "8", "--iterations", "5", "--device", "cpu", "--out", str(out), "--summary", str(summary)]
+    res = module.main(args)
     assert [r["path"] for r in res["rows"]] == ["in core", "volume on host"] and res["host_equals_in_core"]
     assert res["rows"][1]["volume_memory"]["where"] == "host memory (the CPU device)"
     s = json.loads(summary.read_text())
     assert s["cpu48_mono_db"] == 1.0 and s["ooc1024_db"] == s["incore1024_db"] == res["rows"][0]["psnr_db"]
     assert s["ooc1024_time_ratio"] == res["host_time_ratio"] > 0 and json.loads(out.read_text())["device"] == "cpu"
+    # both settings of the draw one iteration ahead, the host rows first; the summary takes the last
+    from warpgauss.encoding.refine import draw
+
+    before = draw.DRAW_AHEAD
+    res = module.main([*args, "--draw-ahead", "both", "--host-first"])
+    paths = [r["path"] for r in res["rows"]]
+    assert paths == ["volume on host, draw ahead off", "volume on host, draw ahead on", "in core"] and draw.DRAW_AHEAD == before
+    assert all(r["equals_in_core"] for r in res["rows"][:2]) and res["host_time_ratio"] == res["rows"][1]["time_ratio"]
+    assert "draw ahead on" in json.loads(summary.read_text())["ooc1024_source"]

@@ -38,6 +38,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--device", default=None)
     ap.add_argument("--host-first", action="store_true", help="run the host-volume encode first (a run cut short still has its row)")
     ap.add_argument("--progress", action="store_true", help="a line as each stage of an encode starts")
+    ap.add_argument(
+        "--draw-ahead",
+        choices=("default", "off", "on", "both"),
+        default="default",
+        help="the host-volume encode with each draw one iteration ahead (encoding.refine.draw.DRAW_AHEAD) off, on, or both rows",
+    )
     ap.add_argument("--out", required=True)
     ap.add_argument("--summary", default=None, help="a JSON whose issue #55 keys this run sets")
     args = ap.parse_args(argv)
@@ -51,17 +57,25 @@ def main(argv=None) -> dict:
         kw["on_stage"] = lambda name, title: print(f"  {time.perf_counter() - t0:8.1f} s  {name}: {title}", flush=True)
     if args.iterations is not None:
         kw["iterations"] = args.iterations
-    runs = [("in core", {}), ("volume on host", {"volume_on_host": True, "max_device_memory": args.max_device_memory})]
+    from warpgauss.encoding.refine import draw
+
+    host = {"volume_on_host": True, "max_device_memory": args.max_device_memory}
+    ahead = {"default": [None], "off": [False], "on": [True], "both": [False, True]}[args.draw_ahead]
+    hosts = [("volume on host" + ("" if a is None else f", draw ahead {'on' if a else 'off'}"), a) for a in ahead]
+    runs = [("in core", None), *hosts]
     if args.host_first:
-        runs.reverse()
+        runs = [*hosts, ("in core", None)]
     res = {**result_header("one model with the volume in host memory", __file__, argv, dev), "rows": []}
     models = {}
     print(f"{'path':24s} {'s':>8s} {'PSNR':>8s} {'N':>10s}")
-    for name, extra in runs:
+    default_ahead = draw.DRAW_AHEAD
+    for name, a in runs:
+        draw.DRAW_AHEAD = default_ahead if a is None else a
         wp.synchronize()
         t = time.perf_counter()
-        m = warpgauss.encode(vol, **kw, **extra)
+        m = warpgauss.encode(vol, **kw, **({} if name == "in core" else host))
         wall = time.perf_counter() - t
+        draw.DRAW_AHEAD = default_ahead
         models[name] = np.asarray(m.params)
         rep = m.report
         row = {
@@ -78,10 +92,15 @@ def main(argv=None) -> dict:
         res["rows"].append(row)
         print(f"{name:24s} {wall:8.2f} {row['psnr_db']:8.2f} {m.n:10d}  {row['stages']}", flush=True)
         Path(args.out).write_text(json.dumps(res, indent=1) + "\n")  # each row as it comes (a long run may be cut)
-    base, host = sorted(res["rows"], key=lambda r: r["path"] != "in core")
-    res["host_equals_in_core"] = bool(np.array_equal(models["in core"], models["volume on host"]))
-    res["host_time_ratio"] = host["seconds"] / base["seconds"]
-    print(f"host / in core: {res['host_time_ratio']:.2f}x, the same model: {res['host_equals_in_core']}")
+    base = next(r for r in res["rows"] if r["path"] == "in core")
+    for r in res["rows"]:
+        if r["path"] != "in core":
+            r["equals_in_core"] = bool(np.array_equal(models["in core"], models[r["path"]]))
+            r["time_ratio"] = r["seconds"] / base["seconds"]
+            print(f"{r['path']} / in core: {r['time_ratio']:.2f}x, the same model: {r['equals_in_core']}")
+    host = [r for r in res["rows"] if r["path"] != "in core"][-1]  # the summary's: the last host row (draw ahead on with "both")
+    res["host_equals_in_core"] = host["equals_in_core"]
+    res["host_time_ratio"] = host["time_ratio"]
     Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
     if args.summary:
         p = Path(args.summary)
@@ -90,7 +109,7 @@ def main(argv=None) -> dict:
             ooc1024_db=host["psnr_db"],
             incore1024_db=base["psnr_db"],
             ooc1024_time_ratio=res["host_time_ratio"],
-            ooc1024_source=f"{Path(args.out).name}: --volume-on-host against in core, {args.field} {args.size}^3, ratio {args.ratio:g}",
+            ooc1024_source=f"{Path(args.out).name}: --volume-on-host ({host['path']}) against in core, {args.field} {args.size}^3, ratio {args.ratio:g}",
         )
         p.write_text(json.dumps(summary, indent=1) + "\n")
     return res
