@@ -36,19 +36,6 @@ HIGH_VALUE = wp.constant(0.4)  # the "high" stratum: normalised value above this
 
 
 @wp.func
-def stratum_of(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int) -> int:
-    """0 high (V > 0.4), 1 occupied mid-range, -1 neither (empty or masked)."""
-    if not usable(vol, mask, has_mask, k, j, i):
-        return -1
-    v = vol[k, j, i]
-    if v > HIGH_VALUE:
-        return 0
-    if v > OCCUPIED:
-        return 1
-    return -1
-
-
-@wp.func
 def stratum_at(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int, v: float) -> int:
     """:func:`stratum_of` of voxel (k, j, i) whose value ``v`` the caller has read already."""
     if not usable(vol, mask, has_mask, k, j, i):
@@ -58,6 +45,14 @@ def stratum_at(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), h
     if v > OCCUPIED:
         return 1
     return -1
+
+
+@wp.func
+def stratum_of(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int) -> int:
+    """0 high (V > 0.4), 1 occupied mid-range, -1 neither (empty or masked)."""
+    if not usable(vol, mask, has_mask, k, j, i):
+        return -1
+    return stratum_at(vol, mask, has_mask, k, j, i, vol[k, j, i])
 
 
 @wp.func
