@@ -95,3 +95,33 @@ def test_an_encode_with_the_volume_on_host_is_the_same_model(device, monkeypatch
     # drawn one iteration ahead everywhere but the first iteration and the re-bins (every 10th):
     # there the support marks and the error quota change, and the staged draw is dropped
     assert len(taken) == kw["iterations"] - 3
+
+
+def test_a_device_peak_is_this_encodes_or_unknown(monkeypatch):
+    """Warp's CUDA memory pool keeps one high-water mark for the process: a stage reports it only
+    where it rose above the mark when the recorder's device was set, so a second encode in one
+    process never reports the first one's peak as its own (this session's 512^3 host-volume row
+    did: both rows 1.417 GB)."""
+    from warpgauss.core.profiling import StageRecorder
+
+    marks = iter([5_000, 5_000, 7_000])  # the mark when the device is set, after stage a, after stage b
+
+    class Pool:
+        @staticmethod
+        def get_mempool_used_mem_high(device):
+            return next(marks)
+
+        @staticmethod
+        def synchronize_device(device):
+            pass
+
+    import warpgauss.core.warp as core_warp
+
+    monkeypatch.setattr(core_warp, "warp", lambda: Pool)
+    t = StageRecorder(device="cuda:0")
+    with t.stage("a", "below an earlier encode's mark"):
+        pass
+    with t.stage("b", "above it"):
+        pass
+    assert [s.device_peak_bytes for s in t.stages] == [None, 7_000]
+    assert StageRecorder().stages == [] and StageRecorder(device="cpu")._device_peak() is None

@@ -113,8 +113,11 @@ class StageRecord:
 class StageRecorder:
     """Times named stages; ``device`` (a CUDA Warp device name) enables device-pool peaks.
 
-    Device peaks are the high-water mark of Warp's CUDA memory pool over the whole run up to the
-    end of the stage (the pool offers no reset), so they are non-decreasing across stages.
+    Device peaks are the high-water mark of Warp's CUDA memory pool up to the end of the stage
+    (non-decreasing across stages). The pool keeps one mark for the whole process and offers no
+    reset, so a peak is reported only where it rose above the mark when ``device`` was set: where
+    an earlier encode in this process peaked higher, this one's peak is unknown (None), not that
+    encode's.
     """
 
     device: str | None = None
@@ -143,16 +146,24 @@ class StageRecorder:
 
             warp().synchronize_device(self.device)
 
-    def _device_peak(self) -> int | None:
+    def __setattr__(self, name, value) -> None:
+        super().__setattr__(name, value)
+        if name == "device":  # the pool's mark before this recorder's stages (see the class docstring)
+            super().__setattr__("_high0", self._pool_high())
+
+    def _pool_high(self) -> int | None:
         if not (self.device and self.device.startswith("cuda")):
             return None
         from .warp import warp
 
-        wp = warp()
         try:
-            return int(wp.get_mempool_used_mem_high(self.device))
+            return int(warp().get_mempool_used_mem_high(self.device))
         except (RuntimeError, ValueError):
             return None
+
+    def _device_peak(self) -> int | None:
+        high, before = self._pool_high(), getattr(self, "_high0", None)
+        return None if high is None or (before is not None and high <= before) else high
 
     def seconds(self, name: str) -> float:
         return sum(s.seconds for s in self.stages if s.name == name)
