@@ -169,17 +169,27 @@ def trilinear_axis(x: float, n: int):
 
 
 @wp.func
-def trilinear(vol: wp.array3d(dtype=Any), p: wp.vec3):
-    """Trilinear interpolation at p = (x, y, z) voxel units, clamped to the grid (a scalar volume,
-    or a grid of vectors such as the motion's block displacements)."""
+def trilinear_slab(vol: wp.array3d(dtype=Any), p: wp.vec3, kz0: int, nz: int):
+    """:func:`trilinear` at p, in the coordinates of a volume of ``nz`` slices of which ``vol``
+    holds the slices from ``kz0`` on (the clamp and weights are the whole volume's, so a slab that
+    holds every slice read gives the same value bit for bit)."""
     i0, i1, tx = trilinear_axis(p[0], vol.shape[2])
     j0, j1, ty = trilinear_axis(p[1], vol.shape[1])
-    k0, k1, tz = trilinear_axis(p[2], vol.shape[0])
+    k0, k1, tz = trilinear_axis(p[2], nz)
+    k0 -= kz0
+    k1 -= kz0
     c00 = wp.lerp(vol[k0, j0, i0], vol[k0, j0, i1], tx)
     c01 = wp.lerp(vol[k0, j1, i0], vol[k0, j1, i1], tx)
     c10 = wp.lerp(vol[k1, j0, i0], vol[k1, j0, i1], tx)
     c11 = wp.lerp(vol[k1, j1, i0], vol[k1, j1, i1], tx)
     return wp.lerp(wp.lerp(c00, c01, ty), wp.lerp(c10, c11, ty), tz)
+
+
+@wp.func
+def trilinear(vol: wp.array3d(dtype=Any), p: wp.vec3):
+    """Trilinear interpolation at p = (x, y, z) voxel units, clamped to the grid (a scalar volume,
+    or a grid of vectors such as the motion's block displacements)."""
+    return trilinear_slab(vol, p, 0, vol.shape[0])
 
 
 @wp.func
@@ -201,23 +211,6 @@ def sort3(d: wp.vec3) -> wp.vec3i:
         a = b
         b = t
     return wp.vec3i(a, b, c)
-
-
-@wp.func
-def trilinear_slab(vol: wp.array3d(dtype=float), p: wp.vec3, kz0: int, nz: int):
-    """:func:`trilinear` at p, in the coordinates of a volume of ``nz`` slices of which ``vol``
-    holds the slices from ``kz0`` on (the clamp and weights are the whole volume's, so a slab that
-    holds every slice read gives the same value bit for bit)."""
-    i0, i1, tx = trilinear_axis(p[0], vol.shape[2])
-    j0, j1, ty = trilinear_axis(p[1], vol.shape[1])
-    k0, k1, tz = trilinear_axis(p[2], nz)
-    k0 -= kz0
-    k1 -= kz0
-    c00 = wp.lerp(vol[k0, j0, i0], vol[k0, j0, i1], tx)
-    c01 = wp.lerp(vol[k0, j1, i0], vol[k0, j1, i1], tx)
-    c10 = wp.lerp(vol[k1, j0, i0], vol[k1, j0, i1], tx)
-    c11 = wp.lerp(vol[k1, j1, i0], vol[k1, j1, i1], tx)
-    return wp.lerp(wp.lerp(c00, c01, ty), wp.lerp(c10, c11, ty), tz)
 
 
 SEED_FRAME_REACH = wp.constant(ST_RADIUS + 2)  # slices a seed's frame reads beyond its own (window, gradient, trilinear)

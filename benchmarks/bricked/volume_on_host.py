@@ -59,7 +59,7 @@ def main(argv=None) -> dict:
         kw["iterations"] = args.iterations
     from warpgauss.encoding.refine import draw
 
-    host = {"volume_on_host": True, "max_device_memory": args.max_device_memory}
+    host_kw = {"volume_on_host": True, "max_device_memory": args.max_device_memory}
     ahead = {"default": [None], "off": [False], "on": [True], "both": [False, True]}[args.draw_ahead]
     hosts = [("volume on host" + ("" if a is None else f", draw ahead {'on' if a else 'off'}"), a) for a in ahead]
     runs = [("in core", None), *hosts]
@@ -71,11 +71,13 @@ def main(argv=None) -> dict:
     default_ahead = draw.DRAW_AHEAD
     for name, a in runs:
         draw.DRAW_AHEAD = default_ahead if a is None else a
-        wp.synchronize()
-        t = time.perf_counter()
-        m = warpgauss.encode(vol, **kw, **({} if name == "in core" else host))
-        wall = time.perf_counter() - t
-        draw.DRAW_AHEAD = default_ahead
+        try:
+            wp.synchronize()
+            t = time.perf_counter()
+            m = warpgauss.encode(vol, **kw, **({} if name == "in core" else host_kw))
+            wall = time.perf_counter() - t
+        finally:
+            draw.DRAW_AHEAD = default_ahead
         models[name] = np.asarray(m.params)
         rep = m.report
         row = {

@@ -36,14 +36,14 @@ ERROR_MIN_SAMPLES_A_CELL = 0.1
 # the 4^3 cells at 0.15, the smooth field within -0.12 .. +0.22; from about 5 the 4^3 cells were
 # best. Off (False): on a GPU it changes encodes from 1024^3 up and is not measured there
 ERROR_POOL = False
+ERROR_POOL_SAMPLES_A_CELL = 1.0
+ERROR_MAX_POOL = 8
 # A volume in host memory (DeviceVolume.on_host): each iteration's samples are drawn during the
 # iteration before, on a second stream (Sampler.enable_ahead; the same samples). Measured before it
 # (H200, vortex 1024^3 CR 100, bricked/volume_on_host1024_h200.json): 51 ms an iteration with the
 # draw over the bus against 22 ms with the volume on the device. Off until measured on a GPU (the
 # same model is tested on the CPU device; the second stream and its capture run on CUDA only)
 DRAW_AHEAD = False
-ERROR_POOL_SAMPLES_A_CELL = 1.0
-ERROR_MAX_POOL = 8
 
 
 def stratum_counts(m: int, n_high: int, n_mid: int) -> tuple[int, int, int]:
@@ -163,8 +163,7 @@ class Sampler:
         """(Re)allocate the buffers for ``m`` samples (points holds 2 m: samples, then partners)."""
         wp, dev = self._wp, self.device
         self.m = m
-        self.points = wp.zeros(2 * m, dtype=wp.vec3, device=dev)
-        self.target, self.weight, self.occupied = (wp.zeros(m, dtype=float, device=dev) for _ in range(3))
+        self.points, self.target, self.weight, self.occupied = self._sample_buffers()
         self.version += 1
         self._alloc_stage()
         memory = self.rebin_every / (1.0 - self.error_decay) if self.error_decay < 1 else float("inf")
@@ -335,8 +334,13 @@ class Sampler:
 
     def _alloc_stage(self) -> None:
         if self.ahead and self.m:
-            wp, m, dev = self._wp, self.m, self.device
-            self._stage = (wp.zeros(2 * m, dtype=wp.vec3, device=dev), *(wp.zeros(m, dtype=float, device=dev) for _ in range(3)))
+            self._stage = self._sample_buffers()
+
+    def _sample_buffers(self) -> tuple:
+        """(points, target, weight, occupied) for :attr:`m` samples: points holds 2 m (the
+        samples, then their partners)."""
+        wp, m, dev = self._wp, self.m, self.device
+        return (wp.zeros(2 * m, dtype=wp.vec3, device=dev), *(wp.zeros(m, dtype=float, device=dev) for _ in range(3)))
 
     def stage(self, stream_next) -> None:
         """Draw the next iteration's samples (its RNG stream id in ``stream_next``) into the
