@@ -499,87 +499,91 @@ def draw_samples(
     support_everything: wp.array(dtype=int),  # [1] mark_support's "everything" flag (use_support only)
     m_err: int,  # the last m_err samples follow the error (while its quota is not 0; else uniform)
     err_cum: wp.array(dtype=int),  # [B] inclusive prefix sums of error_quota's output (m_err > 0 only)
+    threads: int,  # the launch size (the loop's stride)
     points: wp.array(dtype=wp.vec3),  # [2M] out: samples, then their partners
     target: wp.array(dtype=float),  # [M] out: trilinear V at the sample
     weight: wp.array(dtype=float),  # [M] out: the importance weight; 0 where the target reads a masked voxel
     occupied: wp.array(dtype=float),  # [M] out: 1 if target > 0.02
 ):
-    """One training sample and its partner (one thread per sample)."""
-    s = wp.tid()
+    """Training samples and their partners: thread t draws samples t, t + threads, ... (``threads``
+    the launch size: one a sample where the volume is on the device, fewer where it is read over the
+    bus, see ``draw.DRAW_THREADS_HOST``; each sample's random stream is its own, so the same samples
+    either way)."""
     m = target.shape[0]
-    state = wp.rand_init(stream[0], s)
     nx = vol.shape[2]
     ny = vol.shape[1]
-    idx = int(0)
     domain = uniform_domain(occ_total, use_support, support)
     q_tot = error_total(err_cum, m_err)
     m_err_now = wp.where(q_tot > 0, m_err, 0)
-    if s >= m - m_err_now:  # the error stratum: a brick by its quota, then one of its voxels
-        idx = error_voxel(err_cum, wp.randi(state, 0, q_tot), wp.randi(state, 0, BRICK * BRICK * BRICK), vol.shape[0], ny, nx)
-    elif s < m_high:
-        idx = stratum_voxel(high_bits, high, ny, nx, wp.randi(state, 0, n_high))
-    elif s < m_high + m_mid:
-        idx = stratum_voxel(mid_bits, mid, ny, nx, wp.randi(state, 0, n_mid))
-    elif domain == UNIFORM_OCCUPIED:  # among the occupied voxels (empty samples carry no gradient)
-        rank = wp.randi(state, 0, occ_total)
-        if rank < occ_high:
-            idx = stratum_voxel(high_bits, high, ny, nx, rank)
+    for s in range(wp.tid(), m, threads):
+        state = wp.rand_init(stream[0], s)
+        idx = int(0)
+        if s >= m - m_err_now:  # the error stratum: a brick by its quota, then one of its voxels
+            idx = error_voxel(err_cum, wp.randi(state, 0, q_tot), wp.randi(state, 0, BRICK * BRICK * BRICK), vol.shape[0], ny, nx)
+        elif s < m_high:
+            idx = stratum_voxel(high_bits, high, ny, nx, wp.randi(state, 0, n_high))
+        elif s < m_high + m_mid:
+            idx = stratum_voxel(mid_bits, mid, ny, nx, wp.randi(state, 0, n_mid))
+        elif domain == UNIFORM_OCCUPIED:  # among the occupied voxels (empty samples carry no gradient)
+            rank = wp.randi(state, 0, occ_total)
+            if rank < occ_high:
+                idx = stratum_voxel(high_bits, high, ny, nx, rank)
+            else:
+                idx = stratum_voxel(mid_bits, mid, ny, nx, rank - occ_high)
+        elif domain == UNIFORM_SUPPORT:  # over the model's support
+            idx = support_voxel(vol.shape[0], ny, nx, support, wp.randi(state, 0, support[support.shape[0] - 1]))
         else:
-            idx = stratum_voxel(mid_bits, mid, ny, nx, rank - occ_high)
-    elif domain == UNIFORM_SUPPORT:  # over the model's support
-        idx = support_voxel(vol.shape[0], ny, nx, support, wp.randi(state, 0, support[support.shape[0] - 1]))
-    else:
-        idx = wp.randi(state, 0, nx * ny * vol.shape[0])
-    i = idx % nx
-    j = (idx / nx) % ny
-    k = idx / (nx * ny)
-    # three draws whatever the jitter, so every setting consumes the same random numbers
-    jx = (wp.randf(state) - 0.5) * (2.0 * jitter)
-    jy = (wp.randf(state) - 0.5) * (2.0 * jitter)
-    jz = (wp.randf(state) - 0.5) * (2.0 * jitter)
-    p = wp.vec3(float(i) + jx, float(j) + jy, float(k) + jz)
-    d = wp.vec3(wp.randn(state), wp.randn(state), wp.randn(state))
-    dl = wp.length(d)
-    if dl < 1.0e-6:
-        d = wp.vec3(1.0, 0.0, 0.0)
-        dl = 1.0
-    r = partner_min + (partner_max - partner_min) * wp.randf(state)
-    t = float(0.0)
-    own = float(0.0)
-    ok = float(1.0)
-    if jitter > 0.0:
-        tv = trilinear_rows(vol, flat4, wide, p, k, j, i)
-        t = tv[0]
-        own = tv[1]
-        ok = corners_usable(vol, mask, has_mask, p)
-    else:  # the voxel itself: no neighbour is read
-        t = vol[k, j, i]
-        own = t
-    points[s] = p
-    points[m + s] = p + d * (r / dl)
-    target[s] = t
-    if not usable(vol, mask, has_mask, k, j, i):
-        ok = 0.0
-    if importance != 0 and ok > 0.0:
-        ok = ok * sample_weight(
-            vol,
-            stratum_at(vol, mask, has_mask, k, j, i, own),
-            k,
-            j,
-            i,
-            m,
-            m_high,
-            m_mid,
-            n_high,
-            n_mid,
-            occ_total,
-            use_support,
-            support,
-            support_bricks,
-            support_everything,
-            m_err_now,
-            err_cum,
-            q_tot,
-        )
-    weight[s] = ok
-    occupied[s] = wp.where(t > OCCUPIED, 1.0, 0.0)
+            idx = wp.randi(state, 0, nx * ny * vol.shape[0])
+        i = idx % nx
+        j = (idx / nx) % ny
+        k = idx / (nx * ny)
+        # three draws whatever the jitter, so every setting consumes the same random numbers
+        jx = (wp.randf(state) - 0.5) * (2.0 * jitter)
+        jy = (wp.randf(state) - 0.5) * (2.0 * jitter)
+        jz = (wp.randf(state) - 0.5) * (2.0 * jitter)
+        p = wp.vec3(float(i) + jx, float(j) + jy, float(k) + jz)
+        d = wp.vec3(wp.randn(state), wp.randn(state), wp.randn(state))
+        dl = wp.length(d)
+        if dl < 1.0e-6:
+            d = wp.vec3(1.0, 0.0, 0.0)
+            dl = 1.0
+        r = partner_min + (partner_max - partner_min) * wp.randf(state)
+        t = float(0.0)
+        own = float(0.0)
+        ok = float(1.0)
+        if jitter > 0.0:
+            tv = trilinear_rows(vol, flat4, wide, p, k, j, i)
+            t = tv[0]
+            own = tv[1]
+            ok = corners_usable(vol, mask, has_mask, p)
+        else:  # the voxel itself: no neighbour is read
+            t = vol[k, j, i]
+            own = t
+        points[s] = p
+        points[m + s] = p + d * (r / dl)
+        target[s] = t
+        if not usable(vol, mask, has_mask, k, j, i):
+            ok = 0.0
+        if importance != 0 and ok > 0.0:
+            ok = ok * sample_weight(
+                vol,
+                stratum_at(vol, mask, has_mask, k, j, i, own),
+                k,
+                j,
+                i,
+                m,
+                m_high,
+                m_mid,
+                n_high,
+                n_mid,
+                occ_total,
+                use_support,
+                support,
+                support_bricks,
+                support_everything,
+                m_err_now,
+                err_cum,
+                q_tot,
+            )
+        weight[s] = ok
+        occupied[s] = wp.where(t > OCCUPIED, 1.0, 0.0)

@@ -366,9 +366,14 @@ def test_the_host_volume_benchmark_compares_the_two_paths(tmp_path):
     # both settings of the draw one iteration ahead, the host rows first; the summary takes the last
     from warpgauss.encoding.refine import draw
 
-    before = draw.DRAW_AHEAD
-    res = module.main([*args, "--draw-ahead", "both", "--host-first"])
+    before = draw.DRAW_AHEAD, draw.DRAW_THREADS_HOST
+    res = module.main([*args, "--draw-ahead", "both", "--draw-threads", "5", "--host-first"])
     paths = [r["path"] for r in res["rows"]]
-    assert paths == ["volume on host, draw ahead off", "volume on host, draw ahead on", "in core"] and draw.DRAW_AHEAD == before
+    assert paths == [
+        "volume on host, draw ahead off, draw threads 5",
+        "volume on host, draw ahead on, draw threads 5",
+        "in core",
+    ]
+    assert (draw.DRAW_AHEAD, draw.DRAW_THREADS_HOST) == before
     assert all(r["equals_in_core"] for r in res["rows"][:2]) and res["host_time_ratio"] == res["rows"][1]["time_ratio"]
-    assert "draw ahead on" in json.loads(summary.read_text())["ooc1024_source"]
+    assert "draw ahead on, draw threads 5" in json.loads(summary.read_text())["ooc1024_source"]

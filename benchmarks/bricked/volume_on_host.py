@@ -44,6 +44,12 @@ def main(argv=None) -> dict:
         default="default",
         help="the host-volume encode with each draw one iteration ahead (encoding.refine.draw.DRAW_AHEAD) off, on, or both rows",
     )
+    ap.add_argument(
+        "--draw-threads",
+        default="default",
+        help="comma-separated launch sizes of the host-volume draw (encoding.refine.draw.DRAW_THREADS_HOST; 0: one "
+        "thread a sample): a host row for each, with each --draw-ahead setting",
+    )
     ap.add_argument("--out", required=True)
     ap.add_argument("--summary", default=None, help="a JSON whose issue #55 keys this run sets")
     args = ap.parse_args(argv)
@@ -61,23 +67,34 @@ def main(argv=None) -> dict:
 
     host_kw = {"volume_on_host": True, "max_device_memory": args.max_device_memory}
     ahead = {"default": [None], "off": [False], "on": [True], "both": [False, True]}[args.draw_ahead]
-    hosts = [("volume on host" + ("" if a is None else f", draw ahead {'on' if a else 'off'}"), a) for a in ahead]
-    runs = [("in core", None), *hosts]
+    threads = [None if t == "default" else int(t) for t in args.draw_threads.split(",")]
+    hosts = [
+        (
+            "volume on host"
+            + ("" if a is None else f", draw ahead {'on' if a else 'off'}")
+            + ("" if t is None else f", draw threads {t}"),
+            (a, t),
+        )
+        for a in ahead
+        for t in threads
+    ]
+    runs = [("in core", (None, None)), *hosts]
     if args.host_first:
-        runs = [*hosts, ("in core", None)]
+        runs = [*hosts, ("in core", (None, None))]
     res = {**result_header("one model with the volume in host memory", __file__, argv, dev), "rows": []}
     models = {}
     print(f"{'path':24s} {'s':>8s} {'PSNR':>8s} {'N':>10s}")
-    default_ahead = draw.DRAW_AHEAD
-    for name, a in runs:
+    default_ahead, default_threads = draw.DRAW_AHEAD, draw.DRAW_THREADS_HOST
+    for name, (a, t) in runs:
         draw.DRAW_AHEAD = default_ahead if a is None else a
+        draw.DRAW_THREADS_HOST = default_threads if t is None else t
         try:
             wp.synchronize()
             t = time.perf_counter()
             m = warpgauss.encode(vol, **kw, **({} if name == "in core" else host_kw))
             wall = time.perf_counter() - t
         finally:
-            draw.DRAW_AHEAD = default_ahead
+            draw.DRAW_AHEAD, draw.DRAW_THREADS_HOST = default_ahead, default_threads
         models[name] = np.asarray(m.params)
         rep = m.report
         row = {
@@ -100,7 +117,7 @@ def main(argv=None) -> dict:
             r["equals_in_core"] = bool(np.array_equal(models["in core"], models[r["path"]]))
             r["time_ratio"] = r["seconds"] / base["seconds"]
             print(f"{r['path']} / in core: {r['time_ratio']:.2f}x, the same model: {r['equals_in_core']}")
-    host = [r for r in res["rows"] if r["path"] != "in core"][-1]  # the summary's: the last host row (draw ahead on with "both")
+    host = [r for r in res["rows"] if r["path"] != "in core"][-1]  # the summary's: the last host row
     res["host_equals_in_core"] = host["equals_in_core"]
     res["host_time_ratio"] = host["time_ratio"]
     Path(args.out).write_text(json.dumps(res, indent=1) + "\n")

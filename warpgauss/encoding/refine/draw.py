@@ -44,6 +44,11 @@ ERROR_MAX_POOL = 8
 # draw over the bus against 22 ms with the volume on the device. Off until measured on a GPU (the
 # same model is tested on the CPU device; the second stream and its capture run on CUDA only)
 DRAW_AHEAD = False
+# A volume in host memory: the draw's launch size (thread t draws samples t, t + threads, ...; the
+# same samples). Its reads over the bus are bound by their latency, not by the threads in flight,
+# and one thread a sample (262,144 at 1024^3) fills every multiprocessor with waiting threads
+# that the pair passes beside it (DRAW_AHEAD) cannot use. 0: one thread a sample, as on the device
+DRAW_THREADS_HOST = 0
 
 
 def stratum_counts(m: int, n_high: int, n_mid: int) -> tuple[int, int, int]:
@@ -283,9 +288,12 @@ class Sampler:
         m_high, m_mid, _ = self.strata
         pmin, pmax = self.partner_distance
         bricks, everything = (self.marks[2], self.marks[1]) if self.marks is not None else self._no_marks
+        threads = self.m
+        if getattr(dv, "on_host", False) and DRAW_THREADS_HOST > 0:
+            threads = min(self.m, DRAW_THREADS_HOST)
         wp.launch(
             ks.draw_samples,
-            dim=self.m,
+            dim=threads,
             inputs=[
                 dv.values,
                 dv.mask,
@@ -312,6 +320,7 @@ class Sampler:
                 everything,
                 self.m_err,
                 self.err_cum,
+                threads,
             ],
             outputs=list(into or (self.points, self.target, self.weight, self.occupied)),
             device=self.device,
