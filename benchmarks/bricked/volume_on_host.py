@@ -70,9 +70,7 @@ def main(argv=None) -> dict:
     threads = [None if t == "default" else int(t) for t in args.draw_threads.split(",")]
     hosts = [
         (
-            "volume on host"
-            + ("" if a is None else f", draw ahead {'on' if a else 'off'}")
-            + ("" if t is None else f", draw threads {t}"),
+            "volume on host" + ("" if a is None else f", draw ahead {'on' if a else 'off'}") + ("" if t is None else f", draw threads {t}"),
             (a, t),
         )
         for a in ahead
