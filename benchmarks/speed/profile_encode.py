@@ -43,6 +43,12 @@ def main(argv=None) -> dict:
         help="NAME=module.CONST:value[+module.CONST:value]: a variant NAME (list it in --variants) that runs the "
         "default encode with module constants set (e.g. rc4=warpgauss.field.gaussians.ROW_COST:4); restored after it",
     )
+    ap.add_argument(
+        "--volume-on-host",
+        default=None,
+        metavar="MEM",
+        help="every encode with the volume in host memory and this device limit (--volume-on-host --max-device-memory MEM)",
+    )
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)
@@ -90,6 +96,8 @@ def main(argv=None) -> dict:
             wp.synchronize()
             t = time.perf_counter()
             how = {"preset": variant} if rc is None else {"refine": rc}
+            if args.volume_on_host:
+                how.update(volume_on_host=True, max_device_memory=args.volume_on_host)
             m = warpgauss.encode(src, ratio=ratio, device=dev, **how)
             wall = time.perf_counter() - t
             rep = m.report
@@ -121,7 +129,7 @@ def main(argv=None) -> dict:
                 wp.synchronize()
                 wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_MEMSET)
                 t = time.perf_counter()
-                warpgauss.encode(source(vol), ratio=ratio, device=dev, refine=cfg)
+                warpgauss.encode(source(vol), ratio=ratio, device=dev, **{**how, "refine": cfg})
                 row["kernels_wall_s"] = time.perf_counter() - t
                 per = defaultdict(lambda: [0.0, 0])
                 for r in wp.timing_end():
