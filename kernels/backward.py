@@ -5,7 +5,8 @@ Per iteration, with M samples p_s and M partner points p'_s (p_s jittered by abo
     L_val   = (1/M) sum_s om_s c_s (V~(p_s) - t_s)^2      c_s = 1 occupied, value_empty otherwise
     L_rho   = (1/M) sum_s om_s o_s (rho(p_s) - 1)^2        rho = sum_i w_i G_i (density)
     L_sm    = (1/M) sum_s om_s o_s (rho(p_s) - rho(p'_s))^2
-    L_anc   = (1/N) sum_i (a_i - V(mu_i))^2                V(mu_i) trilinear, held constant
+    L_anc   = (1/N) sum_i (a_i - V(mu_i))^2                V(mu_i) trilinear, held constant (cached
+                                                           between re-bins with the volume on the host)
     L_aniso = (1/N) sum_i sum_{j<k} relu(|ls_ij - ls_ik| - ln 3)^2
     L_cap   = (1/N) sum_i sum_k relu(ls_ik - ln cap)^2 + relu(ln s_min - ls_ik)^2
     L = L_val + l_rho L_rho + l_sm(t) L_sm + l_anc L_anc + l_aniso L_aniso + l_cap L_cap
@@ -198,7 +199,7 @@ def raw_gradient(
     gR: wp.mat33,  # dL/dR
     g_a: float,  # dL/da
     g_w: float,  # dL/dw
-    vol: wp.array3d(dtype=float),  # the normalised field, for the anchor target
+    v_mu: float,  # the anchor target: V at the centre (anchor_target)
     l_anchor: float,
     l_aniso: float,
     l_cap: float,
@@ -250,7 +251,7 @@ def raw_gradient(
             gd = l_aniso * inv_n * 2.0 * ex * wp.sign(diff)
             gl[a_] = gl[a_] + gd
             gl[b_] = gl[b_] - gd
-    anchor = p[10] - trilinear(vol, wp.vec3(p[0], p[1], p[2]))
+    anchor = p[10] - v_mu
     sw = sigmoid(p[11])
     out = vec12()
     out[0] = gm[0]
@@ -270,6 +271,16 @@ def raw_gradient(
 
 
 @wp.func
+def anchor_target(vol: wp.array3d(dtype=float), anchors: wp.array(dtype=float), cached: int, j: int, p: vec12) -> float:
+    """The anchor term's V(mu) of slot j: the volume at the centre of parameters ``p`` or, with
+    ``cached``, the value :func:`warpgauss.kernels.optim.anchor_targets` stored at the last re-bin
+    (a volume in host memory: the read would cross the bus for every touched slot every iteration)."""
+    if cached != 0:
+        return anchors[j]
+    return trilinear(vol, wp.vec3(p[0], p[1], p[2]))
+
+
+@wp.func
 def touched(j: int, d_mu: wp.array(dtype=wp.vec3), d_a: wp.array(dtype=float), d_w: wp.array(dtype=float)) -> bool:
     """Whether any pair reached slot j this iteration (all its pair gradients are exactly 0 if not)."""
     return d_w[j] != 0.0 or d_a[j] != 0.0 or wp.length_sq(d_mu[j]) != 0.0
@@ -284,6 +295,8 @@ def finish_grads(
     d_a: wp.array(dtype=float),
     d_w: wp.array(dtype=float),
     vol: wp.array3d(dtype=float),  # the normalised field, for the anchor targets
+    anchors: wp.array(dtype=float),  # [N] the targets stored at the last re-bin (cached only)
+    cached: int,  # 1: the anchor targets from anchors (anchor_target)
     l_anchor: float,
     l_aniso: float,
     l_cap: float,
@@ -307,7 +320,7 @@ def finish_grads(
         d_rot[j],
         d_a[j],
         d_w[j],
-        vol,
+        anchor_target(vol, anchors, cached, j, params[j]),
         l_anchor,
         l_aniso,
         l_cap,

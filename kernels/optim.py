@@ -8,7 +8,8 @@ untouched primitive beyond one read, and :class:`SlotBounds` keeps the bins exac
 
 import warp as wp
 
-from .backward import raw_gradient, touched
+from .analysis import trilinear
+from .backward import anchor_target, raw_gradient, touched
 from .field import BinnedPrimitives, bin_level, conic_of, level_cell, prepare_one, safe_unit_quat, vec12
 
 wp.set_module_options({"enable_backward": False})
@@ -431,6 +432,8 @@ def refine_update(
     d_a: wp.array(dtype=float),
     d_w: wp.array(dtype=float),
     vol: wp.array3d(dtype=float),
+    anchors: wp.array(dtype=float),  # [N] anchor targets stored at the last re-bin (cached only)
+    cached: int,  # 1: the anchor targets from anchors (a volume in host memory; anchor_target)
     l_anchor: float,
     l_aniso: float,
     l_cap: float,
@@ -473,14 +476,15 @@ def refine_update(
         d_a[j] = 0.0
         d_w[j] = 0.0
         return
+    pe0 = evaluated(raw[j], quant)
     g, reg = raw_gradient(
-        evaluated(raw[j], quant),
+        pe0,
         d_mu[j],
         d_ls[j],
         d_rot[j],
         d_a[j],
         d_w[j],
-        vol,
+        anchor_target(vol, anchors, cached, j, pe0),
         l_anchor,
         l_aniso,
         l_cap,
@@ -524,6 +528,13 @@ def refine_update(
     prims.ext[j] = e
     prims.a[j] = pe[10]
     prims.w[j] = wt
+
+
+@wp.kernel
+def anchor_targets(raw: wp.array(dtype=vec12), quant: QuantGrid, vol: wp.array3d(dtype=float), anchors: wp.array(dtype=float)):
+    """anchors[j] = V at slot j's centre as evaluation sees it: refine_update's cached anchor targets."""
+    p = evaluated(raw[wp.tid()], quant)
+    anchors[wp.tid()] = trilinear(vol, wp.vec3(p[0], p[1], p[2]))
 
 
 @wp.func

@@ -62,16 +62,21 @@ def test_slab_groups_cover_every_index_once():
 def test_an_encode_with_the_volume_on_host_is_the_same_model(device, monkeypatch, shape, masked):
     """A whole encode (the seeds' frames by slabs, each draw's corners read a row pair at a time
     from the volume viewed as groups of four, the voxel's own value taken from them, each
-    iteration's samples drawn during the iteration before by a few threads striding over them) gives the same model bit for bit as with the volume on the device: sizes that are not multiples of four (a
-    row's pair split between two groups, a tail past the last whole group), a mask, jittered
+    iteration's samples drawn during the iteration before by a few threads striding over them, the
+    anchor targets read at each re-bin and held) gives the same model bit for bit as with the
+    volume on the device and its anchor targets held alike: sizes that are not multiples of four
+    (a row's pair split between two groups, a tail past the last whole group), a mask, jittered
     samples with importance weights and an error stratum (the defaults)."""
+    from warpgauss.encoding.refine import update
     from warpgauss.field import slabs
 
     v = generate("vortex", max(shape))[: shape[0], : shape[1], : shape[2]].copy()
     if masked:
         v[:, :4] = np.nan  # not finite: masked
     kw = dict(budget=120, iterations=25, device=device, seed=5, progress=False)
+    monkeypatch.setattr(update, "ANCHOR_CACHE", "always")
     whole = warpgauss.encode(v, **kw)
+    monkeypatch.setattr(update, "ANCHOR_CACHE", "host")  # the default: held where the volume is on the host
     plain_init = DeviceVolume.__init__
 
     def forced(self, f, dev, same_values=None, on_host=False):

@@ -126,6 +126,41 @@ def test_gradients_match_float64_finite_differences(term, device, split):
         assert np.abs(fd[:, cols]).max() > 1e-4 * scale or term in ("aniso", "cap", "anchor")
 
 
+def test_cached_anchor_targets_are_the_volume_at_the_centres(device, monkeypatch):
+    """With the volume in host memory the anchor term's V(mu) is read at each re-bin and held
+    (update.ANCHOR_CACHE): fresh, the cached targets equal a float64 trilinear reference and the
+    anchor loss and gradient are those read from the volume, bit for bit; held while the centres
+    move, they stay the values of the centres at the re-bin."""
+    from warpgauss.encoding.refine import update
+
+    vol, raw, _, _, _ = _scene(seed=4)
+    dv = DeviceVolume(normalise(vol, value_range=(0.0, 1.0)), device)
+    model = raw.copy()
+    model[:, 11] = 1 / (1 + np.exp(-raw[:, 11].astype(np.float64)))
+    cfg = RefineConfig(samples=64, weights=LossWeights(anchor=0.7, aniso=0.0, cap=0.0))
+    grads = {}
+    for mode in ("never", "always"):
+        monkeypatch.setattr(update, "ANCHOR_CACHE", mode)
+        r = Refiner(dv, model, cfg, seed=0, scale_min=SCALE_MIN, scale_cap=SCALE_CAP)
+        r.set_raw(raw)
+        grads[mode] = r.gradient(), r.state.reg_loss.numpy()[:, 0].copy()
+        assert r.updater.cached == (mode == "always")
+    np.testing.assert_array_equal(grads["always"][0], grads["never"][0])
+    np.testing.assert_array_equal(grads["always"][1], grads["never"][1])
+    assert grads["always"][1].min() > 0  # the anchor term acts on every slot
+    ids = r.state.ids.numpy()
+    centres = raw[ids, :3].astype(np.float64)
+    np.testing.assert_allclose(r.updater.anchors.numpy(), _trilinear(vol, centres), rtol=1e-6, atol=1e-7)
+    moved = raw.copy()
+    moved[:, :3] += 0.3
+    r.state.raw.assign(moved[ids])  # the centres move without a re-bin: the targets are held
+    np.testing.assert_allclose(r.updater.anchors.numpy(), _trilinear(vol, centres), rtol=1e-6, atol=1e-7)
+    r.gradient()
+    np.testing.assert_array_equal(r.state.reg_loss.numpy()[:, 0], grads["never"][1])  # a unchanged, targets held
+    r.rebin()
+    np.testing.assert_allclose(r.updater.anchors.numpy(), _trilinear(vol, moved[ids, :3].astype(np.float64)), rtol=1e-6, atol=1e-7)
+
+
 def test_adam_step_equals_numpy_reference(device):
     from warpgauss.core.warp import warp
     from warpgauss.kernels import field as kf

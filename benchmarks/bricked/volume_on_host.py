@@ -120,16 +120,21 @@ def main(argv=None) -> dict:
     res["host_time_ratio"] = host["time_ratio"]
     Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
     if args.summary:
-        p = Path(args.summary)
-        summary = json.loads(p.read_text()) if p.is_file() else {}
-        summary.update(
-            ooc1024_db=host["psnr_db"],
-            incore1024_db=base["psnr_db"],
-            ooc1024_time_ratio=res["host_time_ratio"],
-            ooc1024_source=f"{Path(args.out).name}: --volume-on-host ({host['path']}) against in core, {args.field} {args.size}^3, ratio {args.ratio:g}",
-        )
-        p.write_text(json.dumps(summary, indent=1) + "\n")
+        _summary(args, host, base)
     return res
+
+
+def _summary(args, host: dict, base: dict) -> None:
+    """The issue's ooc1024 keys, from the last host row against the in-core row."""
+    p = Path(args.summary)
+    summary = json.loads(p.read_text()) if p.is_file() else {}
+    summary.update(
+        ooc1024_db=host["psnr_db"],
+        incore1024_db=base["psnr_db"],
+        ooc1024_time_ratio=host["time_ratio"],
+        ooc1024_source=f"{Path(args.out).name}: --volume-on-host ({host['path']}) against in core, {args.field} {args.size}^3, ratio {args.ratio:g}",
+    )
+    p.write_text(json.dumps(summary, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -43,12 +43,7 @@ def main(argv=None) -> dict:
         help="NAME=module.CONST:value[+module.CONST:value]: a variant NAME (list it in --variants) that runs the "
         "default encode with module constants set (e.g. rc4=warpgauss.field.gaussians.ROW_COST:4); restored after it",
     )
-    ap.add_argument(
-        "--volume-on-host",
-        default=None,
-        metavar="MEM",
-        help="every encode with the volume in host memory and this device limit (--volume-on-host --max-device-memory MEM)",
-    )
+    ap.add_argument("--volume-on-host", metavar="MEM", help="every encode with --volume-on-host --max-device-memory MEM")
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--out", required=True)
     args = ap.parse_args(argv)

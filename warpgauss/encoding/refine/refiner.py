@@ -269,6 +269,8 @@ class Refiner(Checkpointed, Reported):
             self._graph = None
         if not self.state.clean:
             self.state.zero_grads()
+        if self.updater.refresh_anchors():
+            self._graph = None
         self.sampler.mark_support(self.binner.prep[0], self.binner.prep[3])
         if refresh:
             self.sampler.refresh_errors()

@@ -14,6 +14,15 @@ from ...field.analysis import DeviceVolume
 from .config import RefineConfig
 from .state import Primitives
 
+# The anchor term's V(mu): read at every slot's centre at each re-bin and held until the next
+# (the centres move a fraction of a voxel in between; the term's weight is 1e-3 / N) where the
+# volume is in host memory: read every iteration there it crossed the bus for every touched slot,
+# 2.8 of the 3.1 ms an iteration the host path added at 512^3 (H200, vortex CR 100,
+# speed/profile_host512_h200.json: refine_update 4.58 s against 0.33 s in core over 1,500
+# iterations). "host": cached there only (in core, read every iteration, as before); "always";
+# "never"
+ANCHOR_CACHE = "host"
+
 
 class Update:
     """Applies the pair gradients of an iteration to a :class:`Primitives` (see module docstring)."""
@@ -24,6 +33,9 @@ class Update:
         self._wp = warp()
         self.state, self.dv, self.cfg = state, dv, config
         self.quant = quant  # kernels.optim.QuantGrid shared with the re-bin: on = straight-through on the coded grids
+        on_host = bool(getattr(dv, "on_host", False))
+        self.cached = ANCHOR_CACHE == "always" or (ANCHOR_CACHE == "host" and on_host)
+        self.anchors = self._wp.zeros(1, dtype=float, device=state.device)  # unused until refresh_anchors
         c = config
         self.lr = kf.vec12(
             *([c.lr * c.lr_position] * 3),
@@ -47,6 +59,8 @@ class Update:
                 s.m2,
                 *s.pair_grads,
                 self.dv.values,
+                self.anchors,
+                int(self.cached),
                 w.anchor,
                 w.aniso,
                 w.cap,
@@ -79,7 +93,33 @@ class Update:
         self._wp.launch(
             kb.finish_grads,
             dim=s.n,
-            inputs=[s.raw, *s.pair_grads, self.dv.values, w.anchor, w.aniso, w.cap, math.log(3.0), s.log_cap, s.log_min],
+            inputs=[
+                s.raw,
+                *s.pair_grads,
+                self.dv.values,
+                self.anchors,
+                int(self.cached),
+                w.anchor,
+                w.aniso,
+                w.cap,
+                math.log(3.0),
+                s.log_cap,
+                s.log_min,
+            ],
             outputs=[s.grad, s.reg_loss],
             device=s.device,
         )
+
+    def refresh_anchors(self) -> bool:
+        """Where the anchor targets are cached, read them at the slots' centres now (after a re-bin
+        has settled the slots' order); True where their array was (re)allocated, which drops a
+        captured iteration."""
+        if not self.cached:
+            return False
+        from ...kernels import optim as ko
+
+        s, new = self.state, False
+        if self.anchors.shape[0] != s.n:
+            self.anchors, new = self._wp.zeros(s.n, dtype=float, device=s.device), True
+        self._wp.launch(ko.anchor_targets, dim=s.n, inputs=[s.raw, self.quant, self.dv.values], outputs=[self.anchors], device=s.device)
+        return new
