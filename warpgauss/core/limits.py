@@ -22,8 +22,9 @@ DEVICE_MARGIN = 0.9  # the default limit: this share of the free memory
 # with the volume in pinned host memory (--volume-on-host) the device holds what is kept per 4^3
 # block of voxels (the sampler's strata and support, the error stratum: about 1 B a voxel, by the
 # arrays' sizes) beside the model and a fixed part. Measured peak (H200, the vortex at CR 100,
-# bricked/volume_on_host1024_h200.json, the host run first in its process): 5.88 GB at 1024^3
-# with 3,459,050 Gaussians, where the brick model's fixed part and 1 KB a primitive would say
+# scale/volume_on_host1024_h200.json, the host run first in its process): 5.88 GB at 1024^3
+# with 3,459,050 Gaussians (5.91 GB with the held anchor targets and the staged draw,
+# scale/volume_on_host1024_anchors_h200.json), where the brick model's fixed part and 1 KB a primitive would say
 # 4.88 GB; at 512^3 (428,872) only the in-core run's 1.42 GB is known (the pool's mark is the
 # process's, see core.profiling.StageRecorder), the volume's 0.54 GB in it. The host path has its
 # own, above both: 1 GiB fixed and 1,280 B a primitive (6.57 and 1.75 GB there)

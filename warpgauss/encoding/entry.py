@@ -447,10 +447,11 @@ def choose_path(source, cfg: EncodeConfig, device, workers: int = 0) -> EncodePa
 
 # where a file's whole encode does not fit a GPU's device limit but its model does (the volume in
 # pinned host memory, read by the kernels over the bus), choose_path keeps the volume whole on the
-# host rather than bricking it: the same model as in core, where bricks in waves lose at their
-# seams (issue #55: the 1024^3 vortex in 4x4x4 bricks on Dask 68.40 dB against 69.71 monolithic,
-# 147.0 s on one GPU worker against 25.9 s). Measured on one H200 (issue #55, bricked/volume_on_host1024_h200.json, the 1024^3 vortex
-# at CR 100): 124.8 s against 72.7 s in core (1.72x), the same model bit for bit
+# host rather than bricking it: the in-core model within 0.05 dB, where bricks in waves lose at
+# their seams (issue #55: the 1024^3 vortex in 4x4x4 bricks on Dask 68.40 dB against 69.71
+# monolithic, 147.0 s on one GPU worker against 25.9 s). Measured on one H200 (issue #55,
+# scale/volume_on_host1024_anchors_h200.json, the 1024^3 vortex at CR 100): 91.6 s against 79.9 s
+# in core (1.15x), 68.18 against 68.23 dB
 HOST_VOLUME_AUTO = True
 
 

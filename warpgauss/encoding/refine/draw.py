@@ -39,16 +39,19 @@ ERROR_POOL = False
 ERROR_POOL_SAMPLES_A_CELL = 1.0
 ERROR_MAX_POOL = 8
 # A volume in host memory (DeviceVolume.on_host): each iteration's samples are drawn during the
-# iteration before, on a second stream (Sampler.enable_ahead; the same samples). Measured before it
-# (H200, vortex 1024^3 CR 100, bricked/volume_on_host1024_h200.json): 51 ms an iteration with the
-# draw over the bus against 22 ms with the volume on the device. Off until measured on a GPU (the
-# same model is tested on the CPU device; the second stream and its capture run on CUDA only)
-DRAW_AHEAD = False
-# A volume in host memory: the draw's launch size (thread t draws samples t, t + threads, ...; the
-# same samples). Its reads over the bus are bound by their latency, not by the threads in flight,
-# and one thread a sample (262,144 at 1024^3) fills every multiprocessor with waiting threads
-# that the pair passes beside it (DRAW_AHEAD) cannot use. 0: one thread a sample, as on the device
-DRAW_THREADS_HOST = 0
+# iteration before, on a second stream (Sampler.enable_ahead; the same samples), by
+# DRAW_THREADS_HOST threads (thread t draws samples t, t + threads, ...; the same samples). The
+# draw's reads over the bus are bound by their latency, not by the threads in flight (at 512^3,
+# drawn in turn: 10.58 ms an iteration with one thread a sample, 10.79 with 4,096), and one
+# thread a sample (262,144) fills the multiprocessors with waiting threads the pair passes beside
+# it cannot use: the draw ahead gained nothing that way (1024^3: 51 -> 53 ms an iteration).
+# Measured on an H200 with the anchor targets held (update.ANCHOR_CACHE), vortex CR 100, whole
+# encodes against in core in the same run (scale/volume_on_host{512,1024}_anchors*_h200.json):
+# 512^3 drawn in turn 1.07x, ahead with one thread a sample 1.07x, ahead with 4,096 threads 1.02x;
+# 1024^3 drawn in turn 93.93 s (1.26x), ahead with 4,096 threads 91.63 s (1.15x of its run's in
+# core). 0 threads: one a sample, as on the device
+DRAW_AHEAD = True
+DRAW_THREADS_HOST = 4096
 
 
 def stratum_counts(m: int, n_high: int, n_mid: int) -> tuple[int, int, int]:
