@@ -45,12 +45,13 @@ def test_a_primitive_too_large_to_mark_makes_every_brick_active(device):
     assert np.all(np.isfinite(gf.decode((16, 16, 16))))
 
 
-@pytest.mark.parametrize("path", ["brick lists", "cell walk"])
+@pytest.mark.parametrize("path", ["brick lists", "halved slabs", "cell walk"])
 def test_decode_equals_the_row_major_kernel_bit_for_bit(device, path, monkeypatch):
-    """Decode lists the primitives of each 8^3 brick (or, for a slab whose lists would not fit,
-    walks the cells in 8^3 thread blocks) over slabs whose sides are not multiples of 8; every
-    voxel must still be written once, with the row-major kernel's exact value, also on resampled
-    grids and with primitives centred outside the grid."""
+    """Decode lists the primitives of each 8^3 brick (a slab whose lists would not fit in halves
+    along z, and one a brick high whose lists still would not by the cell walk in 8^3 thread
+    blocks) over slabs whose sides are not multiples of 8; every voxel must still be written once,
+    with the row-major kernel's exact value, also on resampled grids and with primitives centred
+    outside the grid."""
     from warpgauss.core.warp import warp
     from warpgauss.field import gaussians as wf
     from warpgauss.kernels import field as kf
@@ -58,6 +59,16 @@ def test_decode_equals_the_row_major_kernel_bit_for_bit(device, path, monkeypatc
     wp = warp()
     if path == "cell walk":
         monkeypatch.setattr(wf, "MAX_BRICK_LIST", 0)
+    halves = []
+    if path == "halved slabs":  # the larger slabs' lists hold more entries than this
+        monkeypatch.setattr(wf, "MAX_BRICK_LIST", 100)
+        plain = GaussianField.decode_slab
+
+        def counted(self, out, z0, scale, offset=None):
+            halves.append(out.shape[0])
+            plain(self, out, z0, scale, offset)
+
+        monkeypatch.setattr(GaussianField, "decode_slab", counted)
     rng = np.random.default_rng(6)
     shape = (27, 13, 21)
     p = _sparse_params(rng, 80, shape)
@@ -75,6 +86,8 @@ def test_decode_equals_the_row_major_kernel_bit_for_bit(device, path, monkeypatc
             expect = ref.numpy()[z0:]
             assert np.count_nonzero(expect) > expect.size // 4
             np.testing.assert_array_equal(got.numpy(), expect)
+    if path == "halved slabs":
+        assert len(halves) > 6 and 8 in halves and 13 in halves, halves  # the 21-slice slab halved: 8 + 13
 
 
 def test_brick_lists_hold_exactly_the_primitives_whose_box_meets_the_brick(device):

@@ -21,9 +21,13 @@ from ..errors import WarpgaussError
 
 MIN_CELL = 1.0  # smallest cell edge in voxels: finer cells cost more cell visits than they save
 MAX_LEVEL_CELLS = 1 << 24  # cells per level (64 MiB of int32 ranges at most); coarser beyond
-DECODE_SLAB_VOXELS = 1 << 24  # output voxels per decode launch (64 MiB of float32)
+# output voxels per decode launch (256 MiB of float32). Measured on an H200 (the bench's model at
+# 1024^3, speed/decode_profile_1024_columns8_h200.json): 2^24 -> 2^26 took the brick listing
+# (one thread a brick) 137.6 -> 58.9 ms at N 20,000 and 273.4 -> 109.3 ms at 1.4M, the decode
+# 675 -> 585 and 1,014 -> 838 ms
+DECODE_SLAB_VOXELS = 1 << 26
 EVAL_CHUNK_POINTS = 1 << 22  # points per evaluation launch
-MAX_BRICK_LIST = 1 << 27  # (brick, primitive) entries of one decode slab (512 MiB); more: the cell walk
+MAX_BRICK_LIST = 1 << 27  # (brick, primitive) entries of one decode slab (512 MiB); more: halves (decode_slab)
 
 
 @dataclass(frozen=True)
@@ -382,8 +386,8 @@ class GaussianField:
 
         Each 8^3 brick lists the primitives whose box meets it, then its voxels stream through
         the list (:mod:`warpgauss.kernels.decode`); one read-back of the list's length per slab.
-        A slab whose lists would exceed :data:`MAX_BRICK_LIST` entries is evaluated by the cell
-        walk instead (same values).
+        A slab whose lists would exceed :data:`MAX_BRICK_LIST` entries is decoded in two halves
+        along z, and one a brick high by the cell walk instead (same values).
         """
         from ..kernels import decode as kd
 
@@ -400,6 +404,11 @@ class GaussianField:
         wp.launch(kd.list_bricks, dim=nb, inputs=[*common, 0, ends, counts, items], device=dev)
         wp.utils.array_scan(counts[:nb], ends[:nb], inclusive=True)
         total = int(ends[nb - 1 : nb].numpy()[0])
+        if total > MAX_BRICK_LIST and h > e:  # halves at a whole brick: shorter lists each
+            half = max(e, (h // 2) // e * e)
+            self.decode_slab(out[:half], z0, scale, offset)
+            self.decode_slab(out[half:], z0 + half, scale, offset)
+            return
         if total > MAX_BRICK_LIST:
             self.decode_walk(out, z0, scale, offset)
         else:
