@@ -159,6 +159,12 @@ def test_cached_anchor_targets_are_the_volume_at_the_centres(device, monkeypatch
     np.testing.assert_array_equal(r.state.reg_loss.numpy()[:, 0], grads["never"][1])  # a unchanged, targets held
     r.rebin()
     np.testing.assert_allclose(r.updater.anchors.numpy(), _trilinear(vol, moved[ids, :3].astype(np.float64)), rtol=1e-6, atol=1e-7)
+    # a resumed run reads them at its slots' centres (restore sets the slots without a re-bin)
+    arrays, scalars = r.state_arrays()
+    resumed = Refiner(dv, model, cfg, seed=0, scale_min=SCALE_MIN, scale_cap=SCALE_CAP)
+    resumed.restore(arrays, scalars)
+    centres = resumed.state.raw.numpy().reshape(-1, 12)[:, :3].astype(np.float64)
+    np.testing.assert_allclose(resumed.updater.anchors.numpy(), _trilinear(vol, centres), rtol=1e-6, atol=1e-7)
 
 
 def test_adam_step_equals_numpy_reference(device):

@@ -122,6 +122,8 @@ class Checkpointed:
             self._freeze_geometry()  # the geometry was fixed before the checkpoint
         radius = self.binner.prep[4]  # scratch: the prepared primitives go straight into slot order
         self.binner.prepare_into([p.mu, p.rot, p.inv_s2, p.ext, radius, p.a, p.w, p.conic])
+        if self.updater.refresh_anchors():  # held anchor targets (a volume on the host): read at the resume
+            self._graph = None
         s.zero_grads()
         smp = self.sampler
         if smp.uniform_support:
