@@ -31,6 +31,7 @@ class Checkpointed:
     set_samples: Any
     state: Any
     write_schedule: Any
+    updater: Any
 
     def state_arrays(self) -> tuple[dict, dict]:
         """Everything the next iterations depend on, between two steps: (arrays, scalars).
