@@ -49,7 +49,7 @@ class Update:
         """One Adam step of every primitive with gradient (``now``: the iteration's scalars)."""
         from ...kernels import optim as ko
 
-        s, cfg, w = self.state, self.cfg, self.cfg.weights
+        s, cfg = self.state, self.cfg
         self._wp.launch(
             ko.refine_update,
             dim=s.n,
@@ -58,15 +58,7 @@ class Update:
                 s.m1,
                 s.m2,
                 *s.pair_grads,
-                self.dv.values,
-                self.anchors,
-                int(self.cached),
-                w.anchor,
-                w.aniso,
-                w.cap,
-                math.log(3.0),
-                s.log_cap,
-                s.log_min,
+                *self._terms(),
                 self.lr,
                 now,
                 cfg.beta1,
@@ -84,28 +76,22 @@ class Update:
             device=s.device,
         )
 
+    def _terms(self) -> list:
+        """The per-primitive terms' inputs both kernels take: the volume and the anchor targets,
+        the three weights, the anisotropy bound and the scale bounds (logs)."""
+        s, w = self.state, self.cfg.weights
+        return [self.dv.values, self.anchors, int(self.cached), w.anchor, w.aniso, w.cap, math.log(3.0), s.log_cap, s.log_min]
+
     def finish_grads(self) -> None:
         """The full gradient (pair terms + regularisers) into ``state.grad`` and the
         regulariser losses into ``state.reg_loss``, without stepping (tests, losses)."""
         from ...kernels import backward as kb
 
-        s, w = self.state, self.cfg.weights
+        s = self.state
         self._wp.launch(
             kb.finish_grads,
             dim=s.n,
-            inputs=[
-                s.raw,
-                *s.pair_grads,
-                self.dv.values,
-                self.anchors,
-                int(self.cached),
-                w.anchor,
-                w.aniso,
-                w.cap,
-                math.log(3.0),
-                s.log_cap,
-                s.log_min,
-            ],
+            inputs=[s.raw, *s.pair_grads, *self._terms()],
             outputs=[s.grad, s.reg_loss],
             device=s.device,
         )
