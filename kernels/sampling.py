@@ -36,10 +36,8 @@ HIGH_VALUE = wp.constant(0.4)  # the "high" stratum: normalised value above this
 
 
 @wp.func
-def stratum_at(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), has_mask: int, k: int, j: int, i: int, v: float) -> int:
-    """:func:`stratum_of` of voxel (k, j, i) whose value ``v`` the caller has read already."""
-    if not usable(vol, mask, has_mask, k, j, i):
-        return -1
+def stratum_value(v: float) -> int:
+    """:func:`stratum_of` of a usable voxel whose value ``v`` the caller has read already."""
     if v > HIGH_VALUE:
         return 0
     if v > OCCUPIED:
@@ -52,7 +50,7 @@ def stratum_of(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), h
     """0 high (V > 0.4), 1 occupied mid-range, -1 neither (empty or masked)."""
     if not usable(vol, mask, has_mask, k, j, i):
         return -1
-    return stratum_at(vol, mask, has_mask, k, j, i, vol[k, j, i])
+    return stratum_value(vol[k, j, i])
 
 
 @wp.func
@@ -564,10 +562,10 @@ def draw_samples(
         target[s] = t
         if not usable(vol, mask, has_mask, k, j, i):
             ok = 0.0
-        if importance != 0 and ok > 0.0:
+        if importance != 0 and ok > 0.0:  # ok > 0: the voxel is usable
             ok = ok * sample_weight(
                 vol,
-                stratum_at(vol, mask, has_mask, k, j, i, own),
+                stratum_value(own),
                 k,
                 j,
                 i,

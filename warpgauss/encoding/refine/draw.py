@@ -131,7 +131,8 @@ class Sampler:
         self._side = None
         self._support_read: dict = {}  # supported voxels and unreached error, read once per support (index_support)
         self.m = self.m_err = 0
-        if getattr(dv, "on_host", False) and DRAW_AHEAD:  # the draw reads over the bus: beside the passes
+        self.on_host = bool(getattr(dv, "on_host", False))  # the volume read over the bus
+        if self.on_host and DRAW_AHEAD:  # the draw beside the passes
             self.enable_ahead()
         self.samples_a_cell = 0.0
         self.error_pool = 1  # cells per block edge the quota scores (see ERROR_POOL)
@@ -274,7 +275,7 @@ class Sampler:
         (a row's two corners in one load over the bus), else (0, a placeholder)."""
         if self._flat4 is None:
             wp, v = self._wp, self.dv.values
-            on_host = getattr(self.dv, "on_host", False) and v.size >= 4
+            on_host = self.on_host and v.size >= 4
             self._flat4 = (
                 (1, wp.array(ptr=v.ptr, dtype=wp.vec4, shape=(v.size // 4,), device=v.device, pinned=v.pinned))
                 if on_host
@@ -292,7 +293,7 @@ class Sampler:
         pmin, pmax = self.partner_distance
         bricks, everything = (self.marks[2], self.marks[1]) if self.marks is not None else self._no_marks
         threads = self.m
-        if getattr(dv, "on_host", False) and DRAW_THREADS_HOST > 0:
+        if self.on_host and DRAW_THREADS_HOST > 0:
             threads = min(self.m, DRAW_THREADS_HOST)
         wp.launch(
             ks.draw_samples,
