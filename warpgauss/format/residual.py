@@ -44,6 +44,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -309,19 +310,27 @@ def code_residual(
     ok = np.ones(source.shape, bool) if valid is None else valid
     src64 = source.astype(np.float64)
     facts: dict = {"sizes": {}}
+    clock = time.perf_counter
+    seconds: dict = {"passes": {}, "code": {}}  # where the coding's time went (the report's residual.seconds)
+    t0 = clock()
     axes, levelwise = _choose_interpolation(source, ok & np.isfinite(src64), step, integer)
+    seconds["choose"] = clock() - t0
 
     def passes(name: str):
+        t0 = clock()
         gauss, kind = _parts(name)
         base, shaky = _base(pred, fragile, margin, integer, gauss)
         with np.errstate(invalid="ignore", over="ignore"):
             t = source.astype(np.int64) - base if integer else src64 - base
             fits = ok & np.isfinite(src64) & (np.abs(t) < _LATTICE_LIMIT * step)
-        return base, shaky, fits, feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT), device)
+        out = base, shaky, fits, feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT), device)
+        seconds["passes"][name] = clock() - t0
+        return out
 
     def code(name: str, done_passes=None) -> tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]:
         gauss, _ = _parts(name)
         base, shaky, fits, (q, dec) = passes(name) if done_passes is None else done_passes
+        t0 = clock()
         x = base + dec
         if integer or not gauss:
             good = _within(x, out_dtype, src64, bound)
@@ -331,6 +340,7 @@ def code_residual(
         u = zigzag(q.ravel())
         width = byte_width(u)
         streams = _streams(u, width, literal, source.astype(out_dtype, copy=False), valid)
+        seconds["code"][name] = clock() - t0
         return sum(len(b) for b in streams.values()), streams, literal, width, u.astype(f"<u{width}").reshape(q.shape)
 
     # the predictors that do not depend on others' sizes are coded on threads (numpy and
@@ -356,7 +366,9 @@ def code_residual(
     done.clear()
     assert best is not None
     size, name, streams, literal, best_width, best_u = best
+    t0 = clock()
     streams["symbols"], codec, layout = _final_symbols(best_u)
+    seconds["final"] = clock() - t0
     data = b"".join(streams[s] for s in STREAMS)
     info = {
         "bound": float(bound),
@@ -387,6 +399,7 @@ def code_residual(
         literals=info["literals"],
         fragile=int((ok & fragile).sum()),
         bytes=len(data),
+        seconds=seconds,
     )
     return Residual(info, data), facts
 
