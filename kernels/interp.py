@@ -121,3 +121,39 @@ def feedback_pass_i(
         qs = floor_div(t[p[0], p[1], p[2]] - pred + step / wp.int64(2), step)
     q[p[0], p[1], p[2]] = qs
     dec[p[0], p[1], p[2]] = pred + qs * step
+
+
+@wp.kernel
+def decode_pass_f(
+    q: wp.array3d(dtype=wp.int64),  # the stored q's
+    start: wp.vec3i,
+    stride: wp.vec3i,
+    axis: int,
+    h: int,
+    cubic: int,
+    step: wp.float64,
+    dec: wp.array3d(dtype=wp.float64),  # in: decoded so far; out at the targets
+):
+    """A reader's pass on the float lattice: dec = pred + q step (what :func:`feedback_pass_f` decoded)."""
+    i, j, k = wp.tid()
+    p = target(i, j, k, start, stride)
+    pred = predict_f(dec, p, axis, h, dec.shape[axis], cubic)
+    dec[p[0], p[1], p[2]] = pred + wp.float64(q[p[0], p[1], p[2]]) * step
+
+
+@wp.kernel
+def decode_pass_i(
+    q: wp.array3d(dtype=wp.int64),
+    start: wp.vec3i,
+    stride: wp.vec3i,
+    axis: int,
+    h: int,
+    cubic: int,
+    step: wp.int64,
+    dec: wp.array3d(dtype=wp.int64),
+):
+    """A reader's pass on the integer lattice: dec = pred + q step."""
+    i, j, k = wp.tid()
+    p = target(i, j, k, start, stride)
+    pred = predict_i(dec, p, axis, h, dec.shape[axis], cubic)
+    dec[p[0], p[1], p[2]] = pred + q[p[0], p[1], p[2]] * step

@@ -29,6 +29,7 @@ def test_bench_kernels_writes_rows_for_every_n_and_sample_count(tmp_path, cpu):
     # the dense evaluator ran (smallest sample count) and found the same pairs (asserted inside)
     assert [x["samples"] for x in r["rows"] if "dense_forward_ms" in x] == [64, 64]
     assert [e["n"] for e in r["per_n"]] == [40, 120] and all(e["decode_ms"] > 0 for e in r["per_n"])
+    assert all(e["decode_slab_equal_to_rowmajor"] for e in r["per_n"])  # the row-major values clamped as the decode's
     assert "| N | samples |" in res.output
 
 

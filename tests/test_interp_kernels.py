@@ -40,6 +40,9 @@ def test_kernel_passes_equal_the_numpy_passes_bit_for_bit(device, shape, integer
             # and a reader decodes the same values from the q's
             back = I.decoded(q, step, integer, interp, axes, levels)
             assert np.array_equal(back.view(np.int64), dec.view(np.int64))
+            # on the kernels too (kernels.interp.decode_pass_*)
+            again = I.decoded(q, step, integer, interp, axes, levels, device=device)
+            assert again.dtype == back.dtype and np.array_equal(again.view(np.int64), back.view(np.int64))
 
 
 def test_a_coded_residual_is_the_same_file_on_the_kernels(device):
@@ -53,3 +56,7 @@ def test_a_coded_residual_is_the_same_file_on_the_kernels(device):
         a, fa = R.code_residual(src, None, pred, np.zeros(src.shape, bool), rel * (hi - lo), (lo, hi))
         b, fb = R.code_residual(src, None, pred, np.zeros(src.shape, bool), rel * (hi - lo), (lo, hi), device=device)
         assert a.payload() == b.payload() and a.info == b.info and fa["sizes"] == fb["sizes"]
+        # a reader applying it with the passes on the device decodes the numpy reader's values
+        out = R.apply_residual(b, pred, device)
+        assert np.array_equal(out.view(np.int32), R.apply_residual(a, pred).view(np.int32))
+        assert R.verify(b, pred, src, None, (lo, hi), device)["max_abs_error"] <= rel * (hi - lo)

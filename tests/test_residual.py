@@ -356,6 +356,36 @@ def test_bzip2_codes_the_chosen_symbols_where_smaller_and_a_damaged_frame_is_ref
         R.apply_residual(R.Residual(res.info, bytes(bad)), zero)
 
 
+def test_bzip2_in_parts_decodes_the_same_values_and_refuses_a_cut_or_swelled_frame(monkeypatch):
+    """Symbols longer than planes.BZIP2_PART are coded in parts on threads (codec "bzip2-parts"):
+    a reader joins the parts' streams into the same q's; a frame cut inside a part, a part's bytes
+    changed, or parts that yield more than the header declares are refused."""
+    from warpgauss.readers.synthetic import generate
+
+    v = generate("vortex", 48, seed=0)
+    zero = np.zeros(v.shape)
+    whole, _ = R.code_residual(v, None, zero, np.zeros(v.shape, bool), 1e-2, (0.0, 1.0))
+    monkeypatch.setattr(P, "BZIP2_PART", 50_000)
+    res, _ = R.code_residual(v, None, zero, np.zeros(v.shape, bool), 1e-2, (0.0, 1.0))
+    assert whole.info["symbols_codec"] == "bzip2" and res.info["symbols_codec"] == "bzip2-parts"
+    assert np.array_equal(R.apply_residual(res, zero), R.apply_residual(whole, zero))
+    n = res.info["streams"]["symbols"]
+    frame = res.data[:n]
+    assert frame.count(b"BZh9") == 3  # one stream a part
+    size = 48**3 * res.info["symbol_bytes"]
+    assert P.decompress(frame, size, "symbols", "bzip2-parts") == P.decompress(frame, size, "symbols", "bzip2-parts")
+    with pytest.raises(WarpgaussError, match="hold"):  # read as one stream, the first part alone
+        P.decompress(frame, size, "symbols", "bzip2")
+    with pytest.raises(WarpgaussError, match="hold"):  # more than declared
+        P.decompress(frame, size - 1, "symbols", "bzip2-parts")
+    with pytest.raises(WarpgaussError, match="do not decompress"):  # cut inside a part
+        P.decompress(frame[: n // 2], size, "symbols", "bzip2-parts")
+    bad = bytearray(res.data)
+    bad[n // 2] ^= 0x55
+    with pytest.raises(WarpgaussError, match="do not decompress|hold"):
+        R.apply_residual(R.Residual(res.info, bytes(bad)), zero)
+
+
 def test_the_paraview_reader_shows_the_gaussians_unless_asked_for_the_residual(bounded, monkeypatch):
     pytest.importorskip("vtkmodules")
     from vtkmodules.util.numpy_support import vtk_to_numpy

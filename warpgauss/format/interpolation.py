@@ -156,8 +156,8 @@ def feedback_on(
     from ..kernels import interp as ki
 
     wp = warp()
-    first, s0, passes = stepped_passes(t.shape, step, integer, axes, levels)
     kind, wkind = (np.int64, wp.int64) if integer else (np.float64, wp.float64)
+    first, s0, passes = stepped_passes(t.shape, step, integer, axes, levels)
     q0, dec0 = first_coded(t, skip, first, s0, integer)
     q = wp.zeros(t.shape, dtype=wp.int64, device=device)
     dec = wp.zeros(t.shape, dtype=wkind, device=device)
@@ -165,17 +165,42 @@ def feedback_on(
     tt = wp.array(np.ascontiguousarray(t, kind), dtype=wkind, device=device)
     sk = wp.array(np.ascontiguousarray(skip).view(np.uint8), dtype=wp.uint8, device=device)
     kernel = ki.feedback_pass_i if integer else ki.feedback_pass_f
-    for a, h, sel, s in passes:
-        start = wp.vec3i(*(x.start for x in sel))
-        stride = wp.vec3i(*(x.step for x in sel))
-        dims = tuple(len(range(x.start, n, x.step)) for x, n in zip(sel, t.shape))
-        if min(dims) == 0:
-            continue
-        wstep = wp.int64(int(s)) if integer else wp.float64(s)
-        wp.launch(kernel, dim=dims, inputs=[tt, sk, start, stride, a, h, int(interp == "cubic"), wstep], outputs=[q, dec], device=device)
+    for dims, args in _launches(passes, t.shape, integer, interp == "cubic"):
+        wp.launch(kernel, dim=dims, inputs=[tt, sk, *args], outputs=[q, dec], device=device)
     qn = q.numpy()
     qn[first] = q0
     return qn, dec.numpy()
+
+
+def decoded_on(device: str, q: np.ndarray, step: float, integer: bool, interp: str, axes: str, levels: tuple[float, float]) -> np.ndarray:
+    """:func:`decoded`'s interpolation passes as Warp kernels on ``device``: the same values bit for bit."""
+    from ..core.warp import warp
+    from ..kernels import interp as ki
+
+    wp = warp()
+    kind, wkind = (np.int64, wp.int64) if integer else (np.float64, wp.float64)
+    first, s0, passes = stepped_passes(q.shape, step, integer, axes, levels)
+    dec = wp.zeros(q.shape, dtype=wkind, device=device)
+    dec[first].assign(np.asarray(q[first] * (np.int64(s0) if integer else s0), kind))
+    qq = wp.array(np.ascontiguousarray(q, np.int64), dtype=wp.int64, device=device)
+    kernel = ki.decode_pass_i if integer else ki.decode_pass_f
+    for dims, args in _launches(passes, q.shape, integer, interp == "cubic"):
+        wp.launch(kernel, dim=dims, inputs=[qq, *args], outputs=[dec], device=device)
+    return dec.numpy()
+
+
+def _launches(passes, shape: tuple[int, ...], integer: bool, cubic: bool):
+    """Each pass's launch: (dims, [start, stride, axis, h, cubic, step]); passes with no target left out."""
+    from ..core.warp import warp
+
+    wp = warp()
+    for a, h, sel, s in passes:
+        dims = tuple(len(range(x.start, n, x.step)) for x, n in zip(sel, shape))
+        if min(dims) == 0:
+            continue
+        start = wp.vec3i(*(x.start for x in sel))
+        stride = wp.vec3i(*(x.step for x in sel))
+        yield dims, [start, stride, a, h, int(cubic), wp.int64(int(s)) if integer else wp.float64(s)]
 
 
 def residual_device(device: str | None, n_voxels: int) -> str | None:
@@ -206,10 +231,15 @@ def stepped_passes(shape: tuple[int, ...], step: float, integer: bool, axes: str
     return first, s0, passes
 
 
-def decoded(q: np.ndarray, step: float, integer: bool, interp: str, axes: str = AXES, levels: tuple[float, float] = FLAT) -> np.ndarray:
-    """The decoded residual from its q's: what :func:`feedback` decoded, on any machine."""
+def decoded(
+    q: np.ndarray, step: float, integer: bool, interp: str, axes: str = AXES, levels: tuple[float, float] = FLAT, device: str | None = None
+) -> np.ndarray:
+    """The decoded residual from its q's: what :func:`feedback` decoded, on any machine (the passes
+    as Warp kernels on ``device``, the same bits; None: numpy)."""
     if not interp:
         return q * np.int64(step) if integer else q * step
+    if device is not None:
+        return decoded_on(device, q, step, integer, interp, axes, levels)
     dec = np.zeros(q.shape, np.int64 if integer else np.float64)
     first, s0, passes = stepped_passes(q.shape, step, integer, axes, levels)
     dec[first] = q[first] * (np.int64(s0) if integer else s0)

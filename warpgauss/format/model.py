@@ -550,8 +550,10 @@ class Model:
 
         assert self.residual is not None
         check_memory(math.prod(self.shape_xyz), DECODE_BYTES_PER_VOXEL, "applying the residual to")
+        from .interpolation import residual_device
+
         pred, _ = prediction(self, device)
-        out = apply_residual(self.residual, pred)
+        out = apply_residual(self.residual, pred, residual_device(device, pred.size))
         if info is not None:
             info.update(residual_applied=True, max_error=self.residual.info["bound"])
         return out

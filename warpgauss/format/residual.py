@@ -53,7 +53,7 @@ import numpy as np
 
 from ..errors import WarpgaussError
 from .interpolation import AXES, CHOOSE_BLOCK, FLAT, LEVELWISE, ORDERS, cast, decoded, feedback, quantiser
-from .planes import byte_planes, byte_width, compress, decompress, from_planes, unzigzag, zigzag
+from .planes import CODECS, byte_planes, byte_width, bzip2_parts, compress, decompress, from_planes, unzigzag, zigzag
 
 # the Gaussians' ratio in a bounded file when no budget is given: at 1e-2..1e-4 of the range, 1000
 # gave a smaller whole file than 300 on 12 of 15 (volume, bound) pairs (three head MRIs, vortex and
@@ -152,14 +152,14 @@ def code_for_psnr(source, valid, pred, fragile, target_db: float, value_range, f
     lo, hi = value_range
     e0 = Bound(psnr=target_db).absolute(lo, hi)
     res, facts = code_residual(source, valid, pred, fragile, e0, value_range, fill_value=fill_value, device=device)
-    best = (res, facts, verify(res, pred, source, valid, value_range))
+    best = (res, facts, verify(res, pred, source, valid, value_range, device))
     low, high = math.log(e0), math.log(e0 * 2.0 * math.sqrt(3.0))
     tried = [e0]
     for _ in range(PSNR_TRIES):
         mid = 0.5 * (low + high)
         e = math.exp(mid)
         res, facts = code_residual(source, valid, pred, fragile, e, value_range, fill_value=fill_value, device=device)
-        check = verify(res, pred, source, valid, value_range)
+        check = verify(res, pred, source, valid, value_range, device)
         tried.append(e)
         if check["psnr_db"] >= target_db:
             best, low = (res, facts, check), mid
@@ -232,9 +232,8 @@ def _final_symbols(u: np.ndarray) -> tuple[bytes, str, str]:
     in each of the six axis orders (``layout``: the array transposed so, then raster) with
     Zstandard, and in the :data:`BZIP2_LAYOUTS` orders Zstandard coded smallest with bzip2 too (its
     Burrows-Wheeler transform suits runs of small q's: 15-25 % below Zstandard 3 on the head MRIs,
-    at 10-20x its time); the smallest kept. Returns (frame, codec, layout)."""
-    import bz2
-
+    at 10-20x its time; in parts on threads, :func:`~.planes.bzip2_parts`); the smallest kept.
+    Returns (frame, codec, layout)."""
     width = u.dtype.itemsize
 
     def raw(layout: str) -> bytes:
@@ -244,15 +243,14 @@ def _final_symbols(u: np.ndarray) -> tuple[bytes, str, str]:
         f = compress(raw(layout))
         return len(f), ORDERS.index(layout), f, "zstd", layout
 
-    def bzip2(layout: str) -> tuple[int, int, bytes, str, str]:
-        f = bz2.compress(raw(layout), 9)
-        return len(f), ORDERS.index(layout), f, "bzip2", layout
-
-    workers = max(1, min(len(ORDERS), os.cpu_count() or 1))
+    workers = max(1, os.cpu_count() or 1)
     with ThreadPoolExecutor(max_workers=workers) as pool:  # bz2 and Zstandard let go of the GIL
         tried = list(pool.map(zstd, ORDERS))
         best = [t[4] for t in sorted(tried, key=lambda t: (t[0], t[1]))[:BZIP2_LAYOUTS]]
-        tried += list(pool.map(bzip2, best))
+        raws = list(pool.map(raw, best))
+        with ThreadPoolExecutor(max_workers=workers) as parts:  # each layout's parts beside the other's
+            coded = list(pool.map(lambda r: bzip2_parts(r, parts), raws))
+        tried += [(len(f), ORDERS.index(lay), f, codec, lay) for lay, (f, codec) in zip(best, coded)]
     _, _, frame, codec, layout = min(tried, key=lambda t: (t[0], t[1], t[3]))
     return frame, codec, layout
 
@@ -469,8 +467,8 @@ def check_info(info, n_voxels: int) -> str | None:
             return f"residual {key} {v!r} is not a positive finite number"
     if info["lattice"] == "integer" and (info["step"] != int(info["step"]) or info["step"] > 2**31):
         return f"residual integer step {info['step']!r} is not a whole number"
-    if info.get("symbols_codec") not in ("zstd", "bzip2"):
-        return f"residual symbols codec {info.get('symbols_codec')!r} is not zstd or bzip2"
+    if info.get("symbols_codec") not in CODECS:
+        return f"residual symbols codec {info.get('symbols_codec')!r} is not one of {', '.join(CODECS)}"
     for key in ("axes", "layout"):
         if info.get(key, AXES) not in ORDERS:
             return f"residual {key} {info.get(key)!r} is not one of {', '.join(ORDERS)}"
@@ -538,8 +536,9 @@ def _count(v) -> bool:
     return not isinstance(v, bool) and isinstance(v, int) and v >= 0
 
 
-def apply_residual(res: Residual, pred: np.ndarray) -> np.ndarray:
-    """The bounded decode: the prediction (:func:`prediction`) plus the residual, in the source's dtype."""
+def apply_residual(res: Residual, pred: np.ndarray, device: str | None = None) -> np.ndarray:
+    """The bounded decode: the prediction (:func:`prediction`) plus the residual, in the source's
+    dtype (the interpolation passes as Warp kernels on ``device``, the same bits; None: numpy)."""
     info = res.info
     shape = pred.shape
     n = int(pred.size)
@@ -559,7 +558,7 @@ def apply_residual(res: Residual, pred: np.ndarray) -> np.ndarray:
     name = info["predictor"]
     gauss, kind = _parts(name)
     levels = info.get("levels", list(FLAT))
-    dec = decoded(q, step, integer, kind, info.get("axes", AXES), (float(levels[0]), float(levels[1])))
+    dec = decoded(q, step, integer, kind, info.get("axes", AXES), (float(levels[0]), float(levels[1])), device)
     base, _ = _base(pred, np.zeros(shape, bool), float(info["margin"]), integer, gauss)
     out = cast(base + dec, dtype).ravel()
     count = int(info["literals"])
@@ -581,14 +580,14 @@ def apply_residual(res: Residual, pred: np.ndarray) -> np.ndarray:
     return out.reshape(shape)
 
 
-def verify(res: Residual, pred: np.ndarray, source: np.ndarray, valid: np.ndarray | None, value_range) -> dict:
-    """Decode as a reader does and check every valid voxel against the bound (a violation is a bug,
-    raised, never a warning). Returns the measured maximum error (source units, and as a share of
+def verify(res: Residual, pred: np.ndarray, source: np.ndarray, valid: np.ndarray | None, value_range, device: str | None = None) -> dict:
+    """Decode as a reader does (the passes on ``device``: the same bits) and check every valid
+    voxel against the bound (a violation is a bug, raised, never a warning). Returns the measured maximum error (source units, and as a share of
     the range) and the PSNRs, by :func:`warpgauss.evaluate.score_decode` as ``warpgauss eval``
     scores the file."""
     from ..field.evaluate import score_decode
 
-    s = score_decode(apply_residual(res, pred), source, valid, value_range)
+    s = score_decode(apply_residual(res, pred, device), source, valid, value_range)
     worst, bound = s["max_abs_error"], float(res.info["bound"])
     if not worst <= bound:
         raise WarpgaussError(

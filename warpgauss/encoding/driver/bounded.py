@@ -47,7 +47,7 @@ def attach_residual(model: Model, source, read, example, example_size, bound: Bo
         res, facts, check = code_for_psnr(data, masked, pred, fragile, bound.psnr, (lo, hi), fill_value=fill, device=passes)
     else:
         res, facts = code_residual(data, masked, pred, fragile, bound.absolute(lo, hi), (lo, hi), fill_value=fill, device=passes)
-        check = verify(res, pred, data, valid, (lo, hi))
+        check = verify(res, pred, data, valid, (lo, hi), passes)
     t2 = time.perf_counter()
     model.residual = res
     gauss = model.file_size(encoding=model.format or "coded") - res.nbytes
