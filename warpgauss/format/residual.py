@@ -199,12 +199,15 @@ class Residual:
 
 
 # -- the quantiser ------------------------------------------------------------------------------
-def _choose_interpolation(source: np.ndarray, usable: np.ndarray, step: float, integer: bool) -> tuple[str, dict[str, tuple[float, float]]]:
+def _choose_interpolation(
+    source: np.ndarray, usable: np.ndarray, step: float, integer: bool, device: str | None = None
+) -> tuple[str, dict[str, tuple[float, float]]]:
     """The interpolation's axis order, and each kind's level-wise bounds, that code a central block
     of the source (at most :data:`CHOOSE_BLOCK` a side, no Gaussians, Zstandard 3) smallest: the
     order first (cubic, flat bounds), then (alpha, beta) from :data:`LEVELWISE` for "cubic" and for
-    "linear"; ties to the earlier. Measured on the three head MRIs at 1e-2 and 1e-3: the block
-    picked the order that is best or within 0.1 % of it on the whole volume."""
+    "linear"; ties to the earlier (the passes on ``device``: the same bits). Measured on the three
+    head MRIs at 1e-2 and 1e-3: the block picked the order that is best or within 0.1 % of it on
+    the whole volume."""
     flat = {"cubic": FLAT, "linear": FLAT}
     if min(source.shape) < 4:
         return AXES, flat
@@ -214,7 +217,7 @@ def _choose_interpolation(source: np.ndarray, usable: np.ndarray, step: float, i
         t = np.where(ok, block, 0).astype(np.int64) if integer else np.where(ok, block.astype(np.float64), 0.0)
 
     def size(kind: str, axes: str, levels: tuple[float, float]) -> int:
-        q, _ = feedback(t, ~ok, step, integer, kind, axes, levels)
+        q, _ = feedback(t, ~ok, step, integer, kind, axes, levels, device)
         u = zigzag(q.ravel())
         return len(compress(byte_planes(u, byte_width(u)), 3))
 
@@ -311,16 +314,24 @@ def code_residual(
     clock = time.perf_counter
     seconds: dict = {"passes": {}, "code": {}}  # where the coding's time went (the report's residual.seconds)
     t0 = clock()
-    axes, levelwise = _choose_interpolation(source, ok & np.isfinite(src64), step, integer)
+    axes, levelwise = _choose_interpolation(source, ok & np.isfinite(src64), step, integer, device)
     seconds["choose"] = clock() - t0
 
-    def passes(name: str):
-        t0 = clock()
-        gauss, kind = _parts(name)
+    lattice: dict[bool, tuple] = {}  # by gauss: what the passes code (base, shaky, t, fits), the same for both kinds
+
+    def prepare(gauss: bool) -> None:
         base, shaky = _base(pred, fragile, margin, integer, gauss)
         with np.errstate(invalid="ignore", over="ignore"):
             t = source.astype(np.int64) - base if integer else src64 - base
             fits = ok & np.isfinite(src64) & (np.abs(t) < _LATTICE_LIMIT * step)
+        lattice[gauss] = base, shaky, t, fits
+
+    def passes(name: str):
+        t0 = clock()
+        gauss, kind = _parts(name)
+        if gauss not in lattice:
+            prepare(gauss)
+        base, shaky, t, fits = lattice[gauss]
         out = base, shaky, fits, feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT), device)
         seconds["passes"][name] = clock() - t0
         return out
@@ -346,12 +357,15 @@ def code_residual(
     # the smallest is kept in the serial order, so the result is the one a serial loop gives
     done: dict[str, tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]] = {}
     alone = [n for n in predictors if not all(_parts(n))]
-    # on a device the passes run first, from this thread (Warp's streams belong to it), one after
-    # the other; the rest of each coding on threads
-    ran = [passes(n) for n in alone] if device is not None else [None] * len(alone)
+    # on a device the passes run from this thread (Warp's streams belong to it), one after the
+    # other, each predictor's coding on a thread as soon as its passes are done
+    for gauss in sorted({_parts(n)[0] for n in alone}):  # here, not racing on the threads
+        prepare(gauss)
     with ThreadPoolExecutor(max_workers=_coding_threads(len(alone), source.size)) as ex:
-        done.update(zip(alone, ex.map(code, alone, ran)))
-    del ran
+        coding = [ex.submit(code, n, passes(n) if device is not None else None) for n in alone]
+        done.update(zip(alone, (c.result() for c in coding)))
+    del coding
+    lattice.pop(False, None)  # the interpolations' alone: not needed again
     sizes = {n: done[n][0] for n in alone}
     best: tuple[int, str, dict[str, bytes], np.ndarray, int, np.ndarray] | None = None
     for name in _candidates(predictors, sizes):
