@@ -47,7 +47,9 @@ def attach_residual(model: Model, source, read, example, example_size, bound: Bo
         res, facts, check = code_for_psnr(data, masked, pred, fragile, bound.psnr, (lo, hi), fill_value=fill, device=passes)
     else:
         res, facts = code_residual(data, masked, pred, fragile, bound.absolute(lo, hi), (lo, hi), fill_value=fill, device=passes)
+        t_check = time.perf_counter()
         check = verify(res, pred, data, valid, (lo, hi), passes)
+        facts["seconds"]["verify"] = time.perf_counter() - t_check
     t2 = time.perf_counter()
     model.residual = res
     gauss = model.file_size(encoding=model.format or "coded") - res.nbytes
