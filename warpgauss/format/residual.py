@@ -358,12 +358,16 @@ def code_residual(
     done: dict[str, tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]] = {}
     alone = [n for n in predictors if not all(_parts(n))]
     # on a device the passes run from this thread (Warp's streams belong to it), one after the
-    # other, each predictor's coding on a thread as soon as its passes are done
-    for gauss in sorted({_parts(n)[0] for n in alone}):  # here, not racing on the threads
+    # other, each predictor's coding on a thread as soon as its passes are done; where the threads
+    # and memory allow, the Gaussians plus both interpolations too (the one that follows the rule
+    # below is kept, the other dropped: the same file, without a coding after the others)
+    both = [n for n in predictors if all(_parts(n))]
+    ahead = alone + both if device is not None and _coding_threads(len(alone) + len(both), source.size) >= len(alone) + len(both) else alone
+    for gauss in sorted({_parts(n)[0] for n in ahead}):  # here, not racing on the threads
         prepare(gauss)
-    with ThreadPoolExecutor(max_workers=_coding_threads(len(alone), source.size)) as ex:
-        coding = [ex.submit(code, n, passes(n) if device is not None else None) for n in alone]
-        done.update(zip(alone, (c.result() for c in coding)))
+    with ThreadPoolExecutor(max_workers=_coding_threads(len(ahead), source.size)) as ex:
+        coding = [ex.submit(code, n, passes(n) if device is not None else None) for n in ahead]
+        done.update(zip(ahead, (c.result() for c in coding)))
     del coding
     lattice.pop(False, None)  # the interpolations' alone: not needed again
     sizes = {n: done[n][0] for n in alone}
@@ -573,8 +577,10 @@ def apply_residual(res: Residual, pred: np.ndarray, device: str | None = None) -
     gauss, kind = _parts(name)
     levels = info.get("levels", list(FLAT))
     dec = decoded(q, step, integer, kind, info.get("axes", AXES), (float(levels[0]), float(levels[1])), device)
-    base, _ = _base(pred, np.zeros(shape, bool), float(info["margin"]), integer, gauss)
-    out = cast(base + dec, dtype).ravel()
+    if not gauss:  # + 0.0 as the coder's zero base adds: -0.0 decodes to +0.0
+        out = cast(dec if integer else dec + 0.0, dtype).ravel()
+    else:  # what _base gives the coder: the prediction, rounded on the integer lattice
+        out = cast((np.rint(pred).astype(np.int64) if integer else pred) + dec, dtype).ravel()
     count = int(info["literals"])
     gaps = from_planes(decompress(frames["positions"], 8 * count, "literal positions"), count, 8).view(np.int64)
     pos = np.cumsum(gaps)
