@@ -90,6 +90,33 @@ def test_decode_equals_the_row_major_kernel_bit_for_bit(device, path, monkeypatc
         assert len(halves) > 6 and 8 in halves and 13 in halves, halves  # the 21-slice slab halved: 8 + 13
 
 
+def test_slabs_after_a_halved_one_start_at_the_height_that_fitted(device, monkeypatch):
+    """Once a slab's lists have had to be halved, the decode's later slabs of the same sampling are
+    cut to the height that fitted before they are listed (one listing each piece, not a wasted one
+    of the whole slab): the same values as a decode whose lists always fit."""
+    from warpgauss.field import gaussians as wf
+
+    rng = np.random.default_rng(9)
+    shape = (20, 18, 64)
+    p = _sparse_params(rng, 60, shape)
+    p[:, 2] = rng.uniform(0.0, shape[2], 60)  # spread along z: every slab has lists
+    whole = GaussianField(p, shape, device).decode()
+    monkeypatch.setattr(wf, "DECODE_SLAB_VOXELS", 20 * 18 * 16)  # four slabs of 16 slices
+    monkeypatch.setattr(wf, "MAX_BRICK_LIST", 40)
+    gf = GaussianField(p, shape, device)
+    np.testing.assert_array_equal(gf.decode(), whole)
+    assert gf._fit_height, "no slab was halved: the case does not test the rule"
+
+    class Forgets(dict):  # the decode without the rule: every slab listed whole first
+        def __setitem__(self, key, value):
+            pass
+
+    plain = GaussianField(p, shape, device)
+    plain._fit_height = Forgets()
+    np.testing.assert_array_equal(plain.decode(), whole)
+    assert gf.decode_listings < plain.decode_listings, (gf.decode_listings, plain.decode_listings)
+
+
 def test_brick_lists_hold_exactly_the_primitives_whose_box_meets_the_brick(device):
     """The list of a brick is the binned-order subsequence of primitives whose 5-sigma box meets
     the brick's voxel centres (against a float64 numpy check; boxes touching only within the

@@ -310,6 +310,8 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
         if cfg.decode:
             gf = GaussianField(r.model_params(), f.shape_xyz, device=dev)
             entry["decode_ms"] = timer.ms(lambda: _decode_on_device(gf), 1, warmup=1)
+            # slices of the slabs whose lists fit MAX_BRICK_LIST where a slab had to be halved (None: none was)
+            entry["decode_fit_slices"] = min(gf._fit_height.values()) if gf._fit_height else None
             entry["decode_walk_ms"] = timer.ms(lambda: _decode_on_device(gf, "walk"), 1, warmup=1)
             entry["decode_rowmajor_ms"] = timer.ms(lambda: _decode_on_device(gf, "rowmajor"), 1, warmup=1)
             entry["decode_slab_equal_to_rowmajor"] = _decode_agrees(gf)

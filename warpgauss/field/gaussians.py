@@ -286,6 +286,8 @@ class GaussianField:
         self.plan: BinPlan | None = None
         self._active: tuple[Any, float] | None = None  # (brick grid or None: every brick, active share)
         self._decode_bufs: dict = {}  # int scratch of the brick-list decode, kept between slabs
+        self._fit_height: dict = {}  # by (scale, offset, nx, ny): a slab height whose lists fit MAX_BRICK_LIST (decode_slab)
+        self.decode_listings = 0  # brick listings decode_slab ran (a halved slab lists again)
         self._clamped: Any = None  # [1] int64: decoded voxels clamped into [0, 1] (decode_slab)
         self.update(replan=True)
 
@@ -387,7 +389,8 @@ class GaussianField:
         Each 8^3 brick lists the primitives whose box meets it, then its voxels stream through
         the list (:mod:`warpgauss.kernels.decode`); one read-back of the list's length per slab.
         A slab whose lists would exceed :data:`MAX_BRICK_LIST` entries is decoded in two halves
-        along z, and one a brick high by the cell walk instead (same values).
+        along z, and one a brick high by the cell walk instead (same values); later slabs of the
+        same sampling start at the height that fitted, so that their whole listing is not wasted.
         """
         from ..kernels import decode as kd
 
@@ -395,6 +398,13 @@ class GaussianField:
         offset = wp.vec3(0.0, 0.0, 0.0) if offset is None else offset
         h, ny, nx = out.shape
         e = int(kd.BRICK_EDGE)
+        key = (tuple(scale), tuple(offset), nx, ny)
+        fit = self._fit_height.get(key)
+        if fit is not None and h > fit:  # an earlier slab of this decode had to be halved: pieces that fit, listed once
+            for a in range(0, h, fit):
+                self.decode_slab(out[a : min(h, a + fit)], z0 + a, scale, offset)
+            return
+        self.decode_listings += 1
         bricks = wp.vec3i(-(-nx // e), -(-ny // e), -(-h // e))
         nb = int(bricks[0]) * int(bricks[1]) * int(bricks[2])
         size = wp.vec3i(nx, ny, h)
@@ -406,6 +416,7 @@ class GaussianField:
         total = int(ends[nb - 1 : nb].numpy()[0])
         if total > MAX_BRICK_LIST and h > e:  # halves at a whole brick: shorter lists each
             half = max(e, (h // 2) // e * e)
+            self._fit_height[key] = min(half, self._fit_height.get(key, half))
             self.decode_slab(out[:half], z0, scale, offset)
             self.decode_slab(out[half:], z0 + half, scale, offset)
             return
