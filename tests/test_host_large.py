@@ -178,3 +178,100 @@ def test_race_keys_of_voxels_past_2_to_the_32_mix_the_high_word(cpu):
     np.testing.assert_allclose(out.numpy(), [twin(int(x)) for x in idx], rtol=1e-6)
     got = out.numpy()
     assert got[4] != got[1] and got[5] != got[4]  # 2^32 apart: keys of their own
+
+
+def test_the_limits_name_the_way_out():
+    """In core a volume indexes at most 2^31 - 1 voxels; in host memory up to 2^37 (a 2048^3
+    volume passes), within Warp's int32 strides (a slice under 2 GiB) and 2^31 4^3 bricks."""
+    from warpgauss.field.limits import MAX_HOST_VOXELS, voxels_problem
+
+    assert voxels_problem((1024, 1024, 2047)) is None
+    said = voxels_problem((2048, 2048, 2048))
+    assert said is not None and "--volume-on-host" in said and "\n" not in said
+    assert voxels_problem((2048, 2048, 2048), MAX_HOST_VOXELS) is None
+    assert voxels_problem((8188, 4096, 4096), MAX_HOST_VOXELS) is None  # 2^37 - 2^26
+    assert "--bricks" in voxels_problem((8192, 4096, 4096), MAX_HOST_VOXELS)  # 2^37: 2^31 bricks
+    assert "slice" in voxels_problem((4, 32768, 16384), MAX_HOST_VOXELS)
+    assert "bricks" in voxels_problem((8190, 4094, 4094), MAX_HOST_VOXELS)  # 2^31 + bricks of part-filled edges
+
+
+def test_past_the_in_core_limit_an_encode_takes_the_volume_on_host(cpu, monkeypatch):
+    """The in-core limit lowered below a small volume's voxels: the encode is refused in one line
+    that names --volume-on-host, and with the volume on the host it runs, to the model of an
+    in-core encode bit for bit (normalised into host memory of its own, which the device volume
+    reads as it is); past the host limit it is refused naming --bricks."""
+    import warpgauss
+    from warpgauss.errors import WarpgaussError
+    from warpgauss.field import limits
+    from warpgauss.readers.synthetic import generate
+
+    v = generate("vortex", 14)[:, :13, :12].copy()
+    v[:, :2] = np.nan  # masked
+    kw = dict(budget=60, iterations=8, device=cpu, seed=2, progress=False)
+    whole = warpgauss.encode(v, **kw)
+    monkeypatch.setattr(limits, "MAX_VOXELS", v.size - 1)
+    with pytest.raises(WarpgaussError, match="--volume-on-host") as e:
+        warpgauss.encode(v, **kw)
+    assert "\n" not in str(e.value)
+    host = warpgauss.encode(v, volume_on_host=True, **kw)
+    np.testing.assert_array_equal(np.asarray(host.params), np.asarray(whole.params))
+    monkeypatch.setattr(limits, "MAX_HOST_VOXELS", v.size - 1)
+    with pytest.raises(WarpgaussError, match="--bricks"):
+        warpgauss.encode(v, volume_on_host=True, **kw)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_normalised_into_host_memory_the_device_volume_holds_no_copy(cpu, monkeypatch, masked):
+    """normalise(pinned=True) writes into Warp host arrays (page-locked where CUDA is available)
+    whose numpy views are the field's values and mask: the same values, mask and counts as
+    before, and the device volume reads those arrays as they are. Passes of a few slices each
+    (analysis.SLAB_VOXELS lowered: at 2048^2 a pass holds 8 slices) count the same."""
+    from warpgauss.field import analysis
+
+    f0 = _volume((11, 9, 10)) if masked else normalise(np.random.default_rng(1).uniform(0, 1, (11, 9, 10)).astype(np.float32))
+    src = analysis.denormalise(f0.values, f0.vmin, f0.vmax)
+    if masked:
+        src[~f0.mask] = np.nan
+    plain = normalise(src)
+    monkeypatch.setattr(analysis, "SLAB_VOXELS", 2 * 90)  # two slices a pass
+    f = normalise(src, pinned=True)
+    assert f.host_arrays is not None and np.shares_memory(f.values, f.host_arrays[0].numpy())
+    assert f.values.tobytes() == plain.values.tobytes()
+    assert (f.occupied, f.eligible, f.n_valid) == (plain.occupied, plain.eligible, plain.n_valid)
+    assert (f.mask is None) == (not masked) and (plain.mask is None) == (not masked)
+    dv = DeviceVolume(f, cpu)
+    assert dv.values is f.host_arrays[0]
+    if masked:
+        np.testing.assert_array_equal(f.mask, plain.mask)
+        assert dv.mask is f.host_arrays[1] and np.shares_memory(f.mask, dv.mask.numpy())
+
+
+def test_a_file_read_into_memory_may_declare_what_the_host_path_indexes(tmp_path, monkeypatch):
+    """A format read into memory (chunked HDF5) is refused past the in-core limit with the way
+    out, and read where the caller indexes more (the volume in host memory)."""
+    import h5py
+
+    from warpgauss.errors import WarpgaussError
+    from warpgauss.readers import common, read_volume
+
+    p = tmp_path / "v.h5"
+    with h5py.File(p, "w") as h:
+        h.create_dataset("v", data=np.ones((6, 5, 4), np.float32), chunks=(2, 5, 4))
+    monkeypatch.setattr(common, "MAX_READ_VOXELS", 100)
+    with pytest.raises(WarpgaussError, match="--volume-on-host"):
+        read_volume(p)
+    assert read_volume(p, max_voxels=120).data.shape == (6, 5, 4)
+
+
+def test_a_model_file_may_hold_a_grid_past_2_to_the_31():
+    """A model of a 2048^3 grid (the host path's) is a valid header; past 2^37 it is not."""
+    from warpgauss.format.model import _header_problem
+
+    h = {
+        "grid": {"shape_xyz": [2048] * 3, "spacing": [1.0] * 3, "origin": [0.0] * 3},
+        "values": {"min": 0.0, "max": 1.0},
+        "source": {"bytes": 4},
+    }
+    assert _header_problem(h) is None
+    h["grid"]["shape_xyz"] = [8192, 8192, 8192]
+    assert "more than" in _header_problem(h)
