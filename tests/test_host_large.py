@@ -275,3 +275,33 @@ def test_a_model_file_may_hold_a_grid_past_2_to_the_31():
     assert _header_problem(h) is None
     h["grid"]["shape_xyz"] = [8192, 8192, 8192]
     assert "more than" in _header_problem(h)
+
+
+def test_a_whole_encode_on_the_64_bit_paths(cpu, monkeypatch):
+    """A whole encode with the volume on the host (forced on the CPU device: the slabs, the wide
+    loads, the draw ahead by a few threads, the held anchor targets) through the paths of a volume
+    past 2^31 voxels: the wide loads split into rows of 3 groups give the model of one row bit for
+    bit; every rank drawn with 64 bits (RANK32_MAX lowered to 10) gives a model of its own, finite
+    and the same on a rerun."""
+    import warpgauss
+    from warpgauss.field import analysis
+    from warpgauss.readers.synthetic import generate
+
+    v = generate("vortex", 15)[:, :14, :13].copy()
+    kw = dict(budget=80, iterations=12, device=cpu, seed=4, progress=False)
+    plain_init = DeviceVolume.__init__
+
+    def forced(self, f, dev, same_values=None, on_host=False):
+        plain_init(self, f, dev, same_values=same_values, on_host=on_host)
+        self.on_host = True
+
+    monkeypatch.setattr(analysis.DeviceVolume, "__init__", forced)
+    one_row = warpgauss.encode(v, volume_on_host=True, **kw)
+    monkeypatch.setattr(draw, "FLAT4_COLUMNS", 3)
+    split = warpgauss.encode(v, volume_on_host=True, **kw)
+    np.testing.assert_array_equal(np.asarray(split.params), np.asarray(one_row.params))
+    monkeypatch.setattr(draw, "RANK32_MAX", 10)
+    wide = [warpgauss.encode(v, volume_on_host=True, **kw) for _ in range(2)]
+    assert wide[0].n == split.n and np.isfinite(np.asarray(wide[0].params)).all()
+    np.testing.assert_array_equal(np.asarray(wide[0].params), np.asarray(wide[1].params))
+    assert not np.array_equal(np.asarray(wide[0].params), np.asarray(split.params))
