@@ -100,10 +100,23 @@ def seed_weight(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), 
 
 
 @wp.func
-def race_key(stream: int, idx: int, weight: float) -> float:
-    state = wp.rand_init(stream, idx)
+def race_key(stream: int, idx: wp.int64, weight: float) -> float:
+    """The exponential race key of linear voxel index ``idx``: its uniform from the stream at
+    offset idx where idx < 2^32 (as when indices were int32), else at offset idx mod 2^32 of a
+    stream mixed with idx's high word, so that voxels 2^32 apart do not share a key."""
+    seed = stream
+    hi = int(idx >> wp.int64(32))
+    if hi != 0:
+        seed = int(wp.rand_init(stream, hi))
+    state = wp.rand_init(seed, int(idx & wp.int64(0xFFFFFFFF)))
     u = 1.0 - wp.randf(state)  # (0, 1]
     return -wp.log(u) / weight
+
+
+@wp.func
+def linear_index(k: int, j: int, i: int, ny: int, nx: int) -> wp.int64:
+    """(k * ny + j) * nx + i in int64 (a volume in host memory may hold more than 2^31 voxels)."""
+    return (wp.int64(k) * wp.int64(ny) + wp.int64(j)) * wp.int64(nx) + wp.int64(i)
 
 
 @wp.func
@@ -121,17 +134,17 @@ def seed_key_histogram(
     has_mask: int,
     mode: int,  # 0 detail (|grad V|-weighted), 1 coverage (uniform)
     stream: int,  # RNG stream of this draw
-    hist: wp.array(dtype=int),  # [KEY_BINS] out, zeroed before
-    eligible: wp.array(dtype=int),  # [1] out: number of eligible voxels, zeroed before
+    hist: wp.array(dtype=wp.int64),  # [KEY_BINS] out, zeroed before
+    eligible: wp.array(dtype=wp.int64),  # [1] out: number of eligible voxels, zeroed before
 ):
     """Histogram of log2 race keys over the eligible voxels (one thread per voxel)."""
     k, j, i = wp.tid()
     weight = seed_weight(vol, mask, has_mask, k, j, i, mode)
     if weight <= 0.0:
         return
-    idx = (k * vol.shape[1] + j) * vol.shape[2] + i
-    wp.atomic_add(hist, key_bin(race_key(stream, idx, weight)), 1)
-    wp.atomic_add(eligible, 0, 1)
+    idx = linear_index(k, j, i, vol.shape[1], vol.shape[2])
+    wp.atomic_add(hist, key_bin(race_key(stream, idx, weight)), wp.int64(1))
+    wp.atomic_add(eligible, 0, wp.int64(1))
 
 
 @wp.kernel
@@ -144,14 +157,14 @@ def seed_key_compact(
     max_bin: int,  # keep keys whose bin is <= max_bin
     counter: wp.array(dtype=int),  # [1] zeroed before
     keys: wp.array(dtype=float),  # [>= 2 * candidates] out
-    idx_out: wp.array(dtype=int),  # [>= 2 * candidates] out: linear voxel index
+    idx_out: wp.array(dtype=wp.int64),  # [>= 2 * candidates] out: linear voxel index
 ):
     """Write the race keys of the lowest bins (the candidates of the draw) with their voxel index."""
     k, j, i = wp.tid()
     weight = seed_weight(vol, mask, has_mask, k, j, i, mode)
     if weight <= 0.0:
         return
-    idx = (k * vol.shape[1] + j) * vol.shape[2] + i
+    idx = linear_index(k, j, i, vol.shape[1], vol.shape[2])
     key = race_key(stream, idx, weight)
     if key_bin(key) <= max_bin:
         slot = wp.atomic_add(counter, 0, 1)
@@ -224,7 +237,7 @@ def seed_frame(
     kz0: int,
     nz: int,  # slices of the whole volume
     s: int,  # the seed's index (its jitter's random stream)
-    idx: int,  # its linear voxel index in the whole volume
+    idx: wp.int64,  # its linear voxel index in the whole volume
     stream: int,
     mu: wp.array(dtype=wp.vec3),
     quat: wp.array(dtype=wp.quat),
@@ -237,11 +250,11 @@ def seed_frame(
     (l_max - l_mid) / l_max is 1 on a plane (both tangents free) and 0 on a tube. A slab must hold
     every slice within :data:`SEED_FRAME_REACH` of the seed's (or reach the volume's end there).
     """
-    nx = vol.shape[2]
-    ny = vol.shape[1]
-    i = idx % nx
-    j = (idx / nx) % ny
-    k = idx / (nx * ny)
+    nx = wp.int64(vol.shape[2])
+    ny = wp.int64(vol.shape[1])
+    i = int(idx % nx)
+    j = int((idx / nx) % ny)
+    k = int(idx / (nx * ny))
     kl = k - kz0
     T = wp.mat33(0.0)
     for dz in range(-ST_RADIUS, ST_RADIUS + 1):
@@ -275,7 +288,7 @@ def seed_frames(
     vol: wp.array3d(dtype=float),
     mask: wp.array3d(dtype=wp.uint8),
     has_mask: int,
-    voxel: wp.array(dtype=int),  # [S] linear voxel index of each seed
+    voxel: wp.array(dtype=wp.int64),  # [S] linear voxel index of each seed
     stream: int,  # RNG stream for the half-voxel jitter
     mu: wp.array(dtype=wp.vec3),  # [S] out: jittered centre
     quat: wp.array(dtype=wp.quat),  # [S] out: local axes (tangent, middle, normal) as a rotation
@@ -293,7 +306,7 @@ def seed_frames_slab(
     has_mask: int,
     kz0: int,
     nz: int,
-    voxel: wp.array(dtype=int),  # [S] linear voxel index of each seed
+    voxel: wp.array(dtype=wp.int64),  # [S] linear voxel index of each seed
     which: wp.array(dtype=int),  # [T] the seeds whose voxels lie in this slab's own slices
     stream: int,
     mu: wp.array(dtype=wp.vec3),  # [S] out, as seed_frames'

@@ -19,8 +19,8 @@ import warp as wp
 
 from .chunked import PointGrid, box_rows, slot_level
 from .field import BinnedPrimitives, add_pair, conic_g, in_box, level_cell, store_sums, vec6
+from .indexing import find_brick
 from .optim import BIG, cell_faces
-from .sampling import find_brick
 
 wp.set_module_options({"enable_backward": False})
 

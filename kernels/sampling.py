@@ -29,6 +29,19 @@ estimate of the full-grid MSE while more samples fall where the model is wrong.
 import warp as wp
 
 from .analysis import OCCUPIED, in_grid, trilinear_axis, usable
+from .indexing import (
+    BRICK,
+    block_voxels,
+    brick_origin,
+    brick_rank_voxel,
+    brick_voxel,
+    brick_voxels,
+    find_brick,
+    find_brick64,
+    grid_voxel,
+    grid_voxels,
+    rank_below,
+)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -54,25 +67,29 @@ def stratum_of(vol: wp.array3d(dtype=float), mask: wp.array3d(dtype=wp.uint8), h
 
 
 @wp.func
-def row_pair(vol: wp.array3d(dtype=float), flat4: wp.array(dtype=wp.vec4), wide: int, k: int, j: int, i0: int, i1: int) -> wp.vec2:
+def row_pair(vol: wp.array3d(dtype=float), flat4: wp.array2d(dtype=wp.vec4), wide: int, k: int, j: int, i0: int, i1: int) -> wp.vec2:
     """(V[k, j, i0], V[k, j, i1]) for i1 = i0 or i0 + 1. ``wide``: ``flat4`` views the volume as
-    aligned groups of four values and both are read in one 16-byte load where they lie in one group
-    (a volume in host memory: each load over the bus is a transaction of its own); else, as
-    without ``wide``, two loads."""
-    nx = vol.shape[2]
-    ll = (k * vol.shape[1] + j) * nx + i0
-    q = ll / 4
-    r = ll - 4 * q
-    if wide == 0 or q >= flat4.shape[0] or (i1 != i0 and r == 3):
+    aligned groups of four values, row-major in rows of ``flat4.shape[1]`` groups (a Warp array
+    holds fewer than 2^31 elements a dimension), and both are read in one 16-byte load where they
+    lie in one group (a volume in host memory: each load over the bus is a transaction of its
+    own); else, as without ``wide``, two loads. The linear index is int64: a volume in host
+    memory may hold more than 2^31 voxels."""
+    ll = (wp.int64(k) * wp.int64(vol.shape[1]) + wp.int64(j)) * wp.int64(vol.shape[2]) + wp.int64(i0)
+    q = ll / wp.int64(4)
+    r = int(ll - wp.int64(4) * q)
+    cols = wp.int64(flat4.shape[1])
+    if wide == 0 or q >= wp.int64(flat4.shape[0]) * cols or (i1 != i0 and r == 3):
         return wp.vec2(vol[k, j, i0], vol[k, j, i1])
-    a = flat4[q]
+    a = flat4[int(q / cols), int(q % cols)]
     if i1 == i0:
         return wp.vec2(a[r], a[r])
     return wp.vec2(a[r], a[r + 1])
 
 
 @wp.func
-def trilinear_rows(vol: wp.array3d(dtype=float), flat4: wp.array(dtype=wp.vec4), wide: int, p: wp.vec3, k: int, j: int, i: int) -> wp.vec2:
+def trilinear_rows(
+    vol: wp.array3d(dtype=float), flat4: wp.array2d(dtype=wp.vec4), wide: int, p: wp.vec3, k: int, j: int, i: int
+) -> wp.vec2:
     """(:func:`trilinear` at p bit for bit, V at voxel (k, j, i)): the corners read a row pair at
     a time (:func:`row_pair`), the voxel's own value taken from them where it is a corner (p within
     half a voxel of it), else read."""
@@ -103,35 +120,13 @@ def trilinear_rows(vol: wp.array3d(dtype=float), flat4: wp.array(dtype=wp.vec4),
     return wp.vec2(value, own)
 
 
-BRICK = wp.constant(4)  # stratum index granularity: voxels per brick edge
-
-
-@wp.func
-def brick_voxel(bk: int, bj: int, bi: int, d: int) -> wp.vec3i:
-    """(k, j, i) of the d-th voxel (z, then y, then x) of 4^3 brick (bk, bj, bi); may lie past the grid."""
-    return wp.vec3i(bk * BRICK + d / (BRICK * BRICK), bj * BRICK + (d / BRICK) % BRICK, bi * BRICK + d % BRICK)
-
-
-@wp.func
-def block_voxels(pk: int, pj: int, pi: int, f: int, nz: int, ny: int, nx: int) -> int:
-    """Voxels of block (pk, pj, pi) of f^3 bricks (edge 4 f) inside an nz x ny x nx grid."""
-    e = BRICK * f
-    return wp.min(e, nz - pk * e) * wp.min(e, ny - pj * e) * wp.min(e, nx - pi * e)
-
-
-@wp.func
-def brick_voxels(bk: int, bj: int, bi: int, nz: int, ny: int, nx: int) -> int:
-    """Voxels of 4^3 brick (bk, bj, bi) inside an nz x ny x nx grid."""
-    return block_voxels(bk, bj, bi, 1, nz, ny, nx)
-
-
 @wp.kernel
 def brick_counts(
     vol: wp.array3d(dtype=float),
     mask: wp.array3d(dtype=wp.uint8),
     has_mask: int,
-    high: wp.array3d(dtype=int),  # [bz, by, bx] out: high-stratum voxels in each 4^3 brick
-    mid: wp.array3d(dtype=int),  # [bz, by, bx] out: mid-stratum voxels
+    high: wp.array3d(dtype=wp.int64),  # [bz, by, bx] out: high-stratum voxels in each 4^3 brick (int64: their prefix sums may pass 2^31)
+    mid: wp.array3d(dtype=wp.int64),  # [bz, by, bx] out: mid-stratum voxels
     high_bits: wp.array3d(dtype=wp.uint64),  # [bz, by, bx] out: bit d set if the brick's d-th voxel is high
     mid_bits: wp.array3d(dtype=wp.uint64),  # [bz, by, bx] out: the same for the mid stratum
 ):
@@ -154,8 +149,8 @@ def brick_counts(
             elif st == 1:
                 nm += 1
                 bm = bm | (wp.uint64(1) << wp.uint64(d))
-    high[bk, bj, bi] = nh
-    mid[bk, bj, bi] = nm
+    high[bk, bj, bi] = wp.int64(nh)
+    mid[bk, bj, bi] = wp.int64(nm)
     high_bits[bk, bj, bi] = bh
     mid_bits[bk, bj, bi] = bm
 
@@ -285,45 +280,9 @@ def pooled_quota(
 
 
 @wp.func
-def find_brick(cum: wp.array(dtype=int), r: int) -> wp.vec2i:
-    """(brick, rank within it) of rank r, for inclusive prefix sums ``cum`` of per-brick counts."""
-    lo = int(0)
-    hi = cum.shape[0] - 1
-    while lo < hi:  # first brick whose inclusive sum exceeds r
-        mid_ = (lo + hi) / 2
-        if cum[mid_] > r:
-            hi = mid_
-        else:
-            lo = mid_ + 1
-    if lo > 0:
-        r = r - cum[lo - 1]
-    return wp.vec2i(lo, r)
-
-
-@wp.func
-def brick_origin(b: int, ny: int, nx: int) -> wp.vec3i:
-    """(i, j, k) of the first voxel of brick b (bricks in z, y, x order over a grid ny x nx wide)."""
-    nbx = (nx + BRICK - 1) / BRICK
-    nby = (ny + BRICK - 1) / BRICK
-    return wp.vec3i((b % nbx) * BRICK, ((b / nbx) % nby) * BRICK, (b / (nbx * nby)) * BRICK)
-
-
-@wp.func
-def brick_rank_voxel(b: int, t: int, ny: int, nx: int) -> int:
-    """Linear index of the t-th voxel inside the grid (z, then y, then x) of brick b."""
-    o = brick_origin(b, ny, nx)
-    hx = wp.min(BRICK, nx - o[0])
-    hy = wp.min(BRICK, ny - o[1])
-    k = o[2] + t / (hy * hx)
-    j = o[1] + (t / hx) % hy
-    i = o[0] + t % hx
-    return (k * ny + j) * nx + i
-
-
-@wp.func
-def support_voxel(nz: int, ny: int, nx: int, cum: wp.array(dtype=int), r: int) -> int:
-    """Linear index of the r-th supported voxel (bricks in order, voxels in z, y, x order)."""
-    br = find_brick(cum, r)
+def support_voxel(nz: int, ny: int, nx: int, cum: wp.array(dtype=wp.int64), r: wp.int64) -> wp.vec3i:
+    """(k, j, i) of the r-th supported voxel (bricks in order, voxels in z, y, x order)."""
+    br = find_brick64(cum, r)
     return brick_rank_voxel(br[0], br[1], ny, nx)
 
 
@@ -349,9 +308,10 @@ def error_probability(err_cum: wp.array(dtype=int), q_tot: int, k: int, j: int, 
 
 
 @wp.func
-def error_voxel(err_cum: wp.array(dtype=int), r: int, d: int, nz: int, ny: int, nx: int) -> int:
-    """Linear index of the voxel the error stratum draws with quota rank r and in-brick draw d
-    (0 <= d < 64, taken modulo the brick's voxels inside the grid)."""
+def error_voxel(err_cum: wp.array(dtype=int), r: int, d: int, nz: int, ny: int, nx: int) -> wp.vec3i:
+    """(k, j, i) of the voxel the error stratum draws with quota rank r and in-brick draw d
+    (0 <= d < 64, taken modulo the brick's voxels inside the grid). The quota's sum fits an int
+    (``draw.Sampler``'s cap), and so does the brick index (fewer than 2^31 bricks)."""
     br = find_brick(err_cum, r)
     o = brick_origin(br[0], ny, nx)
     return brick_rank_voxel(br[0], d % brick_voxels(o[2] / BRICK, o[1] / BRICK, o[0] / BRICK, nz, ny, nx), ny, nx)
@@ -360,24 +320,23 @@ def error_voxel(err_cum: wp.array(dtype=int), r: int, d: int, nz: int, ny: int, 
 @wp.func
 def stratum_voxel(
     bits: wp.array(dtype=wp.uint64),  # [B] the stratum's membership bits of each brick (brick_counts)
-    cum: wp.array(dtype=int),  # [B] inclusive prefix sum of the stratum's brick counts
+    cum: wp.array(dtype=wp.int64),  # [B] inclusive prefix sum of the stratum's brick counts
     ny: int,
     nx: int,
-    r: int,  # 0 <= r < cum[B - 1]: rank of the wanted voxel in brick-then-scan order
-) -> int:
-    """Linear index of the r-th voxel of a stratum (bricks in order, voxels in z, y, x order):
+    r: wp.int64,  # 0 <= r < cum[B - 1]: rank of the wanted voxel in brick-then-scan order
+) -> wp.vec3i:
+    """(k, j, i) of the r-th voxel of a stratum (bricks in order, voxels in z, y, x order):
     the brick by its prefix sums, then the r-th set bit of its membership bits (no voxel read)."""
-    br = find_brick(cum, r)
-    r = br[1]
+    br = find_brick64(cum, r)
+    t = br[1]
     b = bits[br[0]]
     o = brick_origin(br[0], ny, nx)
     for d in range(BRICK * BRICK * BRICK):
         if ((b >> wp.uint64(d)) & wp.uint64(1)) != wp.uint64(0):
-            if r == 0:
-                v = brick_voxel(o[2] / BRICK, o[1] / BRICK, o[0] / BRICK, d)  # brick_counts' bit d
-                return (v[0] * ny + v[1]) * nx + v[2]
-            r -= 1
-    return 0  # unreachable when r is in range
+            if t == 0:
+                return brick_voxel(o[2] / BRICK, o[1] / BRICK, o[0] / BRICK, d)  # brick_counts' bit d
+            t -= 1
+    return wp.vec3i(0, 0, 0)  # unreachable when r is in range
 
 
 @wp.func
@@ -408,12 +367,12 @@ UNIFORM_GRID = wp.constant(2)
 
 
 @wp.func
-def uniform_domain(occ_total: int, use_support: int, support: wp.array(dtype=int)) -> int:
+def uniform_domain(occ_total: wp.int64, use_support: int, support: wp.array(dtype=wp.int64)) -> int:
     """Where :func:`draw_samples` draws the uniform stratum: among the occupied voxels (when
     ``occ_total`` > 0), over the support bricks (when used and not empty), else the whole grid."""
-    if occ_total > 0:
+    if occ_total > wp.int64(0):
         return UNIFORM_OCCUPIED
-    if use_support != 0 and support[support.shape[0] - 1] > 0:
+    if use_support != 0 and support[support.shape[0] - 1] > wp.int64(0):
         return UNIFORM_SUPPORT
     return UNIFORM_GRID
 
@@ -428,12 +387,12 @@ def sample_weight(
     m: int,
     m_high: int,
     m_mid: int,
-    n_high: int,
-    n_mid: int,
-    occ_total: int,
+    n_high: wp.int64,
+    n_mid: wp.int64,
+    occ_total: wp.int64,
     use_support: int,
-    support: wp.array(dtype=int),
-    support_bricks: wp.array3d(dtype=int),
+    support: wp.array(dtype=wp.int64),
+    support_bricks: wp.array3d(dtype=wp.int64),
     support_everything: wp.array(dtype=int),
     m_err: int,
     err_cum: wp.array(dtype=int),
@@ -453,7 +412,7 @@ def sample_weight(
         nz = vol.shape[0]
         q += float(m_err) / float(m) * error_probability(err_cum, q_tot, k, j, i, nz, vol.shape[1], vol.shape[2])
     m_uni = float(m - m_high - m_mid - m_err)
-    n_uni = float(vol.shape[0] * vol.shape[1] * vol.shape[2])
+    n_uni = float(grid_voxels(vol.shape[0], vol.shape[1], vol.shape[2]))
     in_uni = float(1.0)
     domain = uniform_domain(occ_total, use_support, support)
     if domain == UNIFORM_OCCUPIED:
@@ -461,7 +420,7 @@ def sample_weight(
         in_uni = wp.where(st >= 0, 1.0, 0.0)
     elif domain == UNIFORM_SUPPORT:
         n_uni = float(support[support.shape[0] - 1])
-        if support_everything[0] == 0 and support_bricks[k / BRICK, j / BRICK, i / BRICK] == 0:
+        if support_everything[0] == 0 and support_bricks[k / BRICK, j / BRICK, i / BRICK] == wp.int64(0):
             in_uni = 0.0
     q += in_uni * m_uni / (float(m) * n_uni)
     if q <= 0.0:
@@ -475,29 +434,30 @@ def draw_samples(
     mask: wp.array3d(dtype=wp.uint8),
     has_mask: int,
     wide: int,  # 1: flat4 views vol as groups of four (row_pair; a volume in host memory)
-    flat4: wp.array(dtype=wp.vec4),
-    high: wp.array(dtype=int),  # [B] inclusive prefix sums of the high stratum's brick counts
-    mid: wp.array(dtype=int),  # [B] the same for the mid stratum
+    flat4: wp.array2d(dtype=wp.vec4),
+    high: wp.array(dtype=wp.int64),  # [B] inclusive prefix sums of the high stratum's brick counts
+    mid: wp.array(dtype=wp.int64),  # [B] the same for the mid stratum
     high_bits: wp.array(dtype=wp.uint64),  # [B] membership bits of the high stratum (brick_counts)
     mid_bits: wp.array(dtype=wp.uint64),  # [B] the same for the mid stratum
-    n_high: int,  # voxels in the high stratum (>= 1)
-    n_mid: int,
+    n_high: wp.int64,  # voxels in the high stratum (>= 1)
+    n_mid: wp.int64,
     m_high: int,  # samples drawn from the high stratum (the first m_high)
     m_mid: int,  # then this many from the mid stratum; the rest uniform over the grid
-    occ_high: int,  # voxels in the high stratum (may be 0)
-    occ_total: int,  # occupied voxels (high + mid); > 0: the uniform samples are drawn among them
-    support: wp.array(dtype=int),  # [B] inclusive prefix sums of support_counts
+    occ_high: wp.int64,  # voxels in the high stratum (may be 0)
+    occ_total: wp.int64,  # occupied voxels (high + mid); > 0: the uniform samples are drawn among them
+    support: wp.array(dtype=wp.int64),  # [B] inclusive prefix sums of support_counts
     use_support: int,  # 1: the uniform samples are drawn over the support (when occ_total is 0)
     stream: wp.array(dtype=int),  # [1] RNG stream of this iteration
     partner_min: float,  # partner distance range in voxels
     partner_max: float,
     jitter: float,  # largest offset from the voxel centre along each axis, in voxels (0: the centre)
     importance: int,  # 1: weight each sample by 1 / (D q(v)) (see the module docstring)
-    support_bricks: wp.array3d(dtype=int),  # [bz, by, bx] support_counts' output (use_support only)
+    support_bricks: wp.array3d(dtype=wp.int64),  # [bz, by, bx] support_counts' output (use_support only)
     support_everything: wp.array(dtype=int),  # [1] mark_support's "everything" flag (use_support only)
     m_err: int,  # the last m_err samples follow the error (while its quota is not 0; else uniform)
     err_cum: wp.array(dtype=int),  # [B] inclusive prefix sums of error_quota's output (m_err > 0 only)
     threads: int,  # the launch size (the loop's stride)
+    rank32_max: wp.int64,  # the largest count a rank is drawn from with one 32-bit draw (rank_below; 2^31 - 1)
     points: wp.array(dtype=wp.vec3),  # [2M] out: samples, then their partners
     target: wp.array(dtype=float),  # [M] out: trilinear V at the sample
     weight: wp.array(dtype=float),  # [M] out: the importance weight; 0 where the target reads a masked voxel
@@ -515,26 +475,28 @@ def draw_samples(
     m_err_now = wp.where(q_tot > 0, m_err, 0)
     for s in range(wp.tid(), m, threads):
         state = wp.rand_init(stream[0], s)
-        idx = int(0)
+        v = wp.vec3i(0, 0, 0)  # (k, j, i) of the drawn voxel
         if s >= m - m_err_now:  # the error stratum: a brick by its quota, then one of its voxels
-            idx = error_voxel(err_cum, wp.randi(state, 0, q_tot), wp.randi(state, 0, BRICK * BRICK * BRICK), vol.shape[0], ny, nx)
+            v = error_voxel(err_cum, wp.randi(state, 0, q_tot), wp.randi(state, 0, BRICK * BRICK * BRICK), vol.shape[0], ny, nx)
         elif s < m_high:
-            idx = stratum_voxel(high_bits, high, ny, nx, wp.randi(state, 0, n_high))
+            v = stratum_voxel(high_bits, high, ny, nx, rank_below(wp.randu(state), n_high, rank32_max, stream[0], s))
         elif s < m_high + m_mid:
-            idx = stratum_voxel(mid_bits, mid, ny, nx, wp.randi(state, 0, n_mid))
+            v = stratum_voxel(mid_bits, mid, ny, nx, rank_below(wp.randu(state), n_mid, rank32_max, stream[0], s))
         elif domain == UNIFORM_OCCUPIED:  # among the occupied voxels (empty samples carry no gradient)
-            rank = wp.randi(state, 0, occ_total)
+            rank = rank_below(wp.randu(state), occ_total, rank32_max, stream[0], s)
             if rank < occ_high:
-                idx = stratum_voxel(high_bits, high, ny, nx, rank)
+                v = stratum_voxel(high_bits, high, ny, nx, rank)
             else:
-                idx = stratum_voxel(mid_bits, mid, ny, nx, rank - occ_high)
+                v = stratum_voxel(mid_bits, mid, ny, nx, rank - occ_high)
         elif domain == UNIFORM_SUPPORT:  # over the model's support
-            idx = support_voxel(vol.shape[0], ny, nx, support, wp.randi(state, 0, support[support.shape[0] - 1]))
+            v = support_voxel(
+                vol.shape[0], ny, nx, support, rank_below(wp.randu(state), support[support.shape[0] - 1], rank32_max, stream[0], s)
+            )
         else:
-            idx = wp.randi(state, 0, nx * ny * vol.shape[0])
-        i = idx % nx
-        j = (idx / nx) % ny
-        k = idx / (nx * ny)
+            v = grid_voxel(rank_below(wp.randu(state), grid_voxels(vol.shape[0], ny, nx), rank32_max, stream[0], s), ny, nx)
+        k = v[0]
+        j = v[1]
+        i = v[2]
         # three draws whatever the jitter, so every setting consumes the same random numbers
         jx = (wp.randf(state) - 0.5) * (2.0 * jitter)
         jy = (wp.randf(state) - 0.5) * (2.0 * jitter)

@@ -5,7 +5,8 @@ counted by corner marks and three prefix sums, and what the draw cannot reach ou
 import warp as wp
 
 from .analysis import usable
-from .sampling import BRICK, brick_voxel, brick_voxels, stratum_of
+from .indexing import BRICK, brick_voxel, brick_voxels
+from .sampling import stratum_of
 
 wp.set_module_options({"enable_backward": False})
 
@@ -92,13 +93,15 @@ def support_counts(
     nz: int,
     ny: int,
     nx: int,
-    counts: wp.array3d(dtype=int),  # [bz, by, bx] out: voxels of each supported brick inside the grid
+    counts: wp.array3d(
+        dtype=wp.int64
+    ),  # [bz, by, bx] out: voxels of each supported brick inside the grid (int64: their prefix sums may pass 2^31)
 ):
     bk, bj, bi = wp.tid()
     n = int(0)
     if marks[bk, bj, bi] != 0 or everything[0] != 0:
         n = brick_voxels(bk, bj, bi, nz, ny, nx)
-    counts[bk, bj, bi] = n
+    counts[bk, bj, bi] = wp.int64(n)
 
 
 @wp.kernel
@@ -106,7 +109,7 @@ def unreached_squares(
     vol: wp.array3d(dtype=float),
     mask: wp.array3d(dtype=wp.uint8),
     has_mask: int,
-    support_counts_: wp.array3d(dtype=int),  # [bz, by, bx] support_counts' output
+    support_counts_: wp.array3d(dtype=wp.int64),  # [bz, by, bx] support_counts' output
     out: wp.array3d(dtype=float),  # [bz, by, bx] out: sum of V^2 over the brick's unreached voxels
 ):
     """Per 4^3 brick, the sum of V^2 over the usable voxels the draw cannot reach when its
@@ -114,7 +117,7 @@ def unreached_squares(
     brick. No primitive reaches them, so the decode writes 0 there and V^2 is their squared error."""
     bk, bj, bi = wp.tid()
     s = float(0.0)
-    if support_counts_[bk, bj, bi] == 0:
+    if support_counts_[bk, bj, bi] == wp.int64(0):
         for d in range(BRICK * BRICK * BRICK):
             v = brick_voxel(bk, bj, bi, d)
             if stratum_of(vol, mask, has_mask, v[0], v[1], v[2]) < 0 and usable(vol, mask, has_mask, v[0], v[1], v[2]):

@@ -72,8 +72,8 @@ def test_numpy_candidate_counts_match_the_kernels(device, masked):
         assert f.n_valid == v.size - 3 * 6 * 3
     dv = DeviceVolume(f, device)
     for mode, expected in ((0, f.eligible), (1, f.occupied)):
-        hist = wp.zeros(ka.KEY_BINS, dtype=int, device=device)
-        count = wp.zeros(1, dtype=int, device=device)
+        hist = wp.zeros(ka.KEY_BINS, dtype=wp.int64, device=device)
+        count = wp.zeros(1, dtype=wp.int64, device=device)
         wp.launch(
             ka.seed_key_histogram,
             dim=dv.values.shape,

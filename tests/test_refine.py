@@ -453,13 +453,14 @@ def test_stratum_index_enumerates_each_stratum_exactly_once(device):
     @wp.kernel
     def enumerate_stratum(
         bits: wp.array(dtype=wp.uint64),
-        cum: wp.array(dtype=int),
+        cum: wp.array(dtype=wp.int64),
         ny: int,
         nx: int,
         out: wp.array(dtype=int),
     ):
         t = wp.tid()
-        out[t] = ks.stratum_voxel(bits, cum, ny, nx, t)
+        v = ks.stratum_voxel(bits, cum, ny, nx, wp.int64(t))
+        out[t] = (v[0] * ny + v[1]) * nx + v[2]
 
     v = f.values
     usable = f.mask if f.mask is not None else np.ones(v.shape, bool)

@@ -28,7 +28,10 @@ DEVICE_MARGIN = 0.9  # the default limit: this share of the free memory
 # 4.88 GB; at 512^3 (428,872) only the in-core run's 1.42 GB is known (the pool's mark is the
 # process's, see core.profiling.StageRecorder), the volume's 0.54 GB in it. The host path has its
 # own, above both: 1 GiB fixed and 1,280 B a primitive (6.57 and 1.75 GB there)
-HOST_VOLUME_DEVICE_BYTES_PER_VOXEL = 1.0
+# Since the int64 prefix sums of a volume past 2^31 voxels (branch h2048: the strata's, the
+# support's and their counts) the per-brick arrays take 88 B by their sizes (64 B before), 1.4 B a
+# voxel: 12 GB at 2048^3
+HOST_VOLUME_DEVICE_BYTES_PER_VOXEL = 1.4
 HOST_VOLUME_FIXED_BYTES = 2**30
 HOST_VOLUME_DEVICE_BYTES_PER_PRIMITIVE = 1280.0
 # Peak host memory of one brick's encode per box voxel: the source's copy and the float32 values,

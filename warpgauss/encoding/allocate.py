@@ -73,7 +73,8 @@ def draw_seeds(dv: DeviceVolume, k: int, mode: int, stream: int):
     """Draw k distinct voxels (mode 0: weight |grad V|, mode 1: uniform) among eligible ones.
 
     Returns:
-        A Warp int array of k linear voxel indices, in draw order (deterministic for a stream).
+        A Warp int64 array of k linear voxel indices, in draw order (deterministic for a stream;
+        int64: a volume in host memory may hold more than 2^31 voxels).
     """
     from ..core.warp import warp
     from ..kernels import analysis as ka
@@ -81,10 +82,10 @@ def draw_seeds(dv: DeviceVolume, k: int, mode: int, stream: int):
     wp = warp()
     dev = dv.device
     if k == 0:
-        return wp.empty(0, dtype=int, device=dev)
+        return wp.empty(0, dtype=wp.int64, device=dev)
     shape = dv.values.shape
-    hist = wp.zeros(ka.KEY_BINS, dtype=int, device=dev)
-    eligible = wp.zeros(1, dtype=int, device=dev)
+    hist = wp.zeros(ka.KEY_BINS, dtype=wp.int64, device=dev)
+    eligible = wp.zeros(1, dtype=wp.int64, device=dev)
     common = [dv.values, dv.mask, dv.has_mask, mode, stream]
     wp.launch(ka.seed_key_histogram, dim=shape, inputs=common, outputs=[hist, eligible], device=dev)
     n_eligible = int(eligible.numpy()[0])
@@ -94,7 +95,7 @@ def draw_seeds(dv: DeviceVolume, k: int, mode: int, stream: int):
     max_bin = int(np.searchsorted(cum, k))  # first bin where the cumulative count reaches k
     cand = int(cum[max_bin])
     keys = wp.empty(2 * cand, dtype=float, device=dev)
-    idx = wp.empty(2 * cand, dtype=int, device=dev)
+    idx = wp.empty(2 * cand, dtype=wp.int64, device=dev)
     counter = wp.zeros(1, dtype=int, device=dev)
     wp.launch(ka.seed_key_compact, dim=shape, inputs=[*common, max_bin, counter], outputs=[keys, idx], device=dev)
     # compaction order is arbitrary on a GPU: sort by voxel, then stably by key, so ties are broken

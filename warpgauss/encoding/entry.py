@@ -192,6 +192,8 @@ def encode_with(
     workers = 0 if client is None else max(1, len(client.scheduler_info().get("workers", {})))  # 0: this process
     path = choose_path(source, cfg, device, workers)
     timer = StageRecorder(on_stage=on_stage)
+    from ..field import limits as field_limits
+
     with timer.stage("P", "load and normalise"):
         buffers = None if session is None else session.buffers
         # a file read on demand is counted by the bricks' statistics (stage Sb), not by a pass of its own
@@ -203,6 +205,8 @@ def encode_with(
             lazy=path.lazy,
             buffers=buffers,
             count=not path.lazy,
+            max_voxels=field_limits.MAX_HOST_VOXELS if path.volume_on_host else None,  # int64 indices with the volume in host memory
+            pinned=path.volume_on_host,  # normalised straight into the pinned memory the kernels read: held once
         )
     warm_start = cfg.start.warm_start
     if isinstance(warm_start, Model) and tuple(warm_start.shape_xyz) != tuple(f.shape_xyz):
@@ -464,9 +468,12 @@ def host_volume_auto(device: str | None) -> bool:
     return HOST_VOLUME_AUTO and resolve_device(device).startswith("cuda")
 
 
-# host memory of a whole encode with the volume on the host, per voxel: the float32 values read
-# and normalised, their pinned copy, the validity mask (an estimate by the arrays' sizes)
-HOST_BYTES_PER_VOXEL_WHOLE = 10.0
+# host memory of a whole encode with the volume on the host, per voxel: the float32 values
+# normalised straight into pinned memory (field.slabs.host_buffers: no second copy since h2048),
+# the validity mask, and a byte for stage P's passes over slabs (an estimate by the arrays' sizes;
+# a memory-mapped source, raw, .npy or contiguous HDF5, is read a slab at a time, while a format
+# read into memory whole adds its own itemsize a voxel for the time of stage P)
+HOST_BYTES_PER_VOXEL_WHOLE = 6.0
 
 
 def host_volume_path(source, cfg: EncodeConfig, bricks, limit: int | None, why: str) -> EncodePath:

@@ -16,11 +16,15 @@ import numpy as np
 
 from ..errors import WarpgaussError
 from ..readers.lazy import valid_mask as _valid
+from . import limits
+from .limits import MAX_HOST_VOXELS, MAX_SLICE_VOXELS, MAX_VOXELS, voxels_problem  # noqa: F401 (their home before field.limits)
 
 OCCUPIED = 0.02  # normalised value above which a voxel is occupied (SPEC section 2)
 DETAIL_PERCENT = 55  # detail share of the budget (SPEC section 3); coverage gets the rest
-MAX_VOXELS = 2**31 - 1  # linear voxel indices are int32 in the kernels
 SLAB = 32  # z-slices per numpy pass
+# voxels per numpy pass at most (fewer slices where the slices are large: at 2048^2 a pass of 32
+# slices held 134M voxels and their temporaries on every core's thread); the same values and counts
+SLAB_VOXELS = 1 << 25
 LAZY_SLAB_VOXELS = 4 * 2**20  # voxels per pass (and thread) of a volume read on demand
 # threads counting a volume read on demand, each over 4 x LAZY_SLAB_VOXELS voxels (about 0.3 GB
 # with its temporaries): at most 2.4 GB of host memory however many cores
@@ -58,6 +62,7 @@ class Field:
     n_valid: int = 0
     notes: list[str] = field(default_factory=list)
     counted: bool = True
+    host_arrays: Any = None  # (values, mask or None): the Warp host arrays behind values and mask (normalise(pinned=True))
 
     @property
     def shape_xyz(self) -> tuple[int, int, int]:
@@ -164,6 +169,8 @@ def normalise(
     value_range: tuple[float, float] | None = None,
     count_candidates: bool = True,
     lazy: bool = False,
+    max_voxels: int | None = None,
+    pinned: bool = False,
 ) -> Field:
     """Stage P: mask NaN/Inf/fill voxels, normalise by the finite min/max, count occupancy.
 
@@ -179,11 +186,19 @@ def normalise(
             field's ``values`` and ``mask`` read and normalised on demand (a bricked encode).
             The counts are then per z-slab (gradients one-sided at slab faces): within a few
             per cent.
+        max_voxels: The most voxels the encode that follows indexes: None for
+            ``field.limits.MAX_VOXELS`` (the volume on the device), or ``MAX_HOST_VOXELS`` (in
+            host memory, --volume-on-host).
+        pinned: Normalise straight into page-locked host memory, a slab at a time from ``data``
+            (a memory map is read, not copied whole), which ``DeviceVolume(on_host=True)`` then
+            reads as it is: one copy of the volume in host memory where there were two
+            (:func:`warpgauss.field.slabs.host_buffers`).
     """
     if data.ndim != 3:
         raise WarpgaussError(f"the volume is {data.ndim}D (shape {data.shape}); warpgauss encodes 3D volumes")
-    if data.size > MAX_VOXELS and not lazy:
-        raise WarpgaussError(f"the volume has {data.size} voxels, more than {MAX_VOXELS}; use --stride 2")
+    problem = None if lazy else voxels_problem(data.shape, max_voxels)
+    if problem is not None:
+        raise WarpgaussError(problem)
     if not (np.issubdtype(data.dtype, np.integer) or np.issubdtype(data.dtype, np.floating)):
         raise WarpgaussError(f"the volume's dtype {data.dtype} is not a real number type")
     if lazy:  # every read through the source: nothing stays mapped (see warpgauss.readers.lazy)
@@ -209,7 +224,7 @@ def normalise(
 
     # read on demand, a slab is the source's copy and its temporaries on every thread: keep it small
     plane = int(np.prod(data.shape[1:], dtype=np.int64))
-    slab = SLAB if not lazy else max(1, min(SLAB, LAZY_SLAB_VOXELS // max(plane, 1)))
+    slab = slab_slices(plane) if not lazy else max(1, min(SLAB, LAZY_SLAB_VOXELS // max(plane, 1)))
     parts = map_slabs(scan, nz, slab)
     lo = min(float(p[0]) for p in parts)
     hi = max(float(p[1]) for p in parts)
@@ -227,20 +242,27 @@ def normalise(
     plan = NormPlan(lo, hi, data_lo, data_hi, exact, clip)
     if lazy:
         return _lazy_field(src, plan, fill_value, n_invalid, spacing, origin, name, source_dtype or data.dtype, count_candidates)
-    values = np.empty(data.shape, np.float32)
-    mask = np.ones(data.shape, bool) if n_invalid else None
+    held = None
+    if pinned:
+        from .slabs import host_buffers
+
+        values, mask, held = host_buffers(data.shape, bool(n_invalid))
+    else:
+        values = np.empty(data.shape, np.float32)
+        mask = np.ones(data.shape, bool) if n_invalid else None
 
     def fill(z0: int):
-        s = np.asarray(data[z0 : z0 + SLAB])
+        s = np.asarray(data[z0 : z0 + slab])
         v = plan.apply(s)
         if mask is not None:
             ok = _valid(s, fill_value)
             v[~ok] = 0.0
-            mask[z0 : z0 + SLAB] = ok
-        values[z0 : z0 + SLAB] = v
+            mask[z0 : z0 + slab] = ok
+        values[z0 : z0 + slab] = v
 
-    map_slabs(fill, nz)
+    map_slabs(fill, nz, slab)
     f = new_field(values, mask, lo, hi, spacing, origin, name, source_dtype or data.dtype, n_invalid)
+    f.host_arrays = held
     f.counted = count_candidates
     if count_candidates:
         f.occupied, f.eligible = count_seed_candidates(values, mask)
@@ -287,6 +309,12 @@ def _lazy_field(src, plan, fill_value, n_invalid, spacing, origin, name, source_
     return f
 
 
+def slab_slices(plane: int) -> int:
+    """z slices per numpy pass over slices of ``plane`` voxels: :data:`SLAB`, fewer where that
+    would pass :data:`SLAB_VOXELS`."""
+    return max(1, min(SLAB, SLAB_VOXELS // max(plane, 1)))
+
+
 def map_slabs(fn, nz: int, slab: int = SLAB, threads: int | None = None) -> list:
     """Run fn(z0) for every z-slab, on a thread pool (numpy releases the GIL in its loops; at
     most ``threads``, default one per core; 1: in this thread); the results in slab order."""
@@ -307,9 +335,10 @@ def count_seed_candidates(values: np.ndarray, mask: np.ndarray | None, threads: 
     difference, one-sided next to the border or a masked voxel; non-zero iff the two values differ.
     """
     nz = values.shape[0]
+    slab = slab_slices(int(values.shape[1]) * int(values.shape[2]))
 
     def count(z0: int) -> tuple[int, int]:
-        z1 = min(nz, z0 + SLAB)
+        z1 = min(nz, z0 + slab)
         a, b = max(0, z0 - 1), min(nz, z1 + 1)  # one halo slice each side
         v = values[a:b]
         core = slice(z0 - a, z0 - a + (z1 - z0))
@@ -323,7 +352,7 @@ def count_seed_candidates(values: np.ndarray, mask: np.ndarray | None, threads: 
             differs = (_differs(v, ok, 2) | _differs(v, ok, 1) | _differs(v, ok, 0))[core]
         return int(np.count_nonzero(occ)), int(np.count_nonzero(occ & differs))
 
-    parts = map_slabs(count, nz, threads=threads)
+    parts = map_slabs(count, nz, slab, threads=threads)
     return sum(p[0] for p in parts), sum(p[1] for p in parts)
 
 
@@ -463,19 +492,28 @@ class DeviceVolume:
         self.device = device
         self.values: Any
         self.mask: Any
+        problem = voxels_problem(f.values.shape, limits.MAX_HOST_VOXELS if on_host else None)
+        if problem is not None:
+            raise WarpgaussError(problem)
         host = bool(on_host) and wp.get_device(device).is_cuda and not hasattr(f.values, "array")
         self.on_host = host
         where, pinned = ("cpu", True) if host else (device, False)
+        # normalised into host memory of its own (normalise(pinned=True)): read there, not copied
+        held = f.host_arrays if (host or not wp.get_device(device).is_cuda) else None
         if same_values is not None and same_values.field.values is f.values and str(same_values.device) == str(device):
             self.values = same_values.values
+        elif held is not None:
+            self.values = held[0]
         elif hasattr(f.values, "array"):  # normalised on a device (warpgauss.field.device): used where it is
             self.values = _on(f.values.array, device)
         else:
             self.values = wp.array(f.values, dtype=float, device=where, pinned=pinned)
         if f.mask is not None:
             m = f.mask
-            # hasattr: on a device already
-            self.mask = _on(m.array, device) if hasattr(m, "array") else mask_to_device(m, where, pinned)
+            if held is not None and held[1] is not None:
+                self.mask = held[1]
+            else:  # hasattr: on a device already
+                self.mask = _on(m.array, device) if hasattr(m, "array") else mask_to_device(m, where, pinned)
             self.has_mask = 1
         else:
             self.mask = wp.zeros((1, 1, 1), dtype=wp.uint8, device=device)

@@ -45,6 +45,25 @@ def z_slabs(dv, reach: int, slab_bytes: int | None = None) -> Iterator[tuple[int
         yield lo, hi, kz0, vals[: kz1 - kz0], (mask[: kz1 - kz0] if dv.has_mask else mask)
 
 
+def host_buffers(shape: tuple[int, ...], masked: bool) -> tuple[np.ndarray, np.ndarray | None, tuple]:
+    """(values, mask, arrays) for a volume of ``shape`` normalised straight into host memory that a
+    GPU's kernels read over the bus: float32 values and (``masked``) a validity mask, all True,
+    as numpy views of the Warp arrays that hold them (``arrays`` = (values, mask or None)), in
+    page-locked memory where CUDA is available (else ordinary host memory, the same arrays). A
+    volume in host memory is then held once, not as its normalised values and their pinned copy."""
+    from ..core.warp import warp
+
+    wp = warp()
+    pinned = wp.is_cuda_available()
+    values = wp.empty(shape, dtype=float, device="cpu", pinned=pinned)
+    mask = wp.empty(shape, dtype=wp.uint8, device="cpu", pinned=pinned) if masked else None
+    ok = None
+    if mask is not None:
+        ok = mask.numpy().view(np.bool_)
+        ok.fill(True)
+    return values.numpy(), ok, (values, mask)
+
+
 def by_slab(slices: np.ndarray, ranges: list[tuple[int, int]]) -> list[np.ndarray]:
     """Indices of ``slices`` (a z slice each) grouped by the consecutive ``ranges`` [lo, hi) that
     cover them, each group in ascending index order."""

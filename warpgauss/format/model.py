@@ -100,7 +100,7 @@ def _header_problem(h: dict) -> str | None:
     crafted header must be refused here, not crash later (a string grid, a zero-voxel axis, an
     inverted value range, a grid too large to index).
     """
-    from ..field.analysis import MAX_VOXELS
+    from ..field.limits import MAX_HOST_VOXELS
 
     g, v, src = h.get("grid"), h.get("values"), h.get("source")
     if not isinstance(g, dict):
@@ -108,8 +108,8 @@ def _header_problem(h: dict) -> str | None:
     shape = g.get("shape_xyz")
     if not (isinstance(shape, list) and len(shape) == 3 and all(_is_count(x, 1) for x in shape)):
         return f"grid shape_xyz {shape!r} is not three positive integers"
-    if math.prod(shape) > MAX_VOXELS:
-        return f"grid {shape!r} has more than {MAX_VOXELS} voxels"
+    if math.prod(shape) > MAX_HOST_VOXELS:  # what an encode with the volume in host memory indexes; decoded by slabs
+        return f"grid {shape!r} has more than {MAX_HOST_VOXELS} voxels"
     for key in ("spacing", "origin"):
         x = g.get(key)
         if not (isinstance(x, list) and len(x) == 3 and all(_is_number(c) for c in x)):

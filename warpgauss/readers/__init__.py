@@ -86,6 +86,7 @@ def read_volume(
     variable: str | None = None,
     stride: int = 1,
     lazy: bool = False,
+    max_voxels: int | None = None,
 ) -> Volume:
     """Read a 3D scalar volume; the reader is chosen by the file's extension.
 
@@ -102,6 +103,8 @@ def read_volume(
         lazy: Leave the voxels in the file where the format allows (raw, ``.npy`` and HDF5 /
             netCDF-4 datasets, stride 1; see :mod:`warpgauss.readers.lazy`): ``data`` is then memory-mapped
             or read on demand, in the file's byte order.
+        max_voxels: The most voxels a format read into memory may declare (None:
+            :data:`MAX_READ_VOXELS`, what an encode with the volume on the device indexes).
 
     Returns:
         The :class:`Volume`, values in the source dtype, NaN and fill values untouched.
@@ -120,7 +123,7 @@ def read_volume(
     s = check_stride(stride)
     given = {"shape": shape, "dtype": dtype, "endian": endian, "dataset": dataset, "variable": variable}
     check_options(p, reader, [k for k, v in given.items() if v is not None])
-    got = reader.func(p, **given, stride=s, lazy=lazy and s == 1)
+    got = reader.func(p, **given, stride=s, lazy=lazy and s == 1, max_voxels=max_voxels)
     return finish_read(p, suffix, got, s, lazy=lazy and s == 1)
 
 
@@ -150,11 +153,12 @@ class ReadOptions:
     stride: int = 1
     fill_value: float | None = None
 
-    def read(self, path, lazy: bool = False):
+    def read(self, path, lazy: bool = False, max_voxels: int | None = None):
         """Read a volume file with these options (:func:`read_volume`)."""
         return read_volume(
             path,
             lazy=lazy,
+            max_voxels=max_voxels,
             shape=self.shape,
             dtype=self.dtype,
             endian=self.endian,

@@ -105,7 +105,7 @@ _RAW_NAME = re.compile(
 
 _RAW_SUFFIXES = (".raw", ".bin")
 
-MAX_READ_VOXELS = 2**31 - 1  # = warpgauss.field.analysis.MAX_VOXELS: the kernels index voxels with int32
+MAX_READ_VOXELS = 2**31 - 1  # = warpgauss.field.analysis.MAX_VOXELS: the most an in-core encode indexes (the default limit)
 
 
 def parse_raw_name(filename: str | os.PathLike) -> tuple[tuple[int, int, int], np.dtype] | None:
@@ -174,20 +174,23 @@ def _physical_memory() -> int | None:
         return None
 
 
-def check_declared(what: str, shape_zyx, itemsize: int, stride: int = 1) -> int:
+def check_declared(what: str, shape_zyx, itemsize: int, stride: int = 1, limit: int | None = None) -> int:
     """Refuse a declared grid before anything is allocated for it; returns the voxels to read.
 
     A header's dimensions are only a claim: compressed or sparse storage lets a few bytes declare
-    terabytes. Beyond :data:`MAX_READ_VOXELS` (after the stride) or beyond this machine's physical
-    memory the read is refused with the way out (a larger ``--stride``).
+    terabytes. Beyond ``limit`` voxels (after the stride; default :data:`MAX_READ_VOXELS`, what
+    an encode with the volume on the device indexes; ``field.analysis.MAX_HOST_VOXELS`` with the
+    volume in host memory) or beyond this machine's physical memory the read is refused with the
+    way out (a larger ``--stride``).
     """
+    limit = MAX_READ_VOXELS if limit is None else int(limit)
     kept = [-(-int(n) // stride) for n in shape_zyx]
     voxels = math.prod(kept)
     shown = fmt_xyz(tuple(shape_zyx)[::-1])
-    if voxels > MAX_READ_VOXELS:
+    if voxels > limit:
         raise WarpgaussError(
-            f"{what} declares {shown} voxels ({voxels} after --stride {stride}), more than the {MAX_READ_VOXELS} "
-            "warpgauss can encode; use a larger --stride"
+            f"{what} declares {shown} voxels ({voxels} after --stride {stride}), more than the {limit} "
+            "warpgauss can encode this way; use a larger --stride" + (" or --volume-on-host (a GPU)" if limit <= MAX_READ_VOXELS else "")
         )
     ram = _physical_memory()
     if ram is not None and voxels * int(itemsize) > ram:

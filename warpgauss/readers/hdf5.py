@@ -11,7 +11,15 @@ from .common import ReadResult, attr_xyz, check_declared, check_dtype, check_sha
 
 
 def read_hdf5(
-    path: Path, *, dataset=None, variable=None, stride: int = 1, drop_leading: bool = False, lazy: bool = False, **_
+    path: Path,
+    *,
+    dataset=None,
+    variable=None,
+    stride: int = 1,
+    drop_leading: bool = False,
+    lazy: bool = False,
+    max_voxels: int | None = None,
+    **_,
 ) -> ReadResult:
     """HDF5: the named dataset, else the first 3D dataset in visit order; ``[z, y, x]`` order assumed.
 
@@ -33,7 +41,7 @@ def read_hdf5(
         shape = keep(ds.shape)
         check_shape(shape, f"{path.name}:{key}")
         check_dtype(ds.dtype, f"{path.name}:{key}")
-        data, strided = _hdf5_array(path, ds, shape, stride, lazy)
+        data, strided = _hdf5_array(path, ds, shape, stride, lazy, max_voxels)
         return ReadResult(
             data,
             spacing=attr_xyz(ds.attrs, "spacing", (1.0, 1.0, 1.0)),
@@ -43,7 +51,7 @@ def read_hdf5(
         )
 
 
-def _hdf5_array(path: Path, ds, shape: tuple, stride: int, lazy: bool = False) -> tuple[np.ndarray, bool]:
+def _hdf5_array(path: Path, ds, shape: tuple, stride: int, lazy: bool = False, max_voxels: int | None = None) -> tuple[np.ndarray, bool]:
     """Memory-map a contiguous uncompressed dataset; otherwise read only the strided voxels
     (``lazy``: leave a chunked dataset unread, to be read by bricks; see :mod:`warpgauss.readers.lazy`).
 
@@ -59,7 +67,7 @@ def _hdf5_array(path: Path, ds, shape: tuple, stride: int, lazy: bool = False) -
         return Lazy3D(src), False  # type: ignore[return-value]
     # read into memory: the declared shape is all we know (a chunked or never-written dataset
     # may declare terabytes in a few bytes of file), so check it before allocating
-    voxels = check_declared(f"{path.name}:{ds.name}", shape, ds.dtype.itemsize, stride)
+    voxels = check_declared(f"{path.name}:{ds.name}", shape, ds.dtype.itemsize, stride, max_voxels)
     s = slice(None, None, stride)
     try:
         return np.asarray(ds[(0,) * (ds.ndim - 3) + (s, s, s)]), True
@@ -71,7 +79,9 @@ def _hdf5_array(path: Path, ds, shape: tuple, stride: int, lazy: bool = False) -
         raise WarpgaussError(f"cannot read {path.name}:{ds.name} ({first_line(e)})") from None
 
 
-def read_netcdf(path: Path, *, variable=None, dataset=None, stride: int = 1, lazy: bool = False, **_) -> ReadResult:
+def read_netcdf(
+    path: Path, *, variable=None, dataset=None, stride: int = 1, lazy: bool = False, max_voxels: int | None = None, **_
+) -> ReadResult:
     """Classic netCDF (CDF-1/2) through scipy; a netCDF-4 (HDF5-based) file goes to the HDF5 reader.
 
     Leading length-1 axes (a single time step, ``(1, nz, ny, nx)``) are dropped. ``scale_factor`` /
@@ -80,7 +90,8 @@ def read_netcdf(path: Path, *, variable=None, dataset=None, stride: int = 1, laz
     with open(path, "rb") as fh:
         magic = fh.read(8)
     if magic.startswith(b"\x89HDF\r\n\x1a\n"):
-        return read_hdf5(path, dataset=dataset if dataset is not None else variable, stride=stride, drop_leading=True, lazy=lazy)
+        wanted = dataset if dataset is not None else variable
+        return read_hdf5(path, dataset=wanted, stride=stride, drop_leading=True, lazy=lazy, max_voxels=max_voxels)
     if not magic.startswith(b"CDF"):
         raise WarpgaussError(f"{path.name} is neither classic netCDF nor netCDF-4/HDF5 (it starts with {magic[:4]!r})")
     from scipy.io import netcdf_file

@@ -16,7 +16,7 @@ from ..errors import WarpgaussError
 from .common import ReadResult, check_declared, first_line
 
 
-def read_pyvista(path: Path, **_) -> ReadResult:
+def read_pyvista(path: Path, max_voxels: int | None = None, **_) -> ReadResult:
     """VTK ImageData, legacy structured points, NIfTI, MetaImage, NRRD via ``pyvista.read``.
 
     The active point-data scalars (else the first point-data array) are used; a file with cell data
@@ -25,7 +25,7 @@ def read_pyvista(path: Path, **_) -> ReadResult:
     """
     import pyvista as pv
 
-    _precheck_vtk(path)
+    _precheck_vtk(path, max_voxels)
     mesh, vtk_error = _quiet_pyvista_read(pv, path)
     if vtk_error is not None:  # whatever VTK returned after an error is not the file's data
         raise WarpgaussError(f"cannot read {path.name}: VTK reports: {vtk_error}")
@@ -115,7 +115,7 @@ def _quiet_pyvista_read(pv, path: Path):
     return mesh, (text.splitlines() or ["unknown error"])[0]
 
 
-def _precheck_vtk(path: Path) -> None:
+def _precheck_vtk(path: Path, max_voxels: int | None = None) -> None:
     """Check the dimensions a VTK/NRRD/MetaImage/NIfTI header declares before VTK allocates for them.
 
     VTK trusts a header's sizes: a 90-byte NRRD declaring 99999^3 voxels makes it throw
@@ -137,7 +137,7 @@ def _precheck_vtk(path: Path) -> None:
     dims, itemsize, need_after = found
     if not dims or min(dims) < 1:
         raise WarpgaussError(f"{path.name} declares an empty grid (sizes {dims}); the header is damaged")
-    check_declared(path.name, tuple(dims)[::-1], itemsize)
+    check_declared(path.name, tuple(dims)[::-1], itemsize, limit=max_voxels)
     if need_after is not None:
         offset, amount, mode = need_after
         have = _gzip_bytes(path, offset, amount) if mode == "gzip" else path.stat().st_size - offset

@@ -11,7 +11,7 @@ from ..errors import WarpgaussError
 from .common import ReadResult, attr_xyz, check_declared, check_dtype, check_shape, fill_attr, first_line, pick_array
 
 
-def read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False, **_) -> ReadResult:
+def read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False, max_voxels: int | None = None, **_) -> ReadResult:
     """The store's array, or the group's ``dataset`` (default: the first 3D array, by name);
     ``[z, y, x]`` order assumed. ``lazy``: left unread, each brick reads its box."""
     try:
@@ -50,7 +50,7 @@ def read_zarr(path: Path, *, dataset=None, stride: int = 1, lazy: bool = False, 
 
         src = ArraySource("zarr", str(path), shape, np.dtype(arr.dtype).str, key=key)  # type: ignore[arg-type]
         return ReadResult(Lazy3D(src), **meta)  # type: ignore[arg-type]
-    voxels = check_declared(f"{path.name}", shape, np.dtype(arr.dtype).itemsize, stride)
+    voxels = check_declared(f"{path.name}", shape, np.dtype(arr.dtype).itemsize, stride, max_voxels)
     s = slice(None, None, stride)
     try:
         return ReadResult(np.asarray(arr[s, s, s]), strided=True, **meta)  # type: ignore[arg-type]

@@ -48,6 +48,8 @@ def load_field(
     lazy: bool = False,
     buffers=None,
     count: bool = True,
+    max_voxels: int | None = None,
+    pinned: bool = False,
 ) -> tuple[Field, dict]:
     """Stage P: read (or generate) the volume, apply the stride, mask and normalise it (``lazy``:
     a file the format lets us leave where it is is read on demand, see :mod:`warpgauss.readers.lazy`).
@@ -61,25 +63,32 @@ def load_field(
         buffers: A device array's normalised values go there (:class:`warpgauss.field.device.DeviceBuffers`).
         count: Count the seed candidates of a volume read on demand now (False: a bricked encode
             counts them with its bricks' statistics, one pass over the file fewer).
+        max_voxels: The most voxels the encode indexes (None: ``field.analysis.MAX_VOXELS``, the
+            volume on the device; ``MAX_HOST_VOXELS`` with the volume in host memory).
+        pinned: Normalise into page-locked host memory that the encode's device volume then
+            reads as it is (the volume in host memory, ``--volume-on-host``; see
+            :func:`warpgauss.field.analysis.normalise`).
 
     Returns:
         (normalised field, description of the input for the report)
     """
+    from ...field import limits as field_limits
+
+    limit = field_limits.MAX_VOXELS if max_voxels is None else int(max_voxels)
     read = read or ReadOptions()
     if read.stride < 1:
         raise WarpgaussError(f"--stride must be a positive integer, got {read.stride}")
     s = read.stride
     fill = read.fill_value
     if example is not None:
-        from ...field.analysis import MAX_VOXELS
         from ...readers.synthetic import generate
 
         dims = (example_size,) * 3 if isinstance(example_size, (int, np.integer)) else tuple(example_size)
         voxels = int(np.prod([int(d) for d in dims], dtype=object))
-        if voxels > MAX_VOXELS:
-            largest = int(round(MAX_VOXELS ** (1 / 3))) - 1
+        if voxels > limit:
+            largest = int(round(limit ** (1 / 3))) - 1
             raise WarpgaussError(
-                f"--size {example_size} gives {voxels:,} voxels, more than the {MAX_VOXELS:,} warpgauss indexes; use --size {largest} or less"
+                f"--size {example_size} gives {voxels:,} voxels, more than the {limit:,} warpgauss indexes; use --size {largest} or less"
             )
         free = available_memory()
         if free is not None and 3 * 4 * voxels > free:  # the float32 field and generation temporaries
@@ -107,7 +116,7 @@ def load_field(
         data = source[::s, ::s, ::s]
         name, spacing, origin, dtype, path = "array", (float(s),) * 3, (0.0, 0.0, 0.0), str(source.dtype), None
     elif isinstance(source, (str, os.PathLike)):
-        vol = read.read(source, lazy=lazy)
+        vol = read.read(source, lazy=lazy, max_voxels=limit)
         data, name, spacing, origin = vol.data, vol.name, vol.spacing, vol.origin
         dtype, path = vol.source_dtype or str(vol.data.dtype), str(source)
         if fill is None and getattr(vol, "fill_value", None) is not None:
@@ -118,7 +127,16 @@ def load_field(
 
     lazy = lazy and source_of(data) is not None
     f = normalise(
-        data, fill_value=fill, spacing=spacing, origin=origin, name=name, source_dtype=dtype, lazy=lazy, count_candidates=count or not lazy
+        data,
+        fill_value=fill,
+        spacing=spacing,
+        origin=origin,
+        name=name,
+        source_dtype=dtype,
+        lazy=lazy,
+        count_candidates=count or not lazy,
+        max_voxels=limit,
+        pinned=pinned and not lazy,
     )
     info = {"read_lazily": lazy, "name": name, "path": path, "example": example}
     return f, {**info, **field_facts(f, s, fill)}

@@ -52,6 +52,14 @@ ERROR_MAX_POOL = 8
 # core). 0 threads: one a sample, as on the device
 DRAW_AHEAD = True
 DRAW_THREADS_HOST = 4096
+# A volume in host memory may hold more than 2^31 voxels (field.analysis.MAX_HOST_VOXELS): the
+# strata's and the support's prefix sums are int64, and a rank among more than RANK32_MAX voxels
+# is drawn with 64 bits (kernels.sampling.rank_below); up to it, with one 32-bit draw as before
+# (the same samples). The wide loads view the volume as rows of at most FLAT4_COLUMNS groups of
+# four (a Warp array dimension holds fewer than 2^31 elements). Tests lower both to run the
+# 64-bit draw and the split view on small volumes.
+RANK32_MAX = 2**31 - 1
+FLAT4_COLUMNS = 2**30
 
 
 def stratum_counts(m: int, n_high: int, n_mid: int) -> tuple[int, int, int]:
@@ -113,12 +121,12 @@ class Sampler:
             self.marks: tuple | None = (
                 wp.zeros(shape, dtype=int, device=dev),
                 wp.zeros(1, dtype=int, device=dev),
-                wp.zeros(shape, dtype=int, device=dev),
+                wp.zeros(shape, dtype=wp.int64, device=dev),
             )
-            self.support = wp.zeros(int(np.prod(shape)), dtype=int, device=dev)
+            self.support = wp.zeros(int(np.prod(shape)), dtype=wp.int64, device=dev)
         else:
-            self.support = wp.zeros(1, dtype=int, device=dev)  # unused by the sampler
-            unused = wp.zeros((1, 1, 1), dtype=int, device=dev)
+            self.support = wp.zeros(1, dtype=wp.int64, device=dev)  # unused by the sampler
+            unused = wp.zeros((1, 1, 1), dtype=wp.int64, device=dev)
             self.marks = None
             self._no_marks = (unused, wp.zeros(1, dtype=int, device=dev))
         self._flat4: tuple | None = None  # (wide, the volume as groups of four): _wide
@@ -146,11 +154,11 @@ class Sampler:
         nz, ny, nx = dv.values.shape
         b = ks.BRICK
         self.bricks = shape = (-(-nz // b), -(-ny // b), -(-nx // b))  # 4^3 bricks (the strata's and the support's)
-        counts = [wp.empty(shape, dtype=int, device=dev) for _ in range(2)]
+        counts = [wp.empty(shape, dtype=wp.int64, device=dev) for _ in range(2)]
         bits = [wp.empty(shape, dtype=wp.uint64, device=dev) for _ in range(2)]
         wp.launch(ks.brick_counts, dim=shape, inputs=[dv.values, dv.mask, dv.has_mask], outputs=[*counts, *bits], device=dev)
         self.high_bits, self.mid_bits = (b.flatten() for b in bits)
-        self.high, self.mid = (wp.empty(int(np.prod(shape)), dtype=int, device=dev) for _ in range(2))
+        self.high, self.mid = (wp.empty(int(np.prod(shape)), dtype=wp.int64, device=dev) for _ in range(2))
         for c, cum in zip(counts, (self.high, self.mid)):
             wp.utils.array_scan(c.flatten(), cum, inclusive=True)
         last = int(np.prod(shape)) - 1
@@ -275,11 +283,12 @@ class Sampler:
         (a row's two corners in one load over the bus), else (0, a placeholder)."""
         if self._flat4 is None:
             wp, v = self._wp, self.dv.values
-            on_host = self.on_host and v.size >= 4
+            groups = v.size // 4
+            cols = max(1, min(groups, FLAT4_COLUMNS))
             self._flat4 = (
-                (1, wp.array(ptr=v.ptr, dtype=wp.vec4, shape=(v.size // 4,), device=v.device, pinned=v.pinned))
-                if on_host
-                else (0, wp.zeros(1, dtype=wp.vec4, device=self.device))
+                (1, wp.array(ptr=v.ptr, dtype=wp.vec4, shape=(groups // cols, cols), device=v.device, pinned=v.pinned))
+                if self.on_host and groups >= 1
+                else (0, wp.zeros((1, 1), dtype=wp.vec4, device=self.device))
             )
         return self._flat4
 
@@ -325,6 +334,7 @@ class Sampler:
                 self.m_err,
                 self.err_cum,
                 threads,
+                RANK32_MAX,
             ],
             outputs=list(into or (self.points, self.target, self.weight, self.occupied)),
             device=self.device,
