@@ -16,6 +16,11 @@ for bit (this process's peak RSS is a lifetime peak: from the second row on it i
 rows before).
 
     python benchmarks/bricked/out_of_core.py --size 2048 --gpus 1,2 --max-device-memory 24GiB --out $OUT/out_of_core2048_gpus12.json
+
+With ``--volume-on-host`` the same file is encoded as one model with the volume in pinned host
+memory (no bricks, no seams) under the same limits.
+
+    python benchmarks/bricked/out_of_core.py --size 2048 --volume-on-host --max-device-memory 24GiB --out $OUT/out_of_core2048_host.json
 """
 
 from __future__ import annotations
@@ -67,6 +72,11 @@ def main(argv=None) -> dict:
         action="store_true",
         help="draw.ERROR_POOL on: sparse error-map cells scored by blocks of them (this process only: --gpus 1)",
     )
+    ap.add_argument(
+        "--volume-on-host",
+        action="store_true",
+        help="one model, the volume in pinned host memory (issue #55 part 1) instead of bricks (this process only: --gpus 1)",
+    )
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -82,6 +92,8 @@ def main(argv=None) -> dict:
         from warpgauss.encoding.refine import draw
 
         draw.ERROR_POOL = True
+    if args.volume_on_host and (str(args.gpus) != "1" or args.bricks):
+        raise SystemExit("--volume-on-host encodes one model in this process: use it with --gpus 1 and no --bricks")
     path = args.dir / f"ooc_{args.size}x{args.size}x{args.size}_float32.raw"
     t0 = time.perf_counter()
     if not path.exists() or path.stat().st_size != 4 * args.size**3:
@@ -155,7 +167,7 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
         max_host_memory=args.max_host_memory,
         halo=args.halo,
         bricks=args.bricks,
-        volume_on_host=False,  # the bricked path (a model that fits would otherwise keep the volume on the host)
+        volume_on_host=bool(args.volume_on_host),  # else the bricked path (a model that fits would otherwise keep the volume on the host)
         iterations=args.iterations,
         client=client,
         on_bricks=lambda d, t: (done.append(d), print(f"brick {d}/{t} at {time.perf_counter() - t0:.1f} s", flush=True)),
@@ -163,15 +175,16 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
     wall = time.perf_counter() - t0
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     r = m.report
-    b = r["bricking"]
+    b = r.get("bricking") or {}
     row = {
+        "path": "volume on host" if args.volume_on_host else "bricks",
         "size": args.size,
         "file_bytes": path.stat().st_size,
         "n": m.n,
         "max_device_memory": b.get("max_device_memory"),
         "max_host_memory": args.max_host_memory,
-        "bricks_xyz": b["bricks_xyz"],
-        "halo": b["halo"],
+        "bricks_xyz": b.get("bricks_xyz"),
+        "halo": b.get("halo"),
         "chosen": b.get("chosen"),
         "read_lazily": b.get("read_lazily"),
         "encode_s": wall,
@@ -186,7 +199,7 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
         "workers": b.get("workers"),
         "waves": b.get("waves"),
         "stages": [{k: s[k] for k in ("stage", "seconds", "device_peak_bytes", "host_peak_bytes") if k in s} for s in r.get("stages", [])],
-        "bricks": [{k: x.get(k) for k in ("n", "seconds", "samples", "stand_ins", "frozen", "box_zyx")} for x in b["bricks"]],
+        "bricks": [{k: x.get(k) for k in ("n", "seconds", "samples", "stand_ins", "frozen", "box_zyx")} for x in b.get("bricks", [])],
         "generate_s": gen_s,
         "error_share": args.error_share,
         "error_pool": bool(args.error_pool),
