@@ -1,7 +1,8 @@
 """Where stage P's time goes with the volume in host memory (issue #55): the float32 raw file of
 ``out_of_core.py`` (written first when absent), then ``load_field(path, pinned=True)`` as the host
 path runs it, with each part timed: the pinned buffers' allocation, the min/max scan, the fill
-(normalised into the pinned buffers) and the seed-candidate count. Prints a table, writes JSON.
+(normalised into the buffers), their registration page-locked where the driver takes it
+(``registered``: one flag an array) and the seed-candidate count. Prints a table, writes JSON.
 
     python benchmarks/bricked/stage_p_profile.py --size 2048 --out $OUT/stage_p2048_h200.json
 """
@@ -59,6 +60,15 @@ def main(argv=None) -> dict:
 
     analysis.map_slabs = map_slabs
     slabs.host_buffers = timed("pinned_alloc", slabs.host_buffers)
+    registered: list[bool] = []
+    plain_lock = slabs.page_locked
+
+    def page_locked(arr, dtype):
+        out = timed("register", plain_lock)(arr, dtype)
+        registered.append(out is not None)
+        return out
+
+    slabs.page_locked = page_locked
     analysis.count_seed_candidates = timed("count", analysis.count_seed_candidates)
     dev = resolve_device(None)
     t0 = time.perf_counter()
@@ -70,7 +80,7 @@ def main(argv=None) -> dict:
         generate_s=gen_s,
         stage_p_s=total,
         parts_s=parts,
-        other_s=total - sum(parts.get(k, 0.0) for k in ("scan", "fill", "pinned_alloc", "count")),
+        other_s=total - sum(parts.get(k, 0.0) for k in ("scan", "fill", "pinned_alloc", "count", "register")),
         occupied=int(f.occupied),
     )
     print("| part | s |\n|---|---|")

@@ -308,16 +308,7 @@ def run_kernel_bench(cfg: KernelBenchConfig, device: str | None = None, log: Cal
             rows.append(row)
             log(_format_row(row))
         if cfg.decode:
-            gf = GaussianField(r.model_params(), f.shape_xyz, device=dev)
-            entry["decode_ms"] = timer.ms(lambda: _decode_on_device(gf), 1, warmup=1)
-            # slices of the slabs whose lists fit MAX_BRICK_LIST where a slab had to be halved (None: none was)
-            entry["decode_fit_slices"] = min(gf._fit_height.values()) if gf._fit_height else None
-            entry["decode_walk_ms"] = timer.ms(lambda: _decode_on_device(gf, "walk"), 1, warmup=1)
-            entry["decode_rowmajor_ms"] = timer.ms(lambda: _decode_on_device(gf, "rowmajor"), 1, warmup=1)
-            entry["decode_slab_equal_to_rowmajor"] = _decode_agrees(gf)
-            entry["decode_voxels"] = cfg.size**3
-            entry["decode_gvoxels_per_s"] = cfg.size**3 / (entry["decode_ms"] * 1e-3) / 1e9
-            del gf
+            entry.update(_decode_rows(GaussianField(r.model_params(), f.shape_xyz, device=dev), timer, cfg.size))
         entry["device_bytes_peak_so_far"] = (
             int(wp.get_mempool_used_mem_high(dev)) if wp.get_device(dev).is_cuda and wp.is_mempool_enabled(dev) else None
         )
@@ -382,6 +373,20 @@ def _decode_on_device(gf, path: str = "lists") -> None:
             gf.decode_walk(view, z0, one)
         else:
             wp.launch(kf.eval_grid_binned, dim=(h, ny, nx), inputs=[z0, one, gf.prims], outputs=[view], device=gf.device)
+
+
+def _decode_rows(gf, timer, size: int) -> dict:
+    """The decode's rows of a bench entry: the brick lists, the cell walk and the row-major kernel
+    timed over the whole grid, whether the slab equals the row-major values, and (``decode_fit_slices``)
+    the slab height whose lists fit MAX_BRICK_LIST where a slab had to be halved (None: none was)."""
+    rows: dict = {"decode_ms": timer.ms(lambda: _decode_on_device(gf), 1, warmup=1)}
+    rows["decode_fit_slices"] = min(gf._fit_height.values()) if gf._fit_height else None
+    rows["decode_walk_ms"] = timer.ms(lambda: _decode_on_device(gf, "walk"), 1, warmup=1)
+    rows["decode_rowmajor_ms"] = timer.ms(lambda: _decode_on_device(gf, "rowmajor"), 1, warmup=1)
+    rows["decode_slab_equal_to_rowmajor"] = _decode_agrees(gf)
+    rows["decode_voxels"] = size**3
+    rows["decode_gvoxels_per_s"] = size**3 / (rows["decode_ms"] * 1e-3) / 1e9
+    return rows
 
 
 def _decode_agrees(gf) -> bool:

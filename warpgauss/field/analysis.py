@@ -242,11 +242,11 @@ def normalise(
     plan = NormPlan(lo, hi, data_lo, data_hi, exact, clip)
     if lazy:
         return _lazy_field(src, plan, fill_value, n_invalid, spacing, origin, name, source_dtype or data.dtype, count_candidates)
-    held = None
+    finish = None
     if pinned:
         from .slabs import host_buffers
 
-        values, mask, held = host_buffers(data.shape, bool(n_invalid))
+        values, mask, finish = host_buffers(data.shape, bool(n_invalid))
     else:
         values = np.empty(data.shape, np.float32)
         mask = np.ones(data.shape, bool) if n_invalid else None
@@ -262,7 +262,7 @@ def normalise(
 
     map_slabs(fill, nz, slab)
     f = new_field(values, mask, lo, hi, spacing, origin, name, source_dtype or data.dtype, n_invalid)
-    f.host_arrays = held
+    f.host_arrays = None if finish is None else finish()  # page-locked now that every page is written
     f.counted = count_candidates
     if count_candidates:
         f.occupied, f.eligible = count_seed_candidates(values, mask)

@@ -43,17 +43,27 @@ from __future__ import annotations
 
 import hashlib
 import math
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import WarpgaussError
-from .interpolation import AXES, CHOOSE_BLOCK, FLAT, LEVELWISE, ORDERS, cast, decoded, feedback, quantiser
-from .planes import CODECS, byte_planes, byte_width, bzip2_parts, compress, decompress, from_planes, unzigzag, zigzag
+from .interpolation import AXES, FLAT, LEVELWISE, ORDERS, cast, decoded, quantiser  # noqa: F401 (LEVELWISE: the choices a header may name)
+from .planes import CODECS, decompress, from_planes, unzigzag
+from .residual_coding import (  # noqa: F401 (BZIP2_LAYOUTS, the memory figures: read here by callers and tests)
+    BZIP2_LAYOUTS,
+    CANDIDATE_BYTES_PER_VOXEL,
+    CODE_BYTES_PER_VOXEL,
+    MIN_FRAME_BYTES,
+    PREDICTORS,
+    STREAMS,
+    Coder,
+    final_symbols,
+)
+from .residual_coding import final_symbols as _final_symbols  # noqa: F401 (the name tests use)
+from .residual_coding import parts as _parts
 
 # the Gaussians' ratio in a bounded file when no budget is given: at 1e-2..1e-4 of the range, 1000
 # gave a smaller whole file than 300 on 12 of 15 (volume, bound) pairs (three head MRIs, vortex and
@@ -63,30 +73,9 @@ from .planes import CODECS, byte_planes, byte_width, bzip2_parts, compress, deco
 DEFAULT_RATIO = 1000.0
 MIN_GAUSSIAN_BYTES = 8192  # and at least this (a small volume's thousandth holds no Gaussian beside its header)
 MARGIN_REL = 1e-9  # of the value range: how far two readers' float64 predictions may differ
-# bzip2 tries the layouts Zstandard codes smallest, this many: on the three head MRIs at 1e-2 and
-# 1e-3 of the range the smallest bzip2 frame was always in Zstandard's best two (see _final_symbols)
-BZIP2_LAYOUTS = 2
-# on a tie the first: it needs no prediction. "-linear": linear interpolation where cubic would be used
-# (cubic codes smaller on smooth fields and mean_reg2mean, linear on inia19: 83.7 against 76.9 at 1e-2)
-PREDICTORS = ("interp", "interp-linear", "gaussians+interp", "gaussians+interp-linear", "gaussians")
-
-
-def _parts(name: str) -> tuple[bool, str]:
-    """(the Gaussians used?, interpolation "cubic", "linear" or "" for none) of a predictor."""
-    kind = "" if name == "gaussians" else "linear" if name.endswith("-linear") else "cubic"
-    return name.startswith("gaussians"), kind
-
-
-STREAMS = ("symbols", "positions", "values", "mask")
-MIN_FRAME_BYTES = 9  # the smallest Zstandard frame (bzip2's is larger): a stream with content is at least this
-_LATTICE_LIMIT = float(1 << 50)  # |V / s| beyond this is stored outright (keeps every int64 sum exact)
 DTYPES = ("int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64", "float32", "float64")
 
 
-CODE_BYTES_PER_VOXEL = 120  # host memory coding a residual takes: float64/int64 copies of the grid, and the chosen indices in six storage orders on threads (measured: 101-114 on the head MRIs at 1e-2 and 1e-4)
-# what one predictor's coding holds at once beside that (the differences, q's, decoded values, the
-# checks, the zigzagged q's), for the codings run on threads side by side
-CANDIDATE_BYTES_PER_VOXEL = 56
 DECODE_BYTES_PER_VOXEL = 48
 
 
@@ -199,65 +188,6 @@ class Residual:
 
 
 # -- the quantiser ------------------------------------------------------------------------------
-def _choose_interpolation(
-    source: np.ndarray, usable: np.ndarray, step: float, integer: bool, device: str | None = None
-) -> tuple[str, dict[str, tuple[float, float]]]:
-    """The interpolation's axis order, and each kind's level-wise bounds, that code a central block
-    of the source (at most :data:`CHOOSE_BLOCK` a side, no Gaussians, Zstandard 3) smallest: the
-    order first (cubic, flat bounds), then (alpha, beta) from :data:`LEVELWISE` for "cubic" and for
-    "linear"; ties to the earlier (the passes on ``device``: the same bits). Measured on the three
-    head MRIs at 1e-2 and 1e-3: the block picked the order that is best or within 0.1 % of it on
-    the whole volume."""
-    flat = {"cubic": FLAT, "linear": FLAT}
-    if min(source.shape) < 4:
-        return AXES, flat
-    sl = tuple(slice(max(0, n // 2 - CHOOSE_BLOCK // 2), max(0, n // 2 - CHOOSE_BLOCK // 2) + CHOOSE_BLOCK) for n in source.shape)
-    block, ok = source[sl], usable[sl]
-    with np.errstate(invalid="ignore", over="ignore"):
-        t = np.where(ok, block, 0).astype(np.int64) if integer else np.where(ok, block.astype(np.float64), 0.0)
-
-    def size(kind: str, axes: str, levels: tuple[float, float]) -> int:
-        q, _ = feedback(t, ~ok, step, integer, kind, axes, levels, device)
-        u = zigzag(q.ravel())
-        return len(compress(byte_planes(u, byte_width(u)), 3))
-
-    by_axes = {axes: size("cubic", axes, FLAT) for axes in ORDERS}
-    axes = min(ORDERS, key=lambda a: (by_axes[a], ORDERS.index(a)))
-    chosen = {}
-    for kind in ("cubic", "linear"):
-        sizes = [size(kind, axes, lw) for lw in LEVELWISE]
-        chosen[kind] = LEVELWISE[int(np.argmin(sizes))]
-    return axes, chosen
-
-
-def _final_symbols(u: np.ndarray) -> tuple[bytes, str, str]:
-    """The chosen predictor's zigzagged q's (on the grid, in their narrowest width) coded harder:
-    in each of the six axis orders (``layout``: the array transposed so, then raster) with
-    Zstandard, and in the :data:`BZIP2_LAYOUTS` orders Zstandard coded smallest with bzip2 too (its
-    Burrows-Wheeler transform suits runs of small q's: 15-25 % below Zstandard 3 on the head MRIs,
-    at 10-20x its time; in parts on threads, :func:`~.planes.bzip2_parts`); the smallest kept.
-    Returns (frame, codec, layout)."""
-    width = u.dtype.itemsize
-
-    def raw(layout: str) -> bytes:
-        return byte_planes(np.ascontiguousarray(u.transpose([int(c) for c in layout])).ravel(), width)
-
-    def zstd(layout: str) -> tuple[int, int, bytes, str, str]:
-        f = compress(raw(layout))
-        return len(f), ORDERS.index(layout), f, "zstd", layout
-
-    workers = max(1, os.cpu_count() or 1)
-    with ThreadPoolExecutor(max_workers=workers) as pool:  # bz2 and Zstandard let go of the GIL
-        tried = list(pool.map(zstd, ORDERS))
-        best = [t[4] for t in sorted(tried, key=lambda t: (t[0], t[1]))[:BZIP2_LAYOUTS]]
-        raws = list(pool.map(raw, best))
-        with ThreadPoolExecutor(max_workers=workers) as parts:  # each layout's parts beside the other's
-            coded = list(pool.map(lambda r: bzip2_parts(r, parts), raws))
-        tried += [(len(f), ORDERS.index(lay), f, codec, lay) for lay, (f, codec) in zip(best, coded)]
-    _, _, frame, codec, layout = min(tried, key=lambda t: (t[0], t[1], t[3]))
-    return frame, codec, layout
-
-
 def prediction(model, device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(P, fragile): the model in float64 source units at every voxel of its grid, clamped to the
     source's range, and the voxels where readers could disagree (see :mod:`warpgauss.kernels.predict`)."""
@@ -308,83 +238,12 @@ def code_residual(
     span = hi - lo if hi > lo else max(abs(lo), 1.0)  # a constant volume: its magnitude
     margin = MARGIN_REL * span + 1e-14 * max(abs(lo), abs(hi))  # and float64 rounding at the values' magnitude
     step, integer, out_dtype = quantiser(bound, margin, dtype)
-    ok = np.ones(source.shape, bool) if valid is None else valid
-    src64 = source.astype(np.float64)
+    coder = Coder(source, valid, pred, fragile, bound, margin, step, integer, out_dtype, device)
     facts: dict = {"sizes": {}}
-    clock = time.perf_counter
-    seconds: dict = {"passes": {}, "code": {}}  # where the coding's time went (the report's residual.seconds)
-    t0 = clock()
-    axes, levelwise = _choose_interpolation(source, ok & np.isfinite(src64), step, integer, device)
-    seconds["choose"] = clock() - t0
-
-    lattice: dict[bool, tuple] = {}  # by gauss: what the passes code (base, shaky, t, fits), the same for both kinds
-
-    def prepare(gauss: bool) -> None:
-        base, shaky = _base(pred, fragile, margin, integer, gauss)
-        with np.errstate(invalid="ignore", over="ignore"):
-            t = source.astype(np.int64) - base if integer else src64 - base
-            fits = ok & np.isfinite(src64) & (np.abs(t) < _LATTICE_LIMIT * step)
-        lattice[gauss] = base, shaky, t, fits
-
-    def passes(name: str):
-        t0 = clock()
-        gauss, kind = _parts(name)
-        if gauss not in lattice:
-            prepare(gauss)
-        base, shaky, t, fits = lattice[gauss]
-        out = base, shaky, fits, feedback(t, ~fits, step, integer, kind, axes, levelwise.get(kind, FLAT), device)
-        seconds["passes"][name] = clock() - t0
-        return out
-
-    def code(name: str, done_passes=None) -> tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]:
-        gauss, _ = _parts(name)
-        base, shaky, fits, (q, dec) = passes(name) if done_passes is None else done_passes
-        t0 = clock()
-        x = base + dec
-        if integer or not gauss:
-            good = _within(x, out_dtype, src64, bound)
-        else:  # a reader's prediction lies within the margin: every value between decodes within the bound
-            good = _within(x - margin, out_dtype, src64, bound) & _within(x + margin, out_dtype, src64, bound)
-        literal = ok & ~(fits & good & ~shaky)
-        u = zigzag(q.ravel())
-        width = byte_width(u)
-        streams = _streams(u, width, literal, source.astype(out_dtype, copy=False), valid)
-        seconds["code"][name] = clock() - t0
-        return sum(len(b) for b in streams.values()), streams, literal, width, u.astype(f"<u{width}").reshape(q.shape)
-
-    # the predictors that do not depend on others' sizes are coded on threads (numpy and
-    # Zstandard release the GIL), then the Gaussians plus the interpolation that coded smaller;
-    # the smallest is kept in the serial order, so the result is the one a serial loop gives
-    done: dict[str, tuple[int, dict[str, bytes], np.ndarray, int, np.ndarray]] = {}
-    alone = [n for n in predictors if not all(_parts(n))]
-    # on a device the passes run from this thread (Warp's streams belong to it), one after the
-    # other, each predictor's coding on a thread as soon as its passes are done; where the threads
-    # and memory allow, the Gaussians plus both interpolations too (the one that follows the rule
-    # below is kept, the other dropped: the same file, without a coding after the others)
-    both = [n for n in predictors if all(_parts(n))]
-    ahead = alone + both if device is not None and _coding_threads(len(alone) + len(both), source.size) >= len(alone) + len(both) else alone
-    for gauss in sorted({_parts(n)[0] for n in ahead}):  # here, not racing on the threads
-        prepare(gauss)
-    with ThreadPoolExecutor(max_workers=_coding_threads(len(ahead), source.size)) as ex:
-        coding = [ex.submit(code, n, passes(n) if device is not None else None) for n in ahead]
-        done.update(zip(ahead, (c.result() for c in coding)))
-    del coding
-    lattice.pop(False, None)  # the interpolations' alone: not needed again
-    sizes = {n: done[n][0] for n in alone}
-    best: tuple[int, str, dict[str, bytes], np.ndarray, int, np.ndarray] | None = None
-    for name in _candidates(predictors, sizes):
-        if name not in done:
-            done[name] = code(name)
-        size = done[name][0]
-        facts["sizes"][name] = size
-        if best is None or size < best[0]:
-            best = (size, name, *done[name][1:])
-    done.clear()
-    assert best is not None
-    size, name, streams, literal, best_width, best_u = best
-    t0 = clock()
-    streams["symbols"], codec, layout = _final_symbols(best_u)
-    seconds["final"] = clock() - t0
+    size, name, streams, literal, best_width, best_u = coder.best(predictors, facts["sizes"])
+    t0 = time.perf_counter()
+    streams["symbols"], codec, layout = final_symbols(best_u)
+    coder.seconds["final"] = time.perf_counter() - t0
     data = b"".join(streams[s] for s in STREAMS)
     info = {
         "bound": float(bound),
@@ -396,8 +255,8 @@ def code_residual(
         "predictor": name,
         "symbol_bytes": best_width,
         "symbols_codec": codec,
-        "axes": axes,
-        "levels": list(levelwise.get(_parts(name)[1], FLAT)),
+        "axes": coder.axes,
+        "levels": list(coder.levelwise.get(_parts(name)[1], FLAT)),
         "layout": layout,
         "streams": {s: len(streams[s]) for s in STREAMS},
         "literals": int(literal.sum()),
@@ -409,66 +268,17 @@ def code_residual(
     }
     facts.update(
         predictor=name,
-        axes=axes,
+        axes=coder.axes,
         levels=info["levels"],
         layout=layout,
         literals=info["literals"],
-        fragile=int((ok & fragile).sum()),
+        fragile=int((coder.ok & fragile).sum()),
         bytes=len(data),
-        seconds=seconds,
+        seconds=coder.seconds,
     )
     return Residual(info, data), facts
 
 
-def _coding_threads(jobs: int, n_voxels: int) -> int:
-    """Threads for ``jobs`` predictor codings at once: the cores, and what memory holds beside the
-    coding's own :data:`CODE_BYTES_PER_VOXEL` (:data:`CANDIDATE_BYTES_PER_VOXEL` a coding)."""
-    from ..core.limits import available_memory
-
-    free = available_memory()
-    room = jobs if free is None else int((free - n_voxels * CODE_BYTES_PER_VOXEL) // max(n_voxels * CANDIDATE_BYTES_PER_VOXEL, 1))
-    return max(1, min(jobs, os.cpu_count() or 1, room))
-
-
-def _candidates(predictors: tuple[str, ...], sizes: dict[str, int]):
-    """The predictors to code, in order; the Gaussians plus interpolation only with the kind that
-    coded smaller alone (``sizes`` fills as they are coded), so four codings and not five."""
-    for name in predictors:
-        gauss, kind = _parts(name)
-        cubic, linear = sizes.get("interp"), sizes.get("interp-linear")
-        if gauss and kind and cubic is not None and linear is not None and kind != ("cubic" if cubic <= linear else "linear"):
-            continue
-        yield name
-
-
-def _base(pred: np.ndarray, fragile: np.ndarray, margin: float, integer: bool, gauss: bool) -> tuple[np.ndarray, np.ndarray]:
-    """What the residual is added to (the Gaussians, rounded on an integer step; or 0) and the
-    voxels where a reader's may differ (a pair on the cut; a prediction within the margin of .5)."""
-    if not gauss:
-        return np.zeros(pred.shape, np.int64 if integer else np.float64), np.zeros(pred.shape, bool)
-    if not integer:
-        return pred, fragile
-    ambiguous = np.abs(pred - np.floor(pred) - 0.5) <= margin + 4e-16 * np.abs(pred)
-    return np.rint(pred).astype(np.int64), fragile | ambiguous
-
-
-def _within(x: np.ndarray, dtype: np.dtype, src64: np.ndarray, bound: float) -> np.ndarray:
-    with np.errstate(invalid="ignore", over="ignore"):
-        return np.abs(cast(x, dtype).astype(np.float64) - src64) <= bound
-
-
-def _streams(u: np.ndarray, width: int, literal: np.ndarray, source: np.ndarray, valid: np.ndarray | None) -> dict[str, bytes]:
-    pos = np.flatnonzero(literal.ravel()).astype(np.int64)
-    gaps = np.diff(pos, prepend=np.int64(0)).astype("<u8")
-    return {
-        "symbols": compress(byte_planes(u, width)),
-        "positions": compress(byte_planes(gaps, 8)),
-        "values": compress(np.ascontiguousarray(source.ravel()[pos]).astype(source.dtype.newbyteorder("<")).tobytes()),
-        "mask": b"" if valid is None else compress(np.packbits(~valid.ravel()).tobytes()),
-    }
-
-
-# -- decoding ------------------------------------------------------------------------------------
 def check_info(info, n_voxels: int) -> str | None:
     """What is wrong with a header's ``residual`` entry (None: usable), before anything is read."""
     if not isinstance(info, dict):
