@@ -221,8 +221,10 @@ def test_the_axis_order_and_layout_are_chosen_stored_and_a_file_without_them_rea
         bad = dict(res.info, **{key: value})
         with pytest.raises(WarpgaussError, match=f"residual {key}"):
             R.apply_residual(R.Residual(bad, res.data), pred)
-    monkeypatch.setattr(R, "ORDERS", (R.AXES,))  # what the coder wrote before it chose
-    monkeypatch.setattr(R, "LEVELWISE", (R.FLAT,))
+    from warpgauss.format import residual_coding
+
+    monkeypatch.setattr(residual_coding, "ORDERS", (R.AXES,))  # what the coder wrote before it chose
+    monkeypatch.setattr(residual_coding, "LEVELWISE", (R.FLAT,))
     old, _ = R.code_residual(v, None, pred, none, 1e-3, (0.0, 1.0))
     info = {k: val for k, val in old.info.items() if k not in ("axes", "layout", "levels")}
     monkeypatch.undo()
