@@ -82,6 +82,7 @@ def main(argv=None) -> dict:
         parts_s=parts,
         other_s=total - sum(parts.get(k, 0.0) for k in ("scan", "fill", "pinned_alloc", "count", "register")),
         occupied=int(f.occupied),
+        registered=registered,
     )
     print("| part | s |\n|---|---|")
     for k, v in {**parts, "other (read, open)": res["other_s"], "total": total}.items():
