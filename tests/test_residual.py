@@ -359,9 +359,12 @@ def test_bzip2_codes_the_chosen_symbols_where_smaller_and_a_damaged_frame_is_ref
 
 
 def test_bzip2_in_parts_decodes_the_same_values_and_refuses_a_cut_or_swelled_frame(monkeypatch):
-    """Symbols longer than planes.BZIP2_PART are coded in parts on threads (codec "bzip2-parts"):
-    a reader joins the parts' streams into the same q's; a frame cut inside a part, a part's bytes
-    changed, or parts that yield more than the header declares are refused."""
+    """Symbols longer than planes.BZIP2_PART are coded in parts on threads (codec "bzip2-parts": a
+    table of the parts' lengths, then their streams): a reader decodes the parts at once into the
+    same q's; a frame cut inside a part, a part's bytes changed, a table that does not describe the
+    frame, or parts that yield more or less than the header declares are refused."""
+    import struct
+
     from warpgauss.readers.synthetic import generate
 
     v = generate("vortex", 48, seed=0)
@@ -373,15 +376,23 @@ def test_bzip2_in_parts_decodes_the_same_values_and_refuses_a_cut_or_swelled_fra
     assert np.array_equal(R.apply_residual(res, zero), R.apply_residual(whole, zero))
     n = res.info["streams"]["symbols"]
     frame = res.data[:n]
-    assert frame.count(b"BZh9") == 3  # one stream a part
     size = 48**3 * res.info["symbol_bytes"]
-    assert P.decompress(frame, size, "symbols", "bzip2-parts") == P.decompress(frame, size, "symbols", "bzip2-parts")
-    with pytest.raises(WarpgaussError, match="hold"):  # read as one stream, the first part alone
+    part, count = struct.unpack_from("<II", frame)
+    assert (part, count) == (50_000, 3) and frame.count(b"BZh9") == 3  # one stream a part
+    assert P.decompress(frame, size, "symbols", "bzip2-parts") == P.decompress(
+        whole.data[: whole.info["streams"]["symbols"]], size, "symbols", "bzip2"
+    )
+    for bad_size in (size - 1, size + 1, size + 50_000):  # other shares than the parts hold
+        with pytest.raises(WarpgaussError, match="do not decompress"):
+            P.decompress(frame, bad_size, "symbols", "bzip2-parts")
+    with pytest.raises(WarpgaussError, match="do not decompress"):  # read as one stream: the table is no bzip2 header
         P.decompress(frame, size, "symbols", "bzip2")
-    with pytest.raises(WarpgaussError, match="hold"):  # more than declared
-        P.decompress(frame, size - 1, "symbols", "bzip2-parts")
     with pytest.raises(WarpgaussError, match="do not decompress"):  # cut inside a part
         P.decompress(frame[: n // 2], size, "symbols", "bzip2-parts")
+    lengths = bytearray(frame)
+    struct.pack_into("<I", lengths, 8, struct.unpack_from("<I", frame, 8)[0] + 1)  # a length the frame does not hold
+    with pytest.raises(WarpgaussError, match="do not decompress"):
+        P.decompress(bytes(lengths), size, "symbols", "bzip2-parts")
     bad = bytearray(res.data)
     bad[n // 2] ^= 0x55
     with pytest.raises(WarpgaussError, match="do not decompress|hold"):
