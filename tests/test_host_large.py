@@ -305,3 +305,56 @@ def test_a_whole_encode_on_the_64_bit_paths(cpu, monkeypatch):
     assert wide[0].n == split.n and np.isfinite(np.asarray(wide[0].params)).all()
     np.testing.assert_array_equal(np.asarray(wide[0].params), np.asarray(wide[1].params))
     assert not np.array_equal(np.asarray(wide[0].params), np.asarray(split.params))
+
+
+def test_the_host_volume_is_registered_page_locked_after_it_is_written(monkeypatch):
+    """Where CUDA is available the host path's volume is normalised into ordinary memory on threads
+    and then registered page-locked with the driver (field.slabs.page_locked): with a stand-in
+    driver, one registration an array of its own pointer and size, portable and mapped; the Warp
+    arrays share that memory and hold the normalised values; each registration is undone when its
+    array goes; a refused registration falls back to a copy of the same values."""
+    import gc
+
+    from warpgauss.field import analysis, slabs
+
+    calls: list[tuple] = []
+
+    class Driver:
+        rc = 0
+
+        def cuCtxPushCurrent_v2(self, ctx):
+            return 0
+
+        def cuCtxPopCurrent_v2(self, out):
+            return 0
+
+        def cuMemHostRegister_v2(self, ptr, size, flags):
+            calls.append(("register", ptr, size, flags))
+            return self.rc
+
+        def cuMemHostUnregister(self, ptr):
+            calls.append(("unregister", ptr))
+            return 0
+
+    lib = Driver()
+    monkeypatch.setattr(slabs, "_registers", lambda: True)
+    monkeypatch.setattr(slabs, "_driver", lambda: lib)
+    monkeypatch.setattr(slabs, "_context", lambda: 1)
+    vol = np.random.default_rng(3).random((12, 9, 10)).astype(np.float32)
+    vol[0, 0, :3] = np.nan
+    plain = analysis.normalise(vol)
+    f = analysis.normalise(vol, pinned=True)
+    np.testing.assert_array_equal(f.values, plain.values)
+    np.testing.assert_array_equal(f.mask, plain.mask)
+    v, m = f.host_arrays
+    assert np.shares_memory(v.numpy(), f.values) and np.shares_memory(m.numpy(), f.mask)
+    registered = [c[1:] for c in calls if c[0] == "register"]
+    assert registered == [(f.values.ctypes.data, f.values.nbytes, 3), (f.mask.ctypes.data, f.mask.nbytes, 3)]
+    del v, m
+    f.host_arrays = None
+    gc.collect()
+    assert sorted(c[1] for c in calls if c[0] == "unregister") == sorted(r[0] for r in registered)
+    lib.rc = 1  # the driver refuses: a copy
+    g = analysis.normalise(vol, pinned=True)
+    np.testing.assert_array_equal(g.host_arrays[0].numpy(), plain.values)
+    assert not np.shares_memory(g.host_arrays[0].numpy(), g.values)

@@ -61,7 +61,7 @@ def host_buffers(shape: tuple[int, ...], masked: bool) -> tuple[np.ndarray, np.n
     from ..core.warp import warp
 
     wp = warp()
-    if wp.is_cuda_available() and _driver() is not None:
+    if _registers():
         values = np.empty(shape, np.float32)
         mask = np.empty(shape, np.bool_) if masked else None
 
@@ -70,9 +70,10 @@ def host_buffers(shape: tuple[int, ...], masked: bool) -> tuple[np.ndarray, np.n
             m = None if mask is None else page_locked(mask.view(np.uint8), wp.uint8)
             if v is not None and (mask is None or m is not None):
                 return v, m
-            return wp.array(values, dtype=float, device="cpu", pinned=True), None if mask is None else wp.array(
-                mask.view(np.uint8), dtype=wp.uint8, device="cpu", pinned=True
-            )  # the driver refused: a pinned copy
+            pinned = wp.is_cuda_available()  # the driver refused: a pinned copy
+            return wp.array(values, dtype=float, device="cpu", pinned=pinned), None if mask is None else wp.array(
+                mask.view(np.uint8), dtype=wp.uint8, device="cpu", pinned=pinned
+            )
 
         return values, mask, finish
     pinned = wp.is_cuda_available()
@@ -80,6 +81,20 @@ def host_buffers(shape: tuple[int, ...], masked: bool) -> tuple[np.ndarray, np.n
     marr = wp.empty(shape, dtype=wp.uint8, device="cpu", pinned=pinned) if masked else None
     ok = None if marr is None else marr.numpy().view(np.bool_)
     return warr.numpy(), ok, lambda: (warr, marr)
+
+
+def _registers() -> bool:
+    """Whether host memory can be registered page-locked here: CUDA available and its driver loaded."""
+    from ..core.warp import warp
+
+    return bool(warp().is_cuda_available()) and _driver() is not None
+
+
+def _context() -> int:
+    """The CUDA context registrations are made in (portable: every context sees them)."""
+    from ..core.warp import warp
+
+    return int(warp().get_cuda_device().context)
 
 
 def _driver():
@@ -118,7 +133,7 @@ def page_locked(arr: np.ndarray, dtype):
     lib = _driver()
     if lib is None or not arr.flags.c_contiguous or arr.nbytes == 0:
         return None
-    ctx = ctypes.c_void_p(int(wp.get_cuda_device().context))
+    ctx = ctypes.c_void_p(_context())
     ptr = int(arr.ctypes.data)
     if lib.cuCtxPushCurrent_v2(ctx) != 0:
         return None
