@@ -307,7 +307,8 @@ def test_a_whole_encode_on_the_64_bit_paths(cpu, monkeypatch):
     assert not np.array_equal(np.asarray(wide[0].params), np.asarray(split.params))
 
 
-def test_the_host_volume_is_registered_page_locked_after_it_is_written(monkeypatch):
+@pytest.mark.parametrize("huge", [False, True])
+def test_the_host_volume_is_registered_page_locked_after_it_is_written(monkeypatch, huge):
     """Where CUDA is available the host path's volume is normalised into ordinary memory on threads
     and then registered page-locked with the driver (field.slabs.page_locked): with a stand-in
     driver, one registration an array of its own pointer and size, portable and mapped; the Warp
@@ -340,6 +341,7 @@ def test_the_host_volume_is_registered_page_locked_after_it_is_written(monkeypat
     monkeypatch.setattr(slabs, "_registers", lambda: True)
     monkeypatch.setattr(slabs, "_driver", lambda: lib)
     monkeypatch.setattr(slabs, "_context", lambda: 1)
+    monkeypatch.setattr(slabs, "HUGE_PAGES", huge)  # the memory in transparent huge pages (an anonymous map) or not
     vol = np.random.default_rng(3).random((12, 9, 10)).astype(np.float32)
     vol[0, 0, :3] = np.nan
     plain = analysis.normalise(vol)
@@ -348,6 +350,13 @@ def test_the_host_volume_is_registered_page_locked_after_it_is_written(monkeypat
     np.testing.assert_array_equal(f.mask, plain.mask)
     v, m = f.host_arrays
     assert np.shares_memory(v.numpy(), f.values) and np.shares_memory(m.numpy(), f.mask)
+    if huge and hasattr(__import__("mmap"), "MADV_HUGEPAGE"):
+        import mmap
+
+        owner = f.values
+        while isinstance(owner, np.ndarray):
+            owner = owner.base
+        assert isinstance(getattr(owner, "obj", owner), mmap.mmap)  # the values live in the anonymous map
     registered = [c[1:] for c in calls if c[0] == "register"]
     assert registered == [(f.values.ctypes.data, f.values.nbytes, 3), (f.mask.ctypes.data, f.mask.nbytes, 3)]
     del v, m

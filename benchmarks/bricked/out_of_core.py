@@ -77,6 +77,11 @@ def main(argv=None) -> dict:
         action="store_true",
         help="one model, the volume in pinned host memory (issue #55 part 1) instead of bricks (this process only: --gpus 1)",
     )
+    ap.add_argument(
+        "--huge-pages",
+        action="store_true",
+        help="with --volume-on-host: the volume's host memory in transparent huge pages (field.slabs.HUGE_PAGES, this process)",
+    )
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -92,6 +97,10 @@ def main(argv=None) -> dict:
         from warpgauss.encoding.refine import draw
 
         draw.ERROR_POOL = True
+    if args.huge_pages:
+        from warpgauss.field import slabs
+
+        slabs.HUGE_PAGES = True
     if args.volume_on_host and (str(args.gpus) != "1" or args.bricks):
         raise SystemExit("--volume-on-host encodes one model in this process: use it with --gpus 1 and no --bricks")
     path = args.dir / f"ooc_{args.size}x{args.size}x{args.size}_float32.raw"
@@ -203,6 +212,7 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
         "generate_s": gen_s,
         "error_share": args.error_share,
         "error_pool": bool(args.error_pool),
+        "huge_pages": bool(args.huge_pages),
     }
     return row, m.params
 
