@@ -215,7 +215,7 @@ def test_the_axis_order_and_layout_are_chosen_stored_and_a_file_without_them_rea
     pred, none = np.zeros(v.shape), np.zeros(v.shape, bool)
     res, facts = R.code_residual(v, None, pred, none, 1e-3, (0.0, 1.0))
     assert res.info["axes"] in R.ORDERS and res.info["layout"] in R.ORDERS and facts["axes"] == res.info["axes"]
-    assert tuple(res.info["levels"]) in R.LEVELWISE
+    assert tuple(res.info["levels"]) in I.LEVELWISE
     assert np.abs(R.apply_residual(res, pred) - v).max() <= 1e-3
     for key, value in (("axes", "011"), ("layout", "011"), ("levels", [0.5, 2.0]), ("levels", [1.5])):
         bad = dict(res.info, **{key: value})

@@ -2,7 +2,7 @@
 
 For each head MRI of ../shared/data (the .npy volumes benchmarks/README.md makes), bounds 1e-2 and
 1e-3 of the range, linear and cubic interpolation (no Gaussians): the residual's q's coded by
-``warpgauss.format.residual._final_symbols`` (six layouts with Zstandard, bzip2 on the best
+``warpgauss.format.residual_coding.final_symbols`` (six layouts with Zstandard, bzip2 on the best
 BZIP2_LAYOUTS) against all twelve (layout, codec) codings. Prints a table, writes JSON.
 
     python benchmarks/bounded/layout_choice.py --volume-dir benchmarks/build/vol --out results/bounded/layout_choice_cpu.json
@@ -22,6 +22,7 @@ from warpgauss.encoding.bench import result_header
 from warpgauss.format import interpolation as I
 from warpgauss.format import planes as P
 from warpgauss.format import residual as R
+from warpgauss.format.residual_coding import final_symbols
 
 
 def main(argv=None) -> dict:
@@ -50,7 +51,7 @@ def main(argv=None) -> dict:
                     full += [(len(P.compress(raw)), layout, "zstd"), (len(bz2.compress(raw, 9)), layout, "bzip2")]
                 best = min(full)
                 t0 = time.perf_counter()
-                frame, codec, layout = R._final_symbols(u)
+                frame, codec, layout = final_symbols(u)
                 dt = time.perf_counter() - t0
                 row = {
                     "volume": name,

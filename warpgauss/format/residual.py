@@ -50,11 +50,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import WarpgaussError
-from .interpolation import AXES, FLAT, LEVELWISE, ORDERS, cast, decoded, quantiser  # noqa: F401 (LEVELWISE: the choices a header may name)
+from .interpolation import AXES, FLAT, ORDERS, cast, decoded, quantiser
 from .planes import CODECS, decompress, from_planes, unzigzag
-from .residual_coding import (  # noqa: F401 (BZIP2_LAYOUTS, the memory figures: read here by callers and tests)
-    BZIP2_LAYOUTS,
-    CANDIDATE_BYTES_PER_VOXEL,
+from .residual_coding import (  # noqa: F401 (CODE_BYTES_PER_VOXEL: read here by the encode's memory check)
     CODE_BYTES_PER_VOXEL,
     MIN_FRAME_BYTES,
     PREDICTORS,
@@ -62,7 +60,6 @@ from .residual_coding import (  # noqa: F401 (BZIP2_LAYOUTS, the memory figures:
     Coder,
     final_symbols,
 )
-from .residual_coding import final_symbols as _final_symbols  # noqa: F401 (the name tests use)
 from .residual_coding import parts as _parts
 
 # the Gaussians' ratio in a bounded file when no budget is given: at 1e-2..1e-4 of the range, 1000
