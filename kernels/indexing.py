@@ -5,6 +5,8 @@ prefix sums, and linear voxel indices. A volume in host memory may hold more tha
 here; brick indices stay int (fewer than 2^31 bricks), and a voxel is returned as (k, j, i).
 """
 
+from typing import Any
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
@@ -32,28 +34,13 @@ def brick_voxels(bk: int, bj: int, bi: int, nz: int, ny: int, nx: int) -> int:
 
 
 @wp.func
-def find_brick(cum: wp.array(dtype=int), r: int) -> wp.vec2i:
-    """(brick, rank within it) of rank r, for inclusive prefix sums ``cum`` of per-brick counts."""
+def find_brick(cum: wp.array(dtype=Any), r: Any) -> wp.vec2i:
+    """(brick, rank within it) of rank r, for inclusive prefix sums ``cum`` of per-brick counts
+    (int, or int64 where a stratum holds more than 2^31 voxels: r of the same type, the rank
+    within the brick below 2^31)."""
     lo = int(0)
     hi = cum.shape[0] - 1
     while lo < hi:  # first brick whose inclusive sum exceeds r
-        mid_ = (lo + hi) / 2
-        if cum[mid_] > r:
-            hi = mid_
-        else:
-            lo = mid_ + 1
-    if lo > 0:
-        r = r - cum[lo - 1]
-    return wp.vec2i(lo, r)
-
-
-@wp.func
-def find_brick64(cum: wp.array(dtype=wp.int64), r: wp.int64) -> wp.vec2i:
-    """:func:`find_brick` over int64 prefix sums (a stratum of more than 2^31 voxels): (brick,
-    rank within it, below 64)."""
-    lo = int(0)
-    hi = cum.shape[0] - 1
-    while lo < hi:
         mid_ = (lo + hi) / 2
         if cum[mid_] > r:
             hi = mid_

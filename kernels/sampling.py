@@ -37,7 +37,6 @@ from .indexing import (
     brick_voxel,
     brick_voxels,
     find_brick,
-    find_brick64,
     grid_voxel,
     grid_voxels,
     rank_below,
@@ -282,7 +281,7 @@ def pooled_quota(
 @wp.func
 def support_voxel(nz: int, ny: int, nx: int, cum: wp.array(dtype=wp.int64), r: wp.int64) -> wp.vec3i:
     """(k, j, i) of the r-th supported voxel (bricks in order, voxels in z, y, x order)."""
-    br = find_brick64(cum, r)
+    br = find_brick(cum, r)
     return brick_rank_voxel(br[0], br[1], ny, nx)
 
 
@@ -327,7 +326,7 @@ def stratum_voxel(
 ) -> wp.vec3i:
     """(k, j, i) of the r-th voxel of a stratum (bricks in order, voxels in z, y, x order):
     the brick by its prefix sums, then the r-th set bit of its membership bits (no voxel read)."""
-    br = find_brick64(cum, r)
+    br = find_brick(cum, r)
     t = br[1]
     b = bits[br[0]]
     o = brick_origin(br[0], ny, nx)
