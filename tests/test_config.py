@@ -24,6 +24,7 @@ SAMPLE = {
     "compact": True,
     "seed": 7,
     "device": "cpu",
+    "devices": "cpu,cpu",
     "preset": "fast",
     "iterations": 33,
     "samples": 512,

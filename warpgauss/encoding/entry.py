@@ -63,6 +63,7 @@ def encode(
     file_bytes: int | None = None,
     seed: int = 0,
     device: str | None = None,
+    devices: str | list[str] | None = None,
     iterations: int | None = None,
     samples: int | None = None,
     preset: str | None = None,
@@ -116,6 +117,7 @@ def encode(
         file_bytes: The file size budget in bytes instead (header included; never exceeded).
         seed: Encoding seed; same seed and device give the same model.
         device: Warp device; None picks CUDA when present, else CPU.
+        devices: Several GPUs of this machine refining one model ("cuda:0,cuda:1"; the first is ``device``).
         iterations: Refinement iterations (default 1,500, the paper's; 0: analytic model only).
         samples: Samples per iteration (default 3,072, more for large N and on a GPU).
         preset: "paper", "fast" (300 iterations) or "quality"; explicit ``iterations``/``samples`` override it.
@@ -191,6 +193,13 @@ def encode_with(
     run, reading, bricking = cfg.run, cfg.reading, cfg.bricking
     workers = 0 if client is None else max(1, len(client.scheduler_info().get("workers", {})))  # 0: this process
     path = choose_path(source, cfg, device, workers)
+    peers = device_list(cfg)[1:]
+    if peers and (path.bricks is not None or client is not None):
+        raise WarpgaussError(
+            "--devices refines one model on this machine's GPUs; this encode is bricked"
+            + (f" ({path.why})" if path.why else "")
+            + ": give --volume-on-host for one model, or bricks on a cluster without --devices"
+        )
     timer = StageRecorder(on_stage=on_stage)
     from ..field import limits as field_limits
 
@@ -241,7 +250,17 @@ def encode_with(
         )
     else:
         model = encode_whole(
-            f, info, source, cfg, opts, device, timer, on_stats=on_stats, on_progress=on_progress, volume_on_host=path.volume_on_host
+            f,
+            info,
+            source,
+            cfg,
+            opts,
+            device,
+            timer,
+            on_stats=on_stats,
+            on_progress=on_progress,
+            volume_on_host=path.volume_on_host,
+            peers=peers,
         )
         if path.volume_on_host:
             model.run_report["volume_memory"]["why"] = path.why
@@ -288,7 +307,35 @@ def checked_request(source, cfg: EncodeConfig, session) -> tuple[object, str | N
         source = device_array(source, None if device in (None, "", "auto") else device)
         device = _array_device(source, device)
     encoding_of(opts)  # an unknown format is refused before any work
+    if cfg.devices is not None:
+        devices = device_list(cfg)
+        if cfg.refinement.time_budget is not None or session is not None:
+            raise WarpgaussError("--devices does not combine with a time budget (it refines on one device); give one of them")
+        device = devices[0]
     return source, device, opts
+
+
+def device_list(cfg: EncodeConfig) -> list[str]:
+    """The devices of ``--devices`` (each present; CUDA devices once each, or the CPU, which may be
+    named again: its replicas take turns, a test of the path), the first ``--device`` if that is
+    given too; without ``--devices``, ``--device`` alone."""
+    from ..core.warp import resolve_device
+
+    given = cfg.devices
+    if given is None:
+        return [cfg.device] if cfg.device not in (None, "", "auto") else []
+    names = [d.strip() for d in given.split(",")] if isinstance(given, str) else [str(d).strip() for d in given]
+    if not names or "" in names:
+        raise WarpgaussError(f"--devices takes a comma list of devices such as cuda:0,cuda:1, got {given!r}")
+    devices = [resolve_device(d) for d in names]
+    cuda = [d for d in devices if d != "cpu"]
+    if cuda and len(cuda) != len(devices):
+        raise WarpgaussError(f"--devices {given}: give GPUs only (cuda:0,cuda:1) or the CPU alone")
+    if len(set(cuda)) != len(cuda):
+        raise WarpgaussError(f"--devices {given} names a GPU twice; name each once")
+    if cfg.device not in (None, "", "auto") and resolve_device(cfg.device) != devices[0]:
+        raise WarpgaussError(f"--device {cfg.device} is not the first of --devices {given}; leave --device out")
+    return devices
 
 
 def encode_whole(
@@ -303,6 +350,7 @@ def encode_whole(
     on_stats,
     on_progress,
     volume_on_host: bool = False,
+    peers: list[str] | None = None,
 ) -> Model:
     """The whole-volume path: the staged run of :func:`.driver.run.encode_field` (S1-S2, EV) and,
     with an error bound, the residual (S4)."""
@@ -326,6 +374,7 @@ def encode_whole(
         analytic_output=run.analytic_output,
         force=run.force or run.resume,
         volume_on_host=volume_on_host,
+        peers=peers,
     )
     if bound.given:
         with timer.stage("S4", "bounded residual"):

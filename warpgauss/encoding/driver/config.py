@@ -125,6 +125,7 @@ class EncodeConfig:
     compact: bool = False
     seed: int = 0
     device: str | None = None
+    devices: Any = None  # several devices refining one model ("cuda:0,cuda:1" or a list); the first is device
     refinement: Refinement = field(default_factory=Refinement)
     allocation: AllocationConfig | None = None
     reading: Reading = field(default_factory=Reading)
@@ -216,6 +217,7 @@ FIELDS: dict[str, tuple[str | None, str]] = {
     "compact": (None, "compact"),
     "seed": (None, "seed"),
     "device": (None, "device"),
+    "devices": (None, "devices"),
     "preset": ("refinement", "preset"),
     "iterations": ("refinement", "iterations"),
     "samples": ("refinement", "samples"),
@@ -327,6 +329,11 @@ OPTIONS: dict[str, Option] = {
     ),
     "seed": Option("Refinement", "Seed: same seed and device give the same model", int),
     "device": Option("Refinement", "Warp device: cpu, cuda, cuda:N (default: CUDA if present)", str | None),
+    "devices": Option(
+        "Refinement",
+        "Refine one model on several GPUs of this machine, e.g. cuda:0,cuda:1 (the first is --device): each draws its share of the samples, the gradients combined every iteration",
+        str | None,
+    ),
     "iterations": Option("Refinement", "Refinement iterations (default 1500; 0: analytic model only)", int | None),
     "samples": Option(
         "Refinement",

@@ -44,6 +44,7 @@ def encode_field(
     force: bool = False,
     cache: dict | None = None,
     volume_on_host: bool = False,
+    peers: list[str] | None = None,
 ) -> Model:
     """Stages S1a-S1e, S1x, S2 and EV on a normalised field; returns the model with its report.
 
@@ -67,9 +68,12 @@ def encode_field(
             the device volume and structure statistics of the first are reused (S1a skipped).
         volume_on_host: Keep the volume in pinned host memory, read by a GPU's kernels over the
             bus (the model whole on the device); the report's ``volume_memory`` says where it was.
+        peers: Other devices that refine the same model beside ``device`` (S2), each drawing its
+            share of the samples (:mod:`warpgauss.encoding.refine.replicas`).
     """
     run = EncodeRun(f, opts, device, timer, evaluate, full_eval, analytic_output)
     run.volume_on_host = volume_on_host
+    run.peers = list(peers or [])
     run.analyse(cache, on_stats)  # S1a   occupancy, gradients, structure statistics
     run.size_coded()  # S1p   coded size pilot (a coded byte budget only)
     run.allocate()  # S1b-e seeds, shapes, values and weights
@@ -125,6 +129,7 @@ class EncodeRun(replan.Replan):
         self.fit_later = self.enc == "coded" and self.budget_bytes is not None and opts.refine.iterations > 0 and analytic_output is None
         self.analytic_output = analytic_output
         self.volume_on_host = False  # encode_field's volume_on_host
+        self.peers: list[str] = []  # encode_field's peers: S2 on these devices too
 
     def skip(self, what: str, why: str, **facts) -> None:
         self.skipped.append({"what": what, "why": why, **facts})
@@ -343,6 +348,7 @@ class EncodeRun(replan.Replan):
             stage_start = time.perf_counter()
             compile_s = stage_start - compiled  # the time budget does not count the kernels' compile
             refiner = Refiner(self.dv, self.params, cfg, opts.seed, opts.allocation.scale_min, cap)
+            refiner.replicate(self.peers)
             self._sampling_skips(refiner)
             ckpt = Checkpoints(opts, self.params, cfg, dev)
             if opts.resume:
@@ -399,7 +405,7 @@ class EncodeRun(replan.Replan):
                 if refiner.budget is None or self.time_budget_note is None
                 else {**refiner.budget, "call": self.time_budget_note},
                 "iterations": refiner.cfg.iterations,
-                "samples": refiner.m,
+                "samples": refiner.m if refiner.replicas is None else refiner.replicas.total,
                 "samples_rule": self.base_refine.samples_rule(self.n, self.voxels, dev)[1],
                 "seconds": total,
                 "sessions": sessions,
@@ -420,6 +426,7 @@ class EncodeRun(replan.Replan):
                 "uniform_support_share": refiner.support_share(),
                 "loss_history": history,
                 "end_estimate": end,
+                **({} if refiner.replicas is None else {"replicas": refiner.replicas.report()}),  # --devices
             }
         )
         if refiner.stop_reason is not None:

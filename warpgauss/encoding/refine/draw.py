@@ -139,6 +139,7 @@ class Sampler:
         self._side = None
         self._support_read: dict = {}  # supported voxels and unreached error, read once per support (index_support)
         self.m = self.m_err = 0
+        self.map_samples: int | None = None  # samples an iteration the error map counts (None: m; several replicas: all)
         self.on_host = bool(getattr(dv, "on_host", False))  # the volume read over the bus
         if self.on_host and DRAW_AHEAD:  # the draw beside the passes
             self.enable_ahead()
@@ -184,7 +185,7 @@ class Sampler:
         self.version += 1
         self._alloc_stage()
         memory = self.rebin_every / (1.0 - self.error_decay) if self.error_decay < 1 else float("inf")
-        self.samples_a_cell = d = memory * m / int(np.prod(self.bricks))
+        self.samples_a_cell = d = memory * (self.map_samples or m) / int(np.prod(self.bricks))
         f = 1
         while ERROR_POOL and f < ERROR_MAX_POOL and d * f**3 < ERROR_POOL_SAMPLES_A_CELL:
             f *= 2

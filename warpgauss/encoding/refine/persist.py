@@ -26,6 +26,7 @@ class Checkpointed:
     quantising: Any
     rebins: Any
     relocations: Any
+    replicas: Any
     sampler: Any
     schedule: Any
     set_samples: Any
@@ -152,3 +153,5 @@ class Checkpointed:
         # a checkpoint holds no bricked run (no frozen neighbours): every frozen row was silenced
         self.silenced = int(scalars.get("silenced", self.state.n - self.state.n_train))
         self._graph = None
+        if self.replicas is not None:  # the peers continue from the same state
+            self.replicas.sync()

@@ -32,9 +32,11 @@ from ...field.analysis import DeviceVolume
 from .bins import Binner
 from .config import RefineConfig
 from .draw import Sampler
-from .passes import PARTIAL_MAX_ENTRIES, PairPasses, picks_split
+from .passes import PairPasses, picks_split
 from .persist import Checkpointed
+from .probes import Probed
 from .relocate import Relocator
+from .replicas import Replicas
 from .reports import Reported
 from .schedule import MAX_BUDGET_ITERATIONS, BudgetPlan, Schedule, smooth_weight
 from .state import Primitives
@@ -74,7 +76,7 @@ def load_kernels(device: str) -> None:
 SILENT_LOGIT = 1.0e4  # sigmoid(-1e4) is exactly 0 in float32: a silenced (frozen) primitive's weight
 
 
-class Refiner(Checkpointed, Reported):
+class Refiner(Checkpointed, Reported, Probed):
     """N primitives under refinement on one device.
 
     The training state (raw parameters, Adam moments, prepared primitives) lives in *slot order*,
@@ -156,7 +158,15 @@ class Refiner(Checkpointed, Reported):
         self.graph_error: str | None = None
         self.captures = 0  # CUDA graphs captured so far (each re-plan, re-list or setting change re-captures)
         self.budget: dict[str, Any] | None = None
+        self.replicas: Replicas | None = None  # the same model on other devices too (replicate)
+        self._made = (params, scale_min, scale_cap)  # what a replica is made of (replicate)
         self.rebin(replan=True)
+
+    def replicate(self, devices: list[str]) -> None:
+        """Refine on ``devices`` too, each drawing its share of the samples (see :mod:`.replicas`)."""
+        params, lo, cap = self._made
+        if devices:
+            self.replicas = Replicas(self, devices, lambda dv, cfg, seed: Refiner(dv, params, cfg, seed, lo, cap))
 
     # -- views of the units' state (tests, reports, the pipeline) ----------------------------
 
@@ -196,22 +206,6 @@ class Refiner(Checkpointed, Reported):
         self.passes.split = bool(value)
         self.passes.invalidate()  # the partial-sum buffer exists only for the split pass
         self._graph = None
-
-    @property
-    def forward_pass(self) -> str:
-        """The forward pass the iterations run and why (the report's ``refinement.forward_pass``)."""
-        kind = "split" if self.passes.use_partials() else ("point-major, cell lists" if self.passes.listed else "point-major")
-        if self._split_cuda is None:
-            why = f"split_cells={self.cfg.split_cells}"
-            if self.split and not self.passes.use_partials():
-                why += f" (its partial sums would pass {PARTIAL_MAX_ENTRIES:,} entries)"
-        elif not self._split_cuda:
-            why = "the CPU"
-        else:
-            why = f"{self.n_points:,} points an iteration, {self.n:,} primitives on CUDA"
-            if not self._split_dense:
-                why += ", beside other refiners (no dense-model rule)"
-        return f"{kind}: {why}"
 
     @property
     def partners(self) -> bool:
@@ -309,7 +303,8 @@ class Refiner(Checkpointed, Reported):
         else:
             self._graphs[self._take] = graph
 
-    def _iteration_launches(self) -> None:
+    def gradient_launches(self) -> None:
+        """An iteration's launches up to its pair gradients: draw (and stage the next draw), forward, backward."""
         sampler = self.sampler
         self.sample(take=self._take)
         if sampler.ahead:
@@ -317,14 +312,46 @@ class Refiner(Checkpointed, Reported):
         self.forward()
         sampler.record_errors(self.passes.point_loss)
         self.backward()
+
+    def update_launches(self) -> None:
+        """The rest of an iteration's launches: the update, the schedule's step, the staged draw joined."""
         self.update()
         self.schedule.end()
-        if sampler.ahead:
-            sampler.join()
+        if self.sampler.ahead:
+            self.sampler.join()
+
+    def _iteration_launches(self) -> None:
+        self.gradient_launches()
+        self.update_launches()
 
     def step(self) -> None:
-        """One iteration: (re-bin,) sample, forward, backward, fused chain rule + Adam + re-prepare."""
-        wp, cfg, it = self._wp, self.cfg, self.iteration
+        """One iteration: (re-bin,) sample, forward, backward, fused chain rule + Adam + re-prepare
+        (with :attr:`replicas`, on every device together: :meth:`.replicas.Replicas.step`)."""
+        if self.replicas is not None:
+            self.replicas.step()
+            return
+        wp = self._wp
+        replan = self.begin_step()
+        if self.use_graph and self._graph is None:
+            self.passes.buffers()  # allocations and sort scratch before the capture
+            try:
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                    self._iteration_launches()
+                self._graph = capture.graph
+                self.captures += 1
+            except Exception as e:  # noqa: BLE001 - a driver without graph support: plain launches
+                self.use_graph = False
+                self.graph_error = f"{type(e).__name__}: {e}"
+        if self.use_graph:
+            wp.capture_launch(self._graph)
+        else:
+            self._iteration_launches()
+        self.end_step(replan)
+
+    def begin_step(self) -> bool:
+        """What an iteration does before its launches (re-bin, re-plan, the coded grids' switch);
+        whether it re-plans."""
+        cfg, it = self.cfg, self.iteration
         replan = it % max(cfg.replan_every, 1) == 0
         relocating = self.relocating(it)
         if relocating:  # from the error map as this iteration's re-bin draws it, folded here instead
@@ -342,24 +369,16 @@ class Refiner(Checkpointed, Reported):
         if not self.state.clean:
             self.state.zero_grads()
         self._take = self.sampler.can_take()
-        if self.use_graph and self._graph is None:
-            self.passes.buffers()  # allocations and sort scratch before the capture
-            try:
-                with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
-                    self._iteration_launches()
-                self._graph = capture.graph
-                self.captures += 1
-            except Exception as e:  # noqa: BLE001 - a driver without graph support: plain launches
-                self.use_graph = False
-                self.graph_error = f"{type(e).__name__}: {e}"
-        if self.use_graph:
-            wp.capture_launch(self._graph)
-        else:
-            self._iteration_launches()
+        return replan
+
+    def end_step(self, replan: bool, contacts: float | None = None) -> None:
+        """What an iteration does after its launches (``contacts``: the contact density where
+        several replicas drew the samples; None: this refiner's own)."""
+        cfg = self.cfg
         self.sampler.staged = self.sampler.version if self.sampler.ahead else None
         self.state.clean = True  # refine_update zeroed every slot it read
         if replan and cfg.touch_ref > 0:  # re-estimate the contact density with the bins
-            self.contacts = float(self.pairs.numpy()[: self.m].astype(np.float64).sum()) / self.n
+            self.contacts = float(self.pairs.numpy()[: self.m].astype(np.float64).sum()) / self.n if contacts is None else contacts
             self.touch_scale = min(1.0, math.sqrt(self.contacts / cfg.touch_ref))
             self.schedule.touch.fill_(self.touch_scale)
         self.iteration += 1
@@ -423,49 +442,21 @@ class Refiner(Checkpointed, Reported):
         g.on = 1
         self._wp.launch(ko.project_coded, dim=self.n, inputs=[self.state.raw, g], device=self.device)
         self.rebin()
-
-    # -- pieces for tests and the self-test -------------------------------------------------
-
-    def forward_backward(self) -> None:
-        """Forward values, per-point gradients and the pair scatter at the current samples."""
-        self.schedule.begin()
-        self.forward()
-        self.accumulate()
-
-    def accumulate(self, kernel=None, count: int | None = None) -> None:
-        """Gradients of the first ``count`` points (all by default), with the pairs counted.
-
-        Args:
-            kernel: A point-major pair kernel (the dense reference in the self-test); None for
-                the refiner's own primitive-major pass.
-            count: Points to gather from, the first ``count`` of the buffers.
-        """
-        self.state.zero_grads()
-        self.back_pairs.zero_()
-        if kernel is None:
-            self.passes.backward(count, count_pairs=True)
-        else:
-            self.passes.atomic_pairs(kernel, self.n_points if count is None else count)
-
-    def pair_pass_stats(self) -> dict:
-        """The last backward pass's load (syncs), see :meth:`.passes.PairPasses.stats`."""
-        return self.passes.stats()
-
-    def gradient(self) -> np.ndarray:
-        """(N, 12) gradient of the loss w.r.t. the raw parameters, primitive order (after
-        :meth:`forward_backward`)."""
-        self.updater.finish_grads()
-        return self.state.to_primitive_order(self.state.grad)
-
-    def raw_params(self) -> np.ndarray:
-        """(N, 12) training parameters in primitive order."""
-        return self.state.to_primitive_order(self.state.raw)
+        for peer in [] if self.replicas is None else self.replicas.peers:
+            peer.project()
 
     def model_params(self) -> np.ndarray:
         """Current primitives as model parameters (unit quaternion, weight in (0, 1)), primitive order."""
         return self.state.model_params()
 
     def silence(self, ids: np.ndarray) -> None:
+        """:meth:`silence_here` (on every replica where :attr:`replicas` is set)."""
+        if self.replicas is not None:
+            self.replicas.silence(ids)
+        else:
+            self.silence_here(ids)
+
+    def silence_here(self, ids: np.ndarray) -> None:
         """Take primitives (model indices) out of the model for the rest of the run: their weight
         becomes exactly 0 (a weight logit of -SILENT_LOGIT) and they are frozen (never stepped,
         so nothing brings them back), adding nothing to any value or density. The count stays N
@@ -566,6 +557,8 @@ class Refiner(Checkpointed, Reported):
         self.budget = None
         self.interrupted = False
         if deadline is not None:
+            if self.replicas is not None:
+                raise WarpgaussError("a time budget refines on one device; give one device")
             self.write_schedule(MAX_BUDGET_ITERATIONS)  # room for any resize, before capture
             plan = BudgetPlan(self, deadline, clock)
             self.budget = plan.report

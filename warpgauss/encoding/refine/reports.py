@@ -20,6 +20,8 @@ class Reported:
     """The reports of :class:`.refiner.Refiner`."""
 
     # the refiner's own, which these methods read
+    _split_cuda: Any
+    _split_dense: Any
     _wp: Any
     cfg: Any
     device: Any
@@ -27,12 +29,15 @@ class Reported:
     forward: Any
     iteration: Any
     m: Any
+    n: Any
+    n_points: Any
     passes: Any
     point_loss: Any
     rebins: Any
     relocations: Any
     sampler: Any
     seed: Any
+    split: Any
     state: Any
     target: Any
     updater: Any
@@ -145,3 +150,21 @@ class Reported:
             "rebins": self.rebins,
             "relocated": sum(r["moved"] for r in self.relocations),
         }
+
+    @property
+    def forward_pass(self) -> str:
+        """The forward pass the iterations run and why (the report's ``refinement.forward_pass``)."""
+        from .passes import PARTIAL_MAX_ENTRIES
+
+        kind = "split" if self.passes.use_partials() else ("point-major, cell lists" if self.passes.listed else "point-major")
+        if self._split_cuda is None:
+            why = f"split_cells={self.cfg.split_cells}"
+            if self.split and not self.passes.use_partials():
+                why += f" (its partial sums would pass {PARTIAL_MAX_ENTRIES:,} entries)"
+        elif not self._split_cuda:
+            why = "the CPU"
+        else:
+            why = f"{self.n_points:,} points an iteration, {self.n:,} primitives on CUDA"
+            if not self._split_dense:
+                why += ", beside other refiners (no dense-model rule)"
+        return f"{kind}: {why}"
