@@ -162,6 +162,8 @@ def _refuse_combinations(cfg, ladder: str | None) -> None:
         fail("--ladder gives the budgets: it does not combine with --budget, --ratio, --bytes, --time-budget, --resume or --save-analytic")
     if ladder is not None and cfg.bricking.volume_on_host:
         fail("--volume-on-host is one encode's: it does not combine with --ladder (the rungs share one device volume)")
+    if ladder is not None and cfg.devices is not None:
+        fail("--devices is one encode's: it does not combine with --ladder (the rungs refine on one device)")
 
 
 def _check_writable(out: Path, rep_path: Path, cfg) -> None:

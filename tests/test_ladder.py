@@ -125,6 +125,7 @@ NOT_FOR_LADDERS = {
     "max_host_memory": "a ladder encodes the whole volume",
     "read_by_bricks": "a ladder encodes the whole volume",
     "volume_on_host": "a ladder's rungs share one device volume (not kept on the host yet)",
+    "devices": "a ladder's rungs refine on one device (the CLI refuses --ladder with --devices)",
     "on_bricks": "a ladder encodes the whole volume",
     "on_stats": "the statistics are shared by the ladder",
     "warm_start": "warm starts belong to series",

@@ -213,3 +213,14 @@ def test_the_command_line_refuses_a_bad_devices_list(tmp_path):
     )
     assert res.exit_code == 2 and "time budget" in res.output and "Traceback" not in res.output
     assert not out.exists()
+
+
+def test_a_ladder_refuses_devices(tmp_path):
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+
+    args = ["encode", "--example", "vortex", "--size", "16", "--ladder", "40,80", "--devices", "cpu,cpu", "-o", str(tmp_path / "m.wgs")]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2 and "--ladder" in res.output and "Traceback" not in res.output
+    assert not list(tmp_path.iterdir())

@@ -89,6 +89,7 @@ def main(argv=None) -> dict:
         default="1",
         help="with --volume-on-host: GPUs of this machine refining the one model (--devices cuda:0,...); a comma list: one row per count",
     )
+    ap.add_argument("--kernels", action="store_true", help="time every kernel and copy (CUDA activity, the graph off): the row's kernel_s")
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -156,6 +157,23 @@ def main(argv=None) -> dict:
     return result
 
 
+def _kernel_times() -> dict:
+    """Seconds and calls of each kernel, copy and set timed since timing_begin, the largest first."""
+    from collections import defaultdict
+
+    import warp as wp
+
+    per: dict = defaultdict(lambda: [0.0, 0])
+    for r in wp.timing_end():
+        name = r.name.rsplit("_", 1)[0] if r.name.startswith("forward kernel") else r.name
+        per[name][0] += r.elapsed / 1000.0
+        per[name][1] += 1
+    top = sorted(per.items(), key=lambda kv: -kv[1][0])
+    for k, v in top[:25]:
+        print(f"    {v[0]:8.3f} s {v[1]:7d}x  {k}", flush=True)
+    return {k: [round(v[0], 4), v[1]] for k, v in top}
+
+
 def _devices(k: int, dev: str = "cuda:0") -> list[str]:
     """k devices: cuda:0 .. cuda:k-1 (the CPU k times, a test of the path)."""
     return [dev] * k if dev == "cpu" else [f"cuda:{i}" for i in range(k)]
@@ -183,12 +201,19 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
     from warpgauss.encoding.refine import RefineConfig
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    refine = {} if args.error_share is None else {"error_share": args.error_share}
+    if args.kernels:
+        import warp as wp
+
+        refine["graph"] = False
+        wp.synchronize()
+        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_MEMSET)
     t0 = time.perf_counter()
     done = []
     m = warpgauss.encode(
         str(path),
         budget=args.budget,
-        refine=None if args.error_share is None else RefineConfig(error_share=args.error_share),
+        refine=RefineConfig(**refine) if refine else None,
         device=dev,
         format="full",
         self_test=False,
@@ -203,6 +228,7 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
         on_bricks=lambda d, t: (done.append(d), print(f"brick {d}/{t} at {time.perf_counter() - t0:.1f} s", flush=True)),
     )
     wall = time.perf_counter() - t0
+    kernels = _kernel_times() if args.kernels else None
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     r = m.report
     b = r.get("bricking") or {}
@@ -236,6 +262,7 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
         "huge_pages": bool(args.huge_pages),
         "replicas": (r.get("refinement") or {}).get("replicas"),
         "s2_s": next((x["seconds"] for x in r.get("stages", []) if x["stage"] == "S2"), None),
+        "kernel_s": kernels,
     }
     return row, m.params
 
