@@ -127,8 +127,9 @@ def test_gradients_match_float64_finite_differences(term, device, split):
 
 
 def test_cached_anchor_targets_are_the_volume_at_the_centres(device, monkeypatch):
-    """With the volume in host memory the anchor term's V(mu) is read at each re-bin and held
-    (update.ANCHOR_CACHE): fresh, the cached targets equal a float64 trilinear reference and the
+    """With the volume in host memory the anchor term's V(mu) is read at every
+    update.ANCHOR_REBINS-th re-bin, carried with its primitive through the others and held
+    between (update.ANCHOR_CACHE): fresh, the cached targets equal a float64 trilinear reference and the
     anchor loss and gradient are those read from the volume, bit for bit; held while the centres
     move, they stay the values of the centres at the re-bin."""
     from warpgauss.encoding.refine import update
@@ -157,7 +158,14 @@ def test_cached_anchor_targets_are_the_volume_at_the_centres(device, monkeypatch
     np.testing.assert_allclose(r.updater.anchors.numpy(), _trilinear(vol, centres), rtol=1e-6, atol=1e-7)
     r.gradient()
     np.testing.assert_array_equal(r.state.reg_loss.numpy()[:, 0], grads["never"][1])  # a unchanged, targets held
-    r.rebin()
+    held = np.empty((len(ids), 3))
+    held[ids] = centres  # each primitive's centre at the read
+    r.rebin()  # carried with their primitives into the new slot order (update.ANCHOR_REBINS)
+    assert update.ANCHOR_REBINS > 1
+    np.testing.assert_allclose(r.updater.anchors.numpy(), _trilinear(vol, held[r.state.ids.numpy()]), rtol=1e-6, atol=1e-7)
+    monkeypatch.setattr(update, "ANCHOR_REBINS", 1)
+    r.rebin()  # read at every ANCHOR_REBINS-th re-bin
+    ids = r.state.ids.numpy()
     np.testing.assert_allclose(r.updater.anchors.numpy(), _trilinear(vol, moved[ids, :3].astype(np.float64)), rtol=1e-6, atol=1e-7)
     # a resumed run reads them at its slots' centres (restore sets the slots without a re-bin)
     arrays, scalars = r.state_arrays()

@@ -32,6 +32,11 @@ class Binner:
         self._perm = wp.empty(2 * n, dtype=int, device=dev)
         self.rebins = 0
 
+    @property
+    def perm(self):
+        """The last re-bin's permutation: new slot i holds old slot perm[i] (the first N entries)."""
+        return self._perm
+
     def prepare(self) -> None:
         """Prepare the primitives in the current slot order into :attr:`prep` (on the coded grids
         while quantisation-aware), radii widened by the reach deferred steps ask for."""

@@ -249,6 +249,7 @@ class Refiner(Checkpointed, Reported, Probed):
         s.ids.assign(np.arange(self.n, dtype=np.int32))
         s.m1.zero_()
         s.m2.zero_()
+        self.updater.reread_anchors()
         self.rebin(replan=True)
 
     # -- the stages --------------------------------------------------------------------------
@@ -263,7 +264,7 @@ class Refiner(Checkpointed, Reported, Probed):
             self._graph = None
         if not self.state.clean:
             self.state.zero_grads()
-        if self.updater.refresh_anchors():
+        if self.updater.refresh_anchors(self.binner.perm):
             self._graph = None
         self.sampler.mark_support(self.binner.prep[0], self.binner.prep[3])
         if refresh:
@@ -401,6 +402,7 @@ class Refiner(Checkpointed, Reported, Probed):
         moved = self.relocator.move(self.iteration)
         if moved is None:
             return 0
+        self.updater.reread_anchors()
         self.relocations.append({"iteration": self.iteration, "moved": moved})
         if moved and rebin:
             self.rebin()

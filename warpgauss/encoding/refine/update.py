@@ -22,6 +22,11 @@ from .state import Primitives
 # iterations). "host": cached there only (in core, read every iteration, as before); "always";
 # "never"
 ANCHOR_CACHE = "host"
+# Where cached, the targets are read at every ANCHOR_REBINS-th re-bin and carried with their slots
+# (gathered by the re-bin's permutation) in between: at 2048^3 on the host path reading them at
+# every re-bin took 19.5 s of the encode (150 x 130 ms: 4M centres x 8 scattered reads across the
+# bus; scale/out_of_core2048_kernels_h200x2.json). 1: read at every re-bin, as before.
+ANCHOR_REBINS = 5
 
 
 class Update:
@@ -36,6 +41,8 @@ class Update:
         on_host = bool(getattr(dv, "on_host", False))
         self.cached = ANCHOR_CACHE == "always" or (ANCHOR_CACHE == "host" and on_host)
         self.anchors = self._wp.zeros(1, dtype=float, device=state.device)  # unused until refresh_anchors
+        self._anchors_b = self.anchors  # scratch of the gather (refresh_anchors)
+        self._carried = 0  # re-bins the cached targets were carried through since they were read
         c = config
         self.lr = kf.vec12(
             *([c.lr * c.lr_position] * 3),
@@ -96,16 +103,32 @@ class Update:
             device=s.device,
         )
 
-    def refresh_anchors(self) -> bool:
-        """Where the anchor targets are cached, read them at the slots' centres now (after a re-bin
-        has settled the slots' order); True where their array was (re)allocated, which drops a
-        captured iteration."""
+    def reread_anchors(self) -> None:
+        """The next :meth:`refresh_anchors` reads the targets (the centres jumped: new parameters, a relocation)."""
+        self._carried = ANCHOR_REBINS
+
+    def refresh_anchors(self, perm=None) -> bool:
+        """Where the anchor targets are cached: after a re-bin that moved the slots by ``perm``
+        (new slot i holds old slot perm[i]), carry them with their slots, or read them at the
+        slots' centres now at every :data:`ANCHOR_REBINS`-th (and with no ``perm``: a resume).
+        True where their array was (re)allocated, which drops a captured iteration."""
         if not self.cached:
             return False
+        from ...kernels import lists as kl
         from ...kernels import optim as ko
 
-        s, new = self.state, False
+        s, new, wp = self.state, False, self._wp
         if self.anchors.shape[0] != s.n:
-            self.anchors, new = self._wp.zeros(s.n, dtype=float, device=s.device), True
-        self._wp.launch(ko.anchor_targets, dim=s.n, inputs=[s.raw, self.quant, self.dv.values], outputs=[self.anchors], device=s.device)
+            self.anchors, self._anchors_b, new = (
+                wp.zeros(s.n, dtype=float, device=s.device),
+                wp.zeros(s.n, dtype=float, device=s.device),
+                True,
+            )
+        self._carried += 1
+        if new or perm is None or self._carried >= ANCHOR_REBINS:
+            wp.launch(ko.anchor_targets, dim=s.n, inputs=[s.raw, self.quant, self.dv.values], outputs=[self.anchors], device=s.device)
+            self._carried = 0
+        else:  # the targets follow their primitives into the new slot order (a copy back: a graph holds the address)
+            wp.launch(kl.gather_reach, dim=s.n, inputs=[perm, self.anchors], outputs=[self._anchors_b], device=s.device)
+            wp.copy(self.anchors, self._anchors_b)
         return new
