@@ -89,7 +89,9 @@ def main(argv=None) -> dict:
         default="1",
         help="with --volume-on-host: GPUs of this machine refining the one model (--devices cuda:0,...); a comma list: one row per count",
     )
-    ap.add_argument("--kernels", action="store_true", help="time every kernel and copy (CUDA activity, the graph off): the row's kernel_s")
+    ap.add_argument(
+        "--kernels", action="store_true", help="time every kernel and copy by stage (CUDA activity, the graph off): the row's kernel_s"
+    )
     ap.add_argument("--device", default=None)
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -157,21 +159,46 @@ def main(argv=None) -> dict:
     return result
 
 
-def _kernel_times() -> dict:
-    """Seconds and calls of each kernel, copy and set timed since timing_begin, the largest first."""
-    from collections import defaultdict
+class _KernelTimes:
+    """Seconds and calls of each kernel, copy and set (CUDA activity) by the encode's stage: the
+    timing restarts as each stage starts (``on_stage``), so every record lands in its stage."""
 
-    import warp as wp
+    FILTER = 0
 
-    per: dict = defaultdict(lambda: [0.0, 0])
-    for r in wp.timing_end():
-        name = r.name.rsplit("_", 1)[0] if r.name.startswith("forward kernel") else r.name
-        per[name][0] += r.elapsed / 1000.0
-        per[name][1] += 1
-    top = sorted(per.items(), key=lambda kv: -kv[1][0])
-    for k, v in top[:25]:
-        print(f"    {v[0]:8.3f} s {v[1]:7d}x  {k}", flush=True)
-    return {k: [round(v[0], 4), v[1]] for k, v in top}
+    def __init__(self):
+        import warp as wp
+
+        self.wp, self.stage, self.per = wp, "before", {}
+        self.FILTER = wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_MEMSET
+        wp.synchronize()
+        wp.timing_begin(cuda_filter=self.FILTER)
+
+    def _collect(self) -> None:
+        from collections import defaultdict
+
+        self.wp.synchronize()
+        per = self.per.setdefault(self.stage, defaultdict(lambda: [0.0, 0]))
+        for r in self.wp.timing_end():
+            name = r.name.rsplit("_", 1)[0] if r.name.startswith("forward kernel") else r.name
+            per[name][0] += r.elapsed / 1000.0
+            per[name][1] += 1
+
+    def on_stage(self, name: str, title: str) -> None:
+        self._collect()
+        self.stage = name
+        self.wp.timing_begin(cuda_filter=self.FILTER)
+
+    def finish(self) -> dict:
+        """{stage: {name: [seconds, calls]}}, the largest first; the top of each printed."""
+        self._collect()
+        out = {}
+        for stage, per in self.per.items():
+            top = sorted(per.items(), key=lambda kv: -kv[1][0])
+            out[stage] = {k: [round(v[0], 4), v[1]] for k, v in top}
+            print(f"  {stage}: {sum(v[0] for v in per.values()):.3f} s in kernels and copies", flush=True)
+            for k, v in top[:8]:
+                print(f"    {v[0]:8.3f} s {v[1]:7d}x  {k}", flush=True)
+        return out
 
 
 def _devices(k: int, dev: str = "cuda:0") -> list[str]:
@@ -202,12 +229,10 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     refine = {} if args.error_share is None else {"error_share": args.error_share}
+    timing = None
     if args.kernels:
-        import warp as wp
-
         refine["graph"] = False
-        wp.synchronize()
-        wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_MEMCPY | wp.TIMING_MEMSET)
+        timing = _KernelTimes()
     t0 = time.perf_counter()
     done = []
     m = warpgauss.encode(
@@ -225,10 +250,11 @@ def encode_once(args, path, dev, client, gpus: int, gen_s: float):
         iterations=args.iterations,
         client=client,
         devices=_devices(gpus, dev) if args.volume_on_host and gpus > 1 else None,
+        on_stage=None if timing is None else timing.on_stage,
         on_bricks=lambda d, t: (done.append(d), print(f"brick {d}/{t} at {time.perf_counter() - t0:.1f} s", flush=True)),
     )
     wall = time.perf_counter() - t0
-    kernels = _kernel_times() if args.kernels else None
+    kernels = None if timing is None else timing.finish()
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     r = m.report
     b = r.get("bricking") or {}
