@@ -567,7 +567,10 @@ def test_the_schedule_starts_bricks_together_only_on_one_gpu_that_holds_the_volu
     assert gpu.together and gpu.seam_refit == wsched.TOGETHER_SEAM_REFIT and gpu.report()["waves"] == "together"
     small = wsched.choose_schedule("cuda:0", None, False, shape, n, 100, need - 1)
     assert not small.together and small.seam_refit == 0.0 and "GiB" in small.why
-    assert not wsched.choose_schedule("cuda:0", object(), False, shape, n, 100, need).together  # a cluster
+    waves = wsched.choose_schedule("cuda:0", object(), False, shape, n, 100, need)  # a GPU cluster: waves, then the seams here
+    assert not waves.together and waves.seam_refit == wsched.GPU_WAVES_SEAM_REFIT > 0 and "GPU" in waves.why
+    assert wsched.choose_schedule("cuda:0", object(), False, shape, n, 100, need - 1).seam_refit == 0.0  # too small for the refit
+    assert wsched.choose_schedule("cuda:0", object(), True, shape, n, 100, need).seam_refit == 0.0  # read brick by brick
     assert not wsched.choose_schedule("cuda:0", None, True, shape, n, 100, need).together  # read brick by brick
     assert not wsched.choose_schedule("cuda:0", None, False, shape, n, 0, need).together  # no refinement
     monkeypatch.setattr(ww, "warp", lambda: real)
