@@ -329,7 +329,9 @@ def _print_summary(rep: dict, verbose: bool = False) -> None:
             f"every voxel within the bound {res['bound']:.6g} source units",
             soft_wrap=True,
         )
-    out_console.print(f"time: {rep['total_seconds']:.2f} s on {rep['device_name']}")
+    replicas = (rep.get("refinement") or {}).get("replicas")
+    spread = f" (refined on {', '.join(replicas['devices'])})" if replicas else ""
+    out_console.print(f"time: {rep['total_seconds']:.2f} s on {rep['device_name']}{spread}")
     if verbose:
         t = Table(show_edge=False, header_style="bold")
         for col in ("stage", "what", "seconds", "host peak", "device peak"):

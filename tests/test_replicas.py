@@ -224,3 +224,15 @@ def test_a_ladder_refuses_devices(tmp_path):
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 2 and "--ladder" in res.output and "Traceback" not in res.output
     assert not list(tmp_path.iterdir())
+
+
+def test_the_command_line_says_where_it_refined(tmp_path):
+    from typer.testing import CliRunner
+
+    from warpgauss.cli.main import app
+
+    out = tmp_path / "m.wgs"
+    args = ["encode", "--example", "vortex", "--size", "16", "--budget", "40", "--iterations", "10", "--devices", "cpu,cpu", "-o", str(out)]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert "refined on cpu, cpu" in res.output and out.exists()
