@@ -122,6 +122,15 @@ def test_replicas_stay_equal_and_refine(cpu):
     assert again.model_params().tobytes() == two.model_params().tobytes()
 
 
+def test_replicas_without_importance_or_error_stratum(cpu):
+    """Plain uniform draws (no importance weights, no error stratum, no support): the replicas
+    still stay equal and refine."""
+    f = _field()
+    r = _replicated(cpu, f, importance=False, error_share=0.0, uniform_support=False)
+    r.run(log_every=30)
+    assert r.replicas.equal() and r.replicas.peers[0].sampler.m_err == 0
+
+
 def test_silence_is_mirrored(cpu):
     """The rate control's re-plan takes primitives out on every replica: they stay equal."""
     f = _field()
@@ -190,14 +199,23 @@ def test_an_encode_on_two_replicas(cpu):
         ({"devices": "cpu,cpu", "time_budget": 5.0}, "time budget"),
         ({"devices": "cpu,cpu", "bricks": "2x1x1"}, "bricked"),
         ({"devices": "cpu,nowhere:3"}, "not available"),
+        ({"devices": "cpu,cpu", "source": "array"}, "device array"),
     ],
 )
 def test_devices_refused_in_one_line(tmp_path, kw, words):
     import warpgauss
 
     out = tmp_path / "m.wgs"
+    source = {}
+    if kw.pop("source", None):  # a Warp array on the CPU device stands in for a device array
+        from warpgauss.core.warp import warp
+        from warpgauss.readers.synthetic import generate
+
+        source = {"source": warp().array(generate("vortex", 16), dtype=float, device="cpu")}
+    else:
+        source = {"example": "vortex", "example_size": 16}
     with pytest.raises(WarpgaussError, match=words):
-        warpgauss.encode(example="vortex", example_size=16, budget=40, iterations=5, output=out, progress=False, **kw)
+        warpgauss.encode(**source, budget=40, iterations=5, output=out, progress=False, **kw)
     assert not out.exists()
 
 

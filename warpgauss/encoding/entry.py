@@ -311,6 +311,8 @@ def checked_request(source, cfg: EncodeConfig, session) -> tuple[object, str | N
         devices = device_list(cfg)
         if cfg.refinement.time_budget is not None or session is not None:
             raise WarpgaussError("--devices does not combine with a time budget (it refines on one device); give one of them")
+        if is_device_array(source):
+            raise WarpgaussError("--devices takes a file or a host array; a device array is encoded on its own device")
         device = devices[0]
     return source, device, opts
 
