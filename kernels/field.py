@@ -536,6 +536,12 @@ def slot_cells(
 
 
 @wp.kernel
+def cell_members(cell_start: wp.array(dtype=int), cell_end: wp.array(dtype=int), c: int, out: wp.array(dtype=int)):
+    """out[0] = the number of slots binned in cell ``c`` (one thread; one read-back instead of two)."""
+    out[0] = cell_end[c] - cell_start[c]
+
+
+@wp.kernel
 def count_keys(
     sorted_keys: wp.array(dtype=int),  # [>=K] cell id of each entry, ascending
     count: int,  # K entries (the launch has K threads)
