@@ -124,3 +124,14 @@ def unreached_squares(
                 x = vol[v[0], v[1], v[2]]
                 s += x * x
     out[bk, bj, bi] = s
+
+
+@wp.kernel
+def sum_runs(values: wp.array(dtype=float), run: int, partials: wp.array(dtype=wp.float64)):
+    """partials[t] = the float64 sum of values[t run .. (t + 1) run), in order (one thread a run):
+    a large per-brick array summed on the device, so that only its partials are read back."""
+    t = wp.tid()
+    s = wp.float64(0.0)
+    for i in range(t * run, wp.min((t + 1) * run, values.shape[0])):
+        s += wp.float64(values[i])
+    partials[t] = s
