@@ -129,9 +129,7 @@ def choose_schedule(
     elif on_cpu:
         together, why = False, "the CPU steps bricks one at a time"
     else:
-        limit = default_device_limit(device) if limit is None else limit
-        need = brick_device_bytes(int(np.prod(shape_xyz)), 1.5 * n)
-        together = limit is None or need <= limit
+        together, need, limit = _refit_fits(device, limit, shape_xyz, n)
         why = "one GPU that holds the whole volume for the seams' refit"
         if limit is not None and not together:
             why = f"the seams' refit would need about {need / 2**30:.1f} GiB of the device, {limit / 2**30:.1f} GiB allowed"
@@ -141,12 +139,18 @@ def choose_schedule(
         # a cluster as here (the same model on any number of workers)
         share, why = CPU_WAVES_SEAM_REFIT, f"{why}; the seams refit after the waves on this process's CPU"
     elif SEAM_REFIT is None and not together and iterations > 0 and not lazy and client is not None:
-        limit = default_device_limit(device) if limit is None else limit
-        need = brick_device_bytes(int(np.prod(shape_xyz)), 1.5 * n)
-        if limit is None or need <= limit:  # a GPU here that holds the whole volume for the refit
+        if _refit_fits(device, limit, shape_xyz, n)[0]:  # a GPU here that holds the whole volume for the refit
             share, why = GPU_WAVES_SEAM_REFIT, f"{why}; the seams refit after the waves on this process's GPU"
     share = share if SEAM_REFIT is None else float(SEAM_REFIT)
     return BrickSchedule(together, share, why)
+
+
+def _refit_fits(device: str, limit: int | None, shape_xyz, n: int) -> tuple[bool, int, int | None]:
+    """(whether ``device`` holds the whole volume and 1.5 ``n`` primitives for the seams' refit
+    under ``limit`` bytes, default :func:`default_device_limit`; the bytes needed; the limit)."""
+    limit = default_device_limit(device) if limit is None else limit
+    need = brick_device_bytes(int(np.prod(shape_xyz)), 1.5 * n)
+    return limit is None or need <= limit, need, limit
 
 
 @contextlib.contextmanager
