@@ -7,8 +7,6 @@ so evaluation stays exact with stale bins.
 
 from __future__ import annotations
 
-from typing import Any
-
 from ...core.warp import warp
 from .state import Primitives
 
@@ -33,7 +31,7 @@ class Binner:
         self._keys = wp.empty(2 * n, dtype=int, device=dev)
         self._perm = wp.empty(2 * n, dtype=int, device=dev)
         self.rebins = 0
-        self._members: Any = None  # global_members' read-back
+        self._members = wp.zeros(1, dtype=int, device=dev)  # global_members' read-back
 
     @property
     def perm(self):
@@ -123,8 +121,6 @@ class Binner:
 
         s = self.state
         p = s.prims
-        if self._members is None:
-            self._members = self._wp.zeros(1, dtype=int, device=s.device)
         # one read-back a re-bin, not two: each one waits for the device (at 2048^3 on the host path
         # about 33 ms, scale/out_of_core2048_stagekernels_it600_h200.json)
         self._wp.launch(
