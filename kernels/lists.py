@@ -305,6 +305,7 @@ def morton_keys(
 
 @wp.kernel
 def gather_reach(perm: wp.array(dtype=int), reach: wp.array(dtype=float), out: wp.array(dtype=float)):
-    """out[i] = reach[perm[i]]: a deferred step's reach, old slot order into the new (re-bin)."""
+    """out[i] = reach[perm[i]]: a per-slot float from the old slot order into the new at a re-bin
+    (a deferred step's reach; the held anchor targets, refine.update.refresh_anchors)."""
     i = wp.tid()
     out[i] = reach[perm[i]]
