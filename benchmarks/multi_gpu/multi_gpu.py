@@ -5,7 +5,9 @@ For each size: an example field generated here, encoded with the same bricking a
 Dask cluster of 1 GPU worker, then of 2 (``--gpus``), each worker a process with its own GPU
 (``warpgauss.encoding.scale.cluster.gpu_client``: CUDA_VISIBLE_DEVICES per worker, Dask's own TCP transport).
 Each row: gpus, seconds, speedup against gpus=1, PSNR, and whether the model equals the one-GPU
-model bit for bit (same seed, same bricking: it must). ``--together 0.25`` adds each worker count
+model bit for bit (same seed, same bricking: it must). The default rows run the encode's own
+schedule (``rule`` in the row: the waves on a GPU cluster, then the seams refit on this process's
+GPU where it holds the whole volume). ``--together 0.25`` adds each worker count
 with every brick started at once (``warpgauss.encoding.scale.bricks.schedule``: no waves, stand-ins for every
 neighbour) and the seams then refit together on this process's GPU for that share of the
 iterations (0: none), rows with ``"schedule": "together"``. Then ``--series`` timesteps of an evolving
@@ -175,7 +177,9 @@ def main(argv=None) -> dict:
                     local = warpgauss.encoding.scale.cluster.is_local
                     warpgauss.encoding.scale.cluster.is_local = lambda client: False  # type: ignore[assignment]
                 try:
-                    with wsched.schedule(share is None, share or 0.0):
+                    # the default row: the encode's own rule (waves on a GPU cluster, then the seams
+                    # refit on this process's GPU where it holds the whole volume)
+                    with wsched.schedule(None if share is None else False, None if share is None else share):
                         m = warpgauss.encode(vol, budget=budget, bricks=args.bricks, client=clients[k], **common)
                 finally:
                     if through_graph:
@@ -186,6 +190,7 @@ def main(argv=None) -> dict:
                 row = {
                     "what": "bricked encode" + (" (boxes through the graph)" if through_graph else ""),
                     "schedule": "neighbours first" if share is None else "together",
+                    "rule": b["schedule"],
                     "seam_refit": b.get("seam_refit"),
                     "volume_to_workers": b["volume_to_workers"],
                     "stages": [{"stage": x["stage"], "seconds": x["seconds"]} for x in m.report.get("stages", [])],
