@@ -3,7 +3,7 @@
 The iteration's points are binned on one :class:`PointGrid` per primitive level, sorted by cell
 (:func:`gather_point_state` copies what the pass reads of them into that order). Each primitive's
 candidate points are the entries of the grid rows its 5-sigma box reaches: :func:`pair_work`
-counts them, :func:`pair_chunks` and :func:`chunk_owner` split them into chunks, in groups that
+counts them, :func:`pair_chunks` and :func:`chunk_owner` (or :func:`chunk_owner_search`) split them into chunks, in groups that
 share the box's rows; :func:`pair_grad_chunks` sums one chunk per thread in the grid's frame
 (K = sum k d and the six entries of D = sum k d d^T, with k = dL/dG G: 11 sums a thread, no
 rotation a pair); :func:`reduce_lanes` adds blocks of a group's chunks and :func:`reduce_chunks` a
@@ -99,20 +99,31 @@ def pair_work(
     slot_cell: wp.array(dtype=int),  # [N] cell id each sorted slot is binned in
     prims: BinnedPrimitives,
     grid: PointGrid,
-    work: wp.array(dtype=wp.int64),  # [N] out: candidate points of each slot (entries in its box rows)
+    split: int,  # threads a primitive: each counts every split-th row of its box
+    work: wp.array(dtype=wp.int64),  # [N] out: candidate points of each slot (entries in its box rows); zeroed before where split > 1
     rows: wp.array(dtype=int),  # [N] out: rows of its box
 ):
-    """Count the candidate points and the rows of each primitive's box (one thread each)."""
-    j = wp.tid()
+    """Count the candidate points and the rows of each primitive's box (``split`` threads each,
+    rows y fastest then z dealt out in turn; integer sums, so the same counts in any order: with
+    few primitives a thread each left most of the GPU idle while each walked hundreds of rows)."""
+    t = wp.tid()
+    j = t / split
+    s = t - j * split
     l = slot_level(slot_cell[j], prims.level_offset)
     lo, hi = box_rows(prims.mu[j], prims.ext[j], l, grid)
+    ny = hi[1] - lo[1] + 1
+    nr = ny * (hi[2] - lo[2] + 1)
     w = wp.int64(0)
-    for z in range(lo[2], hi[2] + 1):
-        for y in range(lo[1], hi[1] + 1):
-            r = row_range(grid, l, lo, hi, y, z)
-            w += wp.int64(r[1] - r[0])
-    work[j] = w
-    rows[j] = (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1)
+    for q in range(s, nr, split):
+        z = lo[2] + q / ny
+        r = row_range(grid, l, lo, hi, lo[1] + q - (q / ny) * ny, z)
+        w += wp.int64(r[1] - r[0])
+    if split == 1:
+        work[j] = w
+    elif w != wp.int64(0):
+        wp.atomic_add(work, j, w)
+    if s == 0:
+        rows[j] = nr
 
 
 @wp.kernel
@@ -157,6 +168,29 @@ def chunk_owner(
     base = chunk_cum[j] - c
     for t in range(c):
         owner[base + t] = j
+
+
+@wp.kernel
+def chunk_owner_search(
+    chunk_cum: wp.array(dtype=int),  # [N] inclusive scan of chunks
+    owner: wp.array(dtype=int),  # [>= sum chunks] out: slot of each chunk
+):
+    """:func:`chunk_owner` one thread per chunk: the first slot whose inclusive chunk count
+    exceeds the chunk's number (a binary search; the same owners). Threads past the chunk count
+    return at once."""
+    t = wp.tid()
+    n = chunk_cum.shape[0]
+    if t >= chunk_cum[n - 1]:
+        return
+    lo = int(0)
+    hi = n - 1
+    while lo < hi:
+        mid = (lo + hi) / 2
+        if chunk_cum[mid] > t:
+            hi = mid
+        else:
+            lo = mid + 1
+    owner[t] = lo
 
 
 @wp.func

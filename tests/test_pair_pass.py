@@ -115,6 +115,35 @@ def test_register_capped_backward_is_the_same_kernel(device, monkeypatch):
             np.testing.assert_array_equal(x, y)
 
 
+@pytest.mark.parametrize("split,owner_search", [(1, 4), (3, 1 << 30), (8, 1), (5, 4)])
+def test_split_counts_and_searched_owners_change_nothing(device, monkeypatch, split, owner_search):
+    """The candidate counts taken by several threads a primitive (any split, rows dealt out in
+    turn) and the chunks' owners found by a binary search give the counts, the owners and the
+    gradients of one thread a primitive, bit for bit; the owners are numpy's repeat of the slots."""
+    from warpgauss.encoding.refine import passes
+
+    monkeypatch.setattr(passes, "MIN_CHUNK", 2)
+    runs = []
+    for ws, below, search in ((1, 0, 1 << 30), (split, 1 << 30, owner_search)):
+        monkeypatch.setattr(passes, "WORK_SPLIT", ws)
+        monkeypatch.setattr(passes, "WORK_SPLIT_BELOW", below)
+        monkeypatch.setattr(passes, "OWNER_SEARCH_SLOTS", search)
+        r = _refiner(device)
+        grads, pairs, _ = _pair_pass(r)
+        b = r.passes.buffers()
+        chunks = b["chunks"].numpy()[: r.n]
+        owner = b["owner"].numpy()[: int(chunks.sum())]
+        np.testing.assert_array_equal(owner, np.repeat(np.arange(r.n), chunks))
+        assert (chunks > 1).sum() > r.n // 4  # several chunks a primitive: the search has work
+        runs.append((grads, pairs, b["work"].numpy()[: r.n].copy(), b["rows"].numpy()[: r.n].copy()))
+    (g0, p0, w0, r0), (g1, p1, w1, r1) = runs
+    np.testing.assert_array_equal(w1, w0)
+    np.testing.assert_array_equal(r1, r0)
+    np.testing.assert_array_equal(p1, p0)
+    for x, y in zip(g1, g0):
+        np.testing.assert_array_equal(x, y)
+
+
 def test_chunked_pass_keeps_every_pair_of_needle_and_disc_shapes(device):
     """Rotated primitives up to 40:1 (needles and discs), centres past the grid, partner points:
     the chunked pass, the forward pass, the dense all-pairs reference and the atomic scatter count

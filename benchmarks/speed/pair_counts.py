@@ -109,7 +109,7 @@ def _counts(r) -> dict:
         lens = np.diff(b["lists"].start.numpy().astype(np.int64))
         out["forward_candidates"] = int((pts * lens[: pts.size]).sum())
     n, st = r.n, r.state
-    wp.launch(kc.pair_work, dim=n, inputs=[st.slot_cell, st.prims, b["grid"]], outputs=[b["work"], b["rows"]], device=r.device)
+    wp.launch(kc.pair_work, dim=n, inputs=[st.slot_cell, st.prims, b["grid"], 1], outputs=[b["work"], b["rows"]], device=r.device)
     out["backward_candidates"] = int(b["work"].numpy().astype(np.int64).sum())
     out["backward_rows"] = int(b["rows"].numpy().astype(np.int64).sum())
     out["count_s"] = round(time.perf_counter() - t, 2)

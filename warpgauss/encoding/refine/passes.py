@@ -97,6 +97,17 @@ MORTON_MIN_ENTRIES = 32.0
 # 29.18 ms at 20K x 65,536 / 20K x 1M / 1.4M x 65,536 / 1.4M x 1M against 1.13 / 11.52 / 4.31 /
 # 32.26 as compiled; 48 spilled (1.21 / 10.86 / 4.16 / 31.15)
 BACKWARD_REGISTERS = 64
+# below WORK_SPLIT_BELOW primitives the backward pass's candidate count (kernels.chunked.pair_work)
+# takes WORK_SPLIT threads a primitive, each every WORK_SPLIT-th row of its box (1: one thread a
+# primitive), and where the chunk capacity is OWNER_SEARCH_SLOTS or more chunks a primitive the
+# chunks find their primitive by a binary search (chunked.chunk_owner_search), one thread a chunk,
+# rather than each primitive writing its chunks' owners in turn: the same counts and owners.
+# With few large primitives (high ratios) one thread a primitive left most of the GPU idle: at mni_icbm152
+# CR 1000 (N 919, 120,416 chunks) pair_work took 36 us and chunk_owner 48 of a 552 us iteration
+# (one H200, results/speed/iteration_floor_groups_mni_icbm152_h200.json)
+WORK_SPLIT = 8
+WORK_SPLIT_BELOW = 1 << 16
+OWNER_SEARCH_SLOTS = 4
 
 
 def picks_split(cuda: bool, n_points: int, n_primitives: int = 0, dense_rule: bool = True) -> bool:
@@ -435,7 +446,10 @@ class PairPasses:
         if count_pairs:
             self.back_pairs.zero_()
         grid, cap = b["grid"], b["capacity"]
-        wp.launch(kc.pair_work, dim=n, inputs=[st.slot_cell, st.prims, grid], outputs=[b["work"], b["rows"]], device=dev)
+        split = WORK_SPLIT if n < WORK_SPLIT_BELOW else 1
+        if split > 1:
+            b["work"].zero_()
+        wp.launch(kc.pair_work, dim=n * split, inputs=[st.slot_cell, st.prims, grid, split], outputs=[b["work"], b["rows"]], device=dev)
         wp.utils.array_scan(b["work"], b["work_cum"], inclusive=True)
         wp.launch(
             kc.pair_chunks,
@@ -445,7 +459,10 @@ class PairPasses:
             device=dev,
         )
         wp.utils.array_scan(b["chunks"], b["chunk_cum"], inclusive=True)
-        wp.launch(kc.chunk_owner, dim=n, inputs=[b["chunks"], b["chunk_cum"]], outputs=[b["owner"]], device=dev)
+        if b["slots"] >= OWNER_SEARCH_SLOTS * n:
+            wp.launch(kc.chunk_owner_search, dim=b["slots"], inputs=[b["chunk_cum"]], outputs=[b["owner"]], device=dev)
+        else:
+            wp.launch(kc.chunk_owner, dim=n, inputs=[b["chunks"], b["chunk_cum"]], outputs=[b["owner"]], device=dev)
         wp.launch(
             kc.pair_grad_chunks_r64 if BACKWARD_REGISTERS == 64 else kc.pair_grad_chunks,
             dim=b["slots"],
