@@ -382,7 +382,7 @@ class _ReadVolume(ReadOptions):
 
     volume: object = None
 
-    def read(self, path, lazy=False):
+    def read(self, path, lazy=False, max_voxels=None):
         vol, s = self.volume, self.stride
         if s == 1:
             return vol
