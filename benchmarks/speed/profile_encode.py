@@ -34,7 +34,8 @@ def main(argv=None) -> dict:
         default="default",
         help="default, nolists (RefineConfig(cell_lists=False)), fast (--preset fast), it300 (the default's "
         "sampling at 300 iterations), nograph (the refiner's CUDA graph off), comma-separated; NAME+field=value+... "
-        "sets RefineConfig fields on variant NAME (e.g. it300+lr=0.016)",
+        "sets RefineConfig fields on variant NAME (e.g. it300+lr=0.016); budgetT: the defaults with --time-budget T "
+        "(seconds, e.g. budget1.5: the whole encode's wall time against its promise)",
     )
     ap.add_argument(
         "--patch",
@@ -65,6 +66,8 @@ def main(argv=None) -> dict:
     }
     patches = _patches(args.patch)
     variants.update({name: RefineConfig() for name in patches})
+    budgets = {name: float(name[len("budget") :]) for name in args.variants.split(",") if name.startswith("budget")}
+    variants.update({name: RefineConfig() for name in budgets})
     for name in args.variants.split(","):  # NAME+field=value+...: RefineConfig fields on a listed variant
         if "+" in name and name not in variants:
             base, *sets = name.split("+")
@@ -90,7 +93,7 @@ def main(argv=None) -> dict:
             src = source(vol)  # an example field is generated before the clock starts (a file is read within it)
             wp.synchronize()
             t = time.perf_counter()
-            how = {"preset": variant} if rc is None else {"refine": rc}
+            how = {"preset": variant} if rc is None else {"time_budget": budgets[variant]} if variant in budgets else {"refine": rc}
             if args.volume_on_host:
                 how.update(volume_on_host=True, max_device_memory=args.volume_on_host)
             m = warpgauss.encode(src, ratio=ratio, device=dev, **how)
@@ -102,6 +105,7 @@ def main(argv=None) -> dict:
                 "variant": variant,
                 "patch": {k: v for k, v in patches.get(variant, {}).items()},
                 "wall_s": wall,
+                "time_budget_s": budgets.get(variant),
                 "total_s": rep.get("total_seconds"),
                 "n": m.n,
                 "psnr_db": rep["evaluation"]["final"]["psnr_db"],
