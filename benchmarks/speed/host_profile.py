@@ -4,6 +4,7 @@ of the CUB sorts and scans an iteration runs (Warp's activity timing does not se
 
     python benchmarks/speed/host_profile.py VOLUME.npy RATIO OUT.json
     python benchmarks/speed/host_profile.py interface@512 100 OUT.json   # an example field, NAME@SIZE
+    python benchmarks/speed/host_profile.py VOLUME.npy 100 OUT.json 1.0  # with --time-budget 1.0
 """
 
 from __future__ import annotations
@@ -25,17 +26,20 @@ from warpgauss.readers.synthetic import generate
 wp = warp()
 dev = resolve_device(None)
 vol, ratio, out = sys.argv[1], float(sys.argv[2]), sys.argv[3]
+budget = float(sys.argv[4]) if len(sys.argv) > 4 else None
 warpgauss.encode(generate("vortex", 32), ratio=10, device=dev)
-res = {**result_header("host profile of one default encode", __file__, None, dev), "volume": vol, "ratio": ratio}
+res = {**result_header("host profile of one default encode", __file__, None, dev), "volume": vol, "ratio": ratio, "time_budget": budget}
 if "@" in vol and not vol.endswith(".npy"):
     name, size = vol.split("@")
     source = generate(name, int(size))
 else:
     source = vol
+if budget is not None:  # a warm-up on the same path (the budget's probe steps run plain launches)
+    warpgauss.encode(source, ratio=ratio, device=dev, time_budget=budget)
 pr = cProfile.Profile()
 t = time.perf_counter()
 pr.enable()
-m = warpgauss.encode(source, ratio=ratio, device=dev)
+m = warpgauss.encode(source, ratio=ratio, device=dev, time_budget=budget)
 res["report"] = {k: m.report.get(k) for k in ("stages", "budget", "skipped")}
 res["report"]["refinement"] = {k: v for k, v in m.report["refinement"].items() if k != "loss_history"}
 pr.disable()
