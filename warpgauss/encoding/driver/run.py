@@ -23,9 +23,15 @@ from .sizing import coded_budget, resolve_budget, target_bytes
 
 # --time-budget is the whole call's (reading to writing, the kernels' compile not counted):
 # refinement ends early enough to leave this share of it, and TAIL_CODINGS codings of the model
-# at the pilot's measured speed, for what follows (the fit to the byte budget, evaluation, writing)
+# at the pilot's measured speed, for what follows (the fit to the byte budget, evaluation, writing).
+# The fit codes on threads, several codings at a time: one H200 host, the three MRIs at CR 100 with
+# --time-budget 1 / 2 / 4 (results/speed/profile_time_budget_mri_h200.json) fitted in 0.06-0.33 s,
+# at most 4.9 of the pilot's codings (mean_reg2mean at 1 s: 16 codings of the analytic model in
+# 0.37 s, a coding 0.067 s; results/speed/host_profile_mean100_budget1_h200.json). At 8 the reserve
+# (0.54 s there) left that call no iteration at all (26.51 dB, the whole call 0.78 s of its 1 s),
+# and every call of those nine ended 13-35 % short of its budget
 TAIL_SHARE = 0.05
-TAIL_CODINGS = 8
+TAIL_CODINGS = 5
 
 
 def encode_field(
