@@ -57,22 +57,8 @@ def main(argv=None) -> dict:
         "compile_s": time.perf_counter() - t0,
         "rows": [],
     }
-    variants = {
-        "default": RefineConfig(),
-        "nolists": RefineConfig(cell_lists=False),
-        "fast": None,
-        "it300": RefineConfig(iterations=300),
-        "nograph": RefineConfig(graph=False),
-    }
     patches = _patches(args.patch)
-    variants.update({name: RefineConfig() for name in patches})
-    budgets = {name: float(name[len("budget") :]) for name in args.variants.split(",") if name.startswith("budget")}
-    variants.update({name: RefineConfig() for name in budgets})
-    for name in args.variants.split(","):  # NAME+field=value+...: RefineConfig fields on a listed variant
-        if "+" in name and name not in variants:
-            base, *sets = name.split("+")
-            fields = {k: float(v) if "." in v or "e" in v else int(v) for k, v in (x.split("=") for x in sets)}
-            variants[name] = dataclasses.replace(variants[base] or RefineConfig(), **fields)
+    variants, budgets = _variants(args.variants.split(","), patches)
     examples: dict[str, object] = {}
 
     def source(vol: str):
@@ -145,6 +131,26 @@ def main(argv=None) -> dict:
             res["rows"].append(row)
     Path(args.out).write_text(json.dumps(res, indent=1))
     return res
+
+
+def _variants(names: list[str], patches: dict) -> tuple[dict, dict[str, float]]:
+    """(variant name -> RefineConfig, or None for ``--preset fast``; budgetT name -> T seconds)."""
+    variants = {
+        "default": RefineConfig(),
+        "nolists": RefineConfig(cell_lists=False),
+        "fast": None,
+        "it300": RefineConfig(iterations=300),
+        "nograph": RefineConfig(graph=False),
+    }
+    variants.update({name: RefineConfig() for name in patches})
+    budgets = {name: float(name[len("budget") :]) for name in names if name.startswith("budget")}
+    variants.update({name: RefineConfig() for name in budgets})
+    for name in names:  # NAME+field=value+...: RefineConfig fields on a listed variant
+        if "+" in name and name not in variants:
+            base, *sets = name.split("+")
+            fields = {k: float(v) if "." in v or "e" in v else int(v) for k, v in (x.split("=") for x in sets)}
+            variants[name] = dataclasses.replace(variants[base] or RefineConfig(), **fields)
+    return variants, budgets
 
 
 def _patches(specs: list[str]) -> dict[str, dict[str, float]]:
