@@ -189,7 +189,7 @@ def main(argv=None) -> dict:
                 devices = sorted({x["device"] for x in b["bricks"]})
                 row = {
                     "what": "bricked encode" + (" (boxes through the graph)" if through_graph else ""),
-                    "schedule": "neighbours first" if share is None else "together",
+                    "schedule": b["schedule"]["waves"],  # the rule's: a CPU cluster of idle workers takes "together"
                     "rule": b["schedule"],
                     "seam_refit": b.get("seam_refit"),
                     "volume_to_workers": b["volume_to_workers"],
