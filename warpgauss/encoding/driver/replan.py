@@ -59,6 +59,14 @@ REPLAN_MIN_ITERATIONS = 100
 # at 46.4 (52.6 without the error stratum, a 37 % cut; H200, accuracy/sweep_fields512_err_h200.json);
 # of the 83 other rows of the two sweeps (three MRIs too) none cut more than 38 %: this changes none of them
 REPLAN_MAX_CUT = 0.4
+# the order in which the re-plan takes primitives out: "weight" (ratefit.importance: weight x sigma
+# volume, least first) or "left-out" (ratefit.importance_left_out: what leaving each out changes at
+# its centre, the model evaluated there once). On one H200 the cut of 24 / 36 % at CR 10 took the
+# sample PSNR of mni_icbm152 / inia19 from 39.84 / 51.95 to 35.58 / 47.97 dB, regained only by
+# iteration 750 / 600 of 1,500, and mni_icbm152 ended 3 dB under a float32 model trained at the
+# final N from the start (accuracy/sweep_round3b_h200.json); "left-out" is the candidate, not yet
+# measured in the encode (sweep.py variant cut-left-out)
+CUT_ORDER = "weight"
 # a second look half-way from the re-plan to the end (iteration (T + K) / 2), off: the rest of the
 # run is then as long as the span since the re-plan and is expected to gain what that span gained
 # (REPLAN_LATE_EXTRAPOLATE x; nothing where it lost); where the model would code at more bits than
@@ -185,7 +193,7 @@ class Replan:
         model codes within the budget (times :data:`REPLAN_GROWTH`) at the depths of ``expected``
         (fewer bits while more than :data:`REPLAN_MAX_CUT` would go); what was planned and done."""
         from ...format.coded import BITS_REFERENCE_DB, DB_PER_BIT
-        from ...format.ratefit import bits_for_psnr, importance
+        from ...format.ratefit import bits_for_psnr
         from ...format.wgs import payload_size, wgs_bytes
 
         assert self.budget_bytes is not None
@@ -223,7 +231,7 @@ class Replan:
             r = next((x for x in results if enough(x)), results[-1])
         planned, bits, extra, keep, predicted = r["planned"], r["bits"], r["extra"], r["keep"], r["predicted"]
         if keep < n:
-            order = np.argsort(importance(params), kind="stable")  # least important first
+            order = np.argsort(self._cut_importance(refiner, params), kind="stable")  # least important first
             refiner.silence(order[: n - keep])
         return {
             "expected_psnr_db": expected,
@@ -235,6 +243,17 @@ class Replan:
             "n_before": n,
             "n_after": keep,
         }
+
+    def _cut_importance(self, refiner, params: np.ndarray) -> np.ndarray:
+        """Each live primitive's importance for the re-plan's cut, by :data:`CUT_ORDER`."""
+        from ...format.ratefit import importance, importance_left_out
+
+        if CUT_ORDER == "weight":
+            return importance(params)
+        if CUT_ORDER != "left-out":
+            raise ValueError(f"replan.CUT_ORDER must be 'weight' or 'left-out', not {CUT_ORDER!r}")
+        value, density, _ = Model(params, self.header).field(refiner.device).evaluate_full(params[:, 0:3])
+        return importance_left_out(params, value, density)
 
     def refit_pruned(self, refined: Model, cap: float, deadline: float | None) -> None:
         """A model pruned to its byte budget, refined again briefly without the pruned primitives
