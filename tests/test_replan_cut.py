@@ -36,7 +36,7 @@ def test_left_out_importance_is_the_change_at_each_centre(cpu):
 
 
 def test_a_left_out_cut_takes_out_as_many_others_and_the_file_fits(tmp_path, cpu, monkeypatch):
-    """replan.CUT_ORDER "left-out": the same re-plan (iteration, depths, how many go), other
+    """replan.CUT_ORDER "left-out" (the default) against "weight": the same re-plan (iteration, depths, how many go), other
     primitives taken out, the same file for the same seed, within its byte budget; an unknown
     order is refused by name."""
     import warpgauss
@@ -45,6 +45,7 @@ def test_a_left_out_cut_takes_out_as_many_others_and_the_file_fits(tmp_path, cpu
 
     vol = generate("vortex", 24, seed=0)
     kw = dict(ratio=20, iterations=120, samples=1024, device=cpu, self_test=False, seed=1)
+    monkeypatch.setattr(replan, "CUT_ORDER", "weight")
     by_weight = warpgauss.encode(vol, **kw)
     monkeypatch.setattr(replan, "CUT_ORDER", "left-out")
     a = warpgauss.encode(vol, **kw, output=tmp_path / "a.wgs")

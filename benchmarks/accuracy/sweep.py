@@ -54,10 +54,8 @@ Variants (``--variants``, comma list):
                the cell lists' boxes padded by 0 / 0.5 voxels (and the 10 % share) instead of 1
     rc16-pad0  both
     cellorder  the listed forward visits the points by level-0 point cell (before the Morton order)
-    cut-left-out
-               the re-plan takes out first the primitives whose leaving changes least at their centres
-               (``replan.CUT_ORDER`` "left-out", ``ratefit.importance_left_out``) instead of the
-               least weight x sigma volume
+    cut-weight the re-plan takes out the least weight x sigma volume first (``replan.CUT_ORDER``
+               "weight", the order before "left-out", ``ratefit.importance_left_out``)
 
     python benchmarks/accuracy/sweep.py --device cuda:0 --ratios 30,300 --size 256 \\
         --variants paper,default,centres,jitter-iw --volume-dir /tmp/vol --out sweep.json
@@ -134,13 +132,13 @@ VARIANTS: dict[str, tuple] = {
     "pad05": ({}, (None, None)),
     "rc16-pad0": ({}, (None, None)),
     "cellorder": ({}, (None, None)),
-    "cut-left-out": ({}, (None, None)),
+    "cut-weight": ({}, (None, None)),
 }
 # variants that change a constant of warpgauss.encoding.refine.config for their encodes
 TWICE_THE_SAMPLES = {"GPU_VOXELS_PER_SAMPLE": 64, "GPU_MAX_SAMPLES": 262_144}
 CONFIG_CONSTANTS: dict[str, dict[str, int]] = {"nosmooth-2x": TWICE_THE_SAMPLES, "nosmooth-2x-it1000": TWICE_THE_SAMPLES}
 # variants that change a constant of warpgauss.encoding.driver.replan for their encodes
-REPLAN_CONSTANTS: dict[str, dict[str, object]] = {"late": {"REPLAN_LATE": True}, "cut-left-out": {"CUT_ORDER": "left-out"}}
+REPLAN_CONSTANTS: dict[str, dict[str, object]] = {"late": {"REPLAN_LATE": True}, "cut-weight": {"CUT_ORDER": "weight"}}
 # variants that change a constant of warpgauss.format.coded for their encodes
 CODED_CONSTANTS: dict[str, dict[str, float]] = {
     "bits37": {"BITS_REFERENCE_DB": 37.0},

@@ -59,14 +59,19 @@ REPLAN_MIN_ITERATIONS = 100
 # at 46.4 (52.6 without the error stratum, a 37 % cut; H200, accuracy/sweep_fields512_err_h200.json);
 # of the 83 other rows of the two sweeps (three MRIs too) none cut more than 38 %: this changes none of them
 REPLAN_MAX_CUT = 0.4
-# the order in which the re-plan takes primitives out: "weight" (ratefit.importance: weight x sigma
-# volume, least first) or "left-out" (ratefit.importance_left_out: what leaving each out changes at
-# its centre, the model evaluated there once). On one H200 the cut of 24 / 36 % at CR 10 took the
-# sample PSNR of mni_icbm152 / inia19 from 39.84 / 51.95 to 35.58 / 47.97 dB, regained only by
-# iteration 750 / 600 of 1,500, and mni_icbm152 ended 3 dB under a float32 model trained at the
-# final N from the start (accuracy/sweep_round3b_h200.json); "left-out" is the candidate, not yet
-# measured in the encode (sweep.py variant cut-left-out)
-CUT_ORDER = "weight"
+# the order in which the re-plan takes primitives out: "left-out" (ratefit.importance_left_out:
+# what leaving each out changes at its own centre, the model evaluated there once; those that say
+# what their neighbours say go first) or "weight" (ratefit.importance: weight x sigma volume, the
+# order before). On one H200 the weight order's cut of 24 / 36 % at CR 10 took the sample PSNR of
+# mni_icbm152 / inia19 from 39.84 / 51.95 to 35.58 / 47.97 dB, regained only by iteration 750 / 600
+# of 1,500, and mni_icbm152 ended 3 dB under a float32 model trained at the final N from the start
+# (accuracy/sweep_round3b_h200.json). Left out against weight, CPU (accuracy/cut_order48*_cpu.json:
+# vortex, interface, bubbles 48^3, 400 iterations, 8,192 samples, cuts of 23-37 %): final PSNR CR 10
+# +0.26 / +1.79 / +0.01 dB, CR 30 +1.61 / +1.20 / +0.10; pruning float32 models by 30 % offline
+# (accuracy/prune_order_*_cpu.json, "loo-hole") cost 0.37 / 1.11 / 8.14 / 1.54 dB on mni_icbm152,
+# mean_reg2mean, vortex and interface 96^3 against 0.92 / 1.76 / 9.12 / 2.02. Not yet measured in a
+# GPU encode (sweep.py variant cut-weight is the order before)
+CUT_ORDER = "left-out"
 # a second look half-way from the re-plan to the end (iteration (T + K) / 2), off: the rest of the
 # run is then as long as the span since the re-plan and is expected to gain what that span gained
 # (REPLAN_LATE_EXTRAPOLATE x; nothing where it lost); where the model would code at more bits than
