@@ -60,3 +60,25 @@ def test_a_left_out_cut_takes_out_as_many_others_and_the_file_fits(tmp_path, cpu
     monkeypatch.setattr(replan, "CUT_ORDER", "value")
     with pytest.raises(ValueError, match="CUT_ORDER"):
         warpgauss.encode(vol, **kw)
+
+
+def test_the_training_state_reads_the_model_at_any_points(cpu):
+    """PairPasses.values_at: the value and density of the refiner's state at points inside and
+    outside the volume equal the stored model's dense evaluation there (float32 rounding), the
+    centres included, and reading them changes no iteration buffer."""
+    from test_pair_pass import _refiner
+
+    from warpgauss.field.gaussians import GaussianField
+
+    r = _refiner(cpu, n=200, samples=512)
+    r.step()
+    before = r.passes.value.numpy().copy()
+    p = r.model_params()
+    rng = np.random.default_rng(2)
+    pts = np.concatenate([p[:, 0:3], rng.uniform(-2.0, 26.0, (300, 3))]).astype(np.float32)
+    value, density = r.passes.values_at(pts)
+    ref_v, ref_d, _ = GaussianField(p, r.passes.shape_xyz, device=cpu).evaluate_dense(pts)
+    np.testing.assert_allclose(density, ref_d, rtol=2e-4, atol=1e-6)
+    np.testing.assert_allclose(value, ref_v, rtol=2e-4, atol=2e-5)
+    assert (density[: len(p)] > 0).all()
+    np.testing.assert_array_equal(r.passes.value.numpy(), before)

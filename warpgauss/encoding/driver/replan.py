@@ -60,7 +60,8 @@ REPLAN_MIN_ITERATIONS = 100
 # of the 83 other rows of the two sweeps (three MRIs too) none cut more than 38 %: this changes none of them
 REPLAN_MAX_CUT = 0.4
 # the order in which the re-plan takes primitives out: "left-out" (ratefit.importance_left_out:
-# what leaving each out changes at its own centre, the model evaluated there once; those that say
+# what leaving each out changes at its own centre, the training state evaluated there once
+# (PairPasses.values_at: no second copy of the model on the device); those that say
 # what their neighbours say go first) or "weight" (ratefit.importance: weight x sigma volume, the
 # order before). On one H200 the weight order's cut of 24 / 36 % at CR 10 took the sample PSNR of
 # mni_icbm152 / inia19 from 39.84 / 51.95 to 35.58 / 47.97 dB, regained only by iteration 750 / 600
@@ -257,7 +258,7 @@ class Replan:
             return importance(params)
         if CUT_ORDER != "left-out":
             raise ValueError(f"replan.CUT_ORDER must be 'weight' or 'left-out', not {CUT_ORDER!r}")
-        value, density, _ = Model(params, self.header).field(refiner.device).evaluate_full(params[:, 0:3])
+        value, density = refiner.passes.values_at(params[:, 0:3])
         return importance_left_out(params, value, density)
 
     def refit_pruned(self, refined: Model, cap: float, deadline: float | None) -> None:

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from ...core.warp import warp
 from .draw import Sampler
 from .state import Primitives
@@ -492,6 +494,24 @@ class PairPasses:
             device=dev,
         )
         st.clean = False
+
+    def values_at(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(V~, rho) of the current state at any ``points`` (volume coordinates, (M, 3)), through
+        the binned primitives, one thread a point; nothing of the iteration's buffers changes
+        (the re-plan's cut reads the model at the primitives' centres this way, without a second
+        copy of the model on the device)."""
+        from ...kernels import field as kf
+
+        wp, dev = self._wp, self.device
+        pts = np.ascontiguousarray(points, np.float32).reshape(-1, 3)
+        m = pts.shape[0]
+        value = wp.empty(m, dtype=float, device=dev)
+        density = wp.empty(m, dtype=float, device=dev)
+        pairs = wp.empty(m, dtype=int, device=dev)
+        if m:
+            at = wp.array(pts, dtype=wp.vec3, device=dev)
+            wp.launch(kf.eval_points_binned, dim=m, inputs=[at, self.state.prims], outputs=[value, density, pairs], device=dev)
+        return value.numpy(), density.numpy()
 
     def atomic_pairs(self, kernel, count: int) -> None:
         """A point-major pair kernel (float atomics; the references of tests and the self-test)."""
