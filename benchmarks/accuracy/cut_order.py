@@ -1,6 +1,6 @@
 """The re-plan's cut by each order (issue #53): a coded encode with ``replan.CUT_ORDER`` "weight"
-(the default: least weight x sigma volume first) and "left-out" (least change at its own centre
-first, ``ratefit.importance_left_out``), same seed and settings; per row the re-plan's iteration
+(least weight x sigma volume first, the order before) and "left-out" (the default: least change
+at its own centre first, ``ratefit.importance_left_out``), same seed and settings; per row the re-plan's iteration
 and cut, the sample PSNR just before and after it, and the final PSNR of the coded model.
 
     python benchmarks/accuracy/cut_order.py --volumes vortex@48,interface@48,bubbles@48 --ratio 10 \\

@@ -49,7 +49,7 @@ def rankings(m: Model, device: str) -> dict[str, np.ndarray]:
         "value": np.abs(w * a) * vol,
         "weight": w * vol,
         "loo": w * vol * np.abs(a - value) / rest,
-        "loo-hole": w * vol * (np.abs(a - value) + 0.05) / rest,
+        "loo-hole": ratefit.importance_left_out(m.params, value, density),  # the re-plan's cut order
         "random": np.random.default_rng(0).random(len(p)),
         "ratefit.importance": ratefit.importance(m.params),
     }

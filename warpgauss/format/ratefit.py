@@ -71,12 +71,10 @@ def importance_left_out(params: np.ndarray, value: np.ndarray, density: np.ndarr
     1.54 dB on mni_icbm152, mean_reg2mean, vortex and interface 96^3 where :func:`importance` cost
     0.92 / 1.76 / 9.12 / 2.02, and no more at 3 and 10 %."""
     p = np.asarray(params, np.float64)
-    w = np.abs(p[:, 11])
-    vol = np.exp(np.clip(p[:, 3:6].sum(1), -60.0, 60.0))
     density = np.asarray(density, np.float64)
     floor = max(1e-3 * float(np.median(density)) if len(density) else 0.0, 1e-12)
-    rest = np.maximum(density - w, floor)
-    return w * vol * (np.abs(p[:, 10] - np.asarray(value, np.float64)) + LEFT_OUT_HOLE) / rest
+    rest = np.maximum(density - np.abs(p[:, 11]), floor)
+    return importance(p) * (np.abs(p[:, 10] - np.asarray(value, np.float64)) + LEFT_OUT_HOLE) / rest
 
 
 def _bit_bytes(n: int, k: str) -> float:
